@@ -1,0 +1,134 @@
+"""Headless OpenGL through Panda3D: configuration, the shared GL context, diagnostics.
+
+Panda3D's `p3headlessgl` opens an EGL context without a display: a GPU's driver when
+one is present, Mesa's llvmpipe (CPU) otherwise. All renderers of a process share one
+host context, created on first use.
+"""
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import dataclass
+
+_CONFIG = """
+load-display p3headlessgl
+window-type offscreen
+audio-library-name null
+sync-video false
+framebuffer-srgb false
+framebuffer-multisample false
+textures-power-2 none
+gl-coordinate-system default
+notify-level-display error
+notify-level-glgsg error
+notify-level-egldisplay error
+notify-level-gobj error
+"""
+
+INSTALL_HINT = (
+    "marl-render needs a headless OpenGL 4.1+ driver reachable through EGL. On Debian/Ubuntu: "
+    "`apt-get install libegl1 libgl1 libgl1-mesa-dri libgles2` (Mesa, CPU) or an NVIDIA driver "
+    "with its EGL vendor file (GPU)."
+)
+
+_lock = threading.Lock()
+_context = None
+
+
+class GLUnavailableError(RuntimeError):
+    """No usable headless OpenGL context could be created."""
+
+
+class ForkedContextError(RuntimeError):
+    """GL state was inherited through fork(); it cannot be used in the child."""
+
+
+@dataclass(frozen=True)
+class GLInfo:
+    vendor: str
+    renderer: str
+    gl_version: str
+    glsl_version: str
+    max_texture_size: int
+    max_framebuffer_size: int
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+class _Context:
+    """Panda3D engine, pipe and a 1x1 host buffer whose GSG all render targets share."""
+
+    def __init__(self, egl_device_index: int | None):
+        from panda3d.core import (FrameBufferProperties, GraphicsEngine, GraphicsPipe,
+                                  GraphicsPipeSelection, WindowProperties, loadPrcFileData)
+
+        config = _CONFIG
+        if egl_device_index is not None:
+            config += f"egl-device-index {int(egl_device_index)}\n"
+        loadPrcFileData("marl_render", config)
+        self.pid = os.getpid()
+        self.engine = GraphicsEngine.get_global_ptr()
+        selection = GraphicsPipeSelection.get_global_ptr()
+        self.pipe = selection.make_module_pipe("p3headlessgl")
+        if self.pipe is None or not self.pipe.is_valid():
+            raise GLUnavailableError("Panda3D could not load p3headlessgl (libEGL missing?). " + INSTALL_HINT)
+        props = FrameBufferProperties()
+        props.set_rgba_bits(8, 8, 8, 8)
+        props.set_depth_bits(24)
+        self.host = self.engine.make_output(self.pipe, "marl_render_host", -100, props,
+                                            WindowProperties.size(1, 1), GraphicsPipe.BF_refuse_window)
+        if self.host is None:
+            raise GLUnavailableError("could not create a headless OpenGL context through EGL. " + INSTALL_HINT)
+        self.engine.open_windows()
+        self.gsg = self.host.get_gsg()
+        if not self.gsg.get_supports_glsl() or self.gsg.get_driver_shader_version_major() < 4:
+            raise GLUnavailableError(
+                f"OpenGL driver {self.gsg.get_driver_renderer()!r} lacks GLSL 4.x "
+                f"(has {self.gsg.get_driver_shader_version_major()}.{self.gsg.get_driver_shader_version_minor()}). "
+                + INSTALL_HINT)
+
+    def info(self) -> GLInfo:
+        gsg = self.gsg
+        max_size = int(gsg.get_max_texture_dimension())
+        return GLInfo(
+            vendor=gsg.get_driver_vendor(),
+            renderer=gsg.get_driver_renderer(),
+            gl_version=gsg.get_driver_version(),
+            glsl_version=f"{gsg.get_driver_shader_version_major()}.{gsg.get_driver_shader_version_minor()}",
+            max_texture_size=max_size,
+            max_framebuffer_size=max_size,
+        )
+
+
+def _forget_in_child():
+    # The child shares the parent's GL handles but not its driver threads: mark them stale.
+    global _context
+    if _context is not None:
+        _context.pid = -1
+
+
+os.register_at_fork(after_in_child=_forget_in_child)
+
+
+def context(egl_device_index: int | None = None) -> _Context:
+    """The process-wide GL context, created on first use."""
+    global _context
+    with _lock:
+        if _context is not None and _context.pid != os.getpid():
+            raise ForkedContextError(
+                "this process was forked after OpenGL was initialised in its parent; GL contexts do not "
+                "survive fork(). Start workers with the 'spawn' start method "
+                "(multiprocessing.set_start_method('spawn'), or TorchRL's ParallelEnv default).")
+        if _context is None:
+            _context = _Context(egl_device_index if egl_device_index is not None else _env_device_index())
+        return _context
+
+
+def _env_device_index() -> int | None:
+    value = os.environ.get("MARL_RENDER_EGL_DEVICE")
+    return int(value) if value not in (None, "") else None
+
+
+def gl_info() -> GLInfo:
+    return context().info()

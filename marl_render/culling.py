@@ -1,0 +1,43 @@
+"""Which (view, instance) pairs can be seen: frustum culling in torch.
+
+On a CPU rasteriser every vertex of every drawn instance costs time in every view,
+even when the GPU would clip it away. Culling with bounding spheres against each
+view's frustum, the agent's own body and the active mask, all batched, leaves the
+shader only the pairs that can reach a pixel.
+"""
+from __future__ import annotations
+
+import torch
+
+
+def frustum_planes(view_projection: torch.Tensor) -> torch.Tensor:
+    """Planes [..., 6, 4] (a, b, c, d; inside when a x + b y + c z + d >= 0), unit normals.
+
+    Rows of the clip matrix combine into left, right, bottom, top, near, far planes.
+    """
+    r0, r1, r2, r3 = view_projection.unbind(-2)
+    planes = torch.stack((r3 + r0, r3 - r0, r3 + r1, r3 - r1, r3 + r2, r3 - r2), dim=-2)
+    return planes / planes[..., :3].norm(dim=-1, keepdim=True).clamp_min(1e-30)
+
+
+def visible_pairs(planes: torch.Tensor, centers: torch.Tensor, radii: torch.Tensor,
+                  candidate: torch.Tensor) -> torch.Tensor:
+    """Flat indices view * C + instance of the visible pairs, sorted by view.
+
+    planes [W, A, 6, 4], centers [W, C, 3] (relative to the world origin), radii [W, C],
+    candidate [W, A, C] bool (active and not the viewing agent's own body).
+    """
+    distance = torch.einsum("wapk,wck->wapc", planes[..., :3], centers.to(planes.dtype))
+    distance = distance + planes[..., 3:4]
+    inside = (distance >= -radii[:, None, None, :].to(planes.dtype)).all(dim=2)
+    return (inside & candidate).flatten().nonzero().squeeze(1).to(torch.int32)
+
+
+def mesh_radius(mesh) -> float:
+    """Radius of a sphere about the mesh origin that contains the whole mesh."""
+    positions = getattr(mesh, "positions", None)
+    if positions is not None:
+        return float((positions.astype("float64") ** 2).sum(axis=1).max() ** 0.5) if len(positions) else 0.0
+    low, high = mesh.get_tight_bounds()
+    corners = [(x, y, z) for x in (low.x, high.x) for y in (low.y, high.y) for z in (low.z, high.z)]
+    return max((x * x + y * y + z * z) ** 0.5 for x, y, z in corners)

@@ -1,0 +1,216 @@
+"""Declarative scene description: what exists, not how it is drawn.
+
+A Scene holds W worlds of A agents each. It has
+- static geometry, shared by all worlds and stored once;
+- instance groups: one mesh, a capacity per world, per-instance pose/scale/colour/active
+  mask/owner, updated every step by the environment;
+- cameras: A per world, free or mounted on instances (egocentric);
+- the effects it declares; only those are compiled into the shaders.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from . import meshes as mesh_lib
+from .shaders import EFFECTS
+from .validation import (as_tensor, check_finite, check_shape, describe, positive_float, positive_int,
+                         resolution_hw)
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """Ambient plus one directional light (Lambert)."""
+
+    direction: tuple = (-0.3, 0.4, -1.0)  # from the light, world frame
+    color: tuple = (0.75, 0.75, 0.75)
+    ambient: tuple = (0.35, 0.35, 0.35)
+
+
+@dataclass(frozen=True)
+class Fog:
+    """Exponential distance fog: colour = mix(fog, colour, exp(-density * depth))."""
+
+    color: tuple = (0.6, 0.65, 0.7)
+    density: float = 0.05
+
+
+@dataclass
+class StaticGroup:
+    name: str
+    mesh: object  # MeshData or a Panda3D NodePath from load_model
+    position: torch.Tensor  # [K, 3] float64
+    rotation: torch.Tensor  # [K, 4]
+    scale: torch.Tensor  # [K, 3]
+    color: torch.Tensor  # [K, 4]
+    texture: object = None
+    segment_base: int = 0
+
+    @property
+    def count(self) -> int:
+        return self.position.shape[0]
+
+
+@dataclass
+class InstanceGroup:
+    name: str
+    mesh: object
+    capacity: int
+    texture: object = None
+    segment_base: int = 0
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    """Agent a's camera rides on instance `instance[a]` of `group` (egocentric)."""
+
+    group: str
+    instance: tuple  # one instance index per agent
+    offset: tuple = (0.0, 0.0, 0.0)  # in the instance's frame (metres)
+    pitch: float = 0.0  # radians, positive looks up
+    hide_owner: bool = True
+
+
+@dataclass
+class Scene:
+    num_worlds: int
+    agents_per_world: int
+    resolution: object = 64  # int or (H, W) of each agent's view
+    effects: tuple = ("lighting",)
+    background: tuple = (0.55, 0.65, 0.75)
+    lighting: Lighting = field(default_factory=Lighting)
+    fog: Fog = field(default_factory=Fog)
+    fov_y: float = math.radians(70.0)
+    near: float = 0.05
+    far: float = 100.0
+    static: dict = field(default_factory=dict, init=False)
+    groups: dict = field(default_factory=dict, init=False)
+    camera_mount: CameraMount | None = field(default=None, init=False)
+
+    def __post_init__(self):
+        self.num_worlds = positive_int("num_worlds", self.num_worlds)
+        self.agents_per_world = positive_int("agents_per_world", self.agents_per_world)
+        self.resolution = resolution_hw(self.resolution)
+        if isinstance(self.effects, str):
+            raise TypeError(f"effects must be a collection of names, got the string {self.effects!r}")
+        unknown = sorted(set(self.effects) - set(EFFECTS))
+        if unknown:
+            raise ValueError(f"effects must be drawn from {list(EFFECTS)}, got unknown {unknown}")
+        self.effects = tuple(sorted(set(self.effects)))
+        positive_float("near", self.near)
+        positive_float("far", self.far)
+        if not self.far > self.near:
+            raise ValueError(f"far must be greater than near, got near={self.near}, far={self.far}")
+        if not 0 < self.fov_y < math.pi:
+            raise ValueError(f"fov_y must be in (0, pi) radians, got {self.fov_y}")
+        _color3("background", self.background)
+
+    @property
+    def num_views(self) -> int:
+        return self.num_worlds * self.agents_per_world
+
+    def _check_name(self, name: str) -> None:
+        if not isinstance(name, str) or not name:
+            raise TypeError(f"group name must be a non-empty str, got {describe(name)}")
+        if name in self.static or name in self.groups:
+            raise ValueError(f"group name {name!r} is already used in this scene")
+
+    def _next_segment_base(self) -> int:
+        used = [g.segment_base + g.count for g in self.static.values()]
+        used += [g.segment_base + g.capacity for g in self.groups.values()]
+        return max(used, default=1)
+
+    def add_static(self, name: str, mesh, position, rotation=None, scale=None, color=None, texture=None) -> StaticGroup:
+        """Geometry identical in every world (floor, walls): stored and uploaded once."""
+        self._check_name(name)
+        mesh = _resolve_mesh(mesh)
+        position = as_tensor("position", position).to(torch.float64)
+        if position.ndim == 1:
+            position = position[None]
+        check_shape("position", position, (None, 3))
+        count = position.shape[0]
+        rotation, scale, color = _pose_defaults(count, rotation, scale, color)
+        for label, value in (("position", position), ("rotation", rotation), ("scale", scale), ("color", color)):
+            check_finite(label, value)
+        group = StaticGroup(name, mesh, position, _unit(rotation), scale, color, texture, self._next_segment_base())
+        self.static[name] = group
+        return group
+
+    def add_group(self, name: str, mesh, capacity: int, texture=None) -> InstanceGroup:
+        """A mesh drawn up to `capacity` times per world, posed per step."""
+        self._check_name(name)
+        group = InstanceGroup(name, _resolve_mesh(mesh), positive_int("capacity", capacity), texture,
+                              self._next_segment_base())
+        self.groups[name] = group
+        return group
+
+    def mount_cameras(self, group: str, instance, offset=(0.0, 0.0, 0.0), pitch: float = 0.0,
+                      hide_owner: bool = True) -> CameraMount:
+        """Egocentric cameras: agent a looks out of instance `instance[a]` of `group`."""
+        if group not in self.groups:
+            raise ValueError(f"group must name an instance group of this scene ({sorted(self.groups)}), got {group!r}")
+        instance = tuple(int(i) for i in np.asarray(instance).reshape(-1))
+        if len(instance) != self.agents_per_world:
+            raise ValueError(f"instance must give one index per agent ({self.agents_per_world}), got {len(instance)}")
+        capacity = self.groups[group].capacity
+        if any(not 0 <= i < capacity for i in instance):
+            raise ValueError(f"instance indices must be in [0, {capacity}), got {list(instance)}")
+        offset = tuple(float(v) for v in offset)
+        if len(offset) != 3 or not all(math.isfinite(v) for v in offset):
+            raise ValueError(f"offset must be 3 finite numbers, got {offset}")
+        if not math.isfinite(pitch):
+            raise ValueError(f"pitch must be finite, got {pitch}")
+        self.camera_mount = CameraMount(group, instance, offset, float(pitch), bool(hide_owner))
+        return self.camera_mount
+
+    def segment_ids(self, name: str) -> range:
+        """Segmentation ids of a group's instances (same in every world); 0 is background."""
+        group = self.static.get(name) or self.groups.get(name)
+        if group is None:
+            raise KeyError(f"no group named {name!r}; known: {sorted(self.static) + sorted(self.groups)}")
+        count = group.count if isinstance(group, StaticGroup) else group.capacity
+        return range(group.segment_base, group.segment_base + count)
+
+
+def _resolve_mesh(mesh):
+    if isinstance(mesh, str) and mesh in mesh_lib.PROCEDURAL:
+        return mesh_lib.PROCEDURAL[mesh]()
+    if isinstance(mesh, mesh_lib.MeshData):
+        return mesh
+    if isinstance(mesh, str):
+        return mesh_lib.load_model(mesh)
+    if type(mesh).__name__ == "NodePath":
+        return mesh
+    raise TypeError(f"mesh must be a MeshData, a procedural name {sorted(mesh_lib.PROCEDURAL)}, a model path "
+                    f"or a Panda3D NodePath, got {describe(mesh)}")
+
+
+def _pose_defaults(count, rotation, scale, color):
+    rotation = torch.tensor([[1.0, 0, 0, 0]]).expand(count, 4) if rotation is None else as_tensor("rotation", rotation)
+    scale = torch.ones(count, 3) if scale is None else as_tensor("scale", scale)
+    color = torch.tensor([[0.8, 0.8, 0.8, 1.0]]).expand(count, 4) if color is None else as_tensor("color", color)
+    rotation, scale, color = (t[None] if t.ndim == 1 else t for t in (rotation, scale, color))
+    if scale.shape[-1] == 1:
+        scale = scale.expand(count, 3)
+    if color.shape[-1] == 3:
+        color = torch.cat((color, torch.ones(color.shape[0], 1, dtype=color.dtype)), -1)
+    rotation, scale, color = (t.expand(count, t.shape[-1]) if t.shape[0] == 1 else t for t in (rotation, scale, color))
+    check_shape("rotation", rotation, (count, 4))
+    check_shape("scale", scale, (count, 3))
+    check_shape("color", color, (count, 4))
+    return rotation.to(torch.float32), scale.to(torch.float32), color.to(torch.float32)
+
+
+def _unit(rotation: torch.Tensor) -> torch.Tensor:
+    from .transforms import normalize_quat
+
+    return normalize_quat(rotation.to(torch.float64)).to(torch.float32)
+
+
+def _color3(name, value):
+    arr = np.asarray(value, dtype=float)
+    if arr.shape not in ((3,), (4,)) or not np.all((arr >= 0) & (arr <= 1)):
+        raise ValueError(f"{name} must be 3 or 4 numbers in [0, 1], got {value}")

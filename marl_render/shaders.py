@@ -1,0 +1,69 @@
+"""Shader variants: the GLSL in shaders/ with one #define per declared effect.
+
+Code inside `#ifdef EFFECT_X` blocks is removed by the GLSL preprocessor when the scene
+does not declare X, so an undeclared effect costs nothing at draw time. One Panda3D
+Shader object is built per distinct set of defines and cached.
+"""
+from __future__ import annotations
+
+import functools
+from importlib import resources
+
+GLSL_VERSION = "#version 410\n"
+
+# Texels per instance / per view in the buffer textures; the renderer packs the same.
+INSTANCE_TEXELS = 4
+STATIC_INSTANCE_TEXELS = 5
+VIEW_TEXELS = 6
+
+# Effects a scene may declare, and the define each one turns on.
+EFFECT_DEFINES = {
+    "lighting": "EFFECT_LIGHTING",
+    "texture": "EFFECT_TEXTURE",
+    "fog": "EFFECT_FOG",
+    "depth": "OUTPUT_DEPTH",
+    "segmentation": "OUTPUT_SEGMENTATION",
+    "log_depth": "LOG_DEPTH",
+}
+EFFECTS = tuple(EFFECT_DEFINES)
+
+
+@functools.lru_cache(maxsize=None)
+def source(name: str) -> str:
+    return resources.files("marl_render.glsl").joinpath(name).read_text()
+
+
+def defines_for(effects: frozenset, *, static: bool, textured: bool) -> tuple[str, ...]:
+    """The sorted #define lines of one variant (texture only for groups that have one)."""
+    defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
+    if "texture" in effects and textured:
+        defines.add("EFFECT_TEXTURE")
+    defines.add(f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}")
+    defines.add(f"VIEW_TEXELS {VIEW_TEXELS}")
+    if static:
+        defines.add("STATIC_GROUP")
+    # Aux attachments are numbered in declaration order after the colour target.
+    location = 1
+    if "depth" in effects:
+        defines.add(f"DEPTH_LOCATION {location}")
+        location += 1
+    if "segmentation" in effects:
+        defines.add(f"SEGMENTATION_LOCATION {location}")
+    return tuple(sorted(defines))
+
+
+def variant_source(stage: str, defines: tuple[str, ...]) -> str:
+    """Full GLSL text of one stage ("vert" or "frag") for the given defines."""
+    header = GLSL_VERSION + "".join(f"#define {d}\n" for d in defines)
+    return header + source(f"batch.{stage}")
+
+
+@functools.lru_cache(maxsize=None)
+def compiled(defines: tuple[str, ...]):
+    """Cached Panda3D Shader for one variant (compiled by the driver on first draw)."""
+    from panda3d.core import Shader
+
+    shader = Shader.make(Shader.SL_GLSL, variant_source("vert", defines), variant_source("frag", defines))
+    if shader is None:
+        raise RuntimeError(f"shader variant {defines} failed to parse; see the GL log above")
+    return shader

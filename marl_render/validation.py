@@ -1,0 +1,117 @@
+"""Argument checks shared by the public API.
+
+Every check raises before anything is written, so a rejected call leaves state
+unchanged. Messages name the argument, what was expected and what was given.
+"""
+from __future__ import annotations
+
+from typing import Iterable, Sequence
+
+import numpy as np
+import torch
+
+FLOAT_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
+
+
+def describe(value) -> str:
+    """Short description of a value for error messages."""
+    if isinstance(value, torch.Tensor):
+        return f"tensor of shape {tuple(value.shape)}, dtype {value.dtype}, device {value.device}"
+    if isinstance(value, np.ndarray):
+        return f"array of shape {value.shape}, dtype {value.dtype}"
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def as_tensor(name: str, value, *, dtype_kind: str = "float", device=None) -> torch.Tensor:
+    """Turn lists / numpy arrays / tensors into a tensor without silently changing kind.
+
+    dtype_kind: "float" accepts any float tensor (or int/float lists), "bool" accepts bool,
+    "int" accepts integer tensors.
+    """
+    if isinstance(value, torch.Tensor):
+        tensor = value
+    elif isinstance(value, (np.ndarray, list, tuple, int, float, bool, np.generic)):
+        try:
+            tensor = torch.as_tensor(np.asarray(value))
+        except (TypeError, ValueError) as exc:
+            raise TypeError(f"{name} must be array-like of numbers, got {describe(value)}") from exc
+    else:
+        raise TypeError(f"{name} must be a torch.Tensor or array-like, got {type(value).__name__}")
+    if device is not None and tensor.device != torch.device(device):
+        raise ValueError(f"{name} must be on device {torch.device(device)}, got {tensor.device}")
+    if dtype_kind == "float":
+        if tensor.dtype == torch.bool or tensor.is_complex():
+            raise TypeError(f"{name} must have a floating dtype, got {tensor.dtype}")
+        if not tensor.is_floating_point():
+            tensor = tensor.to(torch.float32)
+    elif dtype_kind == "bool":
+        if tensor.dtype != torch.bool:
+            raise TypeError(f"{name} must have dtype torch.bool, got {tensor.dtype}")
+    elif dtype_kind == "int":
+        if tensor.is_floating_point() or tensor.dtype == torch.bool or tensor.is_complex():
+            raise TypeError(f"{name} must have an integer dtype, got {tensor.dtype}")
+    return tensor
+
+
+def check_shape(name: str, tensor: torch.Tensor, expected: Sequence[int | None]) -> None:
+    """None in `expected` matches any size."""
+    shape = tuple(tensor.shape)
+    ok = len(shape) == len(expected) and all(e is None or e == s for e, s in zip(expected, shape))
+    if not ok:
+        want = "[" + ", ".join("*" if e is None else str(e) for e in expected) + "]"
+        raise ValueError(f"{name} must have shape {want}, got {list(shape)}")
+
+
+def check_finite(name: str, tensor: torch.Tensor) -> None:
+    if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+        bad = (~torch.isfinite(tensor)).nonzero()[0].tolist()
+        raise ValueError(f"{name} must be finite (no NaN/Inf), got a non-finite value at index {bad}")
+
+
+def check_range(name: str, tensor: torch.Tensor, low=None, high=None) -> None:
+    if low is not None and bool((tensor < low).any()):
+        raise ValueError(f"{name} must be >= {low}, got minimum {tensor.min().item()}")
+    if high is not None and bool((tensor > high).any()):
+        raise ValueError(f"{name} must be <= {high}, got maximum {tensor.max().item()}")
+
+
+def check_choice(name: str, value, choices: Iterable) -> None:
+    choices = list(choices)
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
+
+
+def positive_int(name: str, value, *, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an int >= {minimum}, got {describe(value)}")
+    if value < minimum:
+        raise ValueError(f"{name} must be an int >= {minimum}, got {value}")
+    return int(value)
+
+
+def positive_float(name: str, value, *, allow_zero: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise TypeError(f"{name} must be a number, got {describe(value)}")
+    value = float(value)
+    if not np.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ValueError(f"{name} must be a finite number {bound}, got {value}")
+    return value
+
+
+def resolution_hw(value, *, name: str = "resolution", max_size: int | None = None) -> tuple[int, int]:
+    """int R -> (R, R); (H, W) -> (H, W). Both sides must be >= 1 (and <= max_size)."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        hw = (int(value), int(value))
+    elif isinstance(value, (tuple, list)) and len(value) == 2 and all(
+        isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in value
+    ):
+        hw = (int(value[0]), int(value[1]))
+    else:
+        raise TypeError(f"{name} must be an int or a pair of ints (H, W), got {describe(value)}")
+    if min(hw) < 1:
+        raise ValueError(f"{name} must be >= 1 pixel on each side, got {hw}")
+    if max_size is not None and max(hw) > max_size:
+        raise ValueError(f"{name} must be at most {max_size} pixels on each side (GL limit), got {hw}")
+    return hw

@@ -1,0 +1,64 @@
+// Colour, then only the declared effects. Outputs are written in B, G, R, A order
+// because Panda3D reads the framebuffer back as BGRA: memory then holds R, G, B, A.
+in vec4 v_color;
+#ifdef EFFECT_TEXTURE
+in vec2 v_uv;
+uniform sampler2D p3d_Texture0;
+#endif
+#ifdef EFFECT_LIGHTING
+in vec3 v_normal;
+uniform vec3 light_direction;  // world frame, pointing from the light
+uniform vec3 light_color;
+uniform vec3 ambient_color;
+#endif
+#if defined(EFFECT_FOG) || defined(OUTPUT_DEPTH) || defined(LOG_DEPTH)
+in float v_depth;
+#endif
+#ifdef EFFECT_FOG
+uniform vec3 fog_color;
+uniform float fog_density;  // exponential fog, per metre
+#endif
+#ifdef LOG_DEPTH
+flat in vec2 v_near_far;
+#endif
+#ifdef OUTPUT_SEGMENTATION
+flat in int v_segment;
+#endif
+
+layout(location = 0) out vec4 out_color;
+#ifdef OUTPUT_DEPTH
+layout(location = DEPTH_LOCATION) out vec4 out_depth;
+#endif
+#ifdef OUTPUT_SEGMENTATION
+layout(location = SEGMENTATION_LOCATION) out vec4 out_segment;
+#endif
+
+// A 32-bit value as four exact 8-bit channels, in the framebuffer's BGRA order.
+vec4 bytes_of(uint bits) {
+    return unpackUnorm4x8(bits).zyxw;
+}
+
+void main() {
+    vec3 color = v_color.rgb;
+#ifdef EFFECT_TEXTURE
+    color *= texture(p3d_Texture0, v_uv).rgb;
+#endif
+#ifdef EFFECT_LIGHTING
+    float lambert = max(dot(normalize(v_normal), -light_direction), 0.0);
+    color *= ambient_color + light_color * lambert;
+#endif
+#ifdef EFFECT_FOG
+    color = mix(fog_color, color, exp(-fog_density * v_depth));
+#endif
+    out_color = vec4(clamp(color, 0.0, 1.0).bgr, 1.0);
+#ifdef LOG_DEPTH
+    // Logarithmic depth: equal relative precision from near to far.
+    gl_FragDepth = log2(max(v_depth, v_near_far.x) / v_near_far.x) / log2(v_near_far.y / v_near_far.x);
+#endif
+#ifdef OUTPUT_DEPTH
+    out_depth = bytes_of(floatBitsToUint(v_depth));
+#endif
+#ifdef OUTPUT_SEGMENTATION
+    out_segment = bytes_of(uint(v_segment));
+#endif
+}
