@@ -87,8 +87,14 @@ class BatchRenderer:
         self.layout: TileLayout = plan_layout(scene.num_views, height, width, max_framebuffer_size)
         self.effects = frozenset(scene.effects)
         self._init_state()
-        self._build_target()
-        self._build_groups()
+        self.buffer = self.root = None
+        self._groups = {}
+        try:
+            self._build_target()
+            self._build_groups()
+        except BaseException:
+            self.close()  # free whatever GL objects were made before the failure
+            raise
 
     # ------------------------------------------------------------------ state
     def _init_state(self):
@@ -103,6 +109,13 @@ class BatchRenderer:
         self.fov_y = torch.full((W, A), float(s.fov_y), dtype=torch.float64)
         self.near = torch.full((W, A), float(s.near), dtype=torch.float64)
         self.far = torch.full((W, A), float(s.far), dtype=torch.float64)
+        mount = s.camera_mount
+        if mount is not None:
+            tilt = None
+            if mount.pitch:
+                tilt = quat_from_yaw_pitch_roll(torch.tensor(0.0, dtype=torch.float64),
+                                                torch.tensor(mount.pitch, dtype=torch.float64))
+            self._mount_constants = (torch.tensor(mount.instance), torch.tensor(mount.offset, dtype=torch.float64), tilt)
         self._state = {}
         for name, group in s.groups.items():
             C = group.capacity
@@ -114,7 +127,6 @@ class BatchRenderer:
                 "active": torch.zeros(W, C, dtype=torch.bool),
                 "owner": torch.full((W, C), -1, dtype=torch.int64),
             }
-            mount = s.camera_mount
             if mount is not None and mount.group == name and mount.hide_owner:
                 state["owner"][:, list(mount.instance)] = torch.arange(A)
             self._state[name] = state
@@ -330,13 +342,11 @@ class BatchRenderer:
         if mount is None:
             return self.camera_position, self.camera_rotation
         state = self._state[mount.group]
-        index = list(mount.instance)
+        index, offset, tilt = self._mount_constants
         body_position = state["position"][:, index]
         body_rotation = state["rotation"][:, index].to(torch.float64)
-        offset = torch.tensor(mount.offset, dtype=torch.float64).expand_as(body_position)
-        position = body_position + quat_rotate(body_rotation, offset)
-        if mount.pitch:
-            tilt = quat_from_yaw_pitch_roll(torch.tensor(0.0, dtype=torch.float64), torch.tensor(mount.pitch, dtype=torch.float64))
+        position = body_position + quat_rotate(body_rotation, offset.expand_as(body_position))
+        if tilt is not None:
             body_rotation = quat_multiply(body_rotation, tilt.expand_as(body_rotation))
         return position, body_rotation
 
@@ -471,15 +481,20 @@ class BatchRenderer:
         if self._closed:
             return
         self._closed = True
-        self.buffer.clear_render_textures()
-        self._context.engine.remove_window(self.buffer)
-        self.root.remove_node()
-        group_textures = [t for g in self._groups.values() for t in (g.instances, g.pairs)]
-        for texture in [self.color_texture, self.views_texture, *self.aux_textures.values(), *group_textures]:
-            texture.release_all()
-            texture.clear_ram_image()
+        if self.buffer is not None:
+            self.buffer.clear_render_textures()
+            self._context.engine.remove_window(self.buffer)
+            self.buffer = None
+        if self.root is not None:
+            self.root.remove_node()
+        textures = [getattr(self, name, None) for name in ("color_texture", "views_texture")]
+        textures += list(getattr(self, "aux_textures", {}).values())
+        textures += [t for g in self._groups.values() for t in (g.instances, g.pairs)]
+        for texture in textures:
+            if texture is not None:
+                texture.release_all()
+                texture.clear_ram_image()
         self._groups.clear()
-        self.buffer = None
 
     def __enter__(self):
         return self
@@ -489,9 +504,8 @@ class BatchRenderer:
 
     def __del__(self):
         try:
-            if not self._closed and self.buffer is not None:
-                self.close()
-        except Exception:
+            self.close()
+        except Exception:  # interpreter shutdown: Panda3D may already be gone
             pass
 
 

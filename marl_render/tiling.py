@@ -9,6 +9,7 @@ A tile copy is then one strided copy, with no flip and no channel swizzle.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,7 +61,10 @@ def framebuffer_tiles(ram_image, dtype, channels: int, layout: TileLayout) -> to
 
     The view aliases memory that Panda3D overwrites on the next render.
     """
-    flat = torch.from_numpy(np.frombuffer(memoryview(ram_image), dtype=dtype))
+    with warnings.catch_warnings():
+        # Panda3D hands out its RAM image read-only; we only ever read from this view.
+        warnings.simplefilter("ignore", UserWarning)
+        flat = torch.from_numpy(np.frombuffer(memoryview(ram_image), dtype=dtype))
     th, tw, cols, rows = layout.tile_height, layout.tile_width, layout.columns, layout.rows
     shape = (rows, th, cols, tw) + ((channels,) if channels > 1 else ())
     return flat.view(shape).transpose(1, 2)

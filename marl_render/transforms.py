@@ -48,13 +48,21 @@ def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
-    """[..., 4] -> [..., 3, 3]; columns are the rotated x, y, z axes."""
+    """[..., 4] -> [..., 3, 3]; columns are the rotated x, y, z axes.
+
+    Any non-zero scale of q gives the same rotation (the formula is divided by |q|^2),
+    so slightly unnormalised quaternions never shear or scale; (near-)zero ones raise.
+    """
+    norm2 = (q * q).sum(-1)
+    if bool((norm2 < _MIN_QUAT_NORM**2).any()):
+        raise ValueError(f"q must be non-zero quaternions (w, x, y, z), got one with norm < {_MIN_QUAT_NORM}")
+    s = 2.0 / norm2
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         (
-            torch.stack((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)), -1),
-            torch.stack((2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)), -1),
-            torch.stack((2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)), -1),
+            torch.stack((1 - s * (y * y + z * z), s * (x * y - w * z), s * (x * z + w * y)), -1),
+            torch.stack((s * (x * y + w * z), 1 - s * (x * x + z * z), s * (y * z - w * x)), -1),
+            torch.stack((s * (x * z - w * y), s * (y * z + w * x), 1 - s * (x * x + y * y)), -1),
         ),
         dim=-2,
     )
@@ -109,13 +117,20 @@ def yaw_pitch_roll_from_quat(q: torch.Tensor) -> torch.Tensor:
     rotation is still reproduced exactly.
     """
     m = quat_to_matrix(normalize_quat(q))
-    # R = Rz(yaw) Rx(pitch) Ry(roll): m[2,1] = sin(pitch).
-    sin_pitch = m[..., 2, 1].clamp(-1.0, 1.0)
-    pitch = torch.asin(sin_pitch)
-    cos_pitch = torch.sqrt((m[..., 2, 0] ** 2 + m[..., 2, 2] ** 2))
-    gimbal = cos_pitch < 1e-6
-    yaw = torch.where(gimbal, torch.atan2(m[..., 1, 0], m[..., 0, 0]), torch.atan2(-m[..., 0, 1], m[..., 1, 1]))
-    roll = torch.where(gimbal, torch.zeros_like(yaw), torch.atan2(-m[..., 2, 0], m[..., 2, 2]))
+    # R = Rz(yaw) Rx(pitch) Ry(roll): row 2 is (-cos(pitch) sin(roll), sin(pitch), cos(pitch) cos(roll)).
+    # atan2 keeps pitch precise near +-90 degrees, where asin(m[2,1]) loses half the digits
+    # (asin(1 - eps) is off by sqrt(2 eps): 3e-4 rad in float32).
+    cos_pitch = torch.hypot(m[..., 2, 0], m[..., 2, 2])
+    pitch = torch.atan2(m[..., 2, 1], cos_pitch)
+    # Only rounding noise left in row 2: call it the lock and set roll to 0.
+    gimbal = cos_pitch < 4 * torch.finfo(m.dtype).eps
+    roll = torch.where(gimbal, torch.zeros_like(pitch), torch.atan2(-m[..., 2, 0], m[..., 2, 2]))
+    # Yaw from R Ry(-roll) = Rz(yaw) Rx(pitch), whose first column is (cos yaw, sin yaw, 0).
+    # Near the gimbal lock roll is ill-conditioned (its error grows like 1 / cos(pitch));
+    # taking yaw from the roll actually used makes yaw absorb that error, so the
+    # rotation is reproduced to rounding precision at every pitch.
+    cr, sr = torch.cos(roll), torch.sin(roll)
+    yaw = torch.atan2(m[..., 1, 0] * cr + m[..., 1, 2] * sr, m[..., 0, 0] * cr + m[..., 0, 2] * sr)
     return torch.stack((yaw, pitch, roll), -1)
 
 

@@ -1,0 +1,71 @@
+"""Shared pieces of the benchmarks: timing, progress, the reference arena scene."""
+from __future__ import annotations
+
+import math
+import platform
+import sys
+import time
+
+import torch
+
+import marl_render as mr
+
+
+def progress(message: str) -> None:
+    """Progress goes to stderr so that --json output stays clean."""
+    print(message, file=sys.stderr, flush=True)
+
+
+def time_per_call(function, steps: int, warmup: int = 3) -> float:
+    """Median-free simple mean of `steps` calls after `warmup` calls, in seconds."""
+    for _ in range(warmup):
+        function()
+    start = time.perf_counter()
+    for _ in range(steps):
+        function()
+    return (time.perf_counter() - start) / steps
+
+
+def machine() -> dict:
+    from marl_render import backend
+
+    info = backend.gl_info()
+    return {"gl_renderer": info.renderer, "gl_version": info.gl_version, "python": platform.python_version(),
+            "torch": torch.__version__, "cpu_threads": torch.get_num_threads()}
+
+
+def arena_scene(worlds: int, agents: int, resolution, instances: int = 10, effects=("lighting",)) -> mr.Scene:
+    """Floor + `instances` per world: the agents' capsules (cameras mounted) and boxes."""
+    scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=resolution, effects=effects)
+    scene.add_static("floor", "plane", position=[0, 0, 0], scale=[12, 12, 1], color=[0.35, 0.55, 0.35])
+    scene.add_group("agents", mr.capsule(0.25, 0.9, segments=8, rings=2), capacity=agents)
+    scene.add_group("boxes", "box", capacity=max(instances - agents, 1))
+    scene.mount_cameras("agents", list(range(agents)), offset=(0.0, 0.0, 0.3))
+    return scene
+
+
+class RandomMotion:
+    """Random poses for arena_scene, the same sequence for every renderer given a seed."""
+
+    def __init__(self, scene: mr.Scene, seed: int = 0):
+        self.scene = scene
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def next(self) -> dict:
+        W = self.scene.num_worlds
+        g = self.generator
+        updates = {}
+        for name, group in self.scene.groups.items():
+            C = group.capacity
+            position = torch.rand(W, C, 3, generator=g) * 8 - 4
+            position[..., 2] = 0.45
+            yaw = torch.rand(W, C, generator=g) * 2 * math.pi
+            updates[name] = dict(position=position, rotation=mr.quat_from_yaw_pitch_roll(yaw),
+                                 active=torch.ones(W, C, dtype=torch.bool),
+                                 color=torch.rand(W, C, 3, generator=g) * 0.8 + 0.2)
+        return updates
+
+
+def apply(renderer, updates: dict) -> None:
+    for name, kwargs in updates.items():
+        renderer.update(name, **kwargs)

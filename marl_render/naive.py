@@ -1,0 +1,173 @@
+"""The plain Panda3D way, done well: the baseline the batch renderer is measured against.
+
+One offscreen buffer; one camera and display region per view; one scene root per world
+holding ordinary nodes (a pivot per instance, moved by Python calls, with the geometry
+and the mounted camera below it); Panda3D's own lights; one readback per frame. It takes the same Scene and the same update()/set_cameras()
+arguments as BatchRenderer, so both can render identical scenes.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from . import backend
+from .meshes import MeshData, to_panda_geom
+from .renderer import Frame
+from .scene import Scene
+from .tiling import plan_layout
+from .transforms import look_at_quat, normalize_quat
+
+
+class NaiveRenderer:
+    def __init__(self, scene: Scene):
+        from panda3d.core import (AmbientLight, BitMask32, Camera, DirectionalLight, FrameBufferProperties,
+                                  GraphicsOutput, GraphicsPipe, NodePath, PerspectiveLens, Texture,
+                                  WindowProperties)
+
+        self.scene = scene
+        ctx = self._context = backend.context()
+        height, width = scene.resolution
+        self.layout = plan_layout(scene.num_views, height, width, ctx.info().max_framebuffer_size)
+        if self.layout.num_passes != 1:
+            raise ValueError("NaiveRenderer draws all views in one framebuffer; too many views for the GL limit")
+        fb_width, fb_height = self.layout.framebuffer_size
+        props = FrameBufferProperties()
+        props.set_rgba_bits(8, 8, 8, 0)
+        props.set_depth_bits(24)
+        self.buffer = ctx.engine.make_output(ctx.pipe, f"naive_{id(self)}", 0, props,
+                                             WindowProperties.size(fb_width, fb_height),
+                                             GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
+        self.texture = Texture("naive_color")
+        self.buffer.add_render_texture(self.texture, GraphicsOutput.RTM_copy_ram)
+        self.buffer.set_clear_color(tuple(scene.background[:3]) + (1.0,))
+        self.buffer.set_active(False)
+
+        W, A = scene.num_worlds, scene.agents_per_world
+        lighting = scene.lighting
+        self.world_roots, self.pivots, self.cameras, self.lenses = [], {}, [], []
+        templates = {name: self._geometry(g.mesh) for name, g in {**scene.static, **scene.groups}.items()}
+        for w in range(W):
+            root = NodePath(f"world_{w}")
+            if "lighting" in scene.effects:
+                ambient = root.attach_new_node(AmbientLight("ambient"))
+                ambient.node().set_color(tuple(lighting.ambient) + (1.0,))
+                sun = root.attach_new_node(DirectionalLight("sun"))
+                sun.node().set_color(tuple(lighting.color) + (1.0,))
+                sun.node().set_direction(tuple(float(v) for v in lighting.direction))
+                root.set_light(ambient)
+                root.set_light(sun)  # fixed-function lighting: the plain way on every GL
+            for name, group in scene.static.items():
+                for k in range(group.count):
+                    node = templates[name].copy_to(root)
+                    node.set_pos(*group.position[k].tolist())
+                    node.set_quat(tuple(group.rotation[k].tolist()))
+                    node.set_scale(*group.scale[k].tolist())
+                    node.set_color(*group.color[k].tolist())
+            for name, group in scene.groups.items():
+                for c in range(group.capacity):
+                    pivot = root.attach_new_node(f"{name}_{c}")
+                    templates[name].copy_to(pivot)
+                    pivot.hide()
+                    self.pivots[(name, w, c)] = pivot
+            self.world_roots.append(root)
+
+        mount = scene.camera_mount
+        for v in range(scene.num_views):
+            w, a = divmod(v, A)
+            lens = PerspectiveLens()
+            camera = Camera(f"view_{v}", lens)
+            camera.set_camera_mask(BitMask32.bit(a))
+            if mount is None:
+                camera_np = self.world_roots[w].attach_new_node(camera)
+            else:
+                camera_np = self.pivots[(mount.group, w, mount.instance[a])].attach_new_node(camera)
+                camera_np.set_pos(*mount.offset)
+                camera_np.set_p(math.degrees(mount.pitch))
+                if mount.hide_owner:
+                    self.pivots[(mount.group, w, mount.instance[a])].get_child(0).hide(BitMask32.bit(a))
+            row, col = divmod(v, self.layout.columns)
+            rows, cols = self.layout.rows, self.layout.columns
+            region = self.buffer.make_display_region(col / cols, (col + 1) / cols, 1 - (row + 1) / rows, 1 - row / rows)
+            region.set_camera(camera_np)
+            self.cameras.append(camera_np)
+            self.lenses.append(lens)
+        self.set_cameras(fov_y=scene.fov_y, near=scene.near, far=scene.far)
+
+    @staticmethod
+    def _geometry(mesh):
+        from panda3d.core import NodePath
+
+        return NodePath(to_panda_geom(mesh)) if isinstance(mesh, MeshData) else mesh
+
+    def update(self, group, *, position=None, rotation=None, scale=None, color=None, active=None, owner=None):
+        """Same arguments as BatchRenderer.update; applied with one Python call per node."""
+        from panda3d.core import BitMask32
+
+        W = self.scene.num_worlds
+        capacity = self.scene.groups[group].capacity
+        if rotation is not None:
+            rotation = normalize_quat(torch.as_tensor(rotation, dtype=torch.float64))
+        for w in range(W):
+            for c in range(capacity):
+                pivot = self.pivots[(group, w, c)]
+                geometry = pivot.get_child(0)
+                if position is not None:
+                    pivot.set_pos(*map(float, position[w, c]))
+                if rotation is not None:
+                    pivot.set_quat(tuple(map(float, rotation[w, c])))
+                if scale is not None:
+                    geometry.set_scale(*map(float, scale[w, c]))
+                if color is not None:
+                    values = [float(x) for x in color[w, c]]
+                    geometry.set_color(*(values + [1.0] * (4 - len(values))))
+                if active is not None:
+                    pivot.show() if bool(active[w, c]) else pivot.hide()
+                if owner is not None and int(owner[w, c]) >= 0:
+                    geometry.hide(BitMask32.bit(int(owner[w, c])))
+
+    def set_cameras(self, *, position=None, rotation=None, look_at=None, fov_y=None, near=None, far=None):
+        W, A = self.scene.num_worlds, self.scene.agents_per_world
+        if look_at is not None:
+            rotation = look_at_quat(torch.as_tensor(position, dtype=torch.float64),
+                                    torch.as_tensor(look_at, dtype=torch.float64))
+        height, width = self.scene.resolution
+        for v, (camera, lens) in enumerate(zip(self.cameras, self.lenses)):
+            w, a = divmod(v, A)
+            if position is not None:
+                camera.set_pos(*map(float, position[w, a]))
+            if rotation is not None:
+                camera.set_quat(tuple(map(float, rotation[w, a])))
+            if fov_y is not None:
+                vertical = float(torch.as_tensor(fov_y, dtype=torch.float64).expand(W, A)[w, a])
+                horizontal = 2 * math.atan(math.tan(vertical / 2) * width / height)
+                lens.set_fov(math.degrees(horizontal), math.degrees(vertical))
+            if near is not None or far is not None:
+                n = float(torch.as_tensor(near if near is not None else lens.get_near(), dtype=torch.float64).expand(W, A)[w, a])
+                f = float(torch.as_tensor(far if far is not None else lens.get_far(), dtype=torch.float64).expand(W, A)[w, a])
+                lens.set_near_far(n, f)
+
+    def render(self) -> Frame:
+        engine = self._context.engine
+        self.buffer.set_active(True)
+        try:
+            engine.render_frame()
+        finally:
+            self.buffer.set_active(False)
+        height, width = self.scene.resolution
+        layout = self.layout
+        image = np.frombuffer(memoryview(self.texture.get_ram_image()), np.uint8)
+        # Bottom-up BGR rows -> top-down tiles in RGB.
+        grid = image.reshape(layout.rows * height, layout.columns * width, 3)[::-1, :, ::-1]
+        tiles = grid.reshape(layout.rows, height, layout.columns, width, 3).transpose(0, 2, 1, 3, 4)
+        tiles = tiles.reshape(-1, height, width, 3)[: self.scene.num_views]
+        rgb = torch.from_numpy(np.ascontiguousarray(tiles))
+        return Frame(rgb.view(self.scene.num_worlds, self.scene.agents_per_world, height, width, 3))
+
+    def close(self):
+        if self.buffer is not None:
+            self._context.engine.remove_window(self.buffer)
+            self.buffer = None
+            for root in self.world_roots:
+                root.remove_node()

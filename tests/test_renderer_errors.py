@@ -1,0 +1,172 @@
+"""Bad input to the scene and renderer: a clear error naming the argument, and no change of state."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import marl_render as mr
+
+W, A, C = 2, 2, 3
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    scene = mr.Scene(num_worlds=W, agents_per_world=A, resolution=(16, 24), effects=("lighting",))
+    scene.add_static("floor", "plane", position=[0, 0, 0], scale=[10, 10, 1])
+    scene.add_group("boxes", "box", capacity=C)
+    r = mr.BatchRenderer(scene)
+    position = torch.zeros(W, C, 3)
+    position[..., 1] = torch.arange(C) + 2.0
+    r.update("boxes", position=position, active=torch.ones(W, C, dtype=torch.bool))
+    r.set_cameras(position=torch.zeros(W, A, 3) + torch.tensor([0, 0, 1.0]), look_at=torch.zeros(W, A, 3) + torch.tensor([0, 3, 0.0]))
+    yield r
+    r.close()
+
+
+GOOD = {
+    "position": torch.zeros(W, C, 3),
+    "rotation": torch.tensor([1.0, 0, 0, 0]).repeat(W, C, 1),
+    "scale": torch.ones(W, C, 3),
+    "color": torch.ones(W, C, 4),
+    "active": torch.ones(W, C, dtype=torch.bool),
+    "owner": torch.full((W, C), -1),
+}
+
+BAD_UPDATES = [
+    ("position", torch.zeros(W, C, 2), ValueError, r"position must have shape \[2, 3, 3\], got \[2, 3, 2\]"),
+    ("position", torch.zeros(W, C + 1, 3), ValueError, r"position must have shape \[2, 3, 3\], got \[2, 4, 3\]"),  # over capacity
+    ("position", torch.zeros(W, C, 3, dtype=torch.bool), TypeError, r"position must have a floating dtype, got torch.bool"),
+    ("position", torch.full((W, C, 3), float("nan")), ValueError, r"position must be finite"),
+    ("position", torch.full((W, C, 3), float("inf")), ValueError, r"position must be finite"),
+    ("position", torch.zeros(W, C, 3, device="meta"), ValueError, r"position must be a CPU tensor.*meta"),
+    ("position", "left", TypeError, r"position must be a torch.Tensor or array-like, got str"),
+    ("rotation", torch.zeros(W, C, 4), ValueError, r"rotation must be non-zero quaternions"),
+    ("rotation", torch.ones(W, C, 3), ValueError, r"rotation must have shape \[2, 3, 4\]"),
+    ("scale", torch.full((W, C, 3), float("nan")), ValueError, r"scale must be finite"),
+    ("color", torch.full((W, C, 4), 2.0), ValueError, r"color must be <= 1.0, got maximum 2.0"),
+    ("color", torch.full((W, C, 4), -0.5), ValueError, r"color must be >= 0.0"),
+    ("active", torch.ones(W, C), TypeError, r"active must have dtype torch.bool, got torch.float32"),
+    ("active", torch.ones(W, C + 1, dtype=torch.bool), ValueError, r"active must have shape \[2, 3\]"),
+    ("owner", torch.full((W, C), A), ValueError, rf"owner must be <= {A - 1}"),
+    ("owner", torch.full((W, C), 0.5), TypeError, r"owner must have an integer dtype"),
+]
+
+
+@pytest.mark.parametrize("argument,value,error,message", BAD_UPDATES, ids=[f"{a}-{i}" for i, (a, *_ ) in enumerate(BAD_UPDATES)])
+def test_bad_update_raises_and_changes_nothing(renderer, argument, value, error, message):
+    before_state = renderer.instance_state("boxes")
+    before_image = renderer.render().rgb
+    kwargs = {"position": GOOD["position"] + 1.0, argument: value}  # a valid argument alongside must not land either
+    if argument == "position":
+        kwargs = {"color": GOOD["color"] * 0.5, argument: value}
+    with pytest.raises(error, match=message):
+        renderer.update("boxes", **kwargs)
+    after_state = renderer.instance_state("boxes")
+    for key in before_state:
+        assert torch.equal(before_state[key], after_state[key]), f"{key} changed by a rejected call"
+    assert torch.equal(before_image, renderer.render().rgb)
+
+
+def test_unknown_group(renderer):
+    with pytest.raises(ValueError, match=r"group must be one of this scene's instance groups \['boxes'\], got 'ball'"):
+        renderer.update("ball", position=GOOD["position"])
+
+
+BAD_CAMERAS = [
+    ({"position": torch.zeros(W, A + 1, 3)}, ValueError, r"position must have shape \[2, 2, 3\]"),
+    ({"look_at": torch.full((W, A, 3), float("nan"))}, ValueError, r"look_at must be finite"),
+    ({"fov_y": 4.0}, ValueError, r"fov_y must be <= "),
+    ({"fov_y": torch.zeros(W, A)}, ValueError, r"fov_y must be >= "),
+    ({"near": 10.0, "far": 5.0}, ValueError, r"far must be greater than near"),
+    ({"near": torch.ones(3)}, ValueError, r"near must have shape \[2, 2\]"),
+    ({"rotation": torch.ones(W, A, 4), "look_at": torch.ones(W, A, 3)}, ValueError, r"either rotation or look_at"),
+]
+
+
+@pytest.mark.parametrize("kwargs,error,message", BAD_CAMERAS)
+def test_bad_cameras_raise_and_change_nothing(renderer, kwargs, error, message):
+    before = renderer.render().rgb
+    state = (renderer.camera_position.clone(), renderer.camera_rotation.clone(), renderer.fov_y.clone(),
+             renderer.near.clone(), renderer.far.clone())
+    with pytest.raises(error, match=message):
+        renderer.set_cameras(**kwargs)
+    after = (renderer.camera_position, renderer.camera_rotation, renderer.fov_y, renderer.near, renderer.far)
+    assert all(torch.equal(x, y) for x, y in zip(state, after))
+    assert torch.equal(before, renderer.render().rgb)
+
+
+@pytest.mark.parametrize("kwargs,error,message", [
+    ({"num_worlds": 0}, ValueError, r"num_worlds must be an int >= 1, got 0"),
+    ({"num_worlds": 2.5}, TypeError, r"num_worlds must be an int >= 1, got 2.5"),
+    ({"agents_per_world": -1}, ValueError, r"agents_per_world must be an int >= 1, got -1"),
+    ({"resolution": 0}, ValueError, r"resolution must be >= 1 pixel on each side, got \(0, 0\)"),
+    ({"resolution": (32, 32, 3)}, TypeError, r"resolution must be an int or a pair of ints"),
+    ({"effects": ("lighting", "bloom")}, ValueError, r"effects must be drawn from .*got unknown \['bloom'\]"),
+    ({"effects": "lighting"}, TypeError, r"effects must be a collection of names"),
+    ({"near": 0.0}, ValueError, r"near must be a finite number > 0, got 0.0"),
+    ({"near": 1.0, "far": 0.5}, ValueError, r"far must be greater than near"),
+    ({"fov_y": math.pi}, ValueError, r"fov_y must be in \(0, pi\) radians"),
+    ({"background": (2, 0, 0)}, ValueError, r"background must be 3 or 4 numbers in \[0, 1\]"),
+])
+def test_bad_scene_arguments(kwargs, error, message):
+    arguments = dict(num_worlds=1, agents_per_world=1, resolution=16)
+    arguments.update(kwargs)
+    with pytest.raises(error, match=message):
+        mr.Scene(**arguments)
+
+
+def test_bad_groups_and_meshes(tmp_path):
+    scene = mr.Scene(num_worlds=1, agents_per_world=2, resolution=16)
+    scene.add_group("boxes", "box", capacity=2)
+    with pytest.raises(ValueError, match="group name 'boxes' is already used"):
+        scene.add_group("boxes", "sphere", capacity=1)
+    with pytest.raises(ValueError, match="capacity must be an int >= 1, got 0"):
+        scene.add_group("none", "box", capacity=0)
+    with pytest.raises(FileNotFoundError, match="model file .*missing.egg' does not exist"):
+        scene.add_group("model", str(tmp_path / "missing.egg"), capacity=1)
+    corrupt = tmp_path / "corrupt.egg"
+    corrupt.write_text("<Group> { this is not an egg file")
+    with pytest.raises(ValueError, match="could not be loaded by Panda3D"):
+        scene.add_group("model", str(corrupt), capacity=1)
+    with pytest.raises(TypeError, match="mesh must be a MeshData"):
+        scene.add_group("model", 42, capacity=1)
+    with pytest.raises(ValueError, match=r"instance must give one index per agent \(2\), got 1"):
+        scene.mount_cameras("boxes", [0])
+    with pytest.raises(ValueError, match=r"instance indices must be in \[0, 2\), got \[0, 5\]"):
+        scene.mount_cameras("boxes", [0, 5])
+    with pytest.raises(ValueError, match="group must name an instance group"):
+        scene.mount_cameras("ghosts", [0, 1])
+    with pytest.raises(ValueError, match=r"position must be finite"):
+        scene.add_static("bad", "box", position=[[float("nan"), 0, 0]])
+    assert sorted(scene.groups) == ["boxes"] and not scene.static, "rejected calls must not add groups"
+
+
+def test_resolution_beyond_the_gl_limit():
+    from marl_render import backend
+
+    limit = backend.gl_info().max_framebuffer_size
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=(16, limit + 1))
+    with pytest.raises(ValueError, match=rf"resolution must be at most {limit} pixels per side"):
+        mr.BatchRenderer(scene)
+    with pytest.raises(ValueError, match=r"max_framebuffer_size must be an int in \[1, "):
+        mr.BatchRenderer(mr.Scene(num_worlds=1, agents_per_world=1, resolution=16), max_framebuffer_size=0)
+
+
+def test_use_after_close_is_a_clear_error():
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=16)
+    renderer = mr.BatchRenderer(scene)
+    renderer.render()
+    renderer.close()
+    renderer.close()  # idempotent
+    with pytest.raises(RuntimeError, match="closed"):
+        renderer.render()
+    with pytest.raises(RuntimeError, match="closed"):
+        renderer.set_cameras(fov_y=1.0)
+
+
+def test_texture_must_be_an_image():
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=16, effects=("texture",))
+    scene.add_group("boxes", "box", capacity=1, texture=np.zeros((4, 4), dtype=np.uint8))
+    with pytest.raises(ValueError, match=r"texture of group 'boxes' must be uint8 \[h, w, 3\|4\]"):
+        mr.BatchRenderer(scene)
