@@ -72,7 +72,8 @@ class _Context:
         selection = GraphicsPipeSelection.get_global_ptr()
         self.pipe = selection.make_module_pipe("p3headlessgl")
         if self.pipe is None or not self.pipe.is_valid():
-            raise GLUnavailableError("Panda3D could not load p3headlessgl (libEGL missing?). " + INSTALL_HINT)
+            raise GLUnavailableError("no EGL display could be initialised through Panda3D's p3headlessgl "
+                                     "(libEGL or a GL driver is missing). " + INSTALL_HINT)
         props = FrameBufferProperties()
         props.set_rgba_bits(8, 8, 8, 8)
         props.set_depth_bits(24)
