@@ -6,6 +6,7 @@ host context, created on first use.
 """
 from __future__ import annotations
 
+import logging
 import os
 import threading
 from dataclasses import dataclass
@@ -33,6 +34,13 @@ INSTALL_HINT = (
 
 _lock = threading.Lock()
 _context = None
+
+
+LOG = logging.getLogger("marl_render.gl")
+
+
+class ShaderCompileError(RuntimeError):
+    """A shader variant failed to compile or link; the message carries the GL log."""
 
 
 class GLUnavailableError(RuntimeError):
@@ -68,19 +76,27 @@ class _Context:
             config += f"egl-device-index {int(egl_device_index)}\n"
         loadPrcFileData("marl_render", config)
         self.pid = os.getpid()
+        # Panda3D's log (shader compiler output among it) is captured so that errors can
+        # carry it; every line is forwarded to the "marl_render.gl" logger.
+        from panda3d.core import LineStream, Notify
+
+        self.log = LineStream()
+        Notify.ptr().set_ostream_ptr(self.log, False)
+        self.recent_log: list[str] = []
         self.engine = GraphicsEngine.get_global_ptr()
         selection = GraphicsPipeSelection.get_global_ptr()
         self.pipe = selection.make_module_pipe("p3headlessgl")
         if self.pipe is None or not self.pipe.is_valid():
             raise GLUnavailableError("no EGL display could be initialised through Panda3D's p3headlessgl "
-                                     "(libEGL or a GL driver is missing). " + INSTALL_HINT)
+                                     "(libEGL or a GL driver is missing). " + INSTALL_HINT + self._log_tail())
         props = FrameBufferProperties()
         props.set_rgba_bits(8, 8, 8, 8)
         props.set_depth_bits(24)
         self.host = self.engine.make_output(self.pipe, "marl_render_host", -100, props,
                                             WindowProperties.size(1, 1), GraphicsPipe.BF_refuse_window)
         if self.host is None:
-            raise GLUnavailableError("could not create a headless OpenGL context through EGL. " + INSTALL_HINT)
+            raise GLUnavailableError("could not create a headless OpenGL context through EGL. " + INSTALL_HINT
+                                     + self._log_tail())
         self.engine.open_windows()
         self.gsg = self.host.get_gsg()
         if not self.gsg.get_supports_glsl() or self.gsg.get_driver_shader_version_major() < 4:
@@ -88,6 +104,21 @@ class _Context:
                 f"OpenGL driver {self.gsg.get_driver_renderer()!r} lacks GLSL 4.x "
                 f"(has {self.gsg.get_driver_shader_version_major()}.{self.gsg.get_driver_shader_version_minor()}). "
                 + INSTALL_HINT)
+
+    def _log_tail(self) -> str:
+        lines = self.drain_log()
+        return ("\nGL log:\n" + "\n".join(lines)) if lines else ""
+
+    def drain_log(self) -> list[str]:
+        """New lines of Panda3D's log since the last call (also kept in recent_log)."""
+        lines = []
+        while self.log.is_text_available():
+            line = self.log.get_line()
+            lines.append(line)
+            LOG.warning("%s", line)
+        if lines:
+            self.recent_log = (self.recent_log + lines)[-200:]
+        return lines
 
     def info(self) -> GLInfo:
         gsg = self.gsg

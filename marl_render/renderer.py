@@ -11,6 +11,7 @@ Per step:
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,12 +71,21 @@ class _DrawGroup:
 class BatchRenderer:
     """Renders scene.num_worlds x scene.agents_per_world views per call of render()."""
 
+    READBACKS = ("zero_copy", "copy")
+
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
-                 egl_device_index: int | None = None):
+                 egl_device_index: int | None = None, readback: str = "zero_copy"):
+        """readback: "zero_copy" (default) reads the tiles straight out of Panda3D's RAM
+        image; "copy" first copies the whole image into a bytes object (the usual way,
+        kept only so that benchmarks can show what the zero-copy path saves)."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
+        if readback not in self.READBACKS:
+            raise ValueError(f"readback must be one of {list(self.READBACKS)}, got {readback!r}")
         self.scene = scene
+        self.readback = readback
         self.channels_first = bool(channels_first)
+        self.last_timings: dict[str, float] = {}  # seconds per stage of the last render()
         self._closed = False
         self._context = backend.context(egl_device_index)
         gl_max = self._context.info().max_framebuffer_size
@@ -328,13 +338,16 @@ class BatchRenderer:
         """Draw all views; returns tensors the caller owns."""
         self._check_open()
         backend.context()  # raises in a forked child
+        start = time.perf_counter()
         position, rotation = self._camera_poses()
         self._recentre(position)
         view_projection = self._pack_views(position, rotation)
         for name in self._dirty:
             self._pack_group(name)
         self._dirty.clear()
+        packed = time.perf_counter()
         self._cull(frustum_planes(view_projection))
+        self.last_timings = {"pack": packed - start, "cull": time.perf_counter() - packed, "gl": 0.0, "copy": 0.0}
         return self._draw_and_read()
 
     def _camera_poses(self):
@@ -428,20 +441,36 @@ class BatchRenderer:
                 draw.node.show()
                 draw.node.set_shader_input("pair_offset", _int(first))
                 draw.node.set_instance_count(count)
+            started = time.perf_counter()
             self.buffer.set_active(True)
             try:
                 engine.render_frame()
             finally:
                 self.buffer.set_active(False)
+            drawn = time.perf_counter()
+            self._check_shaders()
             self._read_pass(views, rgb, depth, segmentation)
+            self.last_timings["gl"] += drawn - started
+            self.last_timings["copy"] += time.perf_counter() - drawn
         rgb = rgb.view((W, A) + rgb_shape[1:])
         return Frame(rgb, None if depth is None else depth.view(W, A, height, width),
                      None if segmentation is None else segmentation.view(W, A, height, width))
 
+    def _check_shaders(self):
+        """A variant that failed to compile draws nothing: raise with the GL log instead."""
+        log = self._context.drain_log()
+        failed = [name for name, draw in self._groups.items() if draw.node.get_shader().get_error_flag()]
+        if failed:
+            text = "\n".join(log or self._context.recent_log[-20:])
+            raise backend.ShaderCompileError(f"the shader of group(s) {failed} failed to compile or link:\n{text}")
+
     def _read_pass(self, views: range, rgb, depth, segmentation):
         image = self.color_texture.get_ram_image()
         if image is None or len(image) == 0:
-            raise RuntimeError("the GL driver returned no framebuffer image (render failed; see the GL log above)")
+            log = "\n".join(self._context.recent_log[-20:])
+            raise RuntimeError(f"the GL driver returned no framebuffer image (render failed). GL log:\n{log}")
+        if self.readback == "copy":
+            image = bytes(image)
         tiles = framebuffer_tiles(image, np.uint8, self._color_channels, self.layout)[..., :3]
         if self.channels_first:
             tiles = tiles.permute(0, 1, 4, 2, 3)

@@ -91,3 +91,33 @@ def test_fork_after_gl_init_is_a_clear_error():
     child.join(timeout=60)
     assert message.startswith("ForkedContextError")
     assert "spawn" in message
+
+
+def test_a_shader_that_fails_to_compile_raises_with_the_gl_log():
+    from panda3d.core import Shader
+
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=16)
+    scene.add_group("box", "box", capacity=1)
+    with mr.BatchRenderer(scene) as renderer:
+        broken = Shader.make(Shader.SL_GLSL, "#version 410\nvoid main() { gl_Position = vec4(0.0); }",
+                             "#version 410\nout vec4 c;\nvoid main() { c = undefined_colour; }")
+        renderer._groups["box"].node.set_shader(broken)
+        renderer.update("box", position=[[[0, 2, 0]]], active=[[True]])
+        with pytest.raises(backend.ShaderCompileError, match=r"(?s)group\(s\) \['box'\] failed.*undefined_colour"):
+            renderer.render()
+
+
+def test_copy_readback_gives_the_same_pixels():
+    scene = mr.Scene(num_worlds=2, agents_per_world=2, resolution=(12, 20))
+    scene.add_static("floor", "plane", position=[0, 0, 0], scale=[10, 10, 1])
+    scene.add_group("box", "box", capacity=1)
+    frames = []
+    for readback in ("zero_copy", "copy"):
+        with mr.BatchRenderer(scene, readback=readback) as renderer:
+            renderer.set_cameras(position=torch.tensor([0, 0, 1.0]).repeat(2, 2, 1), look_at=torch.tensor([0, 3, 0.0]).repeat(2, 2, 1))
+            renderer.update("box", position=[[[0, 3, 0.5]], [[1, 3, 0.5]]], active=[[True], [True]])
+            frames.append(renderer.render().rgb)
+            assert set(renderer.last_timings) == {"pack", "cull", "gl", "copy"}
+    assert torch.equal(frames[0], frames[1])
+    with pytest.raises(ValueError, match=r"readback must be one of \['zero_copy', 'copy'\], got 'gpu'"):
+        mr.BatchRenderer(scene, readback="gpu")
