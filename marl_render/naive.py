@@ -21,7 +21,10 @@ from .transforms import look_at_quat, normalize_quat
 
 
 class NaiveRenderer:
-    def __init__(self, scene: Scene):
+    """tiled=True: one buffer with a display region per view (the plain way done well).
+    tiled=False: one buffer and readback per view (the first step of the ablation)."""
+
+    def __init__(self, scene: Scene, *, tiled: bool = True):
         from panda3d.core import (AmbientLight, BitMask32, Camera, DirectionalLight, FrameBufferProperties,
                                   GraphicsOutput, GraphicsPipe, NodePath, PerspectiveLens, Texture,
                                   WindowProperties)
@@ -29,20 +32,25 @@ class NaiveRenderer:
         self.scene = scene
         ctx = self._context = backend.context()
         height, width = scene.resolution
-        self.layout = plan_layout(scene.num_views, height, width, ctx.info().max_framebuffer_size)
+        self.tiled = tiled
+        views = scene.num_views if tiled else 1
+        self.layout = plan_layout(views, height, width, ctx.info().max_framebuffer_size)
         if self.layout.num_passes != 1:
             raise ValueError("NaiveRenderer draws all views in one framebuffer; too many views for the GL limit")
-        fb_width, fb_height = self.layout.framebuffer_size
         props = FrameBufferProperties()
         props.set_rgba_bits(8, 8, 8, 0)
         props.set_depth_bits(24)
-        self.buffer = ctx.engine.make_output(ctx.pipe, f"naive_{id(self)}", 0, props,
-                                             WindowProperties.size(fb_width, fb_height),
-                                             GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
-        self.texture = Texture("naive_color")
-        self.buffer.add_render_texture(self.texture, GraphicsOutput.RTM_copy_ram)
-        self.buffer.set_clear_color(tuple(scene.background[:3]) + (1.0,))
-        self.buffer.set_active(False)
+        self.buffers, self.textures = [], []
+        for index in range(1 if tiled else scene.num_views):
+            buffer = ctx.engine.make_output(ctx.pipe, f"naive_{id(self)}_{index}", 0, props,
+                                            WindowProperties.size(*self.layout.framebuffer_size),
+                                            GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
+            texture = Texture(f"naive_color_{index}")
+            buffer.add_render_texture(texture, GraphicsOutput.RTM_copy_ram)
+            buffer.set_clear_color(tuple(scene.background[:3]) + (1.0,))
+            buffer.set_active(False)
+            self.buffers.append(buffer)
+            self.textures.append(texture)
 
         W, A = scene.num_worlds, scene.agents_per_world
         lighting = scene.lighting
@@ -87,9 +95,13 @@ class NaiveRenderer:
                 camera_np.set_p(math.degrees(mount.pitch))
                 if mount.hide_owner:
                     self.pivots[(mount.group, w, mount.instance[a])].get_child(0).hide(BitMask32.bit(a))
-            row, col = divmod(v, self.layout.columns)
-            rows, cols = self.layout.rows, self.layout.columns
-            region = self.buffer.make_display_region(col / cols, (col + 1) / cols, 1 - (row + 1) / rows, 1 - row / rows)
+            if tiled:
+                row, col = divmod(v, self.layout.columns)
+                rows, cols = self.layout.rows, self.layout.columns
+                region = self.buffers[0].make_display_region(col / cols, (col + 1) / cols, 1 - (row + 1) / rows,
+                                                             1 - row / rows)
+            else:
+                region = self.buffers[v].make_display_region()
             region.set_camera(camera_np)
             self.cameras.append(camera_np)
             self.lenses.append(lens)
@@ -150,24 +162,31 @@ class NaiveRenderer:
 
     def render(self) -> Frame:
         engine = self._context.engine
-        self.buffer.set_active(True)
+        for buffer in self.buffers:
+            buffer.set_active(True)
         try:
             engine.render_frame()
         finally:
-            self.buffer.set_active(False)
+            for buffer in self.buffers:
+                buffer.set_active(False)
         height, width = self.scene.resolution
         layout = self.layout
-        image = np.frombuffer(memoryview(self.texture.get_ram_image()), np.uint8)
+        images = [np.frombuffer(memoryview(t.get_ram_image()), np.uint8) for t in self.textures]
+        image = images[0] if self.tiled else np.concatenate(images)
         # Bottom-up BGR rows -> top-down tiles in RGB.
-        grid = image.reshape(layout.rows * height, layout.columns * width, 3)[::-1, :, ::-1]
-        tiles = grid.reshape(layout.rows, height, layout.columns, width, 3).transpose(0, 2, 1, 3, 4)
-        tiles = tiles.reshape(-1, height, width, 3)[: self.scene.num_views]
+        if self.tiled:
+            grid = image.reshape(layout.rows * height, layout.columns * width, 3)[::-1, :, ::-1]
+            tiles = grid.reshape(layout.rows, height, layout.columns, width, 3).transpose(0, 2, 1, 3, 4)
+            tiles = tiles.reshape(-1, height, width, 3)[: self.scene.num_views]
+        else:
+            tiles = image.reshape(-1, height, width, 3)[:, ::-1, :, ::-1]
         rgb = torch.from_numpy(np.ascontiguousarray(tiles))
         return Frame(rgb.view(self.scene.num_worlds, self.scene.agents_per_world, height, width, 3))
 
     def close(self):
-        if self.buffer is not None:
-            self._context.engine.remove_window(self.buffer)
-            self.buffer = None
-            for root in self.world_roots:
-                root.remove_node()
+        for buffer in self.buffers:
+            self._context.engine.remove_window(buffer)
+        self.buffers, self.textures = [], []
+        for root in self.world_roots:
+            root.remove_node()
+        self.world_roots = []

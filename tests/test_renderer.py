@@ -280,3 +280,18 @@ def test_mounted_camera_follows_its_instance():
     red = torch.tensor([255, 0, 0], dtype=torch.uint8)
     assert not (facing_y == red).all(-1).any()
     assert (facing_x[12, 12] == red).all()
+
+
+def test_one_buffer_per_view_baseline_matches_the_tiled_one():
+    scene = mr.Scene(num_worlds=2, agents_per_world=2, resolution=(16, 24), effects=("lighting",), background=BACKGROUND)
+    scene.add_static("floor", "plane", position=[0, 0, 0], scale=[30, 30, 1], color=[0.3, 0.6, 0.3])
+    scene.add_group("boxes", "box", capacity=3)
+    instances, camera, target = random_scene_inputs(torch.Generator().manual_seed(3), 2, 2, 3)
+    images = []
+    for tiled in (True, False):
+        renderer = NaiveRenderer(scene, tiled=tiled)
+        renderer.update("boxes", **instances)
+        renderer.set_cameras(position=camera, look_at=target)
+        images.append(renderer.render().rgb)
+        renderer.close()
+    assert torch.equal(images[0], images[1])

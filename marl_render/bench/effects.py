@@ -1,0 +1,170 @@
+"""Cost of each effect (on against off, same run) and the batching ablation.
+
+Effects: the arena scene rendered with no effect, then with each effect alone, then all
+of them; views/s and the cost relative to no effect.
+
+Ablation, cumulative, on the same scene and poses:
+  1. one camera per view     one offscreen buffer and readback per view (plain Panda3D)
+  2. tiled display regions    one buffer, a display region per view (plain Panda3D)
+  3. one instanced pass       BatchRenderer, whole framebuffer copied to bytes first
+  4. zero-copy readback       BatchRenderer as shipped
+  5. several processes        step 4 in --processes spawned processes, worlds split
+Writes effects.md, effects.json and effects.png into --out.
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import time
+
+import numpy as np
+
+from .common import RandomMotion, apply, arena_scene, machine, progress, time_per_call
+
+EFFECT_SETS = [(), ("lighting",), ("texture",), ("fog",), ("depth",), ("segmentation",), ("log_depth",),
+               ("lighting", "texture", "fog", "depth", "segmentation")]
+
+
+def add_arguments(parser):
+    parser.add_argument("--worlds", type=int, default=64)
+    parser.add_argument("--agents", type=int, default=4)
+    parser.add_argument("--resolution", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--processes", type=int, default=2)
+    parser.add_argument("--out", default="out/effects")
+
+
+def _checker(size=32, cells=4):
+    pattern = (np.indices((size, size)) // (size // cells)).sum(0) % 2
+    return np.where(pattern[..., None] == 1, 230, 60).astype(np.uint8).repeat(3, axis=2)
+
+
+def _scene(args, effects):
+    scene = arena_scene(args.worlds, args.agents, args.resolution, effects=effects)
+    if "texture" in effects:
+        scene.groups["boxes"].texture = _checker()
+    return scene
+
+
+def _views_per_s(renderer, scene, steps):
+    motion = RandomMotion(scene, seed=0)
+
+    def frame():
+        apply(renderer, motion.next())
+        renderer.render()
+
+    return scene.num_views / time_per_call(frame, steps)
+
+
+def _worker(arguments):
+    """One process of the last ablation step: its share of the worlds, timed alone."""
+    worlds, agents, resolution, steps, start_event = arguments
+    import marl_render as mr
+
+    class Args:
+        pass
+
+    args = Args()
+    args.worlds, args.agents, args.resolution = worlds, agents, resolution
+    scene = _scene(args, ("lighting",))
+    with mr.BatchRenderer(scene) as renderer:
+        motion = RandomMotion(scene, seed=0)
+        for _ in range(3):
+            apply(renderer, motion.next())
+            renderer.render()
+        start_event.wait()
+        start = time.perf_counter()
+        for _ in range(steps):
+            apply(renderer, motion.next())
+            renderer.render()
+        return time.perf_counter() - start
+
+
+def _several_processes(args) -> float:
+    share = args.worlds // args.processes
+    context = multiprocessing.get_context("spawn")
+    with context.Manager() as manager:
+        start_event = manager.Event()
+        with context.Pool(args.processes) as pool:
+            pending = pool.map_async(_worker, [(share, args.agents, args.resolution, args.steps, start_event)] * args.processes)
+            time.sleep(1.0)
+            start_event.set()
+            seconds = pending.get(timeout=600)
+    return args.processes * share * args.agents * args.steps / max(seconds)
+
+
+def run(args) -> dict:
+    import marl_render as mr
+    from marl_render.naive import NaiveRenderer
+
+    result = {"benchmark": "effects", "worlds": args.worlds, "agents": args.agents, "resolution": args.resolution,
+              "views": args.worlds * args.agents, "machine": machine(), "effects": [], "ablation": []}
+    base = None
+    for effects in EFFECT_SETS:
+        label = "+".join(effects) or "none"
+        progress(f"effects: {label}")
+        scene = _scene(args, effects)
+        with mr.BatchRenderer(scene) as renderer:
+            rate = _views_per_s(renderer, scene, args.steps)
+        base = base or rate
+        result["effects"].append({"effects": label, "views_per_s": rate, "ms_per_frame": scene.num_views / rate * 1e3,
+                                  "cost_vs_none": base / rate - 1.0})
+
+    scene = _scene(args, ("lighting",))
+    steps = [
+        ("one camera per view", lambda: NaiveRenderer(scene, tiled=False), max(3, args.steps // 4)),
+        ("tiled display regions", lambda: NaiveRenderer(scene), max(3, args.steps // 4)),
+        ("one instanced pass", lambda: mr.BatchRenderer(scene, readback="copy"), args.steps),
+        ("zero-copy readback", lambda: mr.BatchRenderer(scene), args.steps),
+    ]
+    for label, make, count in steps:
+        progress(f"ablation: {label}")
+        renderer = make()
+        rate = _views_per_s(renderer, scene, count)
+        renderer.close()
+        result["ablation"].append({"step": label, "views_per_s": rate})
+    if args.processes > 1:
+        progress(f"ablation: {args.processes} processes")
+        result["ablation"].append({"step": f"{args.processes} processes", "views_per_s": _several_processes(args)})
+    first = result["ablation"][0]["views_per_s"]
+    for row in result["ablation"]:
+        row["speedup_vs_first"] = row["views_per_s"] / first
+    _write(args.out, result)
+    return result
+
+
+def _write(out: str, result: dict) -> None:
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, "effects.json"), "w") as f:
+        json.dump(result, f, indent=2)
+    lines = [f"Views of {result['resolution']}x{result['resolution']}, {result['views']} per frame "
+             f"({result['machine']['gl_renderer']}).", "", "| effects | views/s | ms/frame | cost vs none |",
+             "|---|---:|---:|---:|"]
+    lines += [f"| {r['effects']} | {r['views_per_s']:,.0f} | {r['ms_per_frame']:.1f} | {r['cost_vs_none']:+.0%} |"
+              for r in result["effects"]]
+    lines += ["", "| ablation step (cumulative) | views/s | speed-up |", "|---|---:|---:|"]
+    lines += [f"| {r['step']} | {r['views_per_s']:,.0f} | {r['speedup_vs_first']:.1f}x |" for r in result["ablation"]]
+    with open(os.path.join(out, "effects.md"), "w") as f:
+        f.write("\n".join(lines) + "\n")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.2))
+    names = [r["effects"].replace("+", "+\n") if len(r["effects"]) > 12 else r["effects"] for r in result["effects"]]
+    left.bar(names, [r["views_per_s"] for r in result["effects"]], color="#4c72b0")
+    left.set_ylabel("views / s")
+    left.set_title("cost of each effect")
+    left.tick_params(axis="x", labelsize=7, rotation=30)
+    right.bar([r["step"].replace(" ", "\n", 1) for r in result["ablation"]],
+              [r["views_per_s"] for r in result["ablation"]], color="#dd8452")
+    right.set_yscale("log")
+    right.set_title("cumulative ablation")
+    right.tick_params(axis="x", labelsize=7)
+    for i, r in enumerate(result["ablation"]):
+        right.text(i, r["views_per_s"], f"{r['speedup_vs_first']:.1f}x", ha="center", va="bottom", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "effects.png"), dpi=110)
+    plt.close(fig)

@@ -1,0 +1,111 @@
+"""Scaling: throughput, memory per view and time per stage against views and resolution.
+
+Two sweeps on the arena scene (floor + 10 instances per world, 4 agents per world):
+views 16..4096 at --resolution, and resolutions 32..512 at --views. Stages are the
+renderer's own timings: pack (poses, view matrices, instance buffers), cull, gl
+(draw + readback inside Panda3D) and copy (tiles into the batch tensor).
+Writes scale.md, scale.json and scale.png into --out.
+"""
+from __future__ import annotations
+
+import json
+import os
+
+from .common import RandomMotion, apply, arena_scene, machine, progress
+
+STAGES = ("pack", "cull", "gl", "copy")
+
+
+def add_arguments(parser):
+    parser.add_argument("--views", type=int, nargs="+", default=[16, 64, 256, 1024, 4096])
+    parser.add_argument("--resolutions", type=int, nargs="+", default=[32, 64, 128, 256, 512])
+    parser.add_argument("--resolution", type=int, default=64, help="resolution of the views sweep")
+    parser.add_argument("--fixed-views", type=int, default=256, help="views of the resolution sweep")
+    parser.add_argument("--agents", type=int, default=4)
+    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--out", default="out/scale")
+
+
+def _rss_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def measure(views: int, resolution: int, agents: int, steps: int) -> dict:
+    import time
+
+    import marl_render as mr
+
+    worlds = max(1, views // agents)
+    scene = arena_scene(worlds, agents, resolution)
+    before = _rss_bytes()
+    with mr.BatchRenderer(scene) as renderer:
+        motion = RandomMotion(scene, seed=0)
+        for _ in range(2):
+            apply(renderer, motion.next())
+            renderer.render()
+        totals = dict.fromkeys(STAGES, 0.0)
+        start = time.perf_counter()
+        for _ in range(steps):
+            apply(renderer, motion.next())
+            frame = renderer.render()
+            for stage in STAGES:
+                totals[stage] += renderer.last_timings[stage]
+        seconds = (time.perf_counter() - start) / steps
+        grown = _rss_bytes() - before
+        del frame
+        passes = renderer.layout.num_passes
+    return {"views": scene.num_views, "resolution": resolution, "passes": passes, "ms_per_frame": seconds * 1e3,
+            "views_per_s": scene.num_views / seconds, "pixels_per_s": scene.num_views * resolution ** 2 / seconds,
+            "memory_per_view_kib": grown / scene.num_views / 1024,
+            "stage_ms": {stage: totals[stage] / steps * 1e3 for stage in STAGES}}
+
+
+def run(args) -> dict:
+    result = {"benchmark": "scale", "machine": machine(), "by_views": [], "by_resolution": []}
+    for views in args.views:
+        progress(f"views sweep: {views} views of {args.resolution}px")
+        result["by_views"].append(measure(views, args.resolution, args.agents, args.steps))
+    for resolution in args.resolutions:
+        progress(f"resolution sweep: {args.fixed_views} views of {resolution}px")
+        result["by_resolution"].append(measure(args.fixed_views, resolution, args.agents, args.steps))
+    _write(args.out, result)
+    return result
+
+
+def _write(out: str, result: dict) -> None:
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, "scale.json"), "w") as f:
+        json.dump(result, f, indent=2)
+    header = "| views | px | passes | views/s | Mpixel/s | ms/frame | pack | cull | gl | copy | KiB/view |"
+    lines = [header, "|---:" * 11 + "|"]
+    for row in result["by_views"] + result["by_resolution"]:
+        s = row["stage_ms"]
+        lines.append(f"| {row['views']} | {row['resolution']} | {row['passes']} | {row['views_per_s']:,.0f} | "
+                     f"{row['pixels_per_s'] / 1e6:,.0f} | {row['ms_per_frame']:.1f} | {s['pack']:.1f} | {s['cull']:.1f} | "
+                     f"{s['gl']:.1f} | {s['copy']:.1f} | {row['memory_per_view_kib']:.0f} |")
+    with open(os.path.join(out, "scale.md"), "w") as f:
+        f.write("\n".join(lines) + "\n")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    for ax, rows, key, label in ((axes[0], result["by_views"], "views", "views per frame"),
+                                 (axes[1], result["by_resolution"], "resolution", "resolution (px per side)")):
+        xs = [r[key] for r in rows]
+        bottom = [0.0] * len(rows)
+        for stage in STAGES:
+            values = [r["stage_ms"][stage] / r["views"] * 1e3 for r in rows]
+            ax.bar([str(x) for x in xs], values, bottom=bottom, label=stage)
+            bottom = [b + v for b, v in zip(bottom, values)]
+        ax.set_xlabel(label)
+        ax.set_ylabel("µs per view (stacked stages)")
+        twin = ax.twinx()
+        twin.plot([str(x) for x in xs], [r["views_per_s"] for r in rows], "k.-")
+        twin.set_ylabel("views / s")
+        ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "scale.png"), dpi=110)
+    plt.close(fig)
