@@ -271,7 +271,10 @@ class BatchRenderer:
             rotation = self._float_arg("rotation", rotation, (W, C, 4))
             staged["rotation"] = normalize_quat(rotation.to(torch.float64), name="rotation").to(torch.float32)
         if scale is not None:
-            staged["scale"] = self._float_arg("scale", scale, (W, C, 3)).to(torch.float32)
+            scale = self._float_arg("scale", scale, (W, C, 3))
+            # A mirrored instance would have its winding reversed and be culled inside out.
+            check_range("scale", scale, 0.0, None)
+            staged["scale"] = scale.to(torch.float32)
         if color is not None:
             color = as_tensor("color", color)
             if color.ndim == 3 and color.shape[-1] == 3:

@@ -135,6 +135,8 @@ class Scene:
         rotation, scale, color = _pose_defaults(count, rotation, scale, color)
         for label, value in (("position", position), ("rotation", rotation), ("scale", scale), ("color", color)):
             check_finite(label, value)
+        if bool((scale < 0).any()):
+            raise ValueError(f"scale must be >= 0 (mirrored instances are not supported), got minimum {scale.min().item()}")
         group = StaticGroup(name, mesh, position, _unit(rotation), scale, color, texture, self._next_segment_base())
         self.static[name] = group
         return group

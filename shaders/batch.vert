@@ -85,7 +85,9 @@ void main() {
     gl_Position = vec4((flipped + clip.w * tile_shift) / vec2(grid), clip.z, clip.w);
 
 #ifdef EFFECT_LIGHTING
-    v_normal = rotate(rotation, p3d_Normal / max(abs(scale.xyz), vec3(1e-20)) * sign(scale.xyz));
+    // Normals scale inversely (inverse transpose); a zero scale flattens the mesh, and
+    // the normal then points straight out of the flat side.
+    v_normal = rotate(rotation, normalize(p3d_Normal / max(scale.xyz, vec3(1e-6))));
 #endif
 #ifdef EFFECT_TEXTURE
     v_uv = p3d_MultiTexCoord0;
