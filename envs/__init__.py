@@ -1,0 +1,37 @@
+"""marl_render.envs: the environment suite (top-level folder envs/ of the repository).
+
+    from marl_render.envs import list_envs, make_env
+    env = make_env("spread", num_worlds=256, num_agents=4, resolution=64)
+    obs = env.reset(seed=0)                      # obs["pixels"]: uint8 [W, A, H, W, 3]
+    obs, reward, terminated, truncated, info = env.step(actions)
+
+make_env returns the batched core (BatchedEnv, see envs/core.py). The PettingZoo and
+TorchRL front ends wrap that core.
+"""
+from .core import OBS_KEYS, BatchedEnv
+from .registry import env_class, list_envs, make_env, register
+
+__all__ = ["BatchedEnv", "OBS_KEYS", "env_class", "list_envs", "make_env", "register"]
+
+# ---- front ends (PettingZoo / TorchRL wrappers): filled in by their authors ----------------
+# Exported lazily so that importing marl_render.envs never imports pettingzoo or torchrl.
+# Map each public name to "module:attribute", e.g.
+#   "make_parallel_env": "marl_render.envs.pettingzoo_env:make_parallel_env",
+#   "make_torchrl_env": "marl_render.envs.torchrl_env:make_torchrl_env",
+_LAZY_EXPORTS: dict = {
+    "make_parallel_env": "marl_render.wrappers.pettingzoo:make_parallel_env",
+    "make_torchrl_env": "marl_render.wrappers.torchrl:make_torchrl_env",
+}
+__all__ += list(_LAZY_EXPORTS)
+
+
+def __getattr__(name):
+    target = _LAZY_EXPORTS.get(name)
+    if target is None:
+        raise AttributeError(f"module 'marl_render.envs' has no attribute {name!r}")
+    import importlib
+
+    module, attribute = target.split(":")
+    value = getattr(importlib.import_module(module), attribute)
+    globals()[name] = value
+    return value

@@ -1,0 +1,34 @@
+"""Front ends of the batched environment core (envs/core.py) for RL libraries.
+
+    from marl_render.wrappers import make_parallel_env, make_torchrl_env
+    env = make_parallel_env("spread", resolution=32)                # pettingzoo.ParallelEnv, one world
+    env = make_torchrl_env("spread", num_worlds=64, group_map="team") # torchrl EnvBase, batch_size [64]
+
+The two modules import pettingzoo / torchrl; names are resolved lazily so that importing
+``marl_render.wrappers`` imports neither until one of them is used.
+"""
+from __future__ import annotations
+
+import importlib
+
+_LAZY_EXPORTS = {
+    "MarlRenderParallelEnv": "marl_render.wrappers.pettingzoo",
+    "make_parallel_env": "marl_render.wrappers.pettingzoo",
+    "MarlRenderTorchRLEnv": "marl_render.wrappers.torchrl",
+    "make_torchrl_env": "marl_render.wrappers.torchrl",
+}
+
+__all__ = list(_LAZY_EXPORTS)
+
+
+def __getattr__(name):
+    module = _LAZY_EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'marl_render.wrappers' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

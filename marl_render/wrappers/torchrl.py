@@ -1,0 +1,299 @@
+"""TorchRL front end: all worlds of a BatchedEnv as one multi-agent ``torchrl.envs.EnvBase``.
+
+    from marl_render.wrappers.torchrl import make_torchrl_env
+    env = make_torchrl_env("spread", num_worlds=64, group_map="team", resolution=32)
+    td = env.rollout(100, break_when_any_done=False)   # random policy, auto partial resets
+
+Layout (batch_size [W], W = num_worlds; a group of N agents):
+
+    (group, "pixels")       uint8   [W, N, H, Wpx, 3]  Bounded(0, 255)
+    (group, "depth")        float32 [W, N, H, Wpx]     Bounded(0, far)       depth=True
+    (group, "state")        float32 [W, N, state_dim]  Unbounded             state_obs=True
+    (group, "action_mask")  bool    [W, N, n]          Categorical(2, bool)  discrete envs
+    (group, "action")       int64   [W, N]             Categorical(n)        discrete
+                            float32 [W, N, d]          Bounded(-1, 1)        continuous=True
+    (group, "reward")       float32 [W, N, 1]
+    (group, "done" | "terminated" | "truncated")  bool [W, N, 1]
+    "done" | "terminated" | "truncated"           bool [W, 1]
+
+Per agent: ``terminated`` is True once the agent left the episode (``alive`` False in the
+core, e.g. caught prey) and stays True until its world is reset; ``truncated`` is True for
+the agents still alive when the world reaches ``max_steps``; ``done = terminated |
+truncated``. Per world (root): ``done`` = every agent is done, ``terminated`` = every agent
+terminated, ``truncated`` = done and not terminated. Agents that left keep appearing in
+every tensor (reward 0; their actions are ignored but must be valid values).
+
+Group maps (``group_map=``): "team" (default: one group per team, ``env.groups`` of the
+core), "one_group" (one group "agents" with every agent), "per_agent" (one group per
+agent), a ``torchrl.envs.utils.MarlGroupMapType`` or an explicit ``{group: [agent names]}``
+(every agent exactly once, in any order within a group).
+
+Resets: the core is built with ``autoreset=False``; TorchRL decides when to reset.
+``_reset`` reads the root ``"_reset"`` [W, 1] (it prevails, as in TorchRL) or, if absent,
+the per-group ``(group, "_reset")`` [W, N, 1] entries; a world is reset when any of its
+entries is True (worlds are the unit of reset: a per-agent reset resets that agent's whole
+world). Worlds not reset are left untouched (bit-identical state, the same pixels).
+
+Seeding: ``env.set_seed(s)`` re-seeds the core's generator at the next reset (full or
+partial), so ``set_seed(s); reset()`` is reproducible. Device: the core's device (CPU by
+default); every tensor is produced there.
+
+The discrete action spec carries the current action mask (``Categorical.update_mask``)
+after every reset / step, so ``env.rand_action()`` samples only valid actions. Inside a
+``torchrl.envs.ParallelEnv`` only the workers' specs see it (the parent's spec stays
+unmasked); use the (group, "action_mask") observation there.
+"""
+from __future__ import annotations
+
+import numbers
+from collections.abc import Mapping
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import MarlGroupMapType, check_marl_grouping
+
+from marl_render.validation import describe
+
+GROUP_MAPS = ("team", "one_group", "per_agent")
+_RESERVED = ("done", "terminated", "truncated", "_reset", "reward", "action")
+
+
+def make_torchrl_env(name: str, num_worlds: int = 1, group_map="team", **kwargs) -> "MarlRenderTorchRLEnv":
+    """A TorchRL env of the registered environment `name` with `num_worlds` worlds.
+
+    kwargs go to ``marl_render.envs.registry.make_env`` (resolution, num_agents, max_steps,
+    continuous, state_obs, depth, seed, device and the env's own arguments); autoreset is
+    always False (TorchRL resets) and may not be passed."""
+    from marl_render.envs.registry import make_env
+
+    if "autoreset" in kwargs:
+        raise TypeError("make_torchrl_env() does not accept 'autoreset': TorchRL resets done worlds itself "
+                        "(env.rollout / collectors call reset with '_reset' masks), so the core is always "
+                        "built with autoreset=False")
+    _check_group_map_type(group_map)
+    core = make_env(name, num_worlds=num_worlds, **kwargs)
+    try:
+        return MarlRenderTorchRLEnv(core, group_map=group_map)
+    except BaseException:
+        core.close()
+        raise
+
+
+def _check_group_map_type(group_map):
+    if isinstance(group_map, (MarlGroupMapType, Mapping)):
+        return
+    if isinstance(group_map, str) and group_map in GROUP_MAPS:
+        return
+    raise ValueError(f"group_map must be one of {list(GROUP_MAPS)}, a torchrl MarlGroupMapType or a dict "
+                     f"{{group: [agent names]}}, got {describe(group_map)}")
+
+
+def resolve_group_map(group_map, agent_names: list[str], teams: dict) -> dict[str, list[str]]:
+    """The explicit {group: [agent names]} of a group_map argument (checked)."""
+    _check_group_map_type(group_map)
+    if isinstance(group_map, MarlGroupMapType):
+        resolved = group_map.get_group_map(list(agent_names))
+    elif isinstance(group_map, str):
+        if group_map == "team":
+            resolved = {team: list(names) for team, names in teams.items()}
+        elif group_map == "one_group":
+            resolved = MarlGroupMapType.ALL_IN_ONE_GROUP.get_group_map(list(agent_names))
+        else:
+            resolved = MarlGroupMapType.ONE_GROUP_PER_AGENT.get_group_map(list(agent_names))
+    else:
+        resolved = {}
+        for group, names in group_map.items():
+            if not isinstance(group, str) or not group:
+                raise TypeError(f"group_map keys must be non-empty str group names, got {describe(group)}")
+            if isinstance(names, str) or not all(isinstance(n, str) for n in names):
+                raise TypeError(f"group_map[{group!r}] must be a list of agent names (str), got {describe(names)}")
+            resolved[group] = list(names)
+        unknown = sorted({n for names in resolved.values() for n in names} - set(agent_names))
+        if unknown:
+            raise ValueError(f"group_map names unknown agent(s) {unknown}; the env's agents are {list(agent_names)}")
+        missing = [n for n in agent_names if not any(n in names for names in resolved.values())]
+        if missing:
+            raise ValueError(f"group_map must place every agent in a group; missing: {missing}")
+    reserved = sorted(set(resolved) & set(_RESERVED))
+    if reserved:
+        raise ValueError(f"group names {reserved} clash with TorchRL's root keys {list(_RESERVED)}; "
+                         f"rename the group(s)")
+    check_marl_grouping(resolved, list(agent_names))
+    return resolved
+
+
+class MarlRenderTorchRLEnv(EnvBase):
+    """TorchRL multi-agent env over all worlds of a ``BatchedEnv``; see the module docstring.
+
+    ``core`` is the wrapped BatchedEnv (owned: closed by ``close()``); ``group_map`` the
+    resolved {group: [agent names]}."""
+
+    def __init__(self, env, group_map="team"):
+        from marl_render.envs.core import BatchedEnv
+
+        if not isinstance(env, BatchedEnv):
+            raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
+                            f"got {describe(env)}")
+        if env.autoreset:
+            raise ValueError("env must be built with autoreset=False: TorchRL resets done worlds itself")
+        if env.closed:
+            raise ValueError("env is closed")
+        resolved = resolve_group_map(group_map, env.agent_names, env.groups)
+        super().__init__(device=env.device, batch_size=torch.Size([env.num_worlds]))
+        self.core = env
+        self.group_map = resolved
+        index = {name: i for i, name in enumerate(env.agent_names)}
+        self._group_index = {g: torch.tensor([index[n] for n in names], dtype=torch.long, device=env.device)
+                             for g, names in resolved.items()}
+        # A group covering all agents in core order needs no gather.
+        self._identity = {g: names == list(env.agent_names) for g, names in resolved.items()}
+        self._next_seed = None
+        self._started = False  # the core needs a full reset() before reset_worlds()
+        self._make_specs()
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self):
+        core, W, dev = self.core, self.core.num_worlds, self.device
+        H, Wpx = core.resolution
+        obs_spec, act_spec, rew_spec, done_spec = (Composite(shape=(W,), device=dev) for _ in range(4))
+        for key in ("done", "terminated", "truncated"):
+            done_spec[key] = Categorical(2, shape=(W, 1), dtype=torch.bool, device=dev)
+        for group, names in self.group_map.items():
+            N = len(names)
+            obs = {"pixels": Bounded(0, 255, shape=(W, N, H, Wpx, 3), dtype=torch.uint8, device=dev)}
+            if core.depth:
+                obs["depth"] = Bounded(0.0, float(core.far), shape=(W, N, H, Wpx), dtype=torch.float32, device=dev)
+            if core.state_obs:
+                obs["state"] = Unbounded(shape=(W, N, core.state_dim), dtype=torch.float32, device=dev)
+            if not core.continuous:
+                obs["action_mask"] = Categorical(2, shape=(W, N, core.num_actions), dtype=torch.bool, device=dev)
+            obs_spec[group] = Composite(obs, shape=(W, N), device=dev)
+            if core.continuous:
+                action = Bounded(-1.0, 1.0, shape=(W, N, core.action_dim), dtype=torch.float32, device=dev)
+            else:
+                action = Categorical(core.num_actions, shape=(W, N), dtype=torch.int64, device=dev)
+            act_spec[group] = Composite(action=action, shape=(W, N), device=dev)
+            rew_spec[group] = Composite(reward=Unbounded(shape=(W, N, 1), dtype=torch.float32, device=dev),
+                                        shape=(W, N), device=dev)
+            done_spec[group] = Composite({key: Categorical(2, shape=(W, N, 1), dtype=torch.bool, device=dev)
+                                          for key in ("done", "terminated", "truncated")}, shape=(W, N), device=dev)
+        self.observation_spec = obs_spec
+        self.action_spec = act_spec
+        self.reward_spec = rew_spec
+        self.done_spec = done_spec
+
+    # ------------------------------------------------------------------ EnvBase hooks
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is None:
+            return
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed < 2 ** 63:
+            raise ValueError(f"seed must be None or an int in [0, 2**63), got {describe(seed)}")
+        self._next_seed = int(seed)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        core = self.core
+        mask = self._reset_mask(tensordict)
+        seed, self._next_seed = self._next_seed, None
+        if mask is None or not self._started:
+            obs = core.reset(seed=seed)
+            self._started = True
+        else:
+            if "_reset" not in tensordict.keys() and not tensordict.is_locked:
+                # Only per-group masks were given: whole worlds are reset, so tell TorchRL at the
+                # root (it prevails over the group masks when the reset data are merged).
+                tensordict.set("_reset", mask[:, None].clone())
+            obs = core.reset_worlds(mask, seed=seed)
+        terminated = ~core.alive
+        truncated = core.alive & (core.step_count >= core.max_steps)[:, None]
+        return self._output(obs, None, terminated, truncated)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        core = self.core
+        W, A = core.num_worlds, core.num_agents
+        if core.continuous:
+            actions = torch.zeros(W, A, core.action_dim, dtype=torch.float32, device=self.device)
+        else:
+            actions = torch.zeros(W, A, dtype=torch.int64, device=self.device)
+        for group, idx in self._group_index.items():
+            action = tensordict.get((group, "action"))
+            if self._identity[group]:
+                actions = action  # the core checks dtype, shape, range and NaN
+                break
+            actions[:, idx] = self._check_group_action(group, action)
+        obs, reward, terminated, truncated, _info = core.step(actions)
+        return self._output(obs, reward, terminated, truncated)
+
+    # ------------------------------------------------------------------ helpers
+    def _check_group_action(self, group, action) -> torch.Tensor:
+        """Dtype / shape check of one group's actions before they are gathered (values are
+        checked by the core), so nothing is silently cast."""
+        core, W, N = self.core, self.core.num_worlds, len(self.group_map[group])
+        if core.continuous:
+            shape, ok, want = (W, N, core.action_dim), action.is_floating_point(), "a float tensor"
+        else:
+            shape = (W, N)
+            ok = not action.is_floating_point() and not action.is_complex() and action.dtype != torch.bool
+            want = "an integer tensor"
+        if not ok or tuple(action.shape) != shape:
+            raise ValueError(f"({group!r}, 'action') must be {want} of shape {list(shape)}, got {describe(action)}")
+        return action
+
+    def _reset_mask(self, tensordict) -> torch.Tensor | None:
+        """[W] bool of the worlds to reset, or None for a full reset."""
+        if tensordict is None:
+            return None
+        W = self.core.num_worlds
+        root = tensordict.get("_reset", None)
+        if root is not None:
+            return root.reshape(W, -1).any(-1).to(self.device)
+        mask, found = torch.zeros(W, dtype=torch.bool, device=self.device), False
+        for group in self.group_map:
+            value = tensordict.get((group, "_reset"), None)
+            if value is not None:
+                mask |= value.reshape(W, -1).any(-1).to(self.device)
+                found = True
+        return mask if found else None
+
+    def _output(self, obs, reward, terminated, truncated) -> TensorDict:
+        W = self.core.num_worlds
+        done = terminated | truncated
+        source = {"done": done.all(1, keepdim=True), "terminated": terminated.all(1, keepdim=True)}
+        source["truncated"] = source["done"] & ~source["terminated"]
+        for group, idx in self._group_index.items():
+            N = len(idx)
+            if self._identity[group]:
+                pick = lambda t: t  # noqa: E731
+            else:
+                pick = lambda t, idx=idx: t.index_select(1, idx)  # noqa: E731
+            entries = {key: pick(obs[key]) for key in self.core.obs_keys}
+            entries["done"] = pick(done)[..., None]
+            entries["terminated"] = pick(terminated)[..., None]
+            entries["truncated"] = pick(truncated)[..., None]
+            if reward is not None:
+                entries["reward"] = pick(reward)[..., None]
+            if "action_mask" in entries:
+                spec = self.full_action_spec[group, "action"]
+                spec.update_mask(entries["action_mask"].clone())
+            source[group] = TensorDict(entries, batch_size=(W, N), device=self.device)
+        return TensorDict(source, batch_size=(W,), device=self.device)
+
+    # ------------------------------------------------------------------ extras
+    def render_overview(self, resolution=None) -> torch.Tensor:
+        """uint8 [W, H2, W2, 3]: each world seen from the core's overview camera (for humans)."""
+        return self.core.render_overview(resolution)
+
+    @property
+    def agent_names(self) -> list[str]:
+        return list(self.core.agent_names)
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        self.core.close()
+        super().close(raise_if_closed=raise_if_closed)
+
+    def __repr__(self):
+        return f"MarlRenderTorchRLEnv({self.core!r}, group_map={self.group_map})"
+
+
+__all__ = ["MarlRenderTorchRLEnv", "make_torchrl_env", "resolve_group_map", "GROUP_MAPS"]

@@ -1,0 +1,362 @@
+"""The TorchRL front end (marl_render/wrappers/torchrl.py): specs of every registered env,
+group maps, partial resets, agents leaving, seeding, bad input, ParallelEnv (spawned
+workers, one GL context each) and a data collector."""
+from __future__ import annotations
+
+import functools
+
+import pytest
+import torch
+from torchrl.envs import ParallelEnv
+from torchrl.envs.utils import MarlGroupMapType, check_env_specs, step_mdp
+
+from marl_render.envs import list_envs
+from marl_render.envs.spread import Spread
+from marl_render.wrappers.torchrl import MarlRenderTorchRLEnv, make_torchrl_env
+
+try:  # torchrl >= 0.11 renamed SyncDataCollector to Collector
+    from torchrl.collectors import Collector
+except ImportError:  # pragma: no cover - older torchrl
+    from torchrl.collectors import SyncDataCollector as Collector
+
+W = 2
+RES = 32
+ENVS = list_envs()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def single_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors on a shared 2-core machine
+    yield
+    torch.set_num_threads(before)
+
+
+def make(name, **kw):
+    kw.setdefault("num_worlds", W)
+    kw.setdefault("resolution", RES)
+    return make_torchrl_env(name, **kw)
+
+
+class Departing(Spread):
+    """spread with two teams where agents leave: prey_0 at step 2, prey_1 at step 3 (world 0 only)."""
+
+    name = "departing"
+    agent_range = (3, 3)
+
+    def _setup(self):
+        super()._setup()
+        self.agent_names = ["predator_0", "prey_0", "prey_1"]
+        self.groups = {"predators": ["predator_0"], "prey": ["prey_0", "prey_1"]}
+
+    def _step_state(self, actions, alive):
+        reward, terminated, info = super()._step_state(actions, alive)
+        terminated = terminated.clone()
+        terminated[0, 1] |= bool(self.step_count[0] == 1)
+        terminated[0, 2] |= bool(self.step_count[0] == 2)
+        return reward, terminated, info
+
+
+def departing(max_steps=5, group_map="team"):
+    return MarlRenderTorchRLEnv(Departing(num_worlds=W, resolution=RES, max_steps=max_steps, seed=0),
+                                group_map=group_map)
+
+
+# ---------------------------------------------------------------------- specs
+@pytest.mark.parametrize("name", ENVS)
+@pytest.mark.parametrize("variant", [{}, {"continuous": True, "depth": True, "state_obs": True}])
+def test_check_env_specs_and_random_rollout(name, variant):
+    env = make(name, max_steps=4, **variant)
+    env.set_seed(0)
+    check_env_specs(env)
+    td = env.rollout(6, break_when_any_done=False)  # crosses an episode end: auto partial reset
+    core = env.core
+    H, Wpx = core.resolution
+    assert td.batch_size == (W, 6)
+    for group, names in env.group_map.items():
+        N = len(names)
+        assert td["next", group, "pixels"].shape == (W, 6, N, H, Wpx, 3)
+        assert td["next", group, "pixels"].dtype == torch.uint8
+        assert td["next", group, "reward"].shape == (W, 6, N, 1)
+        for key in ("done", "terminated", "truncated"):
+            assert td["next", group, key].shape == (W, 6, N, 1)
+        if core.continuous:
+            assert td[group, "action"].shape == (W, 6, N, core.action_dim)
+            assert td["next", group, "depth"].shape == (W, 6, N, H, Wpx)
+            assert td["next", group, "state"].shape == (W, 6, N, core.state_dim)
+        else:
+            assert td[group, "action"].dtype == torch.int64 and td[group, "action"].shape == (W, 6, N)
+            assert td["next", group, "action_mask"].shape == (W, 6, N, core.num_actions)
+    assert td["next", "done"].shape == (W, 6, 1)
+    assert td["next", "truncated"][:, 3].all() and not td["next", "done"][:, [0, 1, 2, 4, 5]].any()
+    assert td["next", "terminated"].sum() == 0
+    env.close()
+
+
+def test_spec_types():
+    from torchrl.data import Bounded, Categorical, Unbounded
+
+    env = make("spread", state_obs=True, depth=True)
+    obs = env.observation_spec["agents"]
+    assert isinstance(obs["pixels"], Bounded) and obs["pixels"].dtype == torch.uint8
+    assert isinstance(obs["depth"], Bounded) and isinstance(obs["state"], Unbounded)
+    assert isinstance(obs["action_mask"], Categorical) and obs["action_mask"].dtype == torch.bool
+    assert isinstance(env.full_action_spec["agents", "action"], Categorical)
+    assert env.full_action_spec["agents", "action"].space.n == 5
+    assert env.full_done_spec["done"].shape == (W, 1)
+    env.close()
+    env = make("cartpole", continuous=True)
+    action = env.full_action_spec["agents", "action"]
+    assert isinstance(action, Bounded) and action.shape == (W, 1, 1)
+    assert action.space.low.min() == -1 and action.space.high.max() == 1
+    env.close()
+
+
+# ---------------------------------------------------------------------- group maps
+def test_group_maps_slice_the_same_data():
+    maps = {"team": None, "one_group": None, "per_agent": None,
+            MarlGroupMapType.ALL_IN_ONE_GROUP: None, MarlGroupMapType.ONE_GROUP_PER_AGENT: None,
+            "explicit": {"odd": ["agent_1"], "even": ["agent_2", "agent_0"]}}
+    pixels = {}
+    for key in maps:
+        group_map = maps[key] or key
+        env = make("spread", group_map=group_map, seed=5)
+        td = env.reset()
+        pixels[key] = {name: td[group, "pixels"][:, i] for group, names in env.group_map.items()
+                       for i, name in enumerate(names)}
+        if key in ("one_group", MarlGroupMapType.ALL_IN_ONE_GROUP, "team"):
+            assert env.group_map == {"agents": ["agent_0", "agent_1", "agent_2"]}
+        if key in ("per_agent", MarlGroupMapType.ONE_GROUP_PER_AGENT):
+            assert env.group_map == {f"agent_{i}": [f"agent_{i}"] for i in range(3)}
+            assert td["agent_1", "pixels"].shape == (W, 1, RES, RES, 3)
+        if key == "explicit":
+            check_env_specs(env)
+            td = env.rand_step(td)
+            assert td["next", "even", "reward"].shape == (W, 2, 1)
+        env.close()
+    reference = pixels["one_group"]
+    for key, by_agent in pixels.items():
+        for name in reference:
+            assert torch.equal(by_agent[name], reference[name]), (key, name)
+
+
+def test_team_group_map_of_a_two_team_env():
+    env = departing(group_map="team")
+    assert env.group_map == {"predators": ["predator_0"], "prey": ["prey_0", "prey_1"]}
+    check_env_specs(env)
+    td = env.rollout(3)
+    assert td["next", "prey", "pixels"].shape == (W, 3, 2, RES, RES, 3)
+    assert td["next", "predators", "reward"].shape == (W, 3, 1, 1)
+    env.close()
+    one = departing(group_map="one_group")
+    assert list(one.group_map) == ["agents"]
+    one.close()
+
+
+def test_bad_group_maps():
+    for group_map, error, message in [
+        ("teams", ValueError, "group_map must be one of"),
+        ({"a": ["agent_0", "agent_1"]}, ValueError, r"missing: \['agent_2'\]"),
+        ({"a": ["agent_0", "agent_1", "agent_2", "agent_9"]}, ValueError, r"unknown agent\(s\) \['agent_9'\]"),
+        ({"done": ["agent_0", "agent_1", "agent_2"]}, ValueError, "clash with TorchRL's root keys"),
+        ({"a": ["agent_0", "agent_1"], "b": ["agent_1", "agent_2"]}, ValueError, "agent_1"),
+        ({"a": "agent_0"}, TypeError, "must be a list of agent names"),
+    ]:
+        with pytest.raises(error, match=message):
+            make("spread", group_map=group_map)
+    with pytest.raises(TypeError, match="autoreset"):
+        make("spread", autoreset=True)
+
+
+# ---------------------------------------------------------------------- resets
+def _state(env):
+    return env.core.get_state()
+
+
+def test_partial_reset_leaves_other_worlds_untouched():
+    env = make("spread", num_worlds=3, state_obs=True, seed=1)
+    td = env.reset()
+    for _ in range(3):
+        td = step_mdp(env.rand_step(td))
+    before, pixels = _state(env), td["agents", "pixels"].clone()
+    td.set("_reset", torch.tensor([[False], [True], [False]]))
+    td = env.reset(td)
+    after = _state(env)
+    keep = [0, 2]
+    for key in ("pos", "vel", "yaw", "landmarks", "step_count", "alive"):
+        assert torch.equal(after[key][keep], before[key][keep]), key
+        assert not torch.equal(after[key][1], before[key][1]) or key == "alive", key
+    assert after["step_count"].tolist() == [3, 0, 3]
+    assert torch.equal(td["agents", "pixels"][keep], pixels[keep])  # same pixels, rendered again
+    assert not torch.equal(td["agents", "pixels"][1], pixels[1])
+    assert "_reset" not in td.keys()
+
+    # Per-group masks only: the world of any flagged agent is reset as a whole.
+    td = step_mdp(env.rand_step(td))
+    before, state_obs = _state(env), td["agents", "state"].clone()
+    td.set(("agents", "_reset"), torch.tensor([[[False]] * 3, [[False]] * 3, [[False], [True], [False]]]))
+    td = env.reset(td)
+    after = _state(env)
+    assert after["step_count"].tolist() == [4, 1, 0]
+    assert torch.equal(after["pos"][:2], before["pos"][:2]) and not torch.equal(after["pos"][2], before["pos"][2])
+    assert torch.equal(td["agents", "state"][:2], state_obs[:2])  # every agent of world 2 got new data
+    assert not (td["agents", "state"][2] == state_obs[2]).all(-1).any()
+    env.close()
+
+
+def test_rollout_resets_only_the_done_world():
+    env = make("spread", max_steps=4, seed=2)
+    td = env.reset()
+    td = step_mdp(env.rand_step(td))
+    td.set("_reset", torch.tensor([[True], [False]]))  # world 0 restarts one step later than world 1
+    td = env.reset(td)
+    counts = []
+    for _ in range(6):
+        out, td = env.step_and_maybe_reset(td)
+        counts.append(env.core.step_count.tolist())
+        done = out["next", "done"].squeeze(-1)
+        assert done.tolist() == [c == 0 for c in counts[-1]]
+    assert counts == [[1, 2], [2, 3], [3, 0], [0, 1], [1, 2], [2, 3]]
+    env.close()
+
+
+def test_departed_agents():
+    env = departing(max_steps=5)
+    env.set_seed(0)
+    td = env.rollout(5, break_when_any_done=True)  # only root done stops a rollout
+    assert td.batch_size == (W, 5)
+    prey_term = td["next", "prey", "terminated"].squeeze(-1)  # [W, T, 2]
+    assert prey_term[0].tolist() == [[False, False], [True, False], [True, True], [True, True], [True, True]]
+    assert not prey_term[1].any()
+    reward = td["next", "prey", "reward"].squeeze(-1)
+    assert (reward[0, 2:, 0] == 0).all() and (reward[0, 3:, 1] == 0).all() and (reward[1] != 0).all()
+    assert not td["next", "done"][:, :4].any()
+    # step 5: the predator (and world 1's prey) reach max_steps
+    assert td["next", "done"][:, 4].all() and td["next", "truncated"][:, 4].all()
+    assert not td["next", "terminated"].any()
+    assert td["next", "predators", "truncated"][:, 4].all()
+    assert td["next", "prey", "truncated"][0, 4].sum() == 0 and td["next", "prey", "truncated"][1, 4].all()
+    env.close()
+
+
+def test_world_terminated_when_every_agent_left():
+    class AllLeave(Departing):
+        def _step_state(self, actions, alive):
+            reward, terminated, info = super()._step_state(actions, alive)
+            terminated[0] |= bool(self.step_count[0] == 3)
+            return reward, terminated, info
+
+    env = MarlRenderTorchRLEnv(AllLeave(num_worlds=W, resolution=RES, max_steps=10, seed=0))
+    td = env.rollout(10)
+    assert td.batch_size == (W, 4)  # world 0 ends at step 4 and stops the rollout
+    assert td["next", "terminated"][:, 3].squeeze(-1).tolist() == [True, False]
+    assert td["next", "done"][:, 3].squeeze(-1).tolist() == [True, False]
+    td = env.reset(step_mdp(td[:, -1]).set("_reset", td["next", "done"][:, -1]))
+    assert env.core.alive.all() and env.core.step_count.tolist() == [0, 4]
+    env.close()
+
+
+def test_action_mask_reaches_the_action_spec():
+    class Masked(Departing):
+        def _action_mask(self):
+            mask = super()._action_mask().clone()
+            mask[..., 0] = False  # never noop
+            mask[0, 1] = torch.tensor([False, False, False, True, False])  # world 0's prey_0: only action 3
+            return mask
+
+    env = MarlRenderTorchRLEnv(Masked(num_worlds=W, resolution=RES, max_steps=10, seed=0), group_map="one_group")
+    check_env_specs(env)
+    td = env.rollout(20, break_when_any_done=False)
+    assert td["agents", "action_mask"][0, :, 1].tolist() == [[False, False, False, True, False]] * 20
+    actions = td["agents", "action"]
+    assert (actions != 0).all() and (actions[0, :, 1] == 3).all()  # rand_action honours the mask
+    env.close()
+
+
+# ---------------------------------------------------------------------- seeding and bad input
+def test_set_seed_is_reproducible():
+    def run(seed):
+        env = make("spread", max_steps=3)
+        env.set_seed(seed)
+        torch.manual_seed(0)  # rand_action uses torch's global RNG
+        td = env.rollout(5, break_when_any_done=False)
+        env.close()
+        return td
+
+    a, b, c = run(3), run(3), run(4)
+    assert torch.equal(a["next", "agents", "pixels"], b["next", "agents", "pixels"])
+    assert torch.equal(a["next", "agents", "reward"], b["next", "agents", "reward"])
+    assert not torch.equal(a["agents", "pixels"][:, 0], c["agents", "pixels"][:, 0])
+    env = make("spread")
+    with pytest.raises(ValueError, match="seed"):
+        env.set_seed(-1)
+    env.close()
+
+
+def test_bad_actions_raise_and_change_nothing():
+    env = make("spread", group_map={"a": ["agent_0"], "b": ["agent_1", "agent_2"]})
+    td = env.reset()
+    before = _state(env)
+    bad = [
+        (torch.full((W, 1), 7), ValueError, r"values in \[0, 5\)"),
+        (torch.zeros(W, 1, dtype=torch.float32), ValueError, r"\('a', 'action'\) must be an integer tensor"),
+        (torch.zeros(W, 1, 3, dtype=torch.long), ValueError, r"\('a', 'action'\).*shape \[2, 1\]"),
+    ]
+    for action, error, message in bad:
+        td_bad = env.rand_action(td.clone())
+        td_bad.set(("a", "action"), action)
+        with pytest.raises(error, match=message):
+            env.step(td_bad)
+        s = _state(env)
+        assert all(torch.equal(s[k], before[k]) for k in s)
+    env.close()
+    env = make("cartpole", continuous=True)
+    td = env.reset()
+    td.set(("agents", "action"), torch.full((W, 1, 1), float("nan")))
+    with pytest.raises(ValueError, match="non-finite"):
+        env.step(td)
+    env.close()
+
+
+def test_render_overview_and_close():
+    env = make("spread")
+    env.reset()
+    image = env.render_overview(resolution=(24, 40))
+    assert image.shape == (W, 24, 40, 3) and image.dtype == torch.uint8
+    env.close()
+    assert env.is_closed and env.core.closed
+    with pytest.raises(RuntimeError, match="closed"):
+        env.reset()
+
+
+# ---------------------------------------------------------------------- ParallelEnv and collectors
+def test_parallel_env_spawned_workers():
+    # functools.partial pickles as is; a lambda works too but torchrl then builds one env in
+    # this process first to read its specs.
+    create = functools.partial(make_torchrl_env, "spread", num_worlds=W, resolution=RES, max_steps=3)
+    env = ParallelEnv(2, create, mp_start_method="spawn")
+    try:
+        env.set_seed(0)
+        td = env.rollout(4, break_when_any_done=False)
+        assert td.batch_size == (2, W, 4)
+        assert td["next", "agents", "pixels"].shape == (2, W, 4, 3, RES, RES, 3)
+        assert td["next", "done"][..., 2, 0].all() and not td["next", "done"][..., [0, 1, 3], 0].any()
+        # differently seeded workers render different worlds
+        assert not torch.equal(td["agents", "pixels"][0, :, 0], td["agents", "pixels"][1, :, 0])
+    finally:
+        env.close()
+
+
+def test_collector_with_random_policy():
+    env = make("spread", max_steps=4)
+    collector = Collector(env, policy=None, frames_per_batch=W * 6, total_frames=W * 12)
+    batches = list(collector)
+    collector.shutdown()
+    assert len(batches) == 2
+    for batch in batches:
+        assert batch.batch_size == (W, 6)
+        assert batch["next", "agents", "pixels"].shape == (W, 6, 3, RES, RES, 3)
+        assert batch["next", "agents", "reward"].shape == (W, 6, 3, 1)
+    done = torch.cat([b["next", "done"] for b in batches], 1).squeeze(-1)
+    assert done.sum() == W * 3  # episodes of 4 steps in 12 steps per world
+    env.close()
