@@ -1,0 +1,443 @@
+"""The batched environment core: W worlds x A agents, stepped and rendered as one batch.
+
+Every environment of the suite subclasses ``BatchedEnv``. The core owns everything that
+is the same for all of them: argument checks, seeding, step counters, the alive mask,
+truncation, auto-reset, the renderer(s) and the observation dict. A subclass writes
+only its world: state tensors, a reset, a step, a scene and the instance poses.
+
+Data contract (W worlds, A agents, H x Wpx pixels)::
+
+    obs = env.reset(seed=0)          # dict of tensors, all [W, A, ...]
+      "pixels"       uint8   [W, A, H, Wpx, 3]   always
+      "depth"        float32 [W, A, H, Wpx]      depth=True (metres along the view axis;
+                                                  background = the camera's far plane)
+      "state"        float32 [W, A, state_dim]   state_obs=True
+      "action_mask"  bool    [W, A, num_actions] discrete envs (all True where no action
+                                                  can be invalid)
+    obs, reward, terminated, truncated, info = env.step(actions)
+      actions: discrete  integer [W, A] in [0, num_actions)
+               continuous float  [W, A, action_dim] in [-1, 1]
+      reward float32 [W, A]; terminated, truncated bool [W, A]
+      info: "step_count" int64 [W] (steps of the episode just stepped),
+            "done_worlds" bool [W] (every agent terminated or truncated), plus env keys.
+
+Agents that left the episode (``alive`` False, e.g. caught prey) stay in every tensor:
+their actions are ignored (they must still be valid values, e.g. 0), their reward is 0
+and they are reported terminated until their world is reset. ``truncated`` is True for
+the agents still alive when the world's step count reaches ``max_steps``.
+
+Nothing resets inside ``step`` unless ``autoreset=True``: then the worlds that are done
+are reset at the end of ``step`` and the returned obs of those worlds are the first obs
+of their new episode; reward / terminated / truncated still describe the step that
+ended the episode, ``info["done_worlds"]`` says which worlds were reset, and the final
+obs of the old episode is not returned (there is no ``info["final_obs"]``).
+
+Every call validates all of its input before it changes anything, so a rejected call
+leaves the state (bodies, counters, RNG) exactly as it was.
+"""
+from __future__ import annotations
+
+import abc
+import math
+
+import numpy as np
+import torch
+
+import marl_render as mr
+from marl_render.validation import as_tensor, describe, positive_int, resolution_hw
+
+from . import scenery
+
+OBS_KEYS = ("pixels", "depth", "state", "action_mask")
+
+
+def _flag(name: str, value) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a bool, got {describe(value)}")
+    return bool(value)
+
+
+def _seed(name: str, value) -> int | None:
+    if value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be None or an int in [0, 2**63), got {describe(value)}")
+    if not 0 <= int(value) < 2 ** 63:
+        raise ValueError(f"{name} must be None or an int in [0, 2**63), got {value}")
+    return int(value)
+
+
+def _device(value) -> torch.device:
+    if not isinstance(value, (str, torch.device)):
+        raise TypeError(f"device must be a str or torch.device (e.g. 'cpu', 'cuda:0'), got {describe(value)}")
+    try:
+        device = torch.device(value)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"device must name a torch device (e.g. 'cpu', 'cuda:0'), got {value!r}") from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {value!r} was asked for but torch sees no CUDA device; use device='cpu'")
+    return device
+
+
+class _TorchThreads:
+    """Run a block with `n` torch intra-op threads (None: unchanged), then restore the count.
+
+    Why: on a CPU-only machine the renderer (Mesa llvmpipe) rasterises on every core.
+    Torch's idle intra-op (OpenMP) workers spin after each parallel op and take those
+    cores from llvmpipe; measured on 2 cores, 1024 cartpole views: ~37 ms of CPU per step
+    with 1 torch thread inside the step vs ~57-135 ms with 2. The tensors of a step are
+    small, so one thread loses nothing; the caller's own count is restored afterwards.
+    """
+
+    __slots__ = ("n", "saved")
+
+    def __init__(self, n):
+        self.n = n
+        self.saved = None
+
+    def __enter__(self):
+        if self.n is not None:
+            self.saved = torch.get_num_threads()
+            if self.saved != self.n:
+                torch.set_num_threads(self.n)
+
+    def __exit__(self, *exc):
+        if self.n is not None and self.saved != self.n:
+            torch.set_num_threads(self.saved)
+
+
+class BatchedEnv(abc.ABC):
+    """Abstract base of all environments: see the module docstring for the contract.
+
+    Subclasses set the class attributes below and implement the hooks
+    ``_setup``, ``_build_scene``, ``_reset_state``, ``_step_state``, ``_instances``,
+    ``_state_obs``, ``_state_tensors`` (and optionally ``_init_cameras``,
+    ``_action_mask``, ``_overview_camera``).
+
+    Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
+    (H, W)), max_steps, continuous, state_obs, depth, device, seed, autoreset, and
+    torch_threads (default 1): torch intra-op threads used *inside* env calls (the
+    caller's setting is restored on return; None leaves it alone). See _TorchThreads.
+
+    Attributes: name, num_worlds (W), num_agents (A), agent_names, groups (team ->
+    agent names, in agent-index order), resolution (H, W), continuous, num_actions
+    (discrete, else None), action_dim (continuous, else None), action_meanings,
+    obs_keys, state_dim, max_steps, device, seed, generator, renderer, physics
+    (PhysicsConfig or None), physics_terms, alive [W, A] bool, step_count [W] int64.
+    Methods: reset, reset_worlds, step, check_actions, render_overview, get_state, close.
+    """
+
+    # ---- declared by each environment
+    name: str = "batched_env"
+    default_num_agents: int = 1
+    agent_range: tuple = (1, 64)  # allowed num_agents (inclusive)
+    default_max_steps: int = 100
+    default_resolution = 64
+    physics_terms: frozenset = frozenset()  # envs/physics.py terms this env computes
+    background: tuple = scenery.SKY_COLOR
+    fov_y: float = math.radians(70.0)
+    near: float = 0.05
+    far: float = 50.0
+    arena_half_extent: tuple = (1.5, 1.5)  # used by the default overview camera
+    overview_resolution: tuple = (128, 128)
+    overview_fov_y: float = math.radians(60.0)
+
+    def __init__(self, *, num_worlds: int = 1, num_agents: int | None = None, resolution=None,
+                 max_steps: int | None = None, continuous: bool = False, state_obs: bool = False,
+                 depth: bool = False, device="cpu", seed: int | None = None, autoreset: bool = False,
+                 torch_threads: int | None = 1):
+        self._closed = True  # until fully built: close() and __del__ then do nothing
+        self.num_worlds = positive_int("num_worlds", num_worlds)
+        low, high = self.agent_range
+        num_agents = self.default_num_agents if num_agents is None else num_agents
+        if isinstance(num_agents, (bool, np.bool_)) or not isinstance(num_agents, (int, np.integer)):
+            raise TypeError(f"num_agents must be an int in [{low}, {high}], got {describe(num_agents)}")
+        if not low <= num_agents <= high:
+            raise ValueError(f"num_agents must be an int in [{low}, {high}] for {self.name}, got {num_agents}")
+        self.num_agents = int(num_agents)
+        self.resolution = resolution_hw(self.default_resolution if resolution is None else resolution)
+        self.max_steps = positive_int("max_steps", self.default_max_steps if max_steps is None else max_steps)
+        self.continuous = _flag("continuous", continuous)
+        self.state_obs = _flag("state_obs", state_obs)
+        self.depth = _flag("depth", depth)
+        self.autoreset = _flag("autoreset", autoreset)
+        self.device = _device(device)
+        if torch_threads is not None:
+            torch_threads = positive_int("torch_threads", torch_threads)
+        self.torch_threads = torch_threads
+        seed = _seed("seed", seed)
+        self.seed = int(torch.Generator().seed() % 2 ** 63) if seed is None else seed
+        self.generator = torch.Generator().manual_seed(self.seed)
+
+        # Filled in by _setup().
+        self.agent_names: list[str] = [f"agent_{i}" for i in range(self.num_agents)]
+        self.groups: dict[str, list[str]] = {"agents": list(self.agent_names)}
+        self.num_actions: int | None = None
+        self.action_dim: int | None = None
+        self.action_meanings: tuple | None = None  # discrete: a short name per action
+        self.state_dim: int = 0
+        self.physics = None  # PhysicsConfig of envs that use envs/physics.py
+        self._setup()
+        self._check_setup()
+
+        self.obs_keys = tuple(k for k, on in (("pixels", True), ("depth", self.depth), ("state", self.state_obs),
+                                              ("action_mask", not self.continuous)) if on)
+        W, A = self.num_worlds, self.num_agents
+        self.alive = torch.ones(W, A, dtype=torch.bool, device=self.device)
+        self.step_count = torch.zeros(W, dtype=torch.int64, device=self.device)
+        self._needs_reset = True
+        self._overview = None
+        effects = ("lighting", "depth") if self.depth else ("lighting",)
+        with _TorchThreads(self.torch_threads):
+            self.renderer = self._make_renderer(overview=False, resolution=self.resolution, effects=effects)
+        self._closed = False
+
+    # ================================================================== hooks
+    @abc.abstractmethod
+    def _setup(self) -> None:
+        """Set agent_names, groups, num_actions / action_dim, state_dim, physics; allocate state."""
+
+    @abc.abstractmethod
+    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
+        """Add static geometry and instance groups; mount cameras unless `overview`."""
+
+    def _init_cameras(self, renderer: mr.BatchRenderer, overview: bool) -> None:
+        """Place free cameras once after the renderer is built. Default: mounted agent
+        cameras (nothing to do) and the `_overview_camera()` for the overview."""
+        if overview:
+            eye, target = self._overview_camera()
+            W = self.num_worlds
+            renderer.set_cameras(position=eye.expand(W, 1, 3), look_at=target.expand(W, 1, 3))
+
+    def _overview_camera(self):
+        """(eye [3], target [3]) float64 of the overview camera (same in every world)."""
+        return scenery.top_down_camera(self.arena_half_extent, self.overview_fov_y)
+
+    @abc.abstractmethod
+    def _reset_state(self, mask: torch.Tensor) -> None:
+        """Sample a new episode into the worlds where mask [W] is True, using self.generator.
+        Leave the other worlds' tensors bit-identical (sample for all, select with where)."""
+
+    @abc.abstractmethod
+    def _step_state(self, actions: torch.Tensor, alive: torch.Tensor):
+        """Advance every world by one step with validated actions; agents with alive False
+        must be ignored. Returns (reward [W, A] float, terminated [W, A] bool, info dict)."""
+
+    @abc.abstractmethod
+    def _instances(self, full: bool) -> dict:
+        """{group: renderer.update kwargs} of the current state. full=False: only what can
+        change in a step (poses); full=True: everything (after a reset, for a new renderer)."""
+
+    def _state_obs(self) -> torch.Tensor:
+        """[W, A, state_dim] float32 low-dimensional observation."""
+        raise NotImplementedError(f"{type(self).__name__} has no state observation")
+
+    def _action_mask(self) -> torch.Tensor:
+        """[W, A, num_actions] bool; default: every action valid."""
+        return torch.ones(self.num_worlds, self.num_agents, self.num_actions, dtype=torch.bool, device=self.device)
+
+    @abc.abstractmethod
+    def _state_tensors(self) -> dict:
+        """{name: tensor} of the env's own simulation state (for get_state)."""
+
+    # ================================================================== public API
+    def reset(self, seed: int | None = None) -> dict:
+        """Reset every world; `seed` (optional) re-seeds the env's generator first."""
+        self._check_open()
+        seed = _seed("seed", seed)
+        if seed is not None:
+            self.seed = seed
+            self.generator.manual_seed(seed)
+        with _TorchThreads(self.torch_threads):
+            self._reset_masked(torch.ones(self.num_worlds, dtype=torch.bool, device=self.device))
+            self._needs_reset = False
+            return self._observe(full=True)
+
+    def reset_worlds(self, mask, seed: int | None = None) -> dict:
+        """Reset only the worlds where mask [W] (bool) is True; returns obs of all worlds.
+
+        `seed` (optional) re-seeds the env's generator before sampling."""
+        self._check_open()
+        self._check_started()
+        mask = as_tensor("mask", mask, dtype_kind="bool")
+        if tuple(mask.shape) != (self.num_worlds,):
+            raise ValueError(f"mask must be a bool tensor of shape [{self.num_worlds}] (num_worlds), "
+                             f"got shape {list(mask.shape)}")
+        seed = _seed("seed", seed)
+        if seed is not None:
+            self.seed = seed
+            self.generator.manual_seed(seed)
+        with _TorchThreads(self.torch_threads):
+            self._reset_masked(mask.to(self.device))
+            return self._observe(full=True)
+
+    def step(self, actions):
+        """Advance all worlds one step: (obs, reward, terminated, truncated, info)."""
+        self._check_open()
+        self._check_started()
+        with _TorchThreads(self.torch_threads):
+            return self._step(self.check_actions(actions))
+
+    def _step(self, actions):
+        alive_before = self.alive
+        reward, terminated, info = self._step_state(actions, alive_before)
+        reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
+        self.alive = alive_before & ~terminated
+        terminated = ~self.alive
+        self.step_count = self.step_count + 1
+        truncated = (self.step_count >= self.max_steps)[:, None] & self.alive
+        done_worlds = (terminated | truncated).all(dim=1)
+        info = {"step_count": self.step_count.clone(), "done_worlds": done_worlds, **info}
+        reset = False
+        if self.autoreset and bool(done_worlds.any()):
+            self._reset_masked(done_worlds)
+            reset = True
+        return self._observe(full=reset), reward, terminated, truncated, info
+
+    def check_actions(self, actions) -> torch.Tensor:
+        """Validated actions on self.device (long [W, A] or float32 [W, A, action_dim]); raises
+        TypeError / ValueError naming `actions`, the expected and the given, else changes nothing."""
+        W, A = self.num_worlds, self.num_agents
+        if not isinstance(actions, (torch.Tensor, np.ndarray, list, tuple)):
+            raise TypeError(f"actions must be a torch.Tensor (or array-like), got {describe(actions)}")
+        if self.continuous:
+            want = f"a float tensor of shape [{W}, {A}, {self.action_dim}] (worlds, agents, action_dim) in [-1, 1]"
+            if isinstance(actions, (torch.Tensor, np.ndarray)) and not (
+                    torch.is_tensor(actions) and actions.is_floating_point()
+                    or isinstance(actions, np.ndarray) and np.issubdtype(actions.dtype, np.floating)):
+                raise TypeError(f"actions must be {want}, got {describe(actions)}")
+            tensor = as_tensor("actions", actions, dtype_kind="float")
+            if tuple(tensor.shape) != (W, A, self.action_dim):
+                raise ValueError(f"actions must be {want}, got shape {list(tensor.shape)}")
+            if not bool(torch.isfinite(tensor).all()):
+                raise ValueError(f"actions must be {want}, got non-finite values (NaN/Inf)")
+            if bool((tensor.abs() > 1).any()):
+                raise ValueError(f"actions must be {want}, got values in "
+                                 f"[{tensor.min().item():.4g}, {tensor.max().item():.4g}] (clamp them first)")
+            return tensor.to(device=self.device, dtype=torch.float32)
+        want = f"an integer tensor of shape [{W}, {A}] (worlds, agents) with values in [0, {self.num_actions})"
+        try:
+            tensor = as_tensor("actions", actions, dtype_kind="int")
+        except TypeError as exc:
+            raise TypeError(f"actions must be {want}, got {describe(actions)}") from exc
+        if tuple(tensor.shape) != (W, A):
+            raise ValueError(f"actions must be {want}, got shape {list(tensor.shape)}")
+        if tensor.numel() and (bool((tensor < 0).any()) or bool((tensor >= self.num_actions).any())):
+            raise ValueError(f"actions must be {want}, got values in [{tensor.min().item()}, {tensor.max().item()}]")
+        return tensor.to(device=self.device, dtype=torch.int64)
+
+    def render_overview(self, resolution=None) -> torch.Tensor:
+        """uint8 [W, H2, W2, 3]: one camera per world that sees the whole arena, for humans.
+
+        Built on the first call (a second renderer with the same groups and free cameras);
+        `resolution` (int or (H, W)) defaults to `overview_resolution` and rebuilds it if changed."""
+        self._check_open()
+        self._check_started()
+        resolution = resolution_hw(self.overview_resolution if resolution is None else resolution)
+        if self._overview is not None and self._overview.scene.resolution != resolution:
+            self._overview.close()
+            self._overview = None
+        if self._overview is None:
+            self._overview = self._make_renderer(overview=True, resolution=resolution, effects=("lighting",))
+        with _TorchThreads(self.torch_threads):
+            self._sync(self._overview, full=True)
+            return self._overview.render().rgb[:, 0].to(self.device)
+
+    def get_state(self) -> dict:
+        """Copies of the whole simulation state: env tensors, step counters, alive mask, RNG state."""
+        self._check_open()
+        state = {k: v.clone() for k, v in self._state_tensors().items()}
+        state.update(step_count=self.step_count.clone(), alive=self.alive.clone(), rng=self.generator.get_state())
+        return state
+
+    def close(self) -> None:
+        """Release the renderers; safe to call twice. Any later use raises RuntimeError."""
+        if self._closed:
+            return
+        self._closed = True
+        for renderer in (self.renderer, self._overview):
+            if renderer is not None:
+                renderer.close()
+        self._overview = None
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def __repr__(self):
+        kind = f"continuous action_dim={self.action_dim}" if self.continuous else f"num_actions={self.num_actions}"
+        return (f"{type(self).__name__}(name={self.name!r}, num_worlds={self.num_worlds}, num_agents={self.num_agents}, "
+                f"resolution={self.resolution}, {kind}, obs_keys={self.obs_keys}, max_steps={self.max_steps})")
+
+    # ================================================================== internals
+    def _check_setup(self):
+        A = self.num_agents
+        if len(self.agent_names) != A or len(set(self.agent_names)) != A:
+            raise RuntimeError(f"{type(self).__name__}._setup must give {A} distinct agent_names")
+        grouped = [n for names in self.groups.values() for n in names]
+        if sorted(grouped) != sorted(self.agent_names):
+            raise RuntimeError(f"{type(self).__name__}.groups must partition agent_names")
+        if self.continuous and not (isinstance(self.action_dim, int) and self.action_dim >= 1):
+            raise RuntimeError(f"{type(self).__name__}._setup must set action_dim >= 1 for continuous actions")
+        if not self.continuous and not (isinstance(self.num_actions, int) and self.num_actions >= 1):
+            raise RuntimeError(f"{type(self).__name__}._setup must set num_actions >= 1 for discrete actions")
+
+    def _check_open(self):
+        if self._closed:
+            raise RuntimeError(f"this {type(self).__name__} environment is closed; create a new one")
+
+    def _check_started(self):
+        if self._needs_reset:
+            raise RuntimeError(f"call reset() before using this {type(self).__name__} environment")
+
+    def _make_renderer(self, overview: bool, resolution, effects) -> mr.BatchRenderer:
+        scene = mr.Scene(num_worlds=self.num_worlds, agents_per_world=1 if overview else self.num_agents,
+                         resolution=resolution, effects=effects, background=self.background,
+                         fov_y=self.overview_fov_y if overview else self.fov_y, near=self.near, far=self.far)
+        self._build_scene(scene, overview)
+        renderer = mr.BatchRenderer(scene)
+        try:
+            self._init_cameras(renderer, overview)
+        except BaseException:
+            renderer.close()
+            raise
+        return renderer
+
+    def _reset_masked(self, mask: torch.Tensor) -> None:
+        self._reset_state(mask)
+        self.step_count = torch.where(mask, torch.zeros_like(self.step_count), self.step_count)
+        self.alive = self.alive | mask[:, None]
+
+    def _sync(self, renderer: mr.BatchRenderer, full: bool) -> None:
+        on_cpu = self.device.type == "cpu"
+        overview = renderer is not self.renderer
+        for group, kwargs in self._instances(full).items():
+            if overview and "owner" in kwargs:  # owners hide bodies from agent views; the overview has none
+                kwargs = {k: v for k, v in kwargs.items() if k != "owner"}
+            if not on_cpu:
+                kwargs = {k: v.cpu() for k, v in kwargs.items()}
+            renderer.update(group, **kwargs)
+
+    def _observe(self, full: bool) -> dict:
+        self._sync(self.renderer, full)
+        frame = self.renderer.render()
+        obs = {"pixels": frame.rgb.to(self.device)}
+        if self.depth:
+            obs["depth"] = frame.depth.clamp_(max=self.far).to(self.device)
+        if self.state_obs:
+            obs["state"] = self._state_obs().to(torch.float32)
+        if not self.continuous:
+            obs["action_mask"] = self._action_mask()
+        return obs

@@ -1,0 +1,757 @@
+"""Batched planar physics in pure torch: many worlds stepped side by side.
+
+Every tensor is batch-first, ``[W, B, ...]`` for W worlds of B bodies (or
+``[W, K, ...]`` for K obstacles). Functions are pure: they take state tensors
+and return new ones (Brax / gymnax style), so a rollout is a plain loop over
+``step``. There are no Python loops over worlds or bodies; the only loops are
+over substeps and over a fixed, small number of solver iterations.
+
+Model
+-----
+* Dynamic bodies are **circles** (agents, balls, items): ``BodyState``.
+  A body with ``mass == inf`` is immovable (it collides but never moves, and
+  its velocity is reported as zero). An inactive body (``active == False``)
+  neither moves nor collides; ``step`` returns its tensors unchanged.
+* Boxes are **static oriented obstacles** only: ``Obstacles`` (they may differ
+  per world). Nothing moves them.
+* The arena is the axis-aligned rectangle ``|x| <= hx, |y| <= hy``.
+
+One substep of length ``h = dt / substeps`` does, in this order:
+
+1. integrate the (constant over the step) applied force with
+   ``cfg.integrator``; ``drag`` and ``friction`` act on the new velocity
+   before positions move, so a body held by static friction does not creep;
+   speeds are clamped to ``max_speed``;
+2. ``body_collisions``: circle-circle impulses + positional correction that
+   never touches velocities; speeds are clamped again, and no body travels
+   more than ``max_speed * h`` in the substep, whatever the reason (motion or
+   overlap correction) -- this is what makes the no-tunnelling bound hold;
+3. ``obstacles``: circle vs oriented box, pushed out fully, normal velocity
+   reflected with restitution;
+4. ``walls``: positions clamped inside the arena (so never outside after a
+   step), outward normal velocity reflected with restitution.
+   Reflections with restitution <= 1 never raise a speed, so the clamp holds.
+
+Only terms declared in ``cfg.terms`` are computed at all: ``step`` looks each
+one up in the module-level ``TERMS`` dict, only if declared, once per step
+(the entry precomputes what is fixed within the step and returns the
+per-substep function). A test can monkeypatch an entry to raise and so prove
+that an undeclared term never runs.
+
+Why nothing tunnels: if every body moves less than its radius per substep
+(``max_speed * dt / substeps < min_body_radius``), a centre that starts a
+substep outside an obstacle by at least its radius is still outside the box
+after moving, so the push-out always uses the true outside normal and never
+sends a body through to the far side, however thin the box. Two approaching
+circles close their gap by less than ``r_i + r_j`` per substep, so their
+centres cannot pass each other either. ``PhysicsConfig`` enforces the bound;
+``check_scene`` checks actual radii against ``cfg.min_body_radius``.
+Limit: a gap narrower than a body between a box and a wall (or another box)
+can squeeze a body into the box, because walls are resolved last; lay scenes
+out with clearance.
+
+Also here: DeepMind Control Suite cart-pole dynamics and balance reward
+(``cartpole_step``, ``cartpole_energy``, ``dmc_balance_reward``, ``tolerance``).
+
+dtype and device always follow the input tensors (float32 or float64).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Dict, NamedTuple, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "TERM_NAMES",
+    "INTEGRATORS",
+    "TERMS",
+    "PhysicsConfig",
+    "BodyState",
+    "Obstacles",
+    "min_substeps",
+    "check_scene",
+    "clamp_norm",
+    "step",
+    "kinetic_energy",
+    "momentum",
+    "CARTPOLE",
+    "CARTPOLE_INTEGRATORS",
+    "cartpole_accel",
+    "cartpole_step",
+    "cartpole_energy",
+    "tolerance",
+    "dmc_balance_reward",
+    "dmc_balance_sparse_reward",
+]
+
+TERM_NAMES = frozenset({"walls", "body_collisions", "obstacles", "friction", "drag"})
+INTEGRATORS = ("semi_implicit_euler", "velocity_verlet")
+
+
+# --------------------------------------------------------------------------
+# Configuration
+# --------------------------------------------------------------------------
+
+def _is_real(x) -> bool:
+    # bool is an int subclass; True as a time step is always a mistake.
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _bad(name: str, expected: str, got) -> ValueError:
+    return ValueError(f"{name} must be {expected}, got {got!r}")
+
+
+def min_substeps(max_speed: float, dt: float, min_body_radius: float) -> int:
+    """Smallest ``substeps`` with ``max_speed * dt / substeps < min_body_radius``."""
+    if not (_is_real(max_speed) and max_speed > 0):
+        raise _bad("max_speed", "a finite number > 0", max_speed)
+    if not (_is_real(dt) and dt > 0):
+        raise _bad("dt", "a finite number > 0", dt)
+    if not (_is_real(min_body_radius) and min_body_radius > 0):
+        raise _bad("min_body_radius", "a finite number > 0", min_body_radius)
+    return int(math.floor(max_speed * dt / min_body_radius)) + 1
+
+
+@dataclass(frozen=True)
+class PhysicsConfig:
+    """Static settings of the simulation (hashable, shared by all worlds).
+
+    dt: seconds per env step. substeps: int >= 1, each of ``dt / substeps``.
+    integrator: "semi_implicit_euler" or "velocity_verlet".
+    terms: declared terms, a subset of ``TERM_NAMES``; undeclared ones are
+        never computed.
+    restitution: in [0, 1], for body-body, body-obstacle and body-wall contacts.
+    friction: Coulomb coefficient mu of ground friction: a moving body
+        decelerates at ``mu * gravity`` (m/s^2) until it stops, and a resting
+        body stays put unless ``|force| / mass > mu * gravity``.
+    drag: linear damping rate (1/s): ``v <- v * exp(-drag * h)`` (exact for
+        ``dv/dt = -drag v``, stable for any h).
+    gravity: only used by friction (the plane is horizontal).
+    arena_half_extent: (hx, hy) of the walls, centred on the origin.
+    max_speed: speed clamp (m/s) applied to every body every substep.
+    min_body_radius: the smallest radius this config must handle without
+        tunnelling; ``max_speed * dt / substeps`` must be below it.
+    solver_iterations: fixed number of collision-solver passes per substep.
+    position_correction: fraction in (0, 1] of a body-body overlap removed
+        per substep (before the per-substep displacement cap).
+    """
+
+    dt: float = 0.05
+    substeps: int = 4
+    integrator: str = "semi_implicit_euler"
+    terms: frozenset = frozenset({"walls", "body_collisions", "obstacles"})
+    restitution: float = 0.8
+    friction: float = 0.0
+    drag: float = 0.0
+    gravity: float = 9.81
+    arena_half_extent: Tuple[float, float] = (1.0, 1.0)
+    max_speed: float = 2.0
+    min_body_radius: float = 0.05
+    solver_iterations: int = 4
+    position_correction: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not (_is_real(self.dt) and self.dt > 0):
+            raise _bad("dt", "a finite number > 0", self.dt)
+        for name in ("substeps", "solver_iterations"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise _bad(name, "an int >= 1", v)
+        if self.integrator not in INTEGRATORS:
+            raise _bad("integrator", f"one of {INTEGRATORS}", self.integrator)
+
+        # A bare string would iterate into characters; demand a collection.
+        if isinstance(self.terms, str) or not hasattr(self.terms, "__iter__"):
+            raise _bad("terms", f"a set of term names out of {sorted(TERM_NAMES)}", self.terms)
+        terms = frozenset(self.terms)
+        unknown = sorted(str(t) for t in terms - TERM_NAMES)
+        if unknown:
+            raise ValueError(
+                f"terms must be a subset of {sorted(TERM_NAMES)}, got unknown term(s) {unknown}"
+            )
+        object.__setattr__(self, "terms", terms)  # frozen dataclass: normalise once
+
+        if not (_is_real(self.restitution) and 0 <= self.restitution <= 1):
+            raise _bad("restitution", "a number in [0, 1]", self.restitution)
+        for name in ("friction", "drag"):
+            v = getattr(self, name)
+            if not (_is_real(v) and v >= 0):
+                raise _bad(name, "a finite number >= 0", v)
+        for name in ("gravity", "max_speed", "min_body_radius"):
+            v = getattr(self, name)
+            if not (_is_real(v) and v > 0):
+                raise _bad(name, "a finite number > 0", v)
+        if not (_is_real(self.position_correction) and 0 < self.position_correction <= 1):
+            raise _bad("position_correction", "a number in (0, 1]", self.position_correction)
+
+        ahe = self.arena_half_extent
+        if (
+            isinstance(ahe, (str, bytes))
+            or not hasattr(ahe, "__len__")
+            or len(ahe) != 2
+            or not all(_is_real(a) and a > 0 for a in ahe)
+        ):
+            raise _bad("arena_half_extent", "a pair (hx, hy) of finite numbers > 0", ahe)
+        object.__setattr__(self, "arena_half_extent", (float(ahe[0]), float(ahe[1])))
+
+        # No tunnelling: see the module docstring for why the radius is the bound.
+        travel = self.max_speed * self.dt / self.substeps
+        if not travel < self.min_body_radius:
+            need = min_substeps(self.max_speed, self.dt, self.min_body_radius)
+            raise ValueError(
+                f"substeps must be >= {need} so that max_speed * dt / substeps "
+                f"< min_body_radius (no tunnelling), got substeps={self.substeps}: "
+                f"{self.max_speed} * {self.dt} / {self.substeps} = {travel:.6g} "
+                f">= {self.min_body_radius}"
+            )
+
+    @property
+    def substep_dt(self) -> float:
+        return self.dt / self.substeps
+
+
+# --------------------------------------------------------------------------
+# State
+# --------------------------------------------------------------------------
+
+class BodyState(NamedTuple):
+    """Circles, batch-first. ``mass == inf`` marks an immovable body."""
+
+    pos: Tensor      # [W, B, 2]
+    vel: Tensor      # [W, B, 2]
+    radius: Tensor   # [W, B]
+    mass: Tensor     # [W, B]
+    active: Tensor   # [W, B] bool
+
+    @classmethod
+    def make(
+        cls,
+        pos: Tensor,
+        radius,
+        vel: Optional[Tensor] = None,
+        mass=1.0,
+        active=True,
+    ) -> "BodyState":
+        """Convenience constructor: scalars broadcast to ``[W, B]``."""
+        W, B = pos.shape[:2]
+        like = dict(dtype=pos.dtype, device=pos.device)
+        vel = torch.zeros_like(pos) if vel is None else vel
+        radius = torch.as_tensor(radius, **like).expand(W, B).clone()
+        mass = torch.as_tensor(mass, **like).expand(W, B).clone()
+        active = torch.as_tensor(active, dtype=torch.bool, device=pos.device).expand(W, B).clone()
+        return cls(pos, vel, radius, mass, active)
+
+
+class Obstacles(NamedTuple):
+    """Static oriented boxes (never moved by the simulation)."""
+
+    center: Tensor       # [W, K, 2]
+    half_extent: Tensor  # [W, K, 2], in the box's own frame
+    angle: Tensor        # [W, K], radians, counter-clockwise
+
+
+def _eps(t: Tensor) -> float:
+    return float(torch.finfo(t.dtype).eps)
+
+
+def _movable(state: BodyState) -> Tensor:
+    return state.active & torch.isfinite(state.mass)
+
+
+def _inv_mass(state: BodyState) -> Tensor:
+    # 0 for immovable and inactive bodies, so they take no share of an impulse.
+    return torch.where(_movable(state), 1.0 / state.mass, torch.zeros_like(state.mass))
+
+
+def clamp_norm(v: Tensor, max_norm) -> Tensor:
+    """Scale vectors (last dim) down to at most ``max_norm``; shorter ones are untouched.
+
+    ``max_norm`` is a float > 0 or a tensor broadcasting against ``v[..., :1]``.
+    """
+    # A zero vector gives max_norm / 0 = inf -> scale 1 -> stays zero (no NaN).
+    return v * (max_norm / v.norm(dim=-1, keepdim=True)).clamp(max=1.0)
+
+
+def check_scene(state: BodyState, obstacles: Optional[Obstacles], cfg: PhysicsConfig) -> None:
+    """Setup-time sanity check (syncs with the device; call at reset, not per step).
+
+    Raises ValueError if shapes disagree, if an active body is smaller than
+    ``cfg.min_body_radius`` (the no-tunnelling bound would not hold), if a
+    mass is not > 0, if a body cannot fit the arena or if a box is degenerate.
+    """
+    W, B = state.pos.shape[:2]
+    expected = {"pos": (W, B, 2), "vel": (W, B, 2), "radius": (W, B), "mass": (W, B), "active": (W, B)}
+    for name, shape in expected.items():
+        got = tuple(getattr(state, name).shape)
+        if got != shape:
+            raise _bad(f"state.{name}", f"of shape {shape}", got)
+    if state.active.dtype != torch.bool:
+        raise _bad("state.active", "a bool tensor", state.active.dtype)
+    act = state.active
+    if bool((act & (state.radius < cfg.min_body_radius)).any()):
+        rmin = float(state.radius[act].min())
+        raise _bad("state.radius", f">= cfg.min_body_radius={cfg.min_body_radius} for active bodies", rmin)
+    if bool((act & ~(state.mass > 0)).any()):
+        raise _bad("state.mass", "> 0 (inf for immovable) for active bodies", float(state.mass[act].min()))
+    if bool((act & (state.radius >= min(cfg.arena_half_extent))).any()):
+        raise _bad("state.radius", f"< min(arena_half_extent)={min(cfg.arena_half_extent)}",
+                   float(state.radius[act].max()))
+    if obstacles is not None:
+        K = obstacles.center.shape[1]
+        for name, shape in {"center": (W, K, 2), "half_extent": (W, K, 2), "angle": (W, K)}.items():
+            got = tuple(getattr(obstacles, name).shape)
+            if got != shape:
+                raise _bad(f"obstacles.{name}", f"of shape {shape}", got)
+        if K and bool((obstacles.half_extent < 0).any()):
+            raise _bad("obstacles.half_extent", ">= 0", float(obstacles.half_extent.min()))
+
+
+# --------------------------------------------------------------------------
+# Terms. Each entry of TERMS is called once per step, only if declared:
+#     term(state, obstacles, cfg, h) -> apply(pos, vel) -> (pos, vel)
+# The outer call precomputes what is constant within the step (masks, bounds,
+# rotations); the returned ``apply`` runs once per substep on the current
+# positions and velocities.
+# --------------------------------------------------------------------------
+
+def _drag(state, obstacles, cfg, h):
+    # Exact solution of dv/dt = -drag * v over h: never overshoots zero.
+    factor = math.exp(-cfg.drag * h)
+
+    def apply(pos, vel):
+        return pos, vel * factor
+
+    return apply
+
+
+def _friction(state, obstacles, cfg, h):
+    # Kinetic Coulomb friction removes mu*g*h of speed, opposite to motion; it
+    # may stop a body but never reverse it (what is left is static friction).
+    dv = cfg.friction * cfg.gravity * h
+
+    def apply(pos, vel):
+        speed = vel.norm(dim=-1, keepdim=True)
+        new_speed = (speed - dv).clamp_min(0.0)
+        return pos, vel * (new_speed / speed.clamp_min(_eps(vel)))
+
+    return apply
+
+
+def _fallback_normals(B: int, like: Tensor) -> Tensor:
+    """[B, B, 2] unit normals for pairs whose centres coincide exactly.
+
+    Antisymmetric (n_ij = -n_ji) so the pair is pushed apart, spread over the
+    circle by the golden angle so a pile of coincident bodies fans out, and
+    deterministic.
+    """
+    i = torch.arange(B, device=like.device)
+    lo = torch.minimum(i[:, None], i[None, :])
+    hi = torch.maximum(i[:, None], i[None, :])
+    phi = (lo * B + hi).to(like.dtype) * 2.399963229728653  # golden angle
+    sign = torch.where(i[:, None] < i[None, :], 1.0, -1.0).to(like.dtype)
+    return torch.stack([torch.cos(phi), torch.sin(phi)], dim=-1) * sign[..., None]
+
+
+def _body_collisions(state, obstacles, cfg, h):
+    """Circle-circle contacts for all pairs at once ([W, B, B]).
+
+    Velocity: restitution impulses split by inverse mass, a few Jacobi passes
+    that re-read the velocities so chains of contacts settle.
+    Position: the overlap is split by inverse mass and only moved, never turned
+    into velocity, so bodies spawned on top of each other separate without
+    gaining speed. Each pair's share is divided by the larger contact count of
+    its two bodies: symmetric (momentum stays exact) and under-relaxed, so a
+    pile does not over-shoot; step() then caps every body's substep travel.
+    """
+    W, B = state.pos.shape[:2]
+    eps = _eps(state.pos)
+    inv_m = _inv_mass(state)
+    eye = torch.eye(B, dtype=torch.bool, device=state.pos.device)
+    inv_sum = inv_m[:, :, None] + inv_m[:, None, :]                          # [W,B,B]
+    # Both active, distinct, and at least one of them can move.
+    pair_ok = state.active[:, :, None] & state.active[:, None, :] & ~eye & (inv_sum > 0)
+    share = torch.where(pair_ok, inv_m[:, :, None] / inv_sum.clamp_min(eps), torch.zeros_like(inv_sum))
+    rsum = state.radius[:, :, None] + state.radius[:, None, :]
+    fallback = _fallback_normals(B, state.pos)
+    kick = -(1.0 + cfg.restitution)
+
+    def apply(pos, vel):
+        d = pos[:, :, None, :] - pos[:, None, :, :]                           # p_i - p_j
+        dist = d.norm(dim=-1)
+        n = torch.where((dist > eps)[..., None], d / dist.clamp_min(eps)[..., None], fallback)
+        contact = pair_ok & (dist < rsum)
+        count = contact.sum(-1, dtype=pos.dtype).clamp_min(1.0)             # [W,B]
+        # Body i's part of pair (i, j), zero where there is no contact.
+        weight = share.masked_fill(~contact, 0.0) / torch.maximum(count[:, :, None], count[:, None, :])
+        kicked = kick * weight
+
+        for _ in range(cfg.solver_iterations):
+            vn = ((vel[:, :, None, :] - vel[:, None, :, :]) * n).sum(-1)     # < 0: approaching
+            dvn = kicked * vn.clamp(max=0.0)
+            vel = vel + (dvn[..., None] * n).sum(dim=2)
+
+        # Positional correction: pure projection, velocity untouched.
+        depth = (rsum - dist).clamp_min(0.0)
+        pos = pos + ((cfg.position_correction * weight * depth)[..., None] * n).sum(dim=2)
+        return pos, vel
+
+    return apply
+
+
+def _obstacles(state, obstacles, cfg, h):
+    """Circle vs static oriented box: push out along the closest-feature normal.
+
+    Outside the box the normal runs from the closest surface point to the
+    centre; a centre inside (which the substep bound prevents for moving
+    bodies, but spawns can do) leaves through the nearest face. Each pass
+    resolves only the deepest box per body, so a body touching two boxes that
+    share a face is not reflected twice for one contact.
+    """
+    if obstacles is None or obstacles.center.shape[1] == 0:
+        return lambda pos, vel: (pos, vel)
+    kick = 1.0 + cfg.restitution
+    eps = _eps(state.pos)
+    fixed = ~_movable(state)[:, :, None]                                     # [W,B,1]
+    r = state.radius[:, :, None]
+    c, s = torch.cos(obstacles.angle), torch.sin(obstacles.angle)
+    # Rows of R(-angle) (world -> box) and of R(+angle) (box -> world): [W,1,K,2,2].
+    to_box = torch.stack([torch.stack([c, s], -1), torch.stack([-s, c], -1)], -2)[:, None]
+    to_world = to_box.transpose(-1, -2)
+    he = obstacles.half_extent[:, None]                                      # [W,1,K,2]
+    center = obstacles.center[:, None]
+
+    def apply(pos, vel):
+        for _ in range(cfg.solver_iterations):
+            rel = (pos[:, :, None, :] - center)[..., None, :]                # [W,B,K,1,2]
+            local = (to_box * rel).sum(-1)                                   # [W,B,K,2]
+            delta = local - torch.maximum(torch.minimum(local, he), -he)     # centre - closest point
+            dist_out = delta.norm(dim=-1)
+            inside = dist_out <= 0
+            gap = he - local.abs()                                           # to the faces, per axis
+            use_x = gap[..., 0] <= gap[..., 1]
+            n_in = torch.copysign(torch.stack([use_x, ~use_x], -1).to(pos.dtype), local)
+            n_out = delta / dist_out.clamp_min(eps)[..., None]
+            n_loc = torch.where(inside[..., None], n_in, n_out)
+            depth = torch.where(inside, r + gap.min(dim=-1).values, r - dist_out)
+            depth = depth.masked_fill(fixed, -1.0)
+
+            depth_k, k = depth.max(dim=-1)                                   # deepest box per body
+            n_all = (to_world * n_loc[..., None, :]).sum(-1)                 # world frame [W,B,K,2]
+            n_w = torch.gather(n_all, 2, k[:, :, None, None].expand(-1, -1, 1, 2)).squeeze(2)
+            hit = depth_k > 0
+            pos = pos + (depth_k.clamp_min(0.0))[..., None] * n_w
+            vn = (vel * n_w).sum(-1)
+            vel = vel - (kick * vn.clamp(max=0.0).masked_fill(~hit, 0.0))[..., None] * n_w
+        return pos, vel
+
+    return apply
+
+
+def _walls(state, obstacles, cfg, h):
+    half = torch.tensor(cfg.arena_half_extent, dtype=state.pos.dtype, device=state.pos.device)
+    hi = half - state.radius[..., None]                                      # [W,B,2]
+    lo = -hi
+    fixed = ~_movable(state)[..., None]
+    e = cfg.restitution
+
+    def apply(pos, vel):
+        # Clamp centres to [-(H - r), H - r]: bodies are never outside afterwards.
+        out_lo = (pos < lo) & ~fixed
+        out_hi = (pos > hi) & ~fixed
+        pos = torch.where(out_lo, lo, torch.where(out_hi, hi, pos))
+        # Reflect only an outward normal velocity (a body sliding along a wall keeps it).
+        bounce = (out_lo & (vel < 0)) | (out_hi & (vel > 0))
+        vel = torch.where(bounce, -e * vel, vel)
+        return pos, vel
+
+    return apply
+
+
+#: Term builders by name, looked up at call time and only for declared terms.
+TERMS: Dict[str, Callable] = {
+    "drag": _drag,
+    "friction": _friction,
+    "body_collisions": _body_collisions,
+    "obstacles": _obstacles,
+    "walls": _walls,
+}
+
+
+# --------------------------------------------------------------------------
+# Stepping
+# --------------------------------------------------------------------------
+
+def step(state: BodyState, force: Tensor, obstacles: Optional[Obstacles], cfg: PhysicsConfig) -> BodyState:
+    """Advance all worlds by ``cfg.dt`` in ``cfg.substeps`` substeps.
+
+    ``force`` [W, B, 2] (N) is held constant over the step. ``obstacles`` may be
+    None: no boxes. Returns a new BodyState; inactive bodies are returned
+    bit-for-bit unchanged, immovable ones keep their position with zero velocity.
+    """
+    h = cfg.dt / cfg.substeps
+    movable = _movable(state)[..., None]
+    # where() rather than a product: inf mass or an inactive zero mass must not make NaNs.
+    accel = torch.where(movable, force / state.mass[..., None], torch.zeros_like(force))
+    # Fixed order: velocity-only terms, then contacts; walls last so nothing ends outside.
+    velocity_terms = [TERMS[t](state, obstacles, cfg, h) for t in ("drag", "friction") if t in cfg.terms]
+    contact_terms = [TERMS[t](state, obstacles, cfg, h) for t in ("body_collisions",) if t in cfg.terms]
+    boundary_terms = [TERMS[t](state, obstacles, cfg, h) for t in ("obstacles", "walls") if t in cfg.terms]
+    max_travel = cfg.max_speed * h
+    dv = accel * h
+
+    pos = state.pos
+    vel = torch.where(movable, clamp_norm(state.vel, cfg.max_speed), torch.zeros_like(state.vel))
+    for _ in range(cfg.substeps):
+        pos0, v0 = pos, vel
+        # Velocity first, so drag and friction act before anything moves.
+        v1 = v0 + dv
+        for term in velocity_terms:
+            _, v1 = term(pos0, v1)
+        vel = clamp_norm(v1, cfg.max_speed)
+        if cfg.integrator == "semi_implicit_euler":
+            pos = pos0 + vel * h
+        else:
+            # Velocity Verlet with a force held constant over the substep (contacts
+            # are impulses, not forces): x += v0 h + a h^2 / 2 == (v0 + v1) h / 2.
+            pos = pos0 + (v0 + vel) * (0.5 * h)
+        # Immovable and inactive bodies started at zero velocity with zero
+        # acceleration, and no term gives them any, so they stay exactly put.
+
+        if contact_terms:
+            for term in contact_terms:
+                pos, vel = term(pos, vel)
+            # Impulses can speed a body up (a light one hit by a heavy one).
+            vel = clamp_norm(vel, cfg.max_speed)
+            # Travel cap (motion + overlap correction): the no-tunnelling
+            # invariant. Integration alone already respects it.
+            pos = pos0 + clamp_norm(pos - pos0, max_travel)
+        # Reflections with restitution <= 1 never increase a speed: no clamp after.
+        for term in boundary_terms:
+            pos, vel = term(pos, vel)
+
+    active = state.active[..., None]
+    return state._replace(pos=torch.where(active, pos, state.pos),
+                          vel=torch.where(active, vel, state.vel))
+
+
+def kinetic_energy(state: BodyState) -> Tensor:
+    """Total kinetic energy per world, [W] (immovable and inactive bodies count 0)."""
+    ke = 0.5 * state.mass * (state.vel * state.vel).sum(-1)
+    return torch.where(_movable(state), ke, torch.zeros_like(ke)).sum(-1)
+
+
+def momentum(state: BodyState) -> Tensor:
+    """Total linear momentum per world, [W, 2] (movable, active bodies only)."""
+    p = state.mass[..., None] * state.vel
+    return torch.where(_movable(state)[..., None], p, torch.zeros_like(p)).sum(1)
+
+
+# --------------------------------------------------------------------------
+# DeepMind Control Suite cart-pole
+# --------------------------------------------------------------------------
+# Constants as in dm_control cartpole.xml (dm_control/suite/cartpole.xml):
+#   <option timestep="0.01" integrator="RK4">, MuJoCo's default gravity 9.81;
+#   cart: box geom mass 1 on a "slider" slide joint, damping 5e-4;
+#   pole: capsule fromto 0 0 0 -> 0 0 1 (length 1, so centre of mass 0.5 above
+#   the hinge), radius 0.045, mass 0.1, "hinge" joint damping 2e-6;
+#   actuator: motor on the slider, gear 10, ctrlrange [-1, 1] (ctrllimited).
+# The pole's inertia is MuJoCo's capsule inertia (mjCGeom::SetInertia): a
+# cylinder plus two hemispherical caps sharing the mass by volume; it is ~13 %
+# larger than the thin-rod m L^2 / 12.
+# Not modelled: the slider's soft range limit (+-1.8 m, solreflimit .08 1);
+# contacts are disabled in the xml anyway.
+
+def _capsule_inertia(mass: float, radius: float, half_length: float) -> float:
+    height = 2.0 * half_length
+    sphere_mass = mass * 4.0 * radius / (4.0 * radius + 3.0 * height)
+    cylinder_mass = mass - sphere_mass
+    inertia = cylinder_mass * (3.0 * radius ** 2 + height ** 2) / 12.0
+    inertia += 2.0 * sphere_mass * radius ** 2 / 5.0 + sphere_mass * height * (3.0 * radius + 2.0 * height) / 8.0
+    return inertia
+
+
+CARTPOLE = dict(
+    gravity=9.81,
+    cart_mass=1.0,
+    pole_mass=0.1,
+    pole_com=0.5,                # hinge -> pole centre of mass (m)
+    pole_inertia=_capsule_inertia(0.1, 0.045, 0.5),  # about the centre of mass
+    slider_damping=5e-4,
+    hinge_damping=2e-6,
+    gear=10.0,
+    timestep=0.01,
+)
+CARTPOLE_INTEGRATORS = ("semi_implicit_euler", "velocity_verlet", "rk4")
+
+
+def cartpole_accel(theta: Tensor, xdot: Tensor, thetadot: Tensor, force: Tensor,
+                   slider_damping: float, hinge_damping: float) -> Tuple[Tensor, Tensor]:
+    """(x_ddot, theta_ddot) of the cart-pole; theta = 0 upright, > 0 tilts to +x.
+
+    Lagrangian with q = (x, theta): mass matrix
+    [[M + m, m l cos], [m l cos, I + m l^2]], gravity torque m g l sin(theta),
+    centripetal term m l sin(theta) theta_dot^2 on the cart, viscous joint damping.
+    """
+    p = CARTPOLE
+    M, m, l, g = p["cart_mass"], p["pole_mass"], p["pole_com"], p["gravity"]
+    J = p["pole_inertia"] + m * l * l
+    cos, sin = torch.cos(theta), torch.sin(theta)
+    rhs_x = force - slider_damping * xdot + m * l * sin * thetadot * thetadot
+    rhs_t = m * g * l * sin - hinge_damping * thetadot
+    mlc = m * l * cos
+    det = (M + m) * J - mlc * mlc  # > 0 always: (M + m) J > m^2 l^2
+    xdd = (J * rhs_x - mlc * rhs_t) / det
+    tdd = ((M + m) * rhs_t - mlc * rhs_x) / det
+    return xdd, tdd
+
+
+def cartpole_step(
+    state: Tensor,
+    action: Tensor,
+    dt: float = CARTPOLE["timestep"],
+    substeps: int = 1,
+    integrator: str = "rk4",
+    slider_damping: float = CARTPOLE["slider_damping"],
+    hinge_damping: float = CARTPOLE["hinge_damping"],
+) -> Tensor:
+    """One control step of the cart-pole: state [W, 4] = (x, theta, x_dot, theta_dot).
+
+    ``action`` [W] is clipped to [-1, 1] (ctrllimited) and drives the slider
+    with gear 10 (N). The defaults (dt 0.01, one RK4 substep) are dm_control's
+    settings. "velocity_verlet" treats the velocity-dependent terms
+    explicitly (half-kick with the current velocity).
+    """
+    if not (isinstance(substeps, int) and not isinstance(substeps, bool) and substeps >= 1):
+        raise _bad("substeps", "an int >= 1", substeps)
+    if not (_is_real(dt) and dt > 0):
+        raise _bad("dt", "a finite number > 0", dt)
+    if integrator not in CARTPOLE_INTEGRATORS:
+        raise _bad("integrator", f"one of {CARTPOLE_INTEGRATORS}", integrator)
+    force = CARTPOLE["gear"] * action.clamp(-1.0, 1.0).to(state.dtype)
+    h = dt / substeps
+
+    def accel(q, v):
+        return torch.stack(cartpole_accel(q[..., 1], v[..., 0], v[..., 1], force,
+                                          slider_damping, hinge_damping), dim=-1)
+
+    q, v = state[..., :2], state[..., 2:]
+    for _ in range(substeps):
+        if integrator == "semi_implicit_euler":
+            v = v + h * accel(q, v)
+            q = q + h * v
+        elif integrator == "velocity_verlet":
+            v_half = v + 0.5 * h * accel(q, v)
+            q = q + h * v_half
+            # The closing half-kick is implicit here, a(q1, v1): the centripetal
+            # and damping terms depend on velocity. Using v_half for v1 would
+            # drop the scheme to first order; one fixed-point pass keeps second.
+            v = v_half + 0.5 * h * accel(q, v_half)
+            v = v_half + 0.5 * h * accel(q, v)
+        else:  # classic RK4 on (q, v), as MuJoCo's RK4 integrator
+            k1q, k1v = v, accel(q, v)
+            k2q, k2v = v + 0.5 * h * k1v, accel(q + 0.5 * h * k1q, v + 0.5 * h * k1v)
+            k3q, k3v = v + 0.5 * h * k2v, accel(q + 0.5 * h * k2q, v + 0.5 * h * k2v)
+            k4q, k4v = v + h * k3v, accel(q + h * k3q, v + h * k3v)
+            q = q + h / 6.0 * (k1q + 2 * k2q + 2 * k3q + k4q)
+            v = v + h / 6.0 * (k1v + 2 * k2v + 2 * k3v + k4v)
+    return torch.cat([q, v], dim=-1)
+
+
+def cartpole_energy(state: Tensor) -> Tensor:
+    """Total mechanical energy [W] (J), potential zero at hinge height.
+
+    Conserved when both dampings are 0 and the action is 0.
+    """
+    p = CARTPOLE
+    M, m, l, g = p["cart_mass"], p["pole_mass"], p["pole_com"], p["gravity"]
+    J = p["pole_inertia"] + m * l * l
+    theta, xdot, thetadot = state[..., 1], state[..., 2], state[..., 3]
+    kinetic = 0.5 * (M + m) * xdot ** 2 + m * l * torch.cos(theta) * xdot * thetadot + 0.5 * J * thetadot ** 2
+    return kinetic + m * g * l * torch.cos(theta)
+
+
+# dm_control.utils.rewards.tolerance, in torch ----------------------------------
+
+def _sigmoid(x: Tensor, value_at_1: float, sigmoid: str) -> Tensor:
+    if sigmoid in ("cosine", "linear", "quadratic"):
+        if not 0 <= value_at_1 < 1:
+            raise _bad("value_at_margin", "in [0, 1)", value_at_1)
+    elif not 0 < value_at_1 < 1:
+        raise _bad("value_at_margin", "strictly between 0 and 1", value_at_1)
+    zero = torch.zeros_like(x)
+    if sigmoid == "gaussian":
+        scale = math.sqrt(-2.0 * math.log(value_at_1))
+        return torch.exp(-0.5 * (x * scale) ** 2)
+    if sigmoid == "hyperbolic":
+        scale = math.acosh(1.0 / value_at_1)
+        return 1.0 / torch.cosh(x * scale)
+    if sigmoid == "long_tail":
+        scale = math.sqrt(1.0 / value_at_1 - 1.0)
+        return 1.0 / ((x * scale) ** 2 + 1.0)
+    if sigmoid == "reciprocal":
+        scale = 1.0 / value_at_1 - 1.0
+        return 1.0 / (x.abs() * scale + 1.0)
+    if sigmoid == "cosine":
+        sx = x * (math.acos(2.0 * value_at_1 - 1.0) / math.pi)
+        return torch.where(sx.abs() < 1, (1.0 + torch.cos(math.pi * sx)) / 2.0, zero)
+    if sigmoid == "linear":
+        sx = x * (1.0 - value_at_1)
+        return torch.where(sx.abs() < 1, 1.0 - sx, zero)
+    if sigmoid == "quadratic":
+        sx = x * math.sqrt(1.0 - value_at_1)
+        return torch.where(sx.abs() < 1, 1.0 - sx * sx, zero)
+    if sigmoid == "tanh_squared":
+        scale = math.atanh(math.sqrt(1.0 - value_at_1))
+        return 1.0 - torch.tanh(x * scale) ** 2
+    raise _bad("sigmoid", "a known sigmoid type", sigmoid)
+
+
+def tolerance(x: Tensor, bounds=(0.0, 0.0), margin: float = 0.0, sigmoid: str = "gaussian",
+              value_at_margin: float = 0.1) -> Tensor:
+    """1 inside ``bounds``, decaying with the distance to them over ``margin``.
+
+    Same semantics as dm_control.utils.rewards.tolerance: at distance
+    ``margin`` from the nearest bound the value is ``value_at_margin``;
+    ``margin == 0`` gives a hard 0/1 indicator.
+    """
+    lower, upper = bounds
+    if lower > upper:
+        raise _bad("bounds", "(lower, upper) with lower <= upper", bounds)
+    if margin < 0:
+        raise _bad("margin", ">= 0", margin)
+    in_bounds = (lower <= x) & (x <= upper)
+    one = torch.ones_like(x)
+    if margin == 0:
+        return torch.where(in_bounds, one, torch.zeros_like(x))
+    d = torch.where(x < lower, lower - x, x - upper) / margin
+    return torch.where(in_bounds, one, _sigmoid(d, value_at_margin, sigmoid))
+
+
+def dmc_balance_reward(state: Tensor, action: Tensor) -> Tensor:
+    """dm_control cartpole Balance._get_reward (smooth), per world [W].
+
+    upright * small_control * small_velocity * centered, with
+    upright = (cos(theta) + 1) / 2, centered = (1 + tol(x, margin=2)) / 2,
+    small_control = (4 + tol(u, margin=1, value_at_margin=0, quadratic)) / 5,
+    small_velocity = (1 + tol(theta_dot, margin=5)) / 2.
+    ``action`` is used as given (dm_control reads physics.control(), the
+    unclipped ctrl).
+    """
+    x, theta, thetadot = state[..., 0], state[..., 1], state[..., 3]
+    action = action.to(state.dtype)
+    upright = (torch.cos(theta) + 1.0) / 2.0
+    centered = (1.0 + tolerance(x, margin=2.0)) / 2.0
+    small_control = (4.0 + tolerance(action, margin=1.0, value_at_margin=0.0, sigmoid="quadratic")) / 5.0
+    small_velocity = (1.0 + tolerance(thetadot, margin=5.0)) / 2.0
+    return upright * small_control * small_velocity * centered
+
+
+def dmc_balance_sparse_reward(state: Tensor) -> Tensor:
+    """dm_control cartpole balance_sparse: cart in (-.25, .25) and cos(theta) in (.995, 1)."""
+    cart_in_bounds = tolerance(state[..., 0], (-0.25, 0.25))
+    angle_in_bounds = tolerance(torch.cos(state[..., 1]), (0.995, 1.0))
+    return cart_in_bounds * angle_in_bounds

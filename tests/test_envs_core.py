@@ -1,0 +1,523 @@
+"""The batched environment core (envs/core.py) and the registry, on the real environments
+and on a small toy environment that exercises agents leaving the episode."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import marl_render as mr
+from marl_render.envs import BatchedEnv, list_envs, make_env, register
+from marl_render.envs import physics, registry
+
+W = 3
+RES = 32
+ENVS = ["cartpole", "spread"]
+
+
+def make(name, **kw):
+    kw.setdefault("num_worlds", W)
+    kw.setdefault("resolution", RES)
+    kw.setdefault("seed", 0)
+    return make_env(name, **kw)
+
+
+def random_actions(env, generator=None):
+    g = generator or torch.Generator().manual_seed(123)
+    if env.continuous:
+        return torch.rand(env.num_worlds, env.num_agents, env.action_dim, generator=g) * 2 - 1
+    return torch.randint(0, env.num_actions, (env.num_worlds, env.num_agents), generator=g)
+
+
+def assert_state_equal(a: dict, b: dict):
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+# ---------------------------------------------------------------------- registry
+def test_registry_lists_and_makes():
+    names = list_envs()
+    assert {"cartpole", "spread"} <= set(names)
+    assert names == sorted(names)
+    env = make_env("spread", num_worlds=1, resolution=16)
+    assert isinstance(env, BatchedEnv) and env.name == "spread"
+    env.close()
+
+
+def test_registry_unknown_name_lists_known():
+    with pytest.raises(ValueError, match="known environments.*cartpole.*spread"):
+        make_env("no_such_env")
+
+
+def test_registry_unknown_kwarg_is_named():
+    with pytest.raises(TypeError, match="colour_scheme"):
+        make_env("cartpole", colour_scheme=3)
+    with pytest.raises(TypeError, match="num_landmark"):
+        make_env("spread", num_landmark=3)  # typo of num_landmarks
+
+
+def test_register_refuses_duplicates_and_bad_entries():
+    with pytest.raises(ValueError, match="already registered"):
+        register("cartpole", object)
+    with pytest.raises(TypeError, match="env must be"):
+        register("broken", 42)
+    register("toy_for_test", ToyEnv, overwrite=True)
+    try:
+        assert "toy_for_test" in list_envs()
+        env = make_env("toy_for_test", num_worlds=2)
+        assert isinstance(env, ToyEnv)
+        env.close()
+    finally:
+        registry._REGISTRY.pop("toy_for_test")
+
+
+# ---------------------------------------------------------------------- constructor checks
+@pytest.mark.parametrize("kwargs, error, words", [
+    (dict(num_worlds=0), ValueError, "num_worlds"),
+    (dict(num_worlds=1.5), TypeError, "num_worlds"),
+    (dict(resolution="big"), TypeError, "resolution"),
+    (dict(resolution=(0, 32)), ValueError, "resolution"),
+    (dict(max_steps=0), ValueError, "max_steps"),
+    (dict(continuous=1), TypeError, "continuous"),
+    (dict(state_obs="yes"), TypeError, "state_obs"),
+    (dict(depth=None), TypeError, "depth"),
+    (dict(autoreset=0), TypeError, "autoreset"),
+    (dict(seed=-1), ValueError, "seed"),
+    (dict(seed=1.0), TypeError, "seed"),
+    (dict(device="not_a_device"), ValueError, "device"),
+    (dict(num_agents=2), ValueError, "num_agents"),
+    (dict(num_agents=True), TypeError, "num_agents"),
+])
+def test_constructor_rejects_bad_arguments(kwargs, error, words):
+    with pytest.raises(error, match=words):
+        make("cartpole", **kwargs)
+
+
+def test_spread_num_agents_range():
+    with pytest.raises(ValueError, match=r"num_agents.*\[1, 12\].*13"):
+        make("spread", num_agents=13)
+
+
+# ---------------------------------------------------------------------- shapes and dtypes
+@pytest.mark.parametrize("name", ENVS)
+@pytest.mark.parametrize("continuous", [False, True])
+def test_observation_and_step_shapes(name, continuous):
+    env = make(name, continuous=continuous, state_obs=True, depth=True, resolution=(24, 32))
+    A = env.num_agents
+    expected_keys = ("pixels", "depth", "state") + (() if continuous else ("action_mask",))
+    assert env.obs_keys == expected_keys
+    assert len(env.agent_names) == A and sum(map(len, env.groups.values())) == A
+    assert env.resolution == (24, 32)
+    obs = env.reset()
+    for o in (obs, env.step(random_actions(env))[0]):
+        assert tuple(o.keys()) == expected_keys
+        assert o["pixels"].shape == (W, A, 24, 32, 3) and o["pixels"].dtype == torch.uint8
+        assert o["depth"].shape == (W, A, 24, 32) and o["depth"].dtype == torch.float32
+        assert bool(torch.isfinite(o["depth"]).all()) and float(o["depth"].min()) > 0
+        assert o["state"].shape == (W, A, env.state_dim) and o["state"].dtype == torch.float32
+        if not continuous:
+            assert o["action_mask"].shape == (W, A, env.num_actions) and o["action_mask"].dtype == torch.bool
+    _, reward, terminated, truncated, info = env.step(random_actions(env))
+    assert reward.shape == (W, A) and reward.dtype == torch.float32
+    assert terminated.shape == (W, A) and terminated.dtype == torch.bool
+    assert truncated.shape == (W, A) and truncated.dtype == torch.bool
+    assert info["step_count"].tolist() == [2] * W
+    assert info["done_worlds"].shape == (W,)
+    if continuous:
+        assert env.num_actions is None and env.action_dim >= 1
+    else:
+        assert env.action_dim is None and env.num_actions >= 2
+    env.close()
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_minimal_obs_keys(name):
+    env = make(name)
+    assert env.obs_keys == ("pixels", "action_mask")
+    obs = env.reset()
+    assert set(obs) == {"pixels", "action_mask"}
+    assert bool(obs["action_mask"].all())
+    env.close()
+    env = make(name, continuous=True)
+    assert set(env.reset()) == {"pixels"}
+    env.close()
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_pixels_are_not_constant_and_owned_by_caller(name):
+    env = make(name)
+    first = env.reset()["pixels"]
+    assert int(first.max()) - int(first.min()) > 50
+    kept = first.clone()
+    push = torch.full((W, env.num_agents), env.num_actions - 1)  # cartpole: full force; spread: backward
+    for _ in range(20):
+        later = env.step(push)[0]["pixels"]
+    assert torch.equal(first, kept), "a later render overwrote earlier observations"
+    assert not torch.equal(first, later)
+    env.close()
+
+
+# ---------------------------------------------------------------------- lifecycle
+@pytest.mark.parametrize("name", ENVS)
+def test_use_before_reset_raises(name):
+    env = make(name)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(random_actions(env))
+    with pytest.raises(RuntimeError, match="reset"):
+        env.reset_worlds(torch.ones(W, dtype=torch.bool))
+    with pytest.raises(RuntimeError, match="reset"):
+        env.render_overview()
+    env.close()
+
+
+def test_close_is_idempotent_and_final():
+    env = make("cartpole")
+    env.reset()
+    env.close()
+    env.close()
+    assert env.closed
+    for call in (env.reset, lambda: env.step(torch.zeros(W, 1, dtype=torch.long)), env.render_overview,
+                 lambda: env.reset_worlds(torch.ones(W, dtype=torch.bool)), env.get_state):
+        with pytest.raises(RuntimeError, match="closed"):
+            call()
+
+
+def test_context_manager_closes():
+    with make("spread") as env:
+        env.reset()
+    assert env.closed
+
+
+# ---------------------------------------------------------------------- bad actions
+BAD_DISCRETE = [
+    (lambda A: torch.zeros(W, A + 1, dtype=torch.long), ValueError, r"shape \[3, \d+\]"),
+    (lambda A: torch.zeros(W, dtype=torch.long), ValueError, "shape"),
+    (lambda A: torch.zeros(W, A), TypeError, "integer"),
+    (lambda A: torch.zeros(W, A, dtype=torch.bool), TypeError, "integer"),
+    (lambda A: torch.full((W, A), 5), ValueError, r"\[0, 5\)"),
+    (lambda A: torch.full((W, A), -1), ValueError, r"\[0, 5\)"),
+    (lambda A: "left", TypeError, "actions"),
+]
+BAD_CONTINUOUS = [
+    (lambda A, D: torch.zeros(W, A), ValueError, "shape"),
+    (lambda A, D: torch.zeros(W, A, D, dtype=torch.long), TypeError, "float"),
+    (lambda A, D: torch.full((W, A, D), float("nan")), ValueError, "NaN"),
+    (lambda A, D: torch.full((W, A, D), 1.5), ValueError, r"\[-1, 1\]"),
+    (lambda A, D: torch.full((W, A, D), float("-inf")), ValueError, "non-finite"),
+]
+
+
+@pytest.mark.parametrize("name", ENVS)
+@pytest.mark.parametrize("case", range(len(BAD_DISCRETE)))
+def test_bad_discrete_actions_raise_and_change_nothing(name, case):
+    make_bad, error, words = BAD_DISCRETE[case]
+    env, twin = make(name), make(name)
+    env.reset(), twin.reset()
+    env.step(random_actions(env)), twin.step(random_actions(twin))
+    before = env.get_state()
+    with pytest.raises(error, match="actions") as excinfo:
+        env.step(make_bad(env.num_agents))
+    assert excinfo.match(words)
+    assert_state_equal(before, env.get_state())
+    # ... and the env continues exactly like one that never saw the bad call.
+    a = random_actions(env)
+    out, out_twin = env.step(a), twin.step(a)
+    assert torch.equal(out[0]["pixels"], out_twin[0]["pixels"])
+    assert torch.equal(out[1], out_twin[1])
+    env.close(), twin.close()
+
+
+@pytest.mark.parametrize("name", ENVS)
+@pytest.mark.parametrize("case", range(len(BAD_CONTINUOUS)))
+def test_bad_continuous_actions_raise_and_change_nothing(name, case):
+    make_bad, error, words = BAD_CONTINUOUS[case]
+    env = make(name, continuous=True)
+    env.reset()
+    env.step(random_actions(env))
+    before = env.get_state()
+    with pytest.raises(error, match="actions") as excinfo:
+        env.step(make_bad(env.num_agents, env.action_dim))
+    assert excinfo.match(words)
+    assert_state_equal(before, env.get_state())
+    env.close()
+
+
+def test_actions_accept_numpy_and_lists():
+    env = make("spread", num_worlds=2)
+    env.reset()
+    env.step(np.zeros((2, 3), dtype=np.int32))
+    env.step([[1, 2, 3], [4, 0, 1]])
+    env.close()
+
+
+# ---------------------------------------------------------------------- determinism and resets
+@pytest.mark.parametrize("name", ENVS)
+def test_same_seed_is_bit_identical(name):
+    runs = []
+    for _ in range(2):
+        env = make(name, seed=7, state_obs=True)
+        trace = [env.reset()]
+        g = torch.Generator().manual_seed(1)
+        for _ in range(4):
+            trace.append(env.step(random_actions(env, g))[:2])
+        runs.append(trace)
+        env.close()
+    first, second = runs
+    for key in first[0]:
+        assert torch.equal(first[0][key], second[0][key])
+    for (obs_a, rew_a), (obs_b, rew_b) in zip(first[1:], second[1:]):
+        assert torch.equal(rew_a, rew_b)
+        for key in obs_a:
+            assert torch.equal(obs_a[key], obs_b[key]), key
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_seeds_differ_and_reset_seed_reproduces(name):
+    env = make(name, seed=1, state_obs=True)
+    a = env.reset()["state"]
+    b = env.reset()["state"]  # generator moved on: a new episode
+    assert not torch.equal(a, b)
+    c = env.reset(seed=1)["state"]  # re-seeded: the first episode again
+    assert torch.equal(a, c)
+    assert env.seed == 1
+    other = make(name, seed=2, state_obs=True)
+    assert not torch.equal(a, other.reset()["state"])
+    env.close(), other.close()
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_partial_reset_leaves_other_worlds_identical(name):
+    env = make(name, state_obs=True)
+    env.reset()
+    for _ in range(5):
+        obs = env.step(random_actions(env))[0]
+    before = env.get_state()
+    mask = torch.tensor([False, True, False])
+    new = env.reset_worlds(mask)
+    after = env.get_state()
+    keep = ~mask
+    for key, value in before.items():
+        if key == "rng":
+            continue
+        assert torch.equal(value[keep], after[key][keep]), key
+    assert after["step_count"].tolist() == [5, 0, 5]
+    assert torch.equal(new["pixels"][keep], obs["pixels"][keep])
+    assert torch.equal(new["state"][keep], obs["state"][keep])
+    assert not torch.equal(new["state"][1], obs["state"][1])
+    env.close()
+
+
+def test_reset_worlds_rejects_bad_mask():
+    env = make("cartpole")
+    env.reset()
+    before = env.get_state()
+    with pytest.raises(ValueError, match=r"mask.*\[3\]"):
+        env.reset_worlds(torch.ones(2, dtype=torch.bool))
+    with pytest.raises(TypeError, match="mask.*bool"):
+        env.reset_worlds(torch.ones(3))
+    assert_state_equal(before, env.get_state())
+    env.close()
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_truncation_at_max_steps_without_autoreset(name):
+    env = make(name, max_steps=4)
+    env.reset()
+    for step in range(1, 7):
+        _, _, terminated, truncated, info = env.step(random_actions(env))
+        assert not bool(terminated.any())
+        assert bool(truncated.all()) == (step >= 4) and bool(truncated.any()) == (step >= 4)
+        assert info["done_worlds"].tolist() == [step >= 4] * W
+    assert env.step_count.tolist() == [6] * W  # no auto-reset by default
+    env.close()
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_autoreset_starts_a_new_episode(name):
+    env = make(name, max_steps=3, autoreset=True, state_obs=True)
+    env.reset(seed=3)
+    reference = make(name, max_steps=3, state_obs=True)
+    reference.reset(seed=3)
+    for step in range(1, 4):
+        a = random_actions(env)
+        obs, _, _, truncated, info = env.step(a)
+        reference.step(a)
+    assert bool(truncated.all()) and info["done_worlds"].all()
+    assert env.step_count.tolist() == [0] * W
+    # The returned obs are the first obs of the new episode (the same draw as reset_worlds).
+    first = reference.reset_worlds(torch.ones(W, dtype=torch.bool))
+    assert torch.equal(obs["state"], first["state"])
+    assert torch.equal(obs["pixels"], first["pixels"])
+    _, _, _, truncated, _ = env.step(random_actions(env))
+    assert not bool(truncated.any())
+    env.close(), reference.close()
+
+
+# ---------------------------------------------------------------------- overview and physics terms
+@pytest.mark.parametrize("name", ENVS)
+def test_render_overview(name):
+    env = make(name)
+    env.reset()
+    assert env._overview is None  # built lazily
+    view = env.render_overview()
+    assert view.dtype == torch.uint8 and view.shape == (W, *env.overview_resolution, 3)
+    assert int(view.max()) - int(view.min()) > 50
+    small = env.render_overview(resolution=(20, 30))
+    assert small.shape == (W, 20, 30, 3)
+    env.step(random_actions(env))
+    assert env.render_overview(resolution=(20, 30)).shape == (W, 20, 30, 3)
+    env.close()
+
+
+def test_undeclared_physics_terms_never_run(monkeypatch):
+    env = make("spread")
+    assert env.physics.terms == env.physics_terms == frozenset({"walls", "body_collisions", "drag"})
+
+    def boom(*args):
+        raise AssertionError("an undeclared physics term ran")
+
+    for term in physics.TERM_NAMES - env.physics_terms:
+        monkeypatch.setitem(physics.TERMS, term, boom)
+    env.reset()
+    for _ in range(3):
+        env.step(random_actions(env))
+    calls = []
+    original = physics.TERMS["drag"]
+    monkeypatch.setitem(physics.TERMS, "drag", lambda *a: calls.append(1) or original(*a))
+    env.step(random_actions(env))
+    assert calls, "a declared term did not run"
+    env.close()
+
+
+# ---------------------------------------------------------------------- agents leaving the episode
+class ToyEnv(BatchedEnv):
+    """Two agents on a line. Action 1 moves an agent one unit and earns 1; agent 1 leaves
+    the episode (terminated) when it reaches position 2; both leave at position 3."""
+
+    name = "toy"
+    default_num_agents = 2
+    agent_range = (2, 2)
+    default_max_steps = 10
+    default_resolution = 8
+
+    def _setup(self):
+        self.agent_names = ["runner_0", "walker_0"]
+        self.groups = {"runner": ["runner_0"], "walker": ["walker_0"]}
+        self.num_actions = 2
+        self.action_dim = 1 if self.continuous else None
+        self.state_dim = 1
+        self.pos = torch.zeros(self.num_worlds, 2)
+
+    def _build_scene(self, scene, overview):
+        scene.add_static("floor", "plane", position=[0, 0, 0], scale=[10, 10, 1])
+        scene.add_group("bodies", "box", capacity=2)
+        if not overview:
+            scene.mount_cameras("bodies", instance=[0, 1], offset=(0, 0, 0.5))
+
+    def _reset_state(self, mask):
+        self.pos = torch.where(mask[:, None], torch.zeros_like(self.pos), self.pos)
+
+    def _step_state(self, actions, alive):
+        if self.continuous:
+            actions = (actions[..., 0] > 0).long()
+        move = (actions == 1) & alive
+        self.pos = self.pos + move
+        terminated = torch.zeros_like(alive)
+        terminated[:, 1] = self.pos[:, 1] >= 2
+        terminated |= (self.pos >= 3)
+        # Rewarded for asking to move, alive or not: the core must zero the reward of
+        # agents that had already left the episode.
+        return (actions == 1).float(), terminated, {}
+
+    def _instances(self, full):
+        position = torch.zeros(self.num_worlds, 2, 3)
+        position[..., 0] = self.pos
+        out = {"position": position}
+        if full:
+            out["active"] = torch.ones(self.num_worlds, 2, dtype=torch.bool)
+        return {"bodies": out}
+
+    def _state_obs(self):
+        return self.pos[..., None]
+
+    def _state_tensors(self):
+        return {"pos": self.pos}
+
+
+def test_dead_agents_are_ignored_but_keep_their_slot():
+    env = ToyEnv(num_worlds=2, seed=0, max_steps=10)
+    assert env.groups == {"runner": ["runner_0"], "walker": ["walker_0"]}
+    env.reset()
+    move = torch.ones(2, 2, dtype=torch.long)
+    for _ in range(2):
+        obs, reward, terminated, truncated, info = env.step(move)
+    assert terminated.tolist() == [[False, True]] * 2
+    assert env.alive.tolist() == [[True, False]] * 2
+    assert reward.tolist() == [[1.0, 1.0]] * 2  # the terminating step is still rewarded
+    obs, reward, terminated, truncated, info = env.step(move)
+    assert env.pos.tolist() == [[3.0, 2.0]] * 2  # the dead walker's action was ignored
+    assert reward.tolist() == [[1.0, 0.0]] * 2
+    assert terminated.tolist() == [[True, True]] * 2  # runner reached 3, walker stays terminated
+    assert info["done_worlds"].tolist() == [True, True]
+    assert obs["pixels"].shape == (2, 2, 8, 8, 3)
+    env.reset_worlds(torch.tensor([True, False]))
+    assert env.alive.tolist() == [[True, True], [False, False]]
+    env.close()
+
+
+def test_truncation_only_for_agents_still_alive():
+    env = ToyEnv(num_worlds=1, seed=0, max_steps=3)
+    env.reset()
+    env.step(torch.tensor([[0, 1]]))
+    env.step(torch.tensor([[0, 1]]))  # walker leaves at 2
+    _, _, terminated, truncated, info = env.step(torch.tensor([[0, 1]]))
+    assert terminated.tolist() == [[False, True]]
+    assert truncated.tolist() == [[True, False]]
+    assert info["done_worlds"].tolist() == [True]
+    env.close()
+
+
+def test_autoreset_when_all_agents_left():
+    env = ToyEnv(num_worlds=2, seed=0, autoreset=True)
+    env.reset()
+    env.step(torch.tensor([[1, 1], [0, 0]]))
+    env.step(torch.tensor([[1, 1], [0, 0]]))
+    _, _, terminated, _, info = env.step(torch.tensor([[1, 1], [0, 0]]))
+    assert terminated.tolist() == [[True, True], [False, False]]
+    assert info["done_worlds"].tolist() == [True, False]
+    assert env.pos.tolist() == [[0.0, 0.0], [0.0, 0.0]]
+    assert env.alive.tolist() == [[True, True], [True, True]]
+    assert env.step_count.tolist() == [0, 3]
+    env.close()
+
+
+def test_scenery_yaw_and_heading_agree_with_renderer_convention():
+    from marl_render.envs import scenery
+    from marl_render.transforms import quat_rotate
+
+    yaw = torch.tensor([0.0, 0.5, -2.0, 3.0])
+    forward = quat_rotate(scenery.yaw_quat(yaw).double(), torch.tensor([0.0, 1.0, 0.0]).double().expand(4, 3))
+    assert torch.allclose(forward[:, :2].float(), scenery.heading(yaw), atol=1e-6)
+    assert torch.allclose(scenery.yaw_quat(yaw), mr.quat_from_yaw_pitch_roll(yaw), atol=1e-6)
+
+
+def test_torch_threads_inside_calls_and_restored(monkeypatch):
+    seen = []
+    env = make("cartpole", torch_threads=1)
+    original = env._step_state
+    monkeypatch.setattr(env, "_step_state", lambda *a: seen.append(torch.get_num_threads()) or original(*a))
+    saved = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        env.reset()
+        env.step(torch.zeros(W, 1, dtype=torch.long))
+        assert seen == [1] and torch.get_num_threads() == 2
+        with pytest.raises(ValueError, match="actions"):
+            env.step(torch.full((W, 1), 99))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(saved)
+        env.close()
+    with pytest.raises(ValueError, match="torch_threads"):
+        make("cartpole", torch_threads=0)
