@@ -21,6 +21,7 @@ from . import backend, shaders
 from .meshes import MeshData, to_panda_geom
 from .scene import InstanceGroup, Scene, StaticGroup
 from .culling import frustum_planes, mesh_radius, visible_pairs
+from .threads import one_thread
 from .tiling import TileLayout, copy_tiles, framebuffer_tiles, plan_layout
 from .transforms import normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_multiply, quat_rotate, view_matrix, look_at_quat
 from .validation import as_tensor, check_finite, check_range, check_shape, describe
@@ -251,6 +252,7 @@ class BatchRenderer:
         memory[:, 4, 3] = 0.0
 
     # ------------------------------------------------------------------ public updates
+    @one_thread
     def update(self, group: str, *, position=None, rotation=None, scale=None, color=None, active=None,
                owner=None) -> None:
         """Set per-instance data of a group for all worlds: tensors shaped [W, C, ...].
@@ -298,6 +300,7 @@ class BatchRenderer:
         if staged:
             self._dirty.add(group)
 
+    @one_thread
     def set_cameras(self, *, position=None, rotation=None, look_at=None, fov_y=None, near=None, far=None) -> None:
         """Free cameras: position [W,A,3], rotation [W,A,4] or look_at [W,A,3] targets;
         fov_y (radians), near, far: scalars or [W,A]. Mounted cameras take only fov_y/near/far."""
@@ -337,6 +340,7 @@ class BatchRenderer:
             (target if target is not None else getattr(self, key)).copy_(value)
 
     # ------------------------------------------------------------------ rendering
+    @one_thread
     def render(self) -> Frame:
         """Draw all views; returns tensors the caller owns."""
         self._check_open()
