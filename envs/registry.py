@@ -18,10 +18,9 @@ from marl_render.validation import describe
 _REGISTRY: dict = {
     "cartpole": "marl_render.envs.cartpole:CartPoleBalance",
     "spread": "marl_render.envs.spread:Spread",
-    # ---- other environments of the suite: add one line each here ----
-    # "tag": "marl_render.envs.tag:Tag",
-    # "forage": "marl_render.envs.forage:Forage",
-    # "push": "marl_render.envs.push:Push",
+    "tag": "marl_render.envs.tag:Tag",
+    "forage": "marl_render.envs.forage:Forage",
+    "push": "marl_render.envs.push:Push",
 }
 
 

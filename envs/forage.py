@@ -1,0 +1,239 @@
+"""Foraging: agents collect respawning items, seen through egocentric cameras.
+
+N agents (default 3) drive around a walled arena picking up floating yellow spheres.
+Every agent sees the arena through its own camera mounted on its body.
+
+* Arena: |x|, |y| <= 1.5 m, walls and floor are static geometry.
+* Agents: blue capsules of radius 0.15 m, mass 1, physics from ``envs/physics.py`` with
+  the terms walls + body_collisions + drag (MPE-like damping 0.25 per 0.1 s step), as
+  in ``spread``. The camera sits at 0.4 m, pitched 0.2 rad down; a dark "nose" box
+  shows other agents which way a body faces.
+* Reset: agents in distinct random cells of a 4 x 4 grid of the arena (no overlaps),
+  random yaw; items at random places clear of the agents (as when respawning).
+* Items: ``num_items`` (default 2 x num_agents) spheres of radius 0.1 m; they are not
+  physics bodies (agents drive through them). An agent whose body touches an available
+  item (centre distance < 0.25 m, after the physics step) collects it; if several
+  agents touch the same item in one step the closest one (lowest index on a tie) gets
+  it. A collected item disappears and respawns ``respawn_delay`` steps later (default
+  10: collected in step t, it is back in the obs of step t + respawn_delay) at a random
+  place at least 0.35 m from every agent (of 8 random candidates the first clear one;
+  the last one if none is).
+* Actions, egocentric, as in ``spread``: discrete 5: 0 noop, 1 forward, 2 turn left,
+  3 turn right, 4 backward; continuous 2: (thrust in [-1, 1] along the heading, turn
+  rate in [-1, 1]). Full thrust is ``THRUST`` N; full turn rate is ``TURN_RATE`` rad/s.
+* Reward, per agent: ``item_reward`` (default 1) per item it collected in the step.
+* action_mask: every action is always valid (all True).
+* Episode: never terminates; truncated after ``max_steps`` = 200.
+* State obs (6 + 3 I + 2 (N - 1)): own position (2), velocity (2), cos/sin yaw (2);
+  item positions relative to the agent (2 each, zeros while the item is away) and their
+  availability (1 each); the other agents' positions relative to the agent (2 each, in
+  agent-index order skipping itself). World frame.
+* info: ``"collected"`` int64 [W] items collected in the step, ``"team_score"`` float32
+  [W] the team's total reward of the episode so far (sum over agents and steps).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+import marl_render as mr
+
+from marl_render.validation import positive_float, positive_int
+
+from . import physics, scenery
+from .core import BatchedEnv
+
+ARENA = 1.5  # half extent (m)
+SPAWN = 1.3  # items spawn in |x|, |y| <= SPAWN
+SPAWN_GRID = 4  # agents spawn in distinct cells of a SPAWN_GRID x SPAWN_GRID grid (no overlaps)
+AGENT_RADIUS = 0.15
+AGENT_HEIGHT = 0.5
+EYE_HEIGHT = 0.4
+CAMERA_PITCH = -0.2
+ITEM_RADIUS = 0.1
+ITEM_HEIGHT = 0.15  # centre height of the floating spheres
+ITEM_COLOR = (0.95, 0.80, 0.15)
+REACH = AGENT_RADIUS + ITEM_RADIUS  # an agent touches an item while their centres are closer
+RESPAWN_CLEARANCE = REACH + 0.1  # items respawn at least this far from every agent
+RESPAWN_CANDIDATES = 8
+THRUST = 5.0  # N at full forward action
+TURN_RATE = 3.0  # rad/s at full turn action
+
+# discrete action -> (thrust, turn), the same set as spread
+DISCRETE_ACTIONS = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.0, -1.0), (-1.0, 0.0))
+ACTION_MEANINGS = ("noop", "forward", "turn_left", "turn_right", "backward")
+
+
+def cell_spawn(generator: torch.Generator, num_worlds: int, margin: torch.Tensor, grid: int,
+               half_extent: float) -> torch.Tensor:
+    """Random positions [W, C, 2] (CPU) of C = len(margin) objects in distinct cells of a grid x grid
+    tiling of |x|, |y| <= half_extent, in a random order of cells per world (as in tag.py).
+
+    Object c stays at least margin[c] inside its cell's borders, so circles of radius
+    <= margin never overlap each other or the walls.
+    """
+    C = margin.shape[0]
+    cell = 2 * half_extent / grid
+    order = torch.rand(num_worlds, grid * grid, generator=generator).argsort(-1)[:, :C]
+    centre = (torch.stack((order % grid, order // grid), -1) + 0.5) * cell - half_extent
+    reach = (cell / 2 - margin).clamp_min(0)[:, None]  # [C, 1]
+    return centre + (torch.rand(num_worlds, C, 2, generator=generator) * 2 - 1) * reach
+
+
+class Forage(BatchedEnv):
+    """Collect respawning items; see the module docstring."""
+
+    name = "forage"
+    default_num_agents = 3
+    agent_range = (1, 12)
+    default_max_steps = 200
+    default_resolution = 64
+    physics_terms = frozenset({"walls", "body_collisions", "drag"})
+    fov_y = math.radians(90.0)
+    near = 0.05
+    far = 20.0
+    arena_half_extent = (ARENA, ARENA)
+
+    def __init__(self, *, num_items: int | None = None, respawn_delay: int = 10, item_reward: float = 1.0, **common):
+        """Common kwargs: see BatchedEnv. num_items (1 to 32) defaults to 2 x num_agents."""
+        if num_items is not None:
+            num_items = positive_int("num_items", num_items)
+            if num_items > 32:
+                raise ValueError(f"num_items must be an int in [1, 32], got {num_items}")
+        self.num_items = num_items
+        self.respawn_delay = positive_int("respawn_delay", respawn_delay)
+        self.item_reward = positive_float("item_reward", item_reward)
+        super().__init__(**common)
+
+    def _setup(self):
+        W, N = self.num_worlds, self.num_agents
+        I = self.num_items = min(2 * N, 32) if self.num_items is None else self.num_items  # noqa: E741
+        self.agent_names = [f"agent_{i}" for i in range(N)]
+        self.groups = {"agents": list(self.agent_names)}
+        if self.continuous:
+            self.action_dim = 2
+        else:
+            self.num_actions = len(DISCRETE_ACTIONS)
+            self.action_meanings = ACTION_MEANINGS
+        self.state_dim = 6 + 3 * I + 2 * (N - 1)
+        self.physics = physics.PhysicsConfig(
+            dt=0.1, substeps=2, terms=self.physics_terms, restitution=0.5, drag=-math.log(0.75) / 0.1,
+            arena_half_extent=(ARENA, ARENA), max_speed=2.0, min_body_radius=AGENT_RADIUS)
+        dev = self.device
+        self.action_table = torch.tensor(DISCRETE_ACTIONS, device=dev)
+        self.bodies = physics.BodyState.make(torch.zeros(W, N, 2, device=dev), AGENT_RADIUS)
+        self.yaw = torch.zeros(W, N, device=dev)
+        self.items = torch.zeros(W, I, 2, device=dev)
+        # Steps until an item is back; 0: available.
+        self.item_timer = torch.zeros(W, I, dtype=torch.int64, device=dev)
+        self.team_score = torch.zeros(W, device=dev)
+        self._others = torch.tensor([[j for j in range(N) if j != i] for i in range(N)], dtype=torch.long,
+                                    device=dev).reshape(N, N - 1)
+        self._agent_index = torch.arange(N, device=dev)
+        # Constant instance data.
+        self._agent_color = torch.tensor(scenery.TEAM_COLORS["agents"]).expand(W, N, 3)
+        self._item_color = torch.tensor(ITEM_COLOR).expand(W, I, 3)
+        self._item_scale = torch.full((W, I, 3), 2 * ITEM_RADIUS)
+        self._nose_scale = torch.tensor([0.08, 0.12, 0.08]).expand(W, N, 3)
+        self._nose_color = torch.tensor([0.1, 0.1, 0.12]).expand(W, N, 3)
+        self._owner = torch.arange(N).expand(W, N)
+        self._all_agents = torch.ones(W, N, dtype=torch.bool)
+
+    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
+        scenery.add_arena(scene, (ARENA, ARENA))
+        scene.add_group("agents", scenery.agent_mesh(AGENT_RADIUS, AGENT_HEIGHT), capacity=self.num_agents)
+        scene.add_group("noses", "box", capacity=self.num_agents)
+        scene.add_group("items", mr.sphere(segments=10, rings=5), capacity=self.num_items)
+        if not overview:
+            scene.mount_cameras("agents", instance=range(self.num_agents),
+                                offset=(0.0, 0.0, EYE_HEIGHT - AGENT_HEIGHT / 2), pitch=CAMERA_PITCH)
+
+    def _item_spawn(self, agent_pos: torch.Tensor) -> torch.Tensor:
+        """Random item positions [W, I, 2] clear of agent_pos [W, N, 2] (uses self.generator)."""
+        W, I, M = self.num_worlds, self.num_items, RESPAWN_CANDIDATES
+        candidates = ((torch.rand(W, I * M, 2, generator=self.generator) * 2 - 1) * SPAWN).to(self.device)
+        clear = (torch.cdist(candidates, agent_pos) > RESPAWN_CLEARANCE).all(-1).reshape(W, I, M)
+        clear[..., -1] = True  # fallback: the last candidate
+        pick = clear.to(torch.uint8).argmax(-1)  # the first clear candidate
+        return candidates.reshape(W, I, M, 2).gather(2, pick[..., None, None].expand(W, I, 1, 2)).squeeze(2)
+
+    def _reset_state(self, mask):
+        W, N, g = self.num_worlds, self.num_agents, self.generator
+        pos = cell_spawn(g, W, torch.full((N,), AGENT_RADIUS + 0.05), SPAWN_GRID, ARENA).to(self.device)
+        yaw = ((torch.rand(W, N, generator=g) * 2 - 1) * math.pi).to(self.device)
+        items = self._item_spawn(pos)
+        m1, m2, m3 = mask, mask[:, None], mask[:, None, None]
+        b = self.bodies
+        self.bodies = b._replace(pos=torch.where(m3, pos, b.pos), vel=torch.where(m3, torch.zeros_like(b.vel), b.vel),
+                                 active=b.active | m2)
+        self.yaw = torch.where(m2, yaw, self.yaw)
+        self.items = torch.where(m3, items, self.items)
+        self.item_timer = torch.where(m2, torch.zeros_like(self.item_timer), self.item_timer)
+        self.team_score = torch.where(m1, torch.zeros_like(self.team_score), self.team_score)
+
+    def _step_state(self, actions, alive):
+        if self.continuous:
+            thrust, turn = actions.unbind(-1)
+        else:
+            thrust, turn = self.action_table[actions].unbind(-1)
+        thrust = torch.where(alive, thrust, torch.zeros_like(thrust))
+        turn = torch.where(alive, turn, torch.zeros_like(turn))
+        yaw = scenery.wrap_angle(self.yaw + turn * (TURN_RATE * self.physics.dt))
+        force = (THRUST * thrust)[..., None] * scenery.heading(yaw)
+        bodies = physics.step(self.bodies._replace(active=alive), force, None, self.physics)
+
+        # Items away count down; those reaching 0 come back somewhere clear of the agents.
+        timer = (self.item_timer - 1).clamp_min(0)
+        back = (self.item_timer > 0) & (timer == 0)
+        items = torch.where(back[..., None], self._item_spawn(bodies.pos), self.items)
+        # Collection: the closest live agent touching an available item takes it.
+        dist = torch.cdist(bodies.pos, items)  # [W, N, I]
+        touching = (dist < REACH) & (timer == 0)[:, None, :] & alive[:, :, None]
+        collected = touching.any(1)  # [W, I]
+        taker = torch.where(touching, dist, torch.full_like(dist, math.inf)).argmin(1)  # [W, I]
+        got = (taker[:, None, :] == self._agent_index[None, :, None]) & collected[:, None, :]  # [W, N, I]
+        reward = self.item_reward * got.sum(-1).to(torch.float32)
+        self.item_timer = torch.where(collected, torch.full_like(timer, self.respawn_delay), timer)
+        self.items = items
+        self.bodies, self.yaw = bodies, yaw
+        self.team_score = self.team_score + reward.sum(-1)
+        terminated = torch.zeros_like(alive)
+        return reward, terminated, {"collected": collected.sum(-1), "team_score": self.team_score.clone()}
+
+    @property
+    def item_available(self) -> torch.Tensor:
+        """bool [W, I]: items that can be collected (and are drawn)."""
+        return self.item_timer == 0
+
+    def _instances(self, full: bool) -> dict:
+        pos = self.bodies.pos.to("cpu", torch.float32)
+        yaw = self.yaw.cpu()
+        rotation = scenery.yaw_quat(yaw)
+        update = {
+            "agents": {"position": scenery.planar_to_3d(pos, AGENT_HEIGHT / 2), "rotation": rotation},
+            "noses": {"position": scenery.planar_to_3d(pos + AGENT_RADIUS * scenery.heading(yaw), 0.3),
+                      "rotation": rotation},
+            "items": {"position": scenery.planar_to_3d(self.items.to("cpu", torch.float32), ITEM_HEIGHT),
+                      "active": self.item_available.cpu()},
+        }
+        if full:
+            update["agents"].update(color=self._agent_color, active=self._all_agents)
+            update["noses"].update(color=self._nose_color, scale=self._nose_scale, active=self._all_agents,
+                                   owner=self._owner)
+            update["items"].update(scale=self._item_scale, color=self._item_color)
+        return update
+
+    def _state_obs(self):
+        pos, vel, yaw = self.bodies.pos, self.bodies.vel, self.yaw
+        W, N = pos.shape[:2]
+        available = self.item_available[:, None, :, None].to(pos.dtype)  # [W, 1, I, 1]
+        rel_items = ((self.items[:, None] - pos[:, :, None]) * available).reshape(W, N, -1)
+        others = pos[:, self._others] - pos[:, :, None]  # [W, N, N-1, 2]
+        return torch.cat((pos, vel, torch.cos(yaw)[..., None], torch.sin(yaw)[..., None], rel_items,
+                          available[..., 0].expand(W, N, -1), others.reshape(W, N, -1)), -1)
+
+    def _state_tensors(self):
+        b = self.bodies
+        return {"pos": b.pos, "vel": b.vel, "active": b.active, "yaw": self.yaw, "items": self.items,
+                "item_timer": self.item_timer, "team_score": self.team_score}

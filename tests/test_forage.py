@@ -1,0 +1,278 @@
+"""Tests for envs/forage.py: agents collect respawning items."""
+
+import math
+
+import pytest
+import torch
+
+from marl_render.envs import forage, list_envs, make_env
+from marl_render.envs import physics as P
+from marl_render.envs import spread
+
+W, RES = 3, 32
+
+
+def make(**kwargs):
+    kwargs = {"num_worlds": W, "resolution": RES, "seed": 0, **kwargs}
+    return forage.Forage(**kwargs)
+
+
+def random_actions(env, generator):
+    if env.continuous:
+        return torch.rand(env.num_worlds, env.num_agents, 2, generator=generator) * 2 - 1
+    return torch.randint(0, env.num_actions, (env.num_worlds, env.num_agents), generator=generator)
+
+
+def noop(env):
+    if env.continuous:
+        return torch.zeros(env.num_worlds, env.num_agents, 2)
+    return torch.zeros(env.num_worlds, env.num_agents, dtype=torch.long)
+
+
+def yellow(pixels):
+    """Number of item-coloured (yellow) pixels in uint8 images [..., H, W, 3], per image."""
+    r, g, b = pixels.to(torch.int32).unbind(-1)
+    return ((r - b > 60) & (g - b > 50)).sum((-1, -2))
+
+
+def assert_same_state(a, b, worlds=slice(None)):
+    for key in a:
+        if key == "rng":
+            assert torch.equal(a[key], b[key]), key
+        else:
+            assert torch.equal(a[key][worlds], b[key][worlds]), key
+
+
+# --------------------------------------------------------------------------- contract
+@pytest.mark.parametrize("continuous", [False, True])
+def test_shapes_and_dtypes(continuous):
+    env = make(continuous=continuous, state_obs=True, depth=True)
+    N, I = env.num_agents, env.num_items  # noqa: E741
+    assert (N, I) == (3, 6) and env.groups == {"agents": ["agent_0", "agent_1", "agent_2"]}
+    assert env.state_dim == 6 + 3 * I + 2 * (N - 1)
+    obs = env.reset(seed=1)
+    expected = {"pixels": ((W, N, RES, RES, 3), torch.uint8), "depth": ((W, N, RES, RES), torch.float32),
+                "state": ((W, N, env.state_dim), torch.float32)}
+    if not continuous:
+        expected["action_mask"] = ((W, N, 5), torch.bool)
+    assert env.obs_keys == tuple(expected)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(2):
+        assert set(obs) == set(expected)
+        for key, (shape, dtype) in expected.items():
+            assert tuple(obs[key].shape) == shape and obs[key].dtype == dtype, key
+        if not continuous:
+            assert obs["action_mask"].all()
+        obs, reward, terminated, truncated, info = env.step(random_actions(env, g))
+    assert reward.shape == (W, N) and reward.dtype == torch.float32
+    for flags in (terminated, truncated):
+        assert flags.shape == (W, N) and flags.dtype == torch.bool
+    assert info["collected"].shape == (W,) and info["collected"].dtype == torch.int64
+    assert info["team_score"].shape == (W,) and info["team_score"].dtype == torch.float32
+    assert env.render_overview(48).shape == (W, 48, 48, 3)
+    env.close()
+
+
+def test_action_set_matches_spread():
+    assert forage.DISCRETE_ACTIONS == spread.DISCRETE_ACTIONS
+    assert forage.ACTION_MEANINGS == spread.ACTION_MEANINGS
+    env = make(num_worlds=1, resolution=8)
+    assert env.action_meanings == spread.ACTION_MEANINGS and env.num_actions == 5
+    env.close()
+    env = make(num_worlds=1, resolution=8, continuous=True)
+    assert env.action_meanings is None and env.action_dim == 2
+    env.close()
+
+
+def test_options_and_registry():
+    assert "forage" in list_envs()
+    env = make_env("forage", num_worlds=1, resolution=8, num_agents=5, num_items=2, respawn_delay=1)
+    assert isinstance(env, forage.Forage) and (env.num_agents, env.num_items) == (5, 2)
+    env.close()
+    for kwargs, error in [({"num_items": 0}, ValueError), ({"num_items": 33}, ValueError),
+                          ({"respawn_delay": 0}, ValueError), ({"item_reward": -1.0}, ValueError),
+                          ({"num_items": 2.0}, TypeError)]:
+        with pytest.raises(error):
+            make(**kwargs)
+
+
+def test_pixels_differ_between_agents():
+    env = make()
+    pixels = env.reset(seed=2)["pixels"]
+    for w in range(W):
+        for i in range(env.num_agents):
+            for j in range(i):
+                assert not torch.equal(pixels[w, i], pixels[w, j]), (w, i, j)
+    env.close()
+
+
+def test_reset_spawns_items_clear_of_agents():
+    env = make(num_worlds=16)
+    env.reset(seed=5)
+    gap = torch.cdist(env.items, env.bodies.pos)
+    assert (gap > forage.RESPAWN_CLEARANCE).float().mean() > 0.99  # the last-candidate fallback is rare
+    agents = torch.cdist(env.bodies.pos, env.bodies.pos) + torch.eye(3) * 9
+    assert (agents >= 2 * forage.AGENT_RADIUS).all()  # agents never start overlapping
+    env.close()
+
+
+# --------------------------------------------------------------------------- collecting
+def test_touching_agent_collects_and_item_respawns():
+    delay = 3
+    env = make(respawn_delay=delay, state_obs=True)
+    env.reset(seed=0)
+    # Agents at rest; items in a row far from them.
+    pos = torch.tensor([[-1.0, -1.0], [0.0, -1.0], [1.0, -1.0]]).repeat(W, 1, 1)
+    pos[1, 0] = torch.tensor([-0.31, -1.0])  # world 1: agents 0 and 1 side by side (just touching)
+    items = torch.stack((torch.linspace(-1.25, 1.25, 6), torch.full((6,), 1.2)), -1).repeat(W, 1, 1)
+    items[0, 0] = torch.tensor([-1.0, -0.8])  # world 0: item 0 within reach of agent 0 only
+    items[1, 0] = torch.tensor([-0.13, -1.0])  # world 1: both reach item 0, agent 1 is closer
+    env.bodies = env.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
+    env.yaw = torch.zeros(W, 3)
+    env.items = items
+    seen_before = yellow(env.render_overview(64))
+    obs, reward, terminated, truncated, info = env.step(noop(env))
+
+    assert reward.tolist() == [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]]
+    assert info["collected"].tolist() == [1, 1, 0] and info["team_score"].tolist() == [1.0, 1.0, 0.0]
+    assert not terminated.any() and not truncated.any()
+    away = torch.zeros(W, 6, dtype=torch.bool)
+    away[0, 0] = away[1, 0] = True
+    assert torch.equal(env.item_available, ~away)
+    assert torch.equal(env.renderer._state["items"]["active"], ~away)
+    state = obs["state"].reshape(W, 3, -1)
+    assert torch.equal(state[:, :, 6 + 12:6 + 18], (~away)[:, None].expand(W, 3, 6).float())  # availability flags
+    seen_after = yellow(env.render_overview(64))
+    assert seen_after[0] < seen_before[0] and seen_after[2] == seen_before[2], (seen_before, seen_after)
+
+    # Away for `delay` steps (nobody collects it again although agent 0 still stands there) ...
+    old = env.items.clone()
+    for step in range(1, delay):
+        obs, reward, _, _, info = env.step(noop(env))
+        assert (reward == 0).all() and torch.equal(env.item_available, ~away), step
+        assert info["team_score"].tolist() == [1.0, 1.0, 0.0]
+    # ... then back somewhere else, clear of every agent.
+    obs, reward, _, _, info = env.step(noop(env))
+    assert (reward == 0).all() and env.item_available.all()
+    assert env.renderer._state["items"]["active"].all()
+    assert torch.equal(env.items[~away], old[~away]) and not torch.equal(env.items[away], old[away])
+    assert (torch.cdist(env.items[:2, :1], env.bodies.pos[:2]) > forage.RESPAWN_CLEARANCE).all()
+    assert (env.items.abs() <= forage.SPAWN).all()
+
+    # The team score restarts with its world only.
+    env.reset_worlds(torch.tensor([True, False, False]))
+    assert env.team_score.tolist() == [0.0, 1.0, 0.0]
+    env.close()
+
+
+def test_reward_is_per_item_and_agent():
+    env = make(num_items=4)
+    env.reset(seed=0)
+    pos = torch.tensor([[-1.0, -1.0], [0.0, -1.0], [1.0, -1.0]]).repeat(W, 1, 1)
+    items = torch.tensor([[-1.05, -1.0], [-0.95, -0.95], [1.0, -0.9], [0.0, 1.0]]).repeat(W, 1, 1)
+    env.bodies = env.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
+    env.items = items
+    _, reward, _, _, info = env.step(noop(env))
+    assert reward.tolist() == [[2.0, 0.0, 1.0]] * W
+    assert info["collected"].tolist() == [3] * W and info["team_score"].tolist() == [3.0] * W
+    env.close()
+
+
+# --------------------------------------------------------------------------- state handling
+@pytest.mark.parametrize("continuous", [False, True])
+def test_determinism(continuous):
+    def rollout(env, seed):
+        g = torch.Generator().manual_seed(seed)
+        frames = [env.reset(seed=seed)]
+        for _ in range(5):
+            frames.append(env.step(random_actions(env, g)))
+        return frames, env.get_state()
+
+    env = make(continuous=continuous, state_obs=True, respawn_delay=1)
+    first, state = rollout(env, 7)
+    again, state_again = rollout(env, 7)
+    other = make(continuous=continuous, state_obs=True, respawn_delay=1, seed=99)
+    third, state_third = rollout(other, 7)
+    for a, b in ((first, again), (first, third)):
+        assert torch.equal(a[0]["pixels"], b[0]["pixels"])
+        for (obs_a, *rest_a), (obs_b, *rest_b) in zip(a[1:], b[1:]):
+            assert all(torch.equal(obs_a[k], obs_b[k]) for k in obs_a)
+            assert all(torch.equal(x, y) for x, y in zip(rest_a[:3], rest_b[:3]))
+            assert torch.equal(rest_a[3]["team_score"], rest_b[3]["team_score"])
+    assert_same_state(state, state_again)
+    assert_same_state(state, state_third)
+    different, _ = rollout(env, 8)
+    assert not torch.equal(different[0]["pixels"], first[0]["pixels"])
+    env.close()
+    other.close()
+
+
+def test_partial_reset_leaves_other_worlds_alone():
+    env = make(state_obs=True)
+    env.reset(seed=3)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(3):
+        obs, *_ = env.step(random_actions(env, g))
+    env.team_score = torch.tensor([1.0, 2.0, 3.0])
+    env.item_timer[:, 0] = torch.tensor([0, 4, 5])
+    before = env.get_state()
+    mask = torch.tensor([True, False, True])
+    after_obs = env.reset_worlds(mask)
+    after = env.get_state()
+    keep = ~mask
+    assert_same_state({k: v for k, v in before.items() if k != "rng"}, after, worlds=keep)
+    assert after["step_count"].tolist() == [0, 3, 0]
+    assert after["team_score"].tolist() == [0.0, 2.0, 0.0] and after["item_timer"][:, 0].tolist() == [0, 4, 0]
+    assert not torch.equal(before["items"][0], after["items"][0])
+    for key in ("pixels", "action_mask"):
+        assert torch.equal(obs[key][keep], after_obs[key][keep]), key
+    env.close()
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+def test_bad_actions_raise_and_change_nothing(continuous):
+    env = make(continuous=continuous)
+    env.reset(seed=4)
+    env.step(noop(env))
+    before = env.get_state()
+    N = env.num_agents
+    if continuous:
+        bad = [(torch.zeros(W, N), ValueError), (torch.zeros(W + 1, N, 2), ValueError),
+               (torch.full((W, N, 2), -1.01), ValueError), (torch.full((W, N, 2), math.inf), ValueError),
+               (torch.zeros(W, N, 2, dtype=torch.int32), TypeError)]
+    else:
+        bad = [(torch.zeros(W, N, 1, dtype=torch.long), ValueError), (torch.full((W, N), 9), ValueError),
+               (torch.zeros(W, N, dtype=torch.bool), TypeError), (torch.zeros(W, N), TypeError)]
+    for actions, error in bad:
+        with pytest.raises(error, match="actions"):
+            env.step(actions)
+        assert_same_state(before, env.get_state())
+    env.close()
+
+
+def test_only_declared_physics_terms_run(monkeypatch):
+    calls = {name: 0 for name in P.TERM_NAMES}
+
+    def counted(name, fn):
+        def term(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return term
+
+    def forbidden(name):
+        def term(*args, **kwargs):
+            raise AssertionError(f"undeclared term {name!r} was computed")
+        return term
+
+    env = make()
+    declared = {"walls", "body_collisions", "drag"}
+    assert env.physics.terms == declared == env.physics_terms
+    for name in P.TERM_NAMES:
+        monkeypatch.setitem(P.TERMS, name, counted(name, P.TERMS[name]) if name in declared else forbidden(name))
+    env.reset(seed=0)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(3):
+        env.step(random_actions(env, g))
+    assert all(calls[n] == 3 for n in declared), calls
+    assert all(calls[n] == 0 for n in P.TERM_NAMES - declared), calls
+    env.close()

@@ -1,0 +1,306 @@
+"""Tests for envs/push.py: two teams push a ball into the other team's goal."""
+
+import math
+
+import pytest
+import torch
+
+from marl_render.envs import list_envs, make_env, push
+from marl_render.envs import physics as P
+from marl_render.envs import spread
+
+W, RES = 3, 32
+
+
+def make(**kwargs):
+    kwargs = {"num_worlds": W, "resolution": RES, "seed": 0, **kwargs}
+    return push.Push(**kwargs)
+
+
+def random_actions(env, generator):
+    if env.continuous:
+        return torch.rand(env.num_worlds, env.num_agents, 2, generator=generator) * 2 - 1
+    return torch.randint(0, env.num_actions, (env.num_worlds, env.num_agents), generator=generator)
+
+
+def noop(env):
+    if env.continuous:
+        return torch.zeros(env.num_worlds, env.num_agents, 2)
+    return torch.zeros(env.num_worlds, env.num_agents, dtype=torch.long)
+
+
+def place(env, agents, ball, ball_vel=(0.0, 0.0), yaw=None):
+    """Agents at `agents` [W, N, 2] and the ball at `ball` [W, 2] with `ball_vel`, all else at rest."""
+    N = env.num_agents
+    agents = torch.as_tensor(agents, dtype=torch.float32).expand(W, N, 2)
+    ball = torch.as_tensor(ball, dtype=torch.float32).expand(W, 2)
+    pos = torch.cat((agents, ball[:, None]), 1).clone()
+    vel = torch.zeros_like(pos)
+    vel[:, -1] = torch.as_tensor(ball_vel, dtype=torch.float32)
+    env.bodies = env.bodies._replace(pos=pos, vel=vel)
+    if yaw is not None:
+        env.yaw = torch.as_tensor(yaw, dtype=torch.float32).expand(W, N).clone()
+
+
+def assert_same_state(a, b, worlds=slice(None)):
+    for key in a:
+        if key == "rng":
+            assert torch.equal(a[key], b[key]), key
+        else:
+            assert torch.equal(a[key][worlds], b[key][worlds]), key
+
+
+SIDELINE = [[-1.2, -0.3], [1.2, -0.3], [-1.2, 0.3], [1.2, 0.3]]  # 4 agents out of the ball's way
+
+
+# --------------------------------------------------------------------------- contract
+@pytest.mark.parametrize("continuous", [False, True])
+def test_shapes_and_dtypes(continuous):
+    env = make(continuous=continuous, state_obs=True, depth=True)
+    N = env.num_agents
+    assert N == 4 and env.groups == {"team_a": ["team_a_0", "team_a_1"], "team_b": ["team_b_0", "team_b_1"]}
+    assert env.state_dim == 10 + 2 * (N - 1)
+    obs = env.reset(seed=1)
+    expected = {"pixels": ((W, N, RES, RES, 3), torch.uint8), "depth": ((W, N, RES, RES), torch.float32),
+                "state": ((W, N, env.state_dim), torch.float32)}
+    if not continuous:
+        expected["action_mask"] = ((W, N, 5), torch.bool)
+    assert env.obs_keys == tuple(expected)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(2):
+        assert set(obs) == set(expected)
+        for key, (shape, dtype) in expected.items():
+            assert tuple(obs[key].shape) == shape and obs[key].dtype == dtype, key
+        if not continuous:
+            assert obs["action_mask"].all()
+        obs, reward, terminated, truncated, info = env.step(random_actions(env, g))
+    assert reward.shape == (W, N) and reward.dtype == torch.float32
+    for flags in (terminated, truncated):
+        assert flags.shape == (W, N) and flags.dtype == torch.bool
+    assert info["goal"].shape == (W,) and info["goal"].dtype == torch.int64
+    assert env.render_overview(48).shape == (W, 48, 48, 3)
+    env.close()
+
+
+def test_action_set_matches_spread():
+    assert push.DISCRETE_ACTIONS == spread.DISCRETE_ACTIONS
+    assert push.ACTION_MEANINGS == spread.ACTION_MEANINGS
+    env = make(num_worlds=1, resolution=8)
+    assert env.action_meanings == spread.ACTION_MEANINGS and env.num_actions == 5
+    env.close()
+    env = make(num_worlds=1, resolution=8, continuous=True)
+    assert env.action_meanings is None and env.action_dim == 2
+    env.close()
+
+
+def test_team_sizes_and_registry():
+    assert "push" in list_envs()
+    env = make_env("push", num_worlds=1, resolution=8, num_agents=6)
+    assert isinstance(env, push.Push)
+    assert env.groups == {"team_a": [f"team_a_{i}" for i in range(3)], "team_b": [f"team_b_{i}" for i in range(3)]}
+    env.close()
+    env = make(num_agents=2, resolution=8)
+    assert env.groups == {"team_a": ["team_a_0"], "team_b": ["team_b_0"]}
+    env.close()
+    with pytest.raises(ValueError, match="even"):
+        make(num_agents=3)
+    with pytest.raises(ValueError, match="goal_reward"):
+        make(goal_reward=0.0)
+
+
+def test_reset_layout():
+    env = make(num_worlds=32, num_agents=12)
+    env.reset(seed=6)
+    agents, ball = env.bodies.pos[:, :-1], env.bodies.pos[:, -1]
+    assert (agents[:, :6, 1] < -0.4).all() and (agents[:, 6:, 1] > 0.4).all()  # own halves
+    assert (ball.abs() <= torch.tensor([0.3, 0.1])).all() and (env.bodies.vel == 0).all()
+    gaps = torch.cdist(env.bodies.pos, env.bodies.pos) + torch.eye(13) * 9
+    assert (gaps >= 2 * push.AGENT_RADIUS).all()  # nobody overlaps at the start
+    facing = push.scenery.heading(env.yaw)[..., 1]
+    assert (facing[:, :6] > 0.8).all() and (facing[:, 6:] < -0.8).all()  # facing the opponents' goal
+    env.close()
+
+
+def test_pixels_differ_between_agents():
+    env = make()
+    pixels = env.reset(seed=2)["pixels"]
+    for w in range(W):
+        for i in range(env.num_agents):
+            for j in range(i):
+                assert not torch.equal(pixels[w, i], pixels[w, j]), (w, i, j)
+    env.close()
+
+
+# --------------------------------------------------------------------------- goals
+def test_goal_scored_rewards_the_right_team_and_ends_the_episode():
+    env = make()
+    env.reset(seed=0)
+    # World 0: the ball rolls into team_b's goal (+y): team_a scores. World 1: into team_a's goal
+    # (-y): team_b scores. World 2: into the +y end wall beside the goal mouth: nothing.
+    ball = torch.tensor([[0.0, 1.62], [0.1, -1.62], [1.0, 1.62]])
+    ball_vel = torch.tensor([[0.0, 1.5], [0.0, -1.5], [0.0, 1.5]])
+    place(env, SIDELINE, ball, ball_vel)
+    obs, reward, terminated, truncated, info = env.step(noop(env))
+    assert info["goal"].tolist() == [1, -1, 0]
+    assert reward.tolist() == [[1.0, 1.0, -1.0, -1.0], [-1.0, -1.0, 1.0, 1.0], [0.0] * 4]
+    assert terminated.tolist() == [[True] * 4, [True] * 4, [False] * 4]
+    assert info["done_worlds"].tolist() == [True, True, False] and not truncated.any()
+    assert env.bodies.pos[2, -1, 1] > push.GOAL_LINE  # deep enough, but outside the mouth
+    # Terminated worlds stay over (no autoreset): rewards 0, still terminated.
+    _, reward, terminated, _, _ = env.step(noop(env))
+    assert (reward[:2] == 0).all() and terminated[:2].all()
+    env.close()
+
+
+def test_goal_with_autoreset_starts_a_new_episode():
+    env = make(autoreset=True, goal_reward=2.0)
+    env.reset(seed=0)
+    place(env, SIDELINE, torch.tensor([[0.0, 1.62], [0.0, 0.0], [0.0, 0.0]]), torch.tensor([[0.0, 1.5]] * 3))
+    _, reward, terminated, _, info = env.step(noop(env))
+    assert reward[0].tolist() == [2.0, 2.0, -2.0, -2.0] and terminated[0].all()
+    assert info["done_worlds"].tolist() == [True, False, False]
+    assert env.step_count.tolist() == [0, 1, 1] and env.alive.all()
+    assert env.bodies.pos[0, -1].abs().max() <= 0.3 and (env.bodies.vel[0] == 0).all()
+    env.close()
+
+
+def test_ball_is_pushed_by_an_agent():
+    env = make(continuous=True)
+    env.reset(seed=0)
+    agents = torch.tensor(SIDELINE)
+    agents[0] = torch.tensor([0.0, -0.5])  # team_a_0 right behind the ball, facing +y
+    place(env, agents, torch.tensor([0.0, -0.2]), yaw=torch.zeros(W, 4))
+    actions = torch.zeros(W, 4, 2)
+    actions[:, 0, 0] = 1.0
+    for _ in range(8):
+        env.step(actions)
+    ball, ball_vel = env.ball
+    assert (ball[:, 1] > 0.2).all() and (ball_vel[:, 1] > 0.3).all()
+    assert torch.allclose(ball[:, 0], torch.zeros(W), atol=1e-4)
+    env.close()
+
+
+def test_shaping_is_zero_sum_and_follows_the_ball():
+    env = make(shaping=1.0)
+    env.reset(seed=0)
+    place(env, SIDELINE, torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]]),
+          torch.tensor([[0.0, 1.0], [0.0, -1.0], [0.0, 0.0]]))
+    _, reward, _, _, _ = env.step(noop(env))
+    assert (reward[0, :2] > 0.05).all() and (reward[1, :2] < -0.05).all() and (reward[2] == 0).all()
+    assert torch.allclose(reward[:, :2], -reward[:, 2:])
+    assert torch.allclose(reward[0, 0], env.bodies.pos[0, -1, 1])
+    env.close()
+
+
+def test_state_obs_is_in_the_team_frame():
+    # A configuration symmetric under the 180 degree turn: each team_a agent sees exactly
+    # what its mirrored team_b counterpart sees.
+    env = make(state_obs=True)
+    env.reset(seed=0)
+    a = torch.tensor([[-0.7, -0.9], [0.4, -0.3]])
+    yaw = torch.tensor([0.3, -1.0, 0.3 + math.pi, -1.0 + math.pi])
+    place(env, torch.cat((a, -a)), torch.tensor([0.0, 0.0]), yaw=yaw)
+    env.bodies = env.bodies._replace(vel=torch.tensor([[0.2, 0.1], [0.0, -0.3], [-0.2, -0.1], [0.0, 0.3],
+                                                       [0.0, 0.0]]).expand(W, 5, 2).clone())
+    state = env._state_obs()
+    assert torch.allclose(state[:, :2], state[:, 2:], atol=1e-6)
+    # team_a's own frame is the world frame.
+    assert torch.allclose(state[0, 0, :6], torch.tensor([-0.7, -0.9, 0.2, 0.1, math.cos(0.3), math.sin(0.3)]))
+    assert torch.allclose(state[0, 0, 6:8], torch.tensor([0.7, 0.9]))  # ball relative to the agent
+    assert torch.allclose(state[0, 0, 10:12], torch.tensor([1.1, 0.6]))  # teammate first
+    env.close()
+
+
+# --------------------------------------------------------------------------- state handling
+@pytest.mark.parametrize("continuous", [False, True])
+def test_determinism(continuous):
+    def rollout(env, seed):
+        g = torch.Generator().manual_seed(seed)
+        frames = [env.reset(seed=seed)]
+        for _ in range(4):
+            frames.append(env.step(random_actions(env, g)))
+        return frames, env.get_state()
+
+    env = make(continuous=continuous, state_obs=True)
+    first, state = rollout(env, 7)
+    again, state_again = rollout(env, 7)
+    other = make(continuous=continuous, state_obs=True, seed=5)
+    third, state_third = rollout(other, 7)
+    for a, b in ((first, again), (first, third)):
+        assert torch.equal(a[0]["pixels"], b[0]["pixels"])
+        for (obs_a, *rest_a), (obs_b, *rest_b) in zip(a[1:], b[1:]):
+            assert all(torch.equal(obs_a[k], obs_b[k]) for k in obs_a)
+            assert all(torch.equal(x, y) for x, y in zip(rest_a[:3], rest_b[:3]))
+    assert_same_state(state, state_again)
+    assert_same_state(state, state_third)
+    different, _ = rollout(env, 8)
+    assert not torch.equal(different[0]["pixels"], first[0]["pixels"])
+    env.close()
+    other.close()
+
+
+def test_partial_reset_leaves_other_worlds_alone():
+    env = make(state_obs=True)
+    env.reset(seed=3)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(3):
+        obs, *_ = env.step(random_actions(env, g))
+    before = env.get_state()
+    mask = torch.tensor([False, False, True])
+    after_obs = env.reset_worlds(mask)
+    after = env.get_state()
+    keep = ~mask
+    assert_same_state({k: v for k, v in before.items() if k != "rng"}, after, worlds=keep)
+    assert after["step_count"].tolist() == [3, 3, 0]
+    assert not torch.equal(before["pos"][2], after["pos"][2])
+    for key in obs:
+        assert torch.equal(obs[key][keep], after_obs[key][keep]), key
+    env.close()
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+def test_bad_actions_raise_and_change_nothing(continuous):
+    env = make(continuous=continuous)
+    env.reset(seed=4)
+    env.step(noop(env))
+    before = env.get_state()
+    N = env.num_agents
+    if continuous:
+        bad = [(torch.zeros(W, N, 1), ValueError), (torch.full((W, N, 2), 2.0), ValueError),
+               (torch.full((W, N, 2), math.nan), ValueError), (torch.zeros(W, N, 2, dtype=torch.long), TypeError)]
+    else:
+        bad = [(torch.zeros(W, N - 1, dtype=torch.long), ValueError), (torch.full((W, N), 5), ValueError),
+               (torch.full((W, N), 1.0), TypeError), ({"a": 1}, TypeError)]
+    for actions, error in bad:
+        with pytest.raises(error, match="actions"):
+            env.step(actions)
+        assert_same_state(before, env.get_state())
+    env.close()
+
+
+def test_only_declared_physics_terms_run(monkeypatch):
+    calls = {name: 0 for name in P.TERM_NAMES}
+
+    def counted(name, fn):
+        def term(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return term
+
+    def forbidden(name):
+        def term(*args, **kwargs):
+            raise AssertionError(f"undeclared term {name!r} was computed")
+        return term
+
+    env = make()
+    declared = {"walls", "body_collisions", "drag"}
+    assert env.physics.terms == declared == env.physics_terms
+    for name in P.TERM_NAMES:
+        monkeypatch.setitem(P.TERMS, name, counted(name, P.TERMS[name]) if name in declared else forbidden(name))
+    env.reset(seed=0)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(3):
+        env.step(random_actions(env, g))
+    assert all(calls[n] == 3 for n in declared), calls
+    assert all(calls[n] == 0 for n in P.TERM_NAMES - declared), calls
+    env.close()

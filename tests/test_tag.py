@@ -1,0 +1,308 @@
+"""Tests for envs/tag.py: predators and prey in a walled arena with obstacles."""
+
+import math
+
+import pytest
+import torch
+
+from marl_render.envs import list_envs, make_env
+from marl_render.envs import physics as P
+from marl_render.envs import spread, tag
+
+W, RES = 3, 32
+
+
+def make(**kwargs):
+    kwargs = {"num_worlds": W, "resolution": RES, "seed": 0, **kwargs}
+    return tag.Tag(**kwargs)
+
+
+def random_actions(env, generator):
+    if env.continuous:
+        return torch.rand(env.num_worlds, env.num_agents, 2, generator=generator) * 2 - 1
+    return torch.randint(0, env.num_actions, (env.num_worlds, env.num_agents), generator=generator)
+
+
+def noop(env):
+    if env.continuous:
+        return torch.zeros(env.num_worlds, env.num_agents, 2)
+    return torch.zeros(env.num_worlds, env.num_agents, dtype=torch.long)
+
+
+def place(env, pos, yaw=None):
+    """Put the bodies at `pos` [W, N, 2] at rest (and yaw [W, N])."""
+    pos = torch.as_tensor(pos, dtype=torch.float32).expand(env.num_worlds, env.num_agents, 2).clone()
+    env.bodies = env.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
+    if yaw is not None:
+        env.yaw = torch.as_tensor(yaw, dtype=torch.float32).expand(env.num_worlds, env.num_agents).clone()
+
+
+def green(pixels):
+    """Number of prey-coloured (green) pixels in uint8 images [..., H, W, 3], per image."""
+    r, g, b = pixels.to(torch.int32).unbind(-1)
+    return ((g - r > 40) & (g - b > 30)).sum((-1, -2))
+
+
+def assert_same_state(a, b, worlds=slice(None)):
+    for key in a:
+        if key == "rng":
+            assert torch.equal(a[key], b[key]), key
+        else:
+            assert torch.equal(a[key][worlds], b[key][worlds]), key
+
+
+# --------------------------------------------------------------------------- contract
+@pytest.mark.parametrize("continuous", [False, True])
+def test_shapes_and_dtypes(continuous):
+    env = make(continuous=continuous, state_obs=True, depth=True)
+    N, K = env.num_agents, env.num_obstacles
+    assert (N, env.num_predators, env.num_prey, K) == (4, 3, 1, 2)
+    assert env.groups == {"predator": ["predator_0", "predator_1", "predator_2"], "prey": ["prey_0"]}
+    assert env.state_dim == 6 + 3 * (N - 1) + 2 * K
+    obs = env.reset(seed=1)
+    expected = {"pixels": ((W, N, RES, RES, 3), torch.uint8), "depth": ((W, N, RES, RES), torch.float32),
+                "state": ((W, N, env.state_dim), torch.float32)}
+    if not continuous:
+        expected["action_mask"] = ((W, N, 5), torch.bool)
+    assert env.obs_keys == tuple(expected)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(2):
+        assert set(obs) == set(expected)
+        for key, (shape, dtype) in expected.items():
+            assert tuple(obs[key].shape) == shape and obs[key].dtype == dtype, key
+        obs, reward, terminated, truncated, info = env.step(random_actions(env, g))
+    assert reward.shape == (W, N) and reward.dtype == torch.float32
+    for flags in (terminated, truncated):
+        assert flags.shape == (W, N) and flags.dtype == torch.bool
+    assert info["caught"].shape == (W,) and info["caught"].dtype == torch.int64
+    assert info["prey_left"].shape == (W,) and info["prey_left"].dtype == torch.int64
+    assert env.render_overview(48).shape == (W, 48, 48, 3)
+    env.close()
+
+
+def test_action_set_matches_spread():
+    assert tag.DISCRETE_ACTIONS == spread.DISCRETE_ACTIONS
+    assert tag.ACTION_MEANINGS == spread.ACTION_MEANINGS
+    env = make(num_worlds=1, resolution=8)
+    assert env.action_meanings == spread.ACTION_MEANINGS and env.num_actions == 5
+    env.close()
+    env = make(num_worlds=1, resolution=8, continuous=True)
+    assert env.action_meanings is None and env.action_dim == 2
+    env.close()
+
+
+def test_team_sizes():
+    for kwargs, sizes in [({}, (3, 1)), ({"num_agents": 2}, (1, 1)), ({"num_agents": 8}, (6, 2)),
+                          ({"num_prey": 2}, (3, 2)), ({"num_predators": 2}, (2, 1)),
+                          ({"num_agents": 5, "num_prey": 2}, (3, 2)), ({"num_agents": 5, "num_predators": 4}, (4, 1)),
+                          ({"num_predators": 1, "num_prey": 3}, (1, 3))]:
+        env = make(num_worlds=1, resolution=8, **kwargs)
+        assert (env.num_predators, env.num_prey) == sizes, kwargs
+        assert env.num_agents == sum(sizes)
+        assert env.agent_names == [f"predator_{i}" for i in range(sizes[0])] + [f"prey_{j}" for j in range(sizes[1])]
+        env.close()
+    with pytest.raises(ValueError, match="num_predators \\+ num_prey"):
+        make(num_agents=4, num_predators=2, num_prey=1)
+    with pytest.raises(ValueError, match="at least one predator"):
+        make(num_agents=3, num_prey=3)
+    with pytest.raises(ValueError, match="num_agents"):
+        make(num_agents=1)
+    with pytest.raises(ValueError, match="num_obstacles"):
+        make(num_obstacles=9)
+
+
+def test_registered():
+    assert "tag" in list_envs()
+    env = make_env("tag", num_worlds=1, resolution=8, num_prey=2)
+    assert isinstance(env, tag.Tag) and env.num_agents == 5
+    env.close()
+
+
+def test_pixels_differ_between_agents():
+    env = make()
+    pixels = env.reset(seed=2)["pixels"]
+    for w in range(W):
+        for i in range(env.num_agents):
+            for j in range(i):
+                assert not torch.equal(pixels[w, i], pixels[w, j]), (w, i, j)
+    env.close()
+
+
+# --------------------------------------------------------------------------- catching
+def test_catch_removes_prey_and_ends_episode_when_all_caught():
+    # 3 predators, 2 prey (indices 3, 4), no obstacles. Predator 2 at (0, -1) looks along +y at
+    # both prey at y = 0.5. World 0: predator 0 touches prey 3. World 1: predators 0 and 1
+    # touch prey 3 and 4. World 2: nobody touches anybody (control).
+    env = make(num_predators=3, num_prey=2, num_obstacles=0)
+    env.reset(seed=0)
+    gap = 0.28  # centre distance: not overlapping (0.27), within the catch tolerance (0.29)
+    away = [[-1.2, 1.2], [1.2, 1.2]]
+    near = [[0.0, 0.5 + gap], [1.0, 0.5 + gap]]
+    prey = [[0.0, 0.5], [1.0, 0.5]]
+    watcher = [[0.0, -1.0]]
+    pos = torch.tensor([[near[0], away[1]] + watcher + prey,
+                        near + watcher + prey,
+                        away + watcher + prey])
+    place(env, pos, yaw=torch.zeros(W, 5))
+    obs, reward, terminated, truncated, info = env.step(noop(env))
+
+    assert info["caught"].tolist() == [1, 2, 0]
+    assert info["prey_left"].tolist() == [1, 0, 2]
+    assert env.alive.tolist() == [[True, True, True, False, True], [False] * 5, [True] * 5]
+    assert terminated.tolist() == [[False, False, False, True, False], [True] * 5, [False] * 5]
+    assert info["done_worlds"].tolist() == [False, True, False]
+    assert not truncated.any()
+    assert reward.tolist() == [[10.0, 10.0, 10.0, -10.0, 0.0], [20.0, 20.0, 20.0, -10.0, -10.0], [0.0] * 5]
+    # The caught prey's instance is inactive and its body no longer collides.
+    assert env.renderer._state["agents"]["active"].tolist() == env.alive.tolist()
+    assert env.bodies.active.tolist() == env.alive.tolist()
+    # ... so it disappears from the watcher's view: world 0 keeps prey 4, world 1 none.
+    seen = green(obs["pixels"][:, 2])
+    assert seen[1] == 0 and 0 < seen[0] < seen[2], seen.tolist()
+    overview = green(env.render_overview(64))
+    assert overview[1] == 0 and 0 < overview[0] < overview[2], overview.tolist()
+    # Agents that left may only take noop.
+    mask = obs["action_mask"]
+    assert mask[2].all() and mask[0, :3].all() and mask[0, 4].all()
+    assert mask[0, 3].tolist() == [True, False, False, False, False]
+    assert mask[1, :, 0].all() and not mask[1, :, 1:].any()
+
+    # Next step: the dead stay dead (terminated, reward 0, frozen) whatever they were told.
+    frozen = env.bodies.pos[:, 3].clone()
+    actions = torch.ones(W, 5, dtype=torch.long)
+    obs, reward, terminated, truncated, info = env.step(actions)
+    assert torch.equal(env.bodies.pos[:, 3][:2], frozen[:2])
+    assert reward[0, 3] == 0 and (reward[1] == 0).all()
+    assert terminated[0, 3] and terminated[1].all() and not terminated[2].any()
+
+    # Resetting world 0 brings its prey back; world 1 stays over.
+    obs = env.reset_worlds(torch.tensor([True, False, False]))
+    assert env.alive[0].all() and not env.alive[1].any() and env.bodies.active[0].all()
+    assert env.renderer._state["agents"]["active"][0].all()
+    assert green(obs["pixels"][1]).sum() == 0
+    env.close()
+
+
+def test_shaping_signs():
+    env = make(num_obstacles=0, shaping=0.5)
+    env.reset(seed=0)
+    place(env, torch.tensor([[-1.0, -1.0], [0.0, -1.0], [1.0, -1.0], [0.0, 1.0]]))
+    _, reward, terminated, _, _ = env.step(noop(env))
+    assert not terminated.any()
+    assert torch.allclose(reward[:, :3], torch.tensor([-0.5 * math.hypot(1, 2), -1.0, -0.5 * math.hypot(1, 2)]))
+    assert torch.allclose(reward[:, 3], torch.tensor(1.0))  # 0.5 x distance 2 to the nearest predator
+    env.close()
+
+
+def test_speed_caps():
+    env = make(num_obstacles=0, continuous=True)
+    env.reset(seed=0)
+    place(env, torch.tensor([[-1.1, -1.3], [-0.4, -1.3], [0.3, -1.3], [1.0, -1.3]]), yaw=torch.zeros(W, 4))
+    forward = torch.tensor([1.0, 0.0]).expand(W, 4, 2)
+    top = torch.zeros(W, 4)
+    for _ in range(12):
+        env.step(forward)
+        top = torch.maximum(top, env.bodies.vel.norm(dim=-1))
+    assert (top[:, :3] <= tag.MAX_SPEED["predator"] + 1e-5).all() and (top[:, :3] > 0.9).all()
+    assert (top[:, 3] <= tag.MAX_SPEED["prey"] + 1e-5).all() and (top[:, 3] > 1.2).all()
+    env.close()
+
+
+# --------------------------------------------------------------------------- state handling
+@pytest.mark.parametrize("continuous", [False, True])
+def test_determinism(continuous):
+    def rollout(env, seed):
+        g = torch.Generator().manual_seed(seed)
+        frames = [env.reset(seed=seed)]
+        for _ in range(4):
+            frames.append(env.step(random_actions(env, g)))
+        return frames, env.get_state()
+
+    env = make(continuous=continuous, state_obs=True)
+    first, state = rollout(env, 7)
+    again, state_again = rollout(env, 7)
+    other = make(continuous=continuous, state_obs=True, seed=123)
+    third, state_third = rollout(other, 7)
+    for a, b in ((first, again), (first, third)):
+        assert torch.equal(a[0]["pixels"], b[0]["pixels"])
+        for (obs_a, *rest_a), (obs_b, *rest_b) in zip(a[1:], b[1:]):
+            assert all(torch.equal(obs_a[k], obs_b[k]) for k in obs_a)
+            assert all(torch.equal(x, y) for x, y in zip(rest_a[:3], rest_b[:3]))
+    assert_same_state(state, state_again)
+    assert_same_state(state, state_third)
+    different, _ = rollout(env, 8)
+    assert not torch.equal(different[0]["pixels"], first[0]["pixels"])
+    env.close()
+    other.close()
+
+
+def test_partial_reset_leaves_other_worlds_alone():
+    env = make(state_obs=True)
+    env.reset(seed=3)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(3):
+        obs, *_ = env.step(random_actions(env, g))
+    before = env.get_state()
+    mask = torch.tensor([False, True, False])
+    after_obs = env.reset_worlds(mask)
+    after = env.get_state()
+    keep = ~mask
+    assert_same_state({k: v for k, v in before.items() if k != "rng"}, after, worlds=keep)
+    for key in obs:
+        assert torch.equal(obs[key][keep], after_obs[key][keep]), key
+    assert after["step_count"].tolist() == [3, 0, 3]
+    assert not torch.equal(before["pos"][1], after["pos"][1])
+    assert not torch.equal(before["obstacle_center"][1], after["obstacle_center"][1])
+    env.close()
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+def test_bad_actions_raise_and_change_nothing(continuous):
+    env = make(continuous=continuous)
+    env.reset(seed=4)
+    env.step(noop(env))
+    before = env.get_state()
+    N = env.num_agents
+    if continuous:
+        bad = [(torch.zeros(W, N), ValueError), (torch.zeros(W, N, 3), ValueError),
+               (torch.full((W, N, 2), 1.5), ValueError), (torch.full((W, N, 2), math.nan), ValueError),
+               (torch.zeros(W, N, 2, dtype=torch.long), TypeError), ("forward", TypeError)]
+    else:
+        bad = [(torch.zeros(W, N + 1, dtype=torch.long), ValueError), (torch.full((W, N), 5), ValueError),
+               (torch.full((W, N), -1), ValueError), (torch.zeros(W, N), TypeError), (None, TypeError)]
+    for actions, error in bad:
+        with pytest.raises(error, match="actions"):
+            env.step(actions)
+        assert_same_state(before, env.get_state())
+    env.close()
+
+
+def test_only_declared_physics_terms_run(monkeypatch):
+    calls = {name: 0 for name in P.TERM_NAMES}
+
+    def counted(name, fn):
+        def term(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return term
+
+    def forbidden(name):
+        def term(*args, **kwargs):
+            raise AssertionError(f"undeclared term {name!r} was computed")
+        return term
+
+    for with_obstacles in (True, False):
+        env = make(num_obstacles=2 if with_obstacles else 0)
+        declared = {"walls", "body_collisions", "drag"} | ({"obstacles"} if with_obstacles else set())
+        assert env.physics.terms == declared == env.physics_terms
+        for name in P.TERM_NAMES:
+            monkeypatch.setitem(P.TERMS, name, counted(name, P.TERMS[name]) if name in declared else forbidden(name))
+        calls.update({name: 0 for name in calls})
+        env.reset(seed=0)
+        g = torch.Generator().manual_seed(0)
+        for _ in range(3):
+            env.step(random_actions(env, g))
+        assert all(calls[n] == 3 for n in declared), calls
+        assert all(calls[n] == 0 for n in P.TERM_NAMES - declared), calls
+        monkeypatch.undo()
+        env.close()
