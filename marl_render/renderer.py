@@ -24,7 +24,7 @@ from .culling import frustum_planes, mesh_radius, visible_pairs
 from .threads import one_thread
 from .tiling import TileLayout, copy_tiles, framebuffer_tiles, plan_layout
 from .transforms import normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_multiply, quat_rotate, view_matrix, look_at_quat
-from .validation import as_tensor, check_finite, check_range, check_shape, describe
+from .validation import as_tensor, check_finite, check_range, check_shape, describe, positive_int
 
 # Worlds are re-centred when a camera strays this far from its world's origin, so that
 # float32 positions relative to the origin stay precise (see the static-group shader).
@@ -75,14 +75,25 @@ class BatchRenderer:
     READBACKS = ("zero_copy", "copy")
 
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
-                 egl_device_index: int | None = None, readback: str = "zero_copy"):
+                 egl_device_index: int | None = None, readback: str = "zero_copy", supersample: int = 1,
+                 multisamples: int = 0):
         """readback: "zero_copy" (default) reads the tiles straight out of Panda3D's RAM
         image; "copy" first copies the whole image into a bytes object (the usual way,
-        kept only so that benchmarks can show what the zero-copy path saves)."""
+        kept only so that benchmarks can show what the zero-copy path saves).
+        supersample=k renders every view at k x the resolution and box-filters it down
+        (anti-aliasing; depth and segmentation take the sample nearest each pixel centre).
+        multisamples=n asks the GL for n-sample MSAA (colour only)."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
         if readback not in self.READBACKS:
             raise ValueError(f"readback must be one of {list(self.READBACKS)}, got {readback!r}")
+        self.supersample = positive_int("supersample", supersample)
+        if isinstance(multisamples, bool) or not isinstance(multisamples, int) or multisamples < 0:
+            raise ValueError(f"multisamples must be an int >= 0, got {multisamples!r}")
+        if multisamples and {"depth", "segmentation"} & set(scene.effects):
+            raise ValueError("multisamples cannot be combined with the depth or segmentation outputs (their "
+                             "bit-packed samples would be averaged); use supersample instead")
+        self.multisamples = multisamples
         self.scene = scene
         self.readback = readback
         self.channels_first = bool(channels_first)
@@ -95,7 +106,8 @@ class BatchRenderer:
         if not isinstance(max_framebuffer_size, int) or not 1 <= max_framebuffer_size <= gl_max:
             raise ValueError(f"max_framebuffer_size must be an int in [1, {gl_max}], got {max_framebuffer_size!r}")
         height, width = scene.resolution
-        self.layout: TileLayout = plan_layout(scene.num_views, height, width, max_framebuffer_size)
+        k = self.supersample
+        self.layout: TileLayout = plan_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
         self.effects = frozenset(scene.effects)
         self._init_state()
         self.buffer = self.root = None
@@ -160,6 +172,7 @@ class BatchRenderer:
         props.set_rgba_bits(8, 8, 8, 8 if aux else 0)
         props.set_depth_bits(24)
         props.set_aux_rgba(len(aux))
+        props.set_multisamples(self.multisamples)
         self.buffer = ctx.engine.make_output(
             ctx.pipe, f"marl_render_{id(self)}", 0, props, WindowProperties.size(width, height),
             GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
@@ -479,13 +492,34 @@ class BatchRenderer:
         if self.readback == "copy":
             image = bytes(image)
         tiles = framebuffer_tiles(image, np.uint8, self._color_channels, self.layout)[..., :3]
+        k = self.supersample
+        if k > 1:
+            tiles = self._box_filter(tiles, len(views))
         if self.channels_first:
-            tiles = tiles.permute(0, 1, 4, 2, 3)
-        copy_tiles(tiles, rgb[views.start:views.stop])
+            tiles = tiles.permute(*range(tiles.ndim - 3), -1, -3, -2)
+        if k > 1:
+            rgb[views.start:views.stop].copy_(tiles)
+        else:
+            copy_tiles(tiles, rgb[views.start:views.stop])
         for name, out, dtype in (("depth", depth, np.float32), ("segmentation", segmentation, np.int32)):
             if out is not None:
                 aux = framebuffer_tiles(self.aux_textures[name].get_ram_image(), dtype, 1, self.layout)
+                if k > 1:  # the sample nearest each output pixel's centre
+                    aux = aux[:, :, k // 2::k, k // 2::k]
                 copy_tiles(aux, out[views.start:views.stop])
+
+    def _box_filter(self, tiles: torch.Tensor, count: int) -> torch.Tensor:
+        """[rows, cols, kH, kW, 3] uint8 tiles -> [count, H, W, 3], each pixel the rounded
+        mean of its k x k samples, through one reused int32 accumulator."""
+        k = self.supersample
+        height, width = self.scene.resolution
+        samples = torch.empty((count, height * k, width * k, 3), dtype=torch.uint8)
+        copy_tiles(tiles, samples)
+        if getattr(self, "_accumulator", None) is None or self._accumulator.shape[0] < count:
+            self._accumulator = torch.empty((count, height, width, 3), dtype=torch.int32)
+        total = self._accumulator[:count]
+        torch.sum(samples.view(count, height, k, width, k, 3), dim=(2, 4), dtype=torch.int32, out=total)
+        return ((total + (k * k) // 2) // (k * k)).to(torch.uint8)
 
     # ------------------------------------------------------------------ helpers / lifecycle
     def _float_arg(self, name, value, shape):

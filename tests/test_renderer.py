@@ -295,3 +295,41 @@ def test_one_buffer_per_view_baseline_matches_the_tiled_one():
         images.append(renderer.render().rgb)
         renderer.close()
     assert torch.equal(images[0], images[1])
+
+
+@pytest.mark.parametrize("antialiasing", [{"supersample": 4}, {"multisamples": 4}])
+def test_antialiasing_blends_edges_and_keeps_flat_colours(antialiasing):
+    scene = mr.Scene(num_worlds=1, agents_per_world=2, resolution=(24, 32), effects=(), background=(0.0, 0.0, 0.0))
+    scene.add_group("box", "box", capacity=1)
+    frames = []
+    for kwargs in ({}, antialiasing):
+        with mr.BatchRenderer(scene, **kwargs) as renderer:
+            cameras_at_origin(renderer, 1, 2)
+            renderer.update("box", position=[[[0.1, 4.0, 0.05]]], active=[[True]], color=[[[1.0, 1.0, 1.0]]],
+                            rotation=mr.quat_from_yaw_pitch_roll(torch.tensor([[0.4]]), torch.tensor([[0.3]])))
+            frames.append(renderer.render().rgb[0])
+    aliased, smooth = frames
+    assert smooth.shape == aliased.shape and smooth.dtype == torch.uint8
+    levels = lambda image: set(image[..., 0].flatten().tolist())
+    assert levels(aliased) <= {0, 255}
+    assert len(levels(smooth) - {0, 255}) >= 3, "anti-aliased edges must have intermediate values"
+    assert torch.equal(smooth[:, 12, 16], aliased[:, 12, 16]), "flat interior unchanged"
+    assert (smooth[:, 0, 0] == 0).all(), "background corner unchanged"
+    differ = (smooth.int() - aliased.int()).abs().amax(-1) > 0
+    assert differ.float().mean() < 0.2, "only edge pixels may change"
+
+
+def test_supersampled_depth_and_segmentation_take_the_centre_sample():
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=16, effects=("depth", "segmentation"))
+    scene.add_group("box", "box", capacity=1)
+    with mr.BatchRenderer(scene, supersample=2) as renderer:
+        cameras_at_origin(renderer, 1, 1)
+        renderer.update("box", position=[[[0.0, 3.5, 0.0]]], active=[[True]])
+        frame = renderer.render()
+    assert frame.depth.shape == (1, 1, 16, 16) and frame.segmentation.shape == (1, 1, 16, 16)
+    assert torch.allclose(frame.depth[0, 0, 8, 8], torch.tensor(3.0), rtol=0.01)
+    assert int(frame.segmentation[0, 0, 8, 8]) == scene.segment_ids("box")[0]
+    with pytest.raises(ValueError, match="multisamples cannot be combined with the depth"):
+        mr.BatchRenderer(scene, multisamples=4)
+    with pytest.raises(ValueError, match="supersample must be an int >= 1, got 0"):
+        mr.BatchRenderer(scene, supersample=0)
