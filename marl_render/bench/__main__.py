@@ -15,6 +15,7 @@ SUBCOMMANDS = {
     "effects": ("marl_render.bench.effects", "cost of each effect and the batching ablation"),
     "scale": ("marl_render.bench.scale", "scaling with views and resolution"),
     "soak": ("marl_render.bench.soak", "long run: memory over time, non-finite values"),
+    "parallel": ("marl_render.bench.parallel", "one process against TorchRL ParallelEnv / collectors with 2 workers"),
 }
 
 
