@@ -7,6 +7,7 @@ radius and length are arguments.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass
@@ -23,6 +24,12 @@ class MeshData:
     normals: np.ndarray
     uvs: np.ndarray
     triangles: np.ndarray
+
+    @functools.cached_property
+    def flat(self) -> bool:
+        """True when every triangle's three vertices share one normal (flat shading)."""
+        corners = self.normals[self.triangles]  # [T, 3, 3]
+        return bool(np.abs(corners - corners[:, :1]).max(initial=0.0) < 1e-6)
 
     def __post_init__(self):
         n = len(self.positions)

@@ -234,7 +234,8 @@ class BatchRenderer:
             node.node().set_bounds(OmniBoundingVolume())
             node.node().set_final(True)
             textured = group.texture is not None
-            defines = shaders.defines_for(self.effects, static=static, textured=textured)
+            defines = shaders.defines_for(self.effects, static=static, textured=textured,
+                                          flat=isinstance(mesh, MeshData) and mesh.flat)
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(_panda_texture(group.texture, group.name), 1)

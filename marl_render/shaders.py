@@ -33,9 +33,14 @@ def source(name: str) -> str:
     return resources.files("marl_render.glsl").joinpath(name).read_text()
 
 
-def defines_for(effects: frozenset, *, static: bool, textured: bool) -> tuple[str, ...]:
-    """The sorted #define lines of one variant (texture only for groups that have one)."""
+def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False) -> tuple[str, ...]:
+    """The sorted #define lines of one variant (texture only for groups that have one).
+
+    Lighting runs per vertex for meshes whose faces each have one normal (flat), where
+    it is exact, and per fragment otherwise."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
+    if "lighting" in effects:
+        defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
     if "texture" in effects and textured:
         defines.add("EFFECT_TEXTURE")
     defines.add(f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}")

@@ -5,7 +5,7 @@ in vec4 v_color;
 in vec2 v_uv;
 uniform sampler2D p3d_Texture0;
 #endif
-#ifdef EFFECT_LIGHTING
+#ifdef LIGHT_PER_FRAGMENT
 in vec3 v_normal;
 uniform vec3 light_direction;  // world frame, pointing from the light
 uniform vec3 light_color;
@@ -43,7 +43,7 @@ void main() {
 #ifdef EFFECT_TEXTURE
     color *= texture(p3d_Texture0, v_uv).rgb;
 #endif
-#ifdef EFFECT_LIGHTING
+#ifdef LIGHT_PER_FRAGMENT
     float lambert = max(dot(normalize(v_normal), -light_direction), 0.0);
     color *= ambient_color + light_color * lambert;
 #endif
