@@ -90,7 +90,7 @@ def agent_mesh(radius: float = 0.15, height: float = 0.5) -> mr.MeshData:
     return mr.capsule(radius, height, segments=8, rings=2)
 
 
-def disc_mesh(segments: int = 10) -> mr.MeshData:
+def disc_mesh(segments: int = 8) -> mr.MeshData:
     """Low-poly cylinder for flat markers (landmarks, goals); scale sets radius and height."""
     return mr.cylinder(segments=segments)
 

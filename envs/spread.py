@@ -112,7 +112,7 @@ class Spread(BatchedEnv):
         scenery.add_arena(scene, (ARENA, ARENA))
         scene.add_group("agents", scenery.agent_mesh(AGENT_RADIUS, AGENT_HEIGHT), capacity=self.num_agents)
         scene.add_group("noses", "box", capacity=self.num_agents)
-        scene.add_group("landmarks", scenery.disc_mesh(10), capacity=self.num_landmarks)
+        scene.add_group("landmarks", scenery.disc_mesh(), capacity=self.num_landmarks)
         if not overview:
             scene.mount_cameras("agents", instance=range(self.num_agents),
                                 offset=(0.0, 0.0, EYE_HEIGHT - AGENT_HEIGHT / 2), pitch=CAMERA_PITCH)
