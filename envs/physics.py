@@ -497,7 +497,13 @@ def step(state: BodyState, force: Tensor, obstacles: Optional[Obstacles], cfg: P
     # where() rather than a product: inf mass or an inactive zero mass must not make NaNs.
     accel = torch.where(movable, force / state.mass[..., None], torch.zeros_like(force))
     # Fixed order: velocity-only terms, then contacts; walls last so nothing ends outside.
-    velocity_terms = [TERMS[t](state, obstacles, cfg, h) for t in ("drag", "friction") if t in cfg.terms]
+    # Velocity Verlet splits drag around the force kick (Strang splitting): applied whole
+    # after the kick it would make the scheme first order. Coulomb friction stays whole,
+    # after the kick, so that static friction still holds a body exactly.
+    split = cfg.integrator == "velocity_verlet" and "drag" in cfg.terms
+    half_drag = TERMS["drag"](state, obstacles, cfg, h / 2) if split else None
+    velocity_terms = [half_drag if split and t == "drag" else TERMS[t](state, obstacles, cfg, h)
+                      for t in ("drag", "friction") if t in cfg.terms]
     contact_terms = [TERMS[t](state, obstacles, cfg, h) for t in ("body_collisions",) if t in cfg.terms]
     boundary_terms = [TERMS[t](state, obstacles, cfg, h) for t in ("obstacles", "walls") if t in cfg.terms]
     max_travel = cfg.max_speed * h
@@ -508,7 +514,10 @@ def step(state: BodyState, force: Tensor, obstacles: Optional[Obstacles], cfg: P
     for _ in range(cfg.substeps):
         pos0, v0 = pos, vel
         # Velocity first, so drag and friction act before anything moves.
-        v1 = v0 + dv
+        v1 = v0
+        if split:
+            _, v1 = half_drag(pos0, v1)
+        v1 = v1 + dv
         for term in velocity_terms:
             _, v1 = term(pos0, v1)
         vel = clamp_norm(v1, cfg.max_speed)

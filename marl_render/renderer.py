@@ -24,7 +24,7 @@ from .culling import frustum_planes, mesh_radius, visible_pairs
 from .threads import one_thread
 from .tiling import TileLayout, copy_tiles, framebuffer_tiles, plan_layout
 from .transforms import normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_multiply, quat_rotate, view_matrix, look_at_quat
-from .validation import as_tensor, check_finite, check_range, check_shape, describe, positive_int
+from .validation import FLOAT_DTYPES, as_tensor, check_finite, check_range, check_shape, describe, positive_int
 
 # Worlds are re-centred when a camera strays this far from its world's origin, so that
 # float32 positions relative to the origin stay precise (see the static-group shader).
@@ -227,10 +227,13 @@ class BatchRenderer:
 
         self._groups: dict[str, _DrawGroup] = {}
         groups = [(g, True) for g in self.scene.static.values()] + [(g, False) for g in self.scene.groups.values()]
-        for group, static in groups:
+        for order, (group, static) in enumerate(groups):
             mesh = group.mesh
             node = NodePath(to_panda_geom(mesh)) if isinstance(mesh, MeshData) else mesh.copy_to(NodePath())
             node.reparent_to(self.root)
+            # A fixed draw order: Panda3D would otherwise sort by render state (memory
+            # addresses), and surfaces that touch exactly would tie differently per run.
+            node.set_bin("fixed", order)
             node.node().set_bounds(OmniBoundingVolume())
             node.node().set_final(True)
             textured = group.texture is not None
@@ -307,7 +310,7 @@ class BatchRenderer:
             owner = as_tensor("owner", owner, dtype_kind="int")
             self._check_device("owner", owner)
             check_shape("owner", owner, (W, C))
-            check_range("owner", owner, -1, self.scene.agents_per_world - 1)
+            check_range("owner", owner if owner.dtype.is_signed else owner.double(), -1, self.scene.agents_per_world - 1)
             staged["owner"] = owner.to(torch.int64)
         for key, value in staged.items():
             state[key].copy_(value)
@@ -525,6 +528,7 @@ class BatchRenderer:
     # ------------------------------------------------------------------ helpers / lifecycle
     def _float_arg(self, name, value, shape):
         tensor = as_tensor(name, value)
+        tensor = tensor if tensor.dtype in FLOAT_DTYPES else tensor.float()  # float8: no isfinite kernel
         self._check_device(name, tensor)
         check_shape(name, tensor, shape)
         check_finite(name, tensor)
@@ -534,6 +538,8 @@ class BatchRenderer:
     def _check_device(name, tensor):
         if tensor.device.type != "cpu":
             raise ValueError(f"{name} must be a CPU tensor (the renderer packs on the host), got device {tensor.device}")
+        if tensor.layout != torch.strided:
+            raise TypeError(f"{name} must be a dense (strided) tensor, got layout {tensor.layout}")
 
     def _check_open(self):
         if self._closed:
