@@ -39,12 +39,13 @@ from __future__ import annotations
 
 import abc
 import math
+import os
 
 import numpy as np
 import torch
 
 import marl_render as mr
-from marl_render.validation import as_tensor, describe, positive_int, resolution_hw
+from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, resolution_hw
 
 from . import scenery
 
@@ -76,6 +77,10 @@ def _device(value) -> torch.device:
         raise ValueError(f"device must name a torch device (e.g. 'cpu', 'cuda:0'), got {value!r}") from exc
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device {value!r} was asked for but torch sees no CUDA device; use device='cpu'")
+    if device.type not in ("cpu", "cuda"):
+        raise ValueError(f"device must be a CPU or CUDA device (e.g. 'cpu', 'cuda:0'), got {value!r}")
+    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
+        raise ValueError(f"device {value!r} was asked for but torch sees {torch.cuda.device_count()} CUDA device(s)")
     return device
 
 
@@ -156,7 +161,13 @@ class BatchedEnv(abc.ABC):
             raise ValueError(f"num_agents must be an int in [{low}, {high}] for {self.name}, got {num_agents}")
         self.num_agents = int(num_agents)
         self.resolution = resolution_hw(self.default_resolution if resolution is None else resolution)
+        gl_limit = mr.backend.gl_info().max_framebuffer_size
+        if max(self.resolution) > gl_limit:
+            raise ValueError(f"resolution must be at most {gl_limit} pixels per side (GL limit), got {self.resolution}")
+        self._check_memory()
         self.max_steps = positive_int("max_steps", self.default_max_steps if max_steps is None else max_steps)
+        if self.max_steps >= 2 ** 63:  # compared with the int64 step counters
+            raise ValueError(f"max_steps must be an int in [1, 2**63), got {self.max_steps}")
         self.continuous = _flag("continuous", continuous)
         self.state_obs = _flag("state_obs", state_obs)
         self.depth = _flag("depth", depth)
@@ -177,6 +188,7 @@ class BatchedEnv(abc.ABC):
         self.action_meanings: tuple | None = None  # discrete: a short name per action
         self.state_dim: int = 0
         self.physics = None  # PhysicsConfig of envs that use envs/physics.py
+        mr.backend.context()  # in a forked child: ForkedContextError now, not a torch deadlock in _setup
         self._setup()
         self._check_setup()
 
@@ -300,6 +312,8 @@ class BatchedEnv(abc.ABC):
         W, A = self.num_worlds, self.num_agents
         if not isinstance(actions, (torch.Tensor, np.ndarray, list, tuple)):
             raise TypeError(f"actions must be a torch.Tensor (or array-like), got {describe(actions)}")
+        if isinstance(actions, torch.Tensor) and (actions.layout != torch.strided or actions.device.type == "meta"):
+            raise TypeError(f"actions must be a dense tensor with data, got layout {actions.layout} on {actions.device}")
         if self.continuous:
             want = f"a float tensor of shape [{W}, {A}, {self.action_dim}] (worlds, agents, action_dim) in [-1, 1]"
             if isinstance(actions, (torch.Tensor, np.ndarray)) and not (
@@ -307,6 +321,7 @@ class BatchedEnv(abc.ABC):
                     or isinstance(actions, np.ndarray) and np.issubdtype(actions.dtype, np.floating)):
                 raise TypeError(f"actions must be {want}, got {describe(actions)}")
             tensor = as_tensor("actions", actions, dtype_kind="float")
+            tensor = tensor if tensor.dtype in FLOAT_DTYPES else tensor.to(torch.float32)  # float8: no isfinite
             if tuple(tensor.shape) != (W, A, self.action_dim):
                 raise ValueError(f"actions must be {want}, got shape {list(tensor.shape)}")
             if not bool(torch.isfinite(tensor).all()):
@@ -322,8 +337,9 @@ class BatchedEnv(abc.ABC):
             raise TypeError(f"actions must be {want}, got {describe(actions)}") from exc
         if tuple(tensor.shape) != (W, A):
             raise ValueError(f"actions must be {want}, got shape {list(tensor.shape)}")
-        if tensor.numel() and (bool((tensor < 0).any()) or bool((tensor >= self.num_actions).any())):
-            raise ValueError(f"actions must be {want}, got values in [{tensor.min().item()}, {tensor.max().item()}]")
+        checked = tensor.to(torch.float64) if tensor.dtype in (torch.uint16, torch.uint32, torch.uint64) else tensor
+        if checked.numel() and (bool((checked < 0).any()) or bool((checked >= self.num_actions).any())):
+            raise ValueError(f"actions must be {want}, got values in [{checked.min().item()}, {checked.max().item()}]")
         return tensor.to(device=self.device, dtype=torch.int64)
 
     def render_overview(self, resolution=None) -> torch.Tensor:
@@ -393,6 +409,18 @@ class BatchedEnv(abc.ABC):
             raise RuntimeError(f"{type(self).__name__}._setup must set action_dim >= 1 for continuous actions")
         if not self.continuous and not (isinstance(self.num_actions, int) and self.num_actions >= 1):
             raise RuntimeError(f"{type(self).__name__}._setup must set num_actions >= 1 for discrete actions")
+
+    def _check_memory(self) -> None:
+        """Refuse sizes whose pixel observation alone exceeds this machine's memory, before
+        anything is allocated (torch would fail late, or the OOM killer would strike)."""
+        height, width = self.resolution
+        needed = self.num_worlds * self.num_agents * height * width * 3
+        available = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        if needed > available:
+            raise ValueError(
+                f"num_worlds x num_agents x resolution needs {needed / 2**30:.1f} GiB for one pixel observation "
+                f"({self.num_worlds} x {self.num_agents} x {height}x{width}x3 bytes), more than this machine's "
+                f"{available / 2**30:.1f} GiB; lower num_worlds, num_agents or resolution")
 
     def _check_open(self):
         if self._closed:

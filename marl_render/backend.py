@@ -24,6 +24,8 @@ notify-level-display error
 notify-level-glgsg error
 notify-level-egldisplay error
 notify-level-gobj error
+# Without ShowBase nobody garbage-collects render states: keep them reference-counted.
+garbage-collect-states false
 """
 
 INSTALL_HINT = (

@@ -67,6 +67,7 @@ class _DrawGroup:
     pairs: object  # int32 buffer texture: visible view * count + instance
     radius: float  # bounding sphere of the mesh at unit scale
     pass_ranges: list | None = None  # [(first pair, pair count)] per pass
+    pair_offset: object = None  # PTA_int shader input, updated in place per pass
 
 
 class BatchRenderer:
@@ -213,7 +214,8 @@ class BatchRenderer:
         self.root.set_shader_input("views", self.views_texture)
         self.root.set_shader_input("agents", _int(self.scene.agents_per_world))
         self.root.set_shader_input("grid", LVecBase2i(self.layout.columns, self.layout.rows))
-        self.root.set_shader_input("view_offset", _int(0))
+        self._view_offset = _int(0)  # updated in place per pass (a new PTA would make a new render state)
+        self.root.set_shader_input("view_offset", self._view_offset)
         lighting, fog = self.scene.lighting, self.scene.fog
         direction = np.asarray(lighting.direction, dtype=float)
         self.root.set_shader_input("light_direction", _vec3(direction / np.linalg.norm(direction)))
@@ -252,6 +254,8 @@ class BatchRenderer:
             node.set_shader_input("pairs", draw.pairs)
             node.set_shader_input("capacity", _int(count))
             node.set_shader_input("segment_base", _int(group.segment_base))
+            draw.pair_offset = _int(0)
+            node.set_shader_input("pair_offset", draw.pair_offset)
             self._groups[group.name] = draw
             if static:
                 self._pack_static(group, draw)
@@ -456,14 +460,14 @@ class BatchRenderer:
         engine = self._context.engine
         for index in range(self.layout.num_passes):
             views = self.layout.pass_views(index)
-            self.root.set_shader_input("view_offset", _int(views.start))
+            self._view_offset[0] = views.start
             for draw in self._groups.values():
                 first, count = draw.pass_ranges[index]
                 if count == 0:  # Panda3D would draw an instance count of 0 once
                     draw.node.hide()
                     continue
                 draw.node.show()
-                draw.node.set_shader_input("pair_offset", _int(first))
+                draw.pair_offset[0] = first
                 draw.node.set_instance_count(count)
             started = time.perf_counter()
             self.buffer.set_active(True)

@@ -34,7 +34,7 @@ def as_tensor(name: str, value, *, dtype_kind: str = "float", device=None) -> to
     elif isinstance(value, (np.ndarray, list, tuple, int, float, bool, np.generic)):
         try:
             tensor = torch.as_tensor(np.asarray(value))
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, RuntimeError) as exc:  # RuntimeError: tensors that require grad
             raise TypeError(f"{name} must be array-like of numbers, got {describe(value)}") from exc
     else:
         raise TypeError(f"{name} must be a torch.Tensor or array-like, got {type(value).__name__}")

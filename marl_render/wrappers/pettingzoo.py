@@ -340,11 +340,20 @@ def _per_agent(value, index):
     return _python(value[index])
 
 
+def _tensor_to_numpy(agent, action: torch.Tensor, want: str) -> np.ndarray:
+    """A tensor action as numpy, or ActionTypeError naming the agent (meta, sparse, bfloat16...)."""
+    if action.device.type == "meta" or action.layout != torch.strided or action.is_complex():
+        raise ActionTypeError(f"actions[{agent!r}] must be {want}, got {describe(action)}")
+    if action.dtype not in (torch.float16, torch.float32, torch.float64) and action.is_floating_point():
+        action = action.float()  # bfloat16 / float8 have no numpy twin
+    return action.detach().cpu().numpy()
+
+
 def _discrete_action(agent, action, n: int) -> int:
     want = f"an int in [0, {n}) (Discrete({n}))"
     value = action
     if isinstance(value, torch.Tensor):
-        value = value.detach().cpu().numpy()
+        value = _tensor_to_numpy(agent, value, want)
     if isinstance(value, np.ndarray) and value.shape in ((), (1,)):
         value = value.reshape(())[()]
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
@@ -357,7 +366,7 @@ def _discrete_action(agent, action, n: int) -> int:
 def _continuous_action(agent, action, d: int) -> np.ndarray:
     want = f"a float array of shape ({d},) in [-1, 1] (Box(-1, 1, ({d},), float32))"
     if isinstance(action, torch.Tensor):
-        array = action.detach().cpu().numpy()
+        array = _tensor_to_numpy(agent, action, want)
     elif isinstance(action, (np.ndarray, list, tuple, float, int, np.number)) and \
             not isinstance(action, (bool, np.bool_)):
         try:

@@ -218,10 +218,12 @@ class MarlRenderTorchRLEnv(EnvBase):
             actions = torch.zeros(W, A, dtype=torch.int64, device=self.device)
         for group, idx in self._group_index.items():
             action = tensordict.get((group, "action"))
+            if action is None:
+                raise KeyError(f"the tensordict has no ({group!r}, 'action') entry; every group needs its actions")
             if self._identity[group]:
                 actions = action  # the core checks dtype, shape, range and NaN
                 break
-            actions[:, idx] = self._check_group_action(group, action)
+            actions[:, idx] = self._check_group_action(group, action).to(actions.dtype)
         obs, reward, terminated, truncated, _info = core.step(actions)
         return self._output(obs, reward, terminated, truncated)
 
