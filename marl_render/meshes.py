@@ -99,8 +99,12 @@ def _lathe(name, profile, segments):
         for j in range(rings - 1):
             a = i * rings + j
             b = (i + 1) * rings + j
-            triangles.append((a, b, b + 1))
-            triangles.append((a, b + 1, a + 1))
+            # Where the profile touches the axis (r = 0) one of the two triangles of a
+            # quad has zero area: leave it out, it would only cost vertex work.
+            if profile[j][0] > 1e-9:
+                triangles.append((a, b, b + 1))
+            if profile[j + 1][0] > 1e-9:
+                triangles.append((a, b + 1, a + 1))
     mesh_normals = np.asarray(normals, dtype=np.float64)
     lengths = np.linalg.norm(mesh_normals, axis=1, keepdims=True)
     mesh_normals = mesh_normals / np.where(lengths > 0, lengths, 1)

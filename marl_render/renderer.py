@@ -21,7 +21,7 @@ from . import backend, shaders
 from .meshes import MeshData, to_panda_geom
 from .scene import InstanceGroup, Scene, StaticGroup
 from .culling import frustum_planes, mesh_radius, visible_pairs
-from .threads import one_thread
+from .threads import caller_threads, one_thread
 from .tiling import TileLayout, copy_tiles, framebuffer_tiles, plan_layout
 from .transforms import normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_multiply, quat_rotate, view_matrix, look_at_quat
 from .validation import FLOAT_DTYPES, as_tensor, check_finite, check_range, check_shape, describe, positive_int
@@ -505,10 +505,11 @@ class BatchRenderer:
             tiles = self._box_filter(tiles, len(views))
         if self.channels_first:
             tiles = tiles.permute(*range(tiles.ndim - 3), -1, -3, -2)
-        if k > 1:
-            rgb[views.start:views.stop].copy_(tiles)
-        else:
-            copy_tiles(tiles, rgb[views.start:views.stop])
+        with caller_threads():  # one large copy while the rasteriser's threads are idle
+            if k > 1:
+                rgb[views.start:views.stop].copy_(tiles)
+            else:
+                copy_tiles(tiles, rgb[views.start:views.stop])
         for name, out, dtype in (("depth", depth, np.float32), ("segmentation", segmentation, np.int32)):
             if out is not None:
                 aux = framebuffer_tiles(self.aux_textures[name].get_ram_image(), dtype, 1, self.layout)

@@ -3,28 +3,60 @@
 A step is hundreds of torch ops on tensors of a few thousand elements. With torch's
 default intra-op pool those ops fork onto every core, where they meet llvmpipe's
 rasteriser threads and any other process: on 2 cores that made them 5-40x slower than
-on one thread. Inside `single_threaded()` torch uses one thread; the caller's setting is
-restored afterwards, so the user's own training code keeps its threads.
+on one thread. Inside `limited_threads()` torch uses the given number of threads; the
+caller's setting is restored afterwards, so the user's own training code keeps its
+threads, and `caller_threads()` lends them back for one bulk operation (the tile copy,
+which runs while the rasteriser is idle).
 """
 from __future__ import annotations
 
 import functools
+import threading
 from contextlib import contextmanager
 
 import torch
 
+_state = threading.local()  # depth of nested limited_threads() and the outermost caller's count
+
 
 @contextmanager
-def single_threaded():
-    previous = torch.get_num_threads()
-    if previous == 1:
+def limited_threads(n: int | None = 1):
+    """torch uses n intra-op threads inside the block (None: leave the setting alone)."""
+    if n is None:
         yield
         return
-    torch.set_num_threads(1)
+    previous = torch.get_num_threads()
+    depth = getattr(_state, "depth", 0)
+    if depth == 0:
+        _state.caller = previous
+    _state.depth = depth + 1
+    if previous != n:
+        torch.set_num_threads(n)
     try:
         yield
     finally:
-        torch.set_num_threads(previous)
+        _state.depth = depth
+        if previous != n:
+            torch.set_num_threads(previous)
+
+
+def single_threaded():
+    return limited_threads(1)
+
+
+@contextmanager
+def caller_threads():
+    """Inside limited_threads(): the outermost caller's thread count, for one bulk op."""
+    wanted = getattr(_state, "caller", None) if getattr(_state, "depth", 0) else None
+    current = torch.get_num_threads()
+    if wanted is None or wanted == current:
+        yield
+        return
+    torch.set_num_threads(wanted)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(current)
 
 
 def one_thread(method):
