@@ -20,7 +20,7 @@ Every agent sees the arena through its own camera mounted on its body.
   the last one if none is).
 * Actions, egocentric, as in ``spread``: discrete 5: 0 noop, 1 forward, 2 turn left,
   3 turn right, 4 backward; continuous 2: (thrust in [-1, 1] along the heading, turn
-  rate in [-1, 1]). Full thrust is ``THRUST`` N; full turn rate is ``TURN_RATE`` rad/s.
+  rate in [-1, 1]). Movement as in envs/egomotion.py (shared by the arena envs).
 * Reward, per agent: ``item_reward`` (default 1) per item it collected in the step.
 * action_mask: every action is always valid (all True).
 * Episode: never terminates; truncated after ``max_steps`` = 200.
@@ -41,7 +41,7 @@ import marl_render as mr
 
 from marl_render.validation import positive_float, positive_int
 
-from . import physics, scenery
+from . import egomotion, physics, scenery
 from .core import BatchedEnv
 
 ARENA = 1.5  # half extent (m)
@@ -57,28 +57,8 @@ ITEM_COLOR = (0.95, 0.80, 0.15)
 REACH = AGENT_RADIUS + ITEM_RADIUS  # an agent touches an item while their centres are closer
 RESPAWN_CLEARANCE = REACH + 0.1  # items respawn at least this far from every agent
 RESPAWN_CANDIDATES = 8
-THRUST = 5.0  # N at full forward action
-TURN_RATE = 3.0  # rad/s at full turn action
 
 # discrete action -> (thrust, turn), the same set as spread
-DISCRETE_ACTIONS = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.0, -1.0), (-1.0, 0.0))
-ACTION_MEANINGS = ("noop", "forward", "turn_left", "turn_right", "backward")
-
-
-def cell_spawn(generator: torch.Generator, num_worlds: int, margin: torch.Tensor, grid: int,
-               half_extent: float) -> torch.Tensor:
-    """Random positions [W, C, 2] (CPU) of C = len(margin) objects in distinct cells of a grid x grid
-    tiling of |x|, |y| <= half_extent, in a random order of cells per world (as in tag.py).
-
-    Object c stays at least margin[c] inside its cell's borders, so circles of radius
-    <= margin never overlap each other or the walls.
-    """
-    C = margin.shape[0]
-    cell = 2 * half_extent / grid
-    order = torch.rand(num_worlds, grid * grid, generator=generator).argsort(-1)[:, :C]
-    centre = (torch.stack((order % grid, order // grid), -1) + 0.5) * cell - half_extent
-    reach = (cell / 2 - margin).clamp_min(0)[:, None]  # [C, 1]
-    return centre + (torch.rand(num_worlds, C, 2, generator=generator) * 2 - 1) * reach
 
 
 class Forage(BatchedEnv):
@@ -111,17 +91,11 @@ class Forage(BatchedEnv):
         I = self.num_items = min(2 * N, 32) if self.num_items is None else self.num_items  # noqa: E741
         self.agent_names = [f"agent_{i}" for i in range(N)]
         self.groups = {"agents": list(self.agent_names)}
-        if self.continuous:
-            self.action_dim = 2
-        else:
-            self.num_actions = len(DISCRETE_ACTIONS)
-            self.action_meanings = ACTION_MEANINGS
+        egomotion.declare_actions(self)
         self.state_dim = 6 + 3 * I + 2 * (N - 1)
-        self.physics = physics.PhysicsConfig(
-            dt=0.1, substeps=2, terms=self.physics_terms, restitution=0.5, drag=-math.log(0.75) / 0.1,
-            arena_half_extent=(ARENA, ARENA), max_speed=2.0, min_body_radius=AGENT_RADIUS)
+        self.physics = egomotion.arena_physics(self.physics_terms, (ARENA, ARENA), max_speed=2.0,
+                                               min_body_radius=AGENT_RADIUS)
         dev = self.device
-        self.action_table = torch.tensor(DISCRETE_ACTIONS, device=dev)
         self.bodies = physics.BodyState.make(torch.zeros(W, N, 2, device=dev), AGENT_RADIUS)
         self.yaw = torch.zeros(W, N, device=dev)
         self.items = torch.zeros(W, I, 2, device=dev)
@@ -160,7 +134,7 @@ class Forage(BatchedEnv):
 
     def _reset_state(self, mask):
         W, N, g = self.num_worlds, self.num_agents, self.generator
-        pos = cell_spawn(g, W, torch.full((N,), AGENT_RADIUS + 0.05), SPAWN_GRID, ARENA).to(self.device)
+        pos = scenery.cell_spawn(g, W, torch.full((N,), AGENT_RADIUS + 0.05), SPAWN_GRID, ARENA).to(self.device)
         yaw = ((torch.rand(W, N, generator=g) * 2 - 1) * math.pi).to(self.device)
         items = self._item_spawn(pos)
         m1, m2, m3 = mask, mask[:, None], mask[:, None, None]
@@ -173,14 +147,7 @@ class Forage(BatchedEnv):
         self.team_score = torch.where(m1, torch.zeros_like(self.team_score), self.team_score)
 
     def _step_state(self, actions, alive):
-        if self.continuous:
-            thrust, turn = actions.unbind(-1)
-        else:
-            thrust, turn = self.action_table[actions].unbind(-1)
-        thrust = torch.where(alive, thrust, torch.zeros_like(thrust))
-        turn = torch.where(alive, turn, torch.zeros_like(turn))
-        yaw = scenery.wrap_angle(self.yaw + turn * (TURN_RATE * self.physics.dt))
-        force = (THRUST * thrust)[..., None] * scenery.heading(yaw)
+        yaw, force = egomotion.drive(self, actions, alive)
         bodies = physics.step(self.bodies._replace(active=alive), force, None, self.physics)
 
         # Items away count down; those reaching 0 come back somewhere clear of the agents.

@@ -18,7 +18,7 @@ its own camera mounted on its body.
   (MPE-like damping 0.25 per 0.1 s step for agents and ball alike), restitution 0.5.
 * Actions, egocentric, as in ``spread``: discrete 5: 0 noop, 1 forward, 2 turn left,
   3 turn right, 4 backward; continuous 2: (thrust in [-1, 1] along the heading, turn
-  rate in [-1, 1]). Full thrust is ``THRUST`` N; full turn rate is ``TURN_RATE`` rad/s.
+  rate in [-1, 1]). Movement as in envs/egomotion.py (shared by the arena envs).
   There is no kick: agents push the ball with their bodies.
 * Goal: scored when, after the physics step, the ball's centre is inside a goal area.
   Every agent of the scoring team gets ``+goal_reward`` (default 1), every agent of the
@@ -50,7 +50,7 @@ import marl_render as mr
 
 from marl_render.validation import positive_float
 
-from . import physics, scenery
+from . import egomotion, physics, scenery
 from .core import BatchedEnv
 
 ARENA = (1.5, 2.0)  # half extents (m)
@@ -67,16 +67,12 @@ CAMERA_PITCH = -0.2
 BALL_RADIUS = 0.15
 BALL_MASS = 0.5
 BALL_COLOR = (0.95, 0.95, 0.92)
-THRUST = 5.0  # N at full forward action
-TURN_RATE = 3.0  # rad/s at full turn action
 WALL_THICKNESS = 0.1  # scenery.add_arena's default
 POST_SIZE = 0.08
 POST_HEIGHT = 0.6
 TEAM_COLORS = {"team_a": scenery.TEAM_COLORS["red"], "team_b": scenery.TEAM_COLORS["blue"]}
 
 # discrete action -> (thrust, turn), the same set as spread
-DISCRETE_ACTIONS = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.0, -1.0), (-1.0, 0.0))
-ACTION_MEANINGS = ("noop", "forward", "turn_left", "turn_right", "backward")
 
 
 def add_goals(scene: mr.Scene) -> None:
@@ -129,17 +125,11 @@ class Push(BatchedEnv):
         T = N // 2
         self.agent_names = [f"team_a_{i}" for i in range(T)] + [f"team_b_{i}" for i in range(T)]
         self.groups = {"team_a": self.agent_names[:T], "team_b": self.agent_names[T:]}
-        if self.continuous:
-            self.action_dim = 2
-        else:
-            self.num_actions = len(DISCRETE_ACTIONS)
-            self.action_meanings = ACTION_MEANINGS
+        egomotion.declare_actions(self)
         self.state_dim = 10 + 2 * (N - 1)
-        self.physics = physics.PhysicsConfig(
-            dt=0.1, substeps=3, terms=self.physics_terms, restitution=0.5, drag=-math.log(0.75) / 0.1,
-            arena_half_extent=ARENA, max_speed=3.0, min_body_radius=min(AGENT_RADIUS, BALL_RADIUS))
+        self.physics = egomotion.arena_physics(self.physics_terms, ARENA, max_speed=3.0, substeps=3,
+                                               min_body_radius=min(AGENT_RADIUS, BALL_RADIUS))
         dev = self.device
-        self.action_table = torch.tensor(DISCRETE_ACTIONS, device=dev)
         # Bodies 0 .. N-1 are the agents, body N is the ball.
         radius = torch.tensor([AGENT_RADIUS] * N + [BALL_RADIUS], device=dev)
         mass = torch.tensor([1.0] * N + [BALL_MASS], device=dev)
@@ -196,14 +186,7 @@ class Push(BatchedEnv):
         self.yaw = torch.where(m2, scenery.wrap_angle(yaw), self.yaw)
 
     def _step_state(self, actions, alive):
-        if self.continuous:
-            thrust, turn = actions.unbind(-1)
-        else:
-            thrust, turn = self.action_table[actions].unbind(-1)
-        thrust = torch.where(alive, thrust, torch.zeros_like(thrust))
-        turn = torch.where(alive, turn, torch.zeros_like(turn))
-        yaw = scenery.wrap_angle(self.yaw + turn * (TURN_RATE * self.physics.dt))
-        force = (THRUST * thrust)[..., None] * scenery.heading(yaw)
+        yaw, force = egomotion.drive(self, actions, alive)
         force = torch.cat((force, torch.zeros_like(force[:, :1])), 1)  # no force on the ball
         active = torch.cat((alive, torch.ones_like(alive[:, :1])), 1)
         bodies = physics.step(self.bodies._replace(active=active), force, None, self.physics)

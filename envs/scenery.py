@@ -132,3 +132,20 @@ def top_down_camera(half_extent=(1.5, 1.5), fov_y: float = math.radians(60.0), t
     eye = torch.tensor([0.0, -tilt * height, height], dtype=torch.float64)
     target = torch.zeros(3, dtype=torch.float64)
     return eye, target
+
+
+def cell_spawn(generator: torch.Generator, num_worlds: int, margin: torch.Tensor, grid: int,
+               half_extent: float) -> torch.Tensor:
+    """Random positions [W, C, 2] (CPU) of C = len(margin) objects in distinct cells of a grid x grid
+    tiling of |x|, |y| <= half_extent, in a random order of cells per world.
+
+    Object c stays at least margin[c] inside its cell's borders, so objects whose footprint
+    fits in a circle of radius margin[c] never overlap each other or the walls, and two
+    circles of radius r start at least 2 (margin - r) apart.
+    """
+    C = margin.shape[0]
+    cell = 2 * half_extent / grid
+    order = torch.rand(num_worlds, grid * grid, generator=generator).argsort(-1)[:, :C]
+    centre = (torch.stack((order % grid, order // grid), -1) + 0.5) * cell - half_extent
+    reach = (cell / 2 - margin).clamp_min(0)[:, None]  # [C, 1]
+    return centre + (torch.rand(num_worlds, C, 2, generator=generator) * 2 - 1) * reach

@@ -12,7 +12,7 @@ arena through its own camera mounted on its body, so it has to turn to look arou
 * Actions, egocentric (the body's yaw is where its camera looks):
   discrete 5: 0 noop, 1 forward, 2 turn left, 3 turn right, 4 backward;
   continuous 2: (thrust in [-1, 1] along the heading, turn rate in [-1, 1]).
-  Full thrust is ``THRUST`` N; full turn rate is ``TURN_RATE`` rad/s.
+  Movement as in envs/egomotion.py (shared by the arena envs).
 * Reward, shared by all agents: -(sum over landmarks of the distance to the closest
   agent) - ``collision_penalty`` x (number of agent pairs touching).
 * Episode: never terminates; truncated after ``max_steps`` = 100.
@@ -30,7 +30,7 @@ import marl_render as mr
 
 from marl_render.validation import positive_float, positive_int
 
-from . import physics, scenery
+from . import egomotion, physics, scenery
 from .core import BatchedEnv
 
 ARENA = 1.5  # half extent (m)
@@ -41,13 +41,8 @@ EYE_HEIGHT = 0.4
 CAMERA_PITCH = -0.2
 LANDMARK_RADIUS = 0.15
 LANDMARK_HEIGHT = 0.04
-THRUST = 5.0  # N at full forward action
-TURN_RATE = 3.0  # rad/s at full turn action
 CONTACT_TOLERANCE = 0.02  # a pair "collides" while its gap is below this (m)
 
-# discrete action -> (thrust, turn)
-DISCRETE_ACTIONS = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.0, -1.0), (-1.0, 0.0))
-ACTION_MEANINGS = ("noop", "forward", "turn_left", "turn_right", "backward")
 
 
 class Spread(BatchedEnv):
@@ -79,17 +74,11 @@ class Spread(BatchedEnv):
         L = self.num_landmarks = N if self.num_landmarks is None else self.num_landmarks
         self.agent_names = [f"agent_{i}" for i in range(N)]
         self.groups = {"agents": list(self.agent_names)}
-        if self.continuous:
-            self.action_dim = 2
-        else:
-            self.num_actions = len(DISCRETE_ACTIONS)
-            self.action_meanings = ACTION_MEANINGS
+        egomotion.declare_actions(self)
         self.state_dim = 6 + 2 * L + 2 * (N - 1)
-        self.physics = physics.PhysicsConfig(
-            dt=0.1, substeps=2, terms=self.physics_terms, restitution=0.5, drag=-math.log(0.75) / 0.1,
-            arena_half_extent=(ARENA, ARENA), max_speed=2.0, min_body_radius=AGENT_RADIUS)
+        self.physics = egomotion.arena_physics(self.physics_terms, (ARENA, ARENA), max_speed=2.0,
+                                               min_body_radius=AGENT_RADIUS)
         dev = self.device
-        self.action_table = torch.tensor(DISCRETE_ACTIONS, device=dev)
         self.bodies = physics.BodyState.make(torch.zeros(W, N, 2, device=dev), AGENT_RADIUS)
         self.yaw = torch.zeros(W, N, device=dev)
         self.landmarks = torch.zeros(W, L, 2, device=dev)
@@ -131,14 +120,7 @@ class Spread(BatchedEnv):
         self.landmarks = torch.where(m3, landmarks, self.landmarks)
 
     def _step_state(self, actions, alive):
-        if self.continuous:
-            thrust, turn = actions.unbind(-1)
-        else:
-            thrust, turn = self.action_table[actions].unbind(-1)
-        thrust = torch.where(alive, thrust, torch.zeros_like(thrust))
-        turn = torch.where(alive, turn, torch.zeros_like(turn))
-        yaw = scenery.wrap_angle(self.yaw + turn * (TURN_RATE * self.physics.dt))
-        force = (THRUST * thrust)[..., None] * scenery.heading(yaw)
+        yaw, force = egomotion.drive(self, actions, alive)
         bodies = physics.step(self.bodies._replace(active=alive), force, None, self.physics)
         reward, collisions, coverage = self.reward(bodies.pos)
         self.bodies, self.yaw = bodies, yaw

@@ -26,7 +26,7 @@ Every agent sees the arena through its own camera mounted on its body.
   "nose" box shows which way a body faces.
 * Actions, egocentric, as in ``spread``: discrete 5: 0 noop, 1 forward, 2 turn left,
   3 turn right, 4 backward; continuous 2: (thrust in [-1, 1] along the heading, turn
-  rate in [-1, 1]). Full turn rate is ``TURN_RATE`` rad/s.
+  rate in [-1, 1]). Movement as in envs/egomotion.py, with the thrust per team below.
 * Catching: a live prey is caught when a live predator's body comes within
   ``CONTACT_TOLERANCE`` of touching it (after the physics step). A caught prey leaves
   the episode: it is terminated (``alive`` False), its body stops colliding and its
@@ -57,7 +57,7 @@ import marl_render as mr
 
 from marl_render.validation import positive_float, positive_int
 
-from . import physics, scenery
+from . import egomotion, physics, scenery
 from .core import BatchedEnv
 
 ARENA = 1.5  # half extent (m)
@@ -71,30 +71,10 @@ EYE_HEIGHT = 0.4
 CAMERA_PITCH = -0.2
 THRUST = {"predator": 3.0, "prey": 4.0}  # N at full forward action
 MAX_SPEED = {"predator": 1.0, "prey": 1.3}  # m/s
-TURN_RATE = 3.0  # rad/s at full turn action
 CONTACT_TOLERANCE = 0.02  # a predator "touches" a prey while their gap is below this (m)
 SPAWN_CLEARANCE = 0.05  # spawned bodies keep this much space to their spawn cell's borders
 
 # discrete action -> (thrust, turn), the same set as spread
-DISCRETE_ACTIONS = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.0, -1.0), (-1.0, 0.0))
-ACTION_MEANINGS = ("noop", "forward", "turn_left", "turn_right", "backward")
-
-
-def cell_spawn(generator: torch.Generator, num_worlds: int, margin: torch.Tensor, grid: int,
-               half_extent: float) -> torch.Tensor:
-    """Random positions [W, C, 2] (CPU) of C = len(margin) objects in distinct cells of a grid x grid
-    tiling of |x|, |y| <= half_extent, in a random order of cells per world.
-
-    Object c stays at least margin[c] inside its cell's borders, so objects whose footprint
-    fits in a circle of radius margin[c] never overlap each other or the walls, and two
-    circles of radius r start at least 2 (margin - r) apart.
-    """
-    C = margin.shape[0]
-    cell = 2 * half_extent / grid
-    order = torch.rand(num_worlds, grid * grid, generator=generator).argsort(-1)[:, :C]
-    centre = (torch.stack((order % grid, order // grid), -1) + 0.5) * cell - half_extent
-    reach = (cell / 2 - margin).clamp_min(0)[:, None]  # [C, 1]
-    return centre + (torch.rand(num_worlds, C, 2, generator=generator) * 2 - 1) * reach
 
 
 class Tag(BatchedEnv):
@@ -148,18 +128,12 @@ class Tag(BatchedEnv):
         P, Q = self.num_predators, self.num_prey = self._team_sizes(N)
         self.agent_names = [f"predator_{i}" for i in range(P)] + [f"prey_{j}" for j in range(Q)]
         self.groups = {"predator": self.agent_names[:P], "prey": self.agent_names[P:]}
-        if self.continuous:
-            self.action_dim = 2
-        else:
-            self.num_actions = len(DISCRETE_ACTIONS)
-            self.action_meanings = ACTION_MEANINGS
+        egomotion.declare_actions(self)
         self.state_dim = 6 + 3 * (N - 1) + 2 * K
         self.physics_terms = frozenset({"walls", "body_collisions", "drag"} | ({"obstacles"} if K else set()))
-        self.physics = physics.PhysicsConfig(
-            dt=0.1, substeps=2, terms=self.physics_terms, restitution=0.5, drag=-math.log(0.75) / 0.1,
-            arena_half_extent=(ARENA, ARENA), max_speed=max(MAX_SPEED.values()), min_body_radius=PREY_RADIUS)
+        self.physics = egomotion.arena_physics(self.physics_terms, (ARENA, ARENA), max_speed=max(MAX_SPEED.values()),
+                                               min_body_radius=PREY_RADIUS)
         dev = self.device
-        self.action_table = torch.tensor(DISCRETE_ACTIONS, device=dev)
         self.is_predator = torch.arange(N, device=dev) < P  # [N]
         self.is_prey = ~self.is_predator
         team = lambda values: torch.where(self.is_predator, values["predator"], values["prey"])  # noqa: E731
@@ -207,7 +181,7 @@ class Tag(BatchedEnv):
         W, N, K, g = self.num_worlds, self.num_agents, self.num_obstacles, self.generator
         # Obstacles and agents each get their own random cell of the grid (see cell_spawn): nothing
         # overlaps at the start and no predator starts within a catch of a prey.
-        pos = cell_spawn(g, W, self._spawn_margin, self._spawn_grid, ARENA).to(self.device)
+        pos = scenery.cell_spawn(g, W, self._spawn_margin, self._spawn_grid, ARENA).to(self.device)
         angle = ((torch.rand(W, K, generator=g) * 2 - 1) * (math.pi / 4)).to(self.device)
         yaw = ((torch.rand(W, N, generator=g) * 2 - 1) * math.pi).to(self.device)
         center, pos = pos[:, :K], pos[:, K:]
@@ -220,14 +194,7 @@ class Tag(BatchedEnv):
         self.obstacles = o._replace(center=torch.where(m3, center, o.center), angle=torch.where(m2, angle, o.angle))
 
     def _step_state(self, actions, alive):
-        if self.continuous:
-            thrust, turn = actions.unbind(-1)
-        else:
-            thrust, turn = self.action_table[actions].unbind(-1)
-        thrust = torch.where(alive, thrust, torch.zeros_like(thrust))
-        turn = torch.where(alive, turn, torch.zeros_like(turn))
-        yaw = scenery.wrap_angle(self.yaw + turn * (TURN_RATE * self.physics.dt))
-        force = (self.thrust * thrust)[..., None] * scenery.heading(yaw)
+        yaw, force = egomotion.drive(self, actions, alive, thrust=self.thrust)
         bodies = physics.step(self.bodies._replace(active=alive), force, self.obstacles, self.physics)
         bodies = bodies._replace(vel=physics.clamp_norm(bodies.vel, self.max_speed[:, None]))
 

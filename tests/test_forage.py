@@ -7,7 +7,7 @@ import torch
 
 from marl_render.envs import forage, list_envs, make_env
 from marl_render.envs import physics as P
-from marl_render.envs import spread
+from marl_render.envs import egomotion
 
 W, RES = 3, 32
 
@@ -73,11 +73,9 @@ def test_shapes_and_dtypes(continuous):
     env.close()
 
 
-def test_action_set_matches_spread():
-    assert forage.DISCRETE_ACTIONS == spread.DISCRETE_ACTIONS
-    assert forage.ACTION_MEANINGS == spread.ACTION_MEANINGS
+def test_uses_the_shared_egocentric_action_set():
     env = make(num_worlds=1, resolution=8)
-    assert env.action_meanings == spread.ACTION_MEANINGS and env.num_actions == 5
+    assert env.action_meanings == egomotion.ACTION_MEANINGS and env.num_actions == 5
     env.close()
     env = make(num_worlds=1, resolution=8, continuous=True)
     assert env.action_meanings is None and env.action_dim == 2

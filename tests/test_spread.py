@@ -6,7 +6,8 @@ import math
 import torch
 
 from marl_render.envs import make_env, scenery
-from marl_render.envs.spread import AGENT_RADIUS, ARENA, ACTION_MEANINGS, Spread
+from marl_render.envs.egomotion import ACTION_MEANINGS
+from marl_render.envs.spread import AGENT_RADIUS, ARENA, Spread
 
 NOOP, FORWARD, LEFT, RIGHT, BACK = range(5)
 
