@@ -412,10 +412,9 @@ def rollout_setup(W, B, dtype=torch.float32, **cfg_kw):
 
 
 def test_long_rollout_random_forces_stays_finite_bounded_inside():
-    # 2e4 steps rather than 1e5: eager torch spends ~2-3 us per small kernel and a
-    # step with every term is ~150 of them per substep (~0.8 ms/step here), so 1e5
-    # steps would take ~80 s on its own.
-    W, B, steps = 16, 6, 20_000
+    # 1e5 steps with every term: the longest test of the suite (eager torch runs ~150
+    # small kernels per substep), kept because long horizons are where drift shows.
+    W, B, steps = 16, 6, 100_000
     cfg, obs = rollout_setup(W, B, solver_iterations=1)
     g = torch.Generator().manual_seed(0)
     # Start in the arena's corners, away from the boxes.
@@ -430,7 +429,7 @@ def test_long_rollout_random_forces_stays_finite_bounded_inside():
     with torch.inference_mode():
         for i in range(steps):
             s = P.step(s, forces[i % 1000], obs, cfg)
-            if i % 1000 == 999:
+            if i % 5000 == 4999:
                 assert torch.isfinite(s.pos).all() and torch.isfinite(s.vel).all(), i
                 assert (s.pos.abs() <= bound).all(), i
                 ke = P.kinetic_energy(s)
