@@ -27,12 +27,7 @@ W, RES, SEEDS = 2, 32, (11, 12)
 AGENTS = 3  # spread's default
 
 
-@pytest.fixture(autouse=True, scope="module")
-def single_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors on a shared 2-core machine
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 @functools.lru_cache(maxsize=None)

@@ -14,43 +14,19 @@ from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, ren
 from pettingzoo.utils.conversions import aec_to_parallel, parallel_to_aec
 
 from marl_render.envs import list_envs
-from marl_render.envs.spread import Spread
+from departing_env import Departing
 from marl_render.wrappers.pettingzoo import ActionTypeError, MarlRenderParallelEnv, make_parallel_env
 
 RES = 32
 ENVS = list_envs()
 
 
-@pytest.fixture(autouse=True, scope="module")
-def single_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors on a shared 2-core machine
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 def make(name, **kw):
     kw.setdefault("resolution", RES)
     return make_parallel_env(name, **kw)
-
-
-class Departing(Spread):
-    """spread with two teams where agents leave: prey_0 at step 2, prey_1 at step 3 (world 0 only)."""
-
-    name = "departing"
-    agent_range = (3, 3)
-
-    def _setup(self):
-        super()._setup()
-        self.agent_names = ["predator_0", "prey_0", "prey_1"]
-        self.groups = {"predators": ["predator_0"], "prey": ["prey_0", "prey_1"]}
-
-    def _step_state(self, actions, alive):
-        reward, terminated, info = super()._step_state(actions, alive)
-        terminated = terminated.clone()
-        terminated[0, 1] |= bool(self.step_count[0] == 1)
-        terminated[0, 2] |= bool(self.step_count[0] == 2)
-        return reward, terminated, info
 
 
 def departing(max_steps=5, **kw):

@@ -19,14 +19,7 @@ except ImportError:  # repository checkout: envs/ at the root
 DTYPES = [torch.float32, torch.float64]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def single_thread():
-    # These tensors are tiny: intra-op threads only add synchronisation, and on a
-    # busy 2-core machine their barriers made steps up to 20x slower.
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 def scene(W, B, radius=0.1, spread=0.8, dtype=torch.float64, seed=0, speed=0.0):
