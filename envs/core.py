@@ -280,6 +280,14 @@ class BatchedEnv(abc.ABC):
             reset = True
         return self._observe(full=reset), reward, terminated, truncated, info
 
+    def random_actions(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Uniformly random valid actions for every agent of every world (the action space's
+        sample): discrete int64 [W, A], continuous float32 [W, A, action_dim] in [-1, 1]."""
+        W, A = self.num_worlds, self.num_agents
+        if self.continuous:
+            return torch.rand(W, A, self.action_dim, generator=generator) * 2 - 1
+        return torch.randint(self.num_actions, (W, A), generator=generator)
+
     def check_actions(self, actions) -> torch.Tensor:
         """Validated actions on self.device (long [W, A] or float32 [W, A, action_dim]); raises
         TypeError / ValueError naming `actions`, the expected and the given, else changes nothing."""

@@ -36,11 +36,7 @@ def main():
     obs = env.reset(seed=args.seed)
     frames = [frame_image(obs["pixels"][0], env.render_overview()[0])]
     for step in range(args.steps):
-        if env.continuous:
-            actions = torch.rand(1, env.num_agents, env.action_dim, generator=generator) * 2 - 1
-        else:
-            actions = torch.randint(env.num_actions, (1, env.num_agents), generator=generator)
-        obs, reward, terminated, truncated, info = env.step(actions)
+        obs, reward, terminated, truncated, info = env.step(env.random_actions(generator))
         frames.append(frame_image(obs["pixels"][0], env.render_overview()[0]))
         if bool((terminated | truncated).all()):
             break

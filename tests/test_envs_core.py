@@ -12,7 +12,12 @@ from marl_render.envs import physics, registry
 
 W = 3
 RES = 32
-ENVS = ["cartpole", "spread"]
+ENVS = list_envs()  # every registered environment meets the same contract
+
+
+def random_actions(env, generator=None):
+    """The env's own sampler, with a fixed default seed so that twins get the same actions."""
+    return env.random_actions(generator or torch.Generator().manual_seed(123))
 
 
 def make(name, **kw):
@@ -20,13 +25,6 @@ def make(name, **kw):
     kw.setdefault("resolution", RES)
     kw.setdefault("seed", 0)
     return make_env(name, **kw)
-
-
-def random_actions(env, generator=None):
-    g = generator or torch.Generator().manual_seed(123)
-    if env.continuous:
-        return torch.rand(env.num_worlds, env.num_agents, env.action_dim, generator=g) * 2 - 1
-    return torch.randint(0, env.num_actions, (env.num_worlds, env.num_agents), generator=g)
 
 
 def assert_state_equal(a: dict, b: dict):
@@ -260,7 +258,7 @@ def test_same_seed_is_bit_identical(name):
         trace = [env.reset()]
         g = torch.Generator().manual_seed(1)
         for _ in range(4):
-            trace.append(env.step(random_actions(env, g))[:2])
+            trace.append(env.step(env.random_actions(g))[:2])
         runs.append(trace)
         env.close()
     first, second = runs
@@ -521,3 +519,20 @@ def test_torch_threads_inside_calls_and_restored(monkeypatch):
         env.close()
     with pytest.raises(ValueError, match="torch_threads"):
         make("cartpole", torch_threads=0)
+
+
+@pytest.mark.parametrize("name", ENVS)
+@pytest.mark.parametrize("continuous", [False, True])
+def test_random_actions_are_valid_and_seeded(name, continuous):
+    env = make(name, continuous=continuous)
+    a = env.random_actions(torch.Generator().manual_seed(5))
+    b = env.random_actions(torch.Generator().manual_seed(5))
+    assert torch.equal(a, b)
+    if continuous:
+        assert a.shape == (env.num_worlds, env.num_agents, env.action_dim) and a.dtype == torch.float32
+        assert (a.abs() <= 1).all()
+    else:
+        assert a.shape == (env.num_worlds, env.num_agents) and a.dtype == torch.int64
+        assert ((a >= 0) & (a < env.num_actions)).all()
+    assert torch.equal(env.check_actions(a), a.to(env.check_actions(a).dtype))
+    env.close()

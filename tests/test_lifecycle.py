@@ -42,12 +42,6 @@ def windows() -> int:
     return backend.context().engine.get_num_windows()
 
 
-def random_actions(env, generator):
-    if env.continuous:
-        return torch.rand(env.num_worlds, env.num_agents, env.action_dim, generator=generator) * 2 - 1
-    return torch.randint(env.num_actions, (env.num_worlds, env.num_agents), generator=generator)
-
-
 # ---------------------------------------------------------------------- close() and use after close
 def test_renderer_close_frees_gl_objects_and_is_final():
     baseline = windows()
@@ -157,8 +151,6 @@ def test_200_environments_in_one_process_keep_memory_flat():
     assert grown < 50, f"creating and closing 200 environments grew resident memory by {grown:.1f} MB"
 
 
-
-
 def test_render_states_do_not_accumulate():
     from panda3d.core import RenderState
 
@@ -166,10 +158,10 @@ def test_render_states_do_not_accumulate():
     env.reset()
     g = torch.Generator().manual_seed(0)
     for _ in range(5):
-        env.step(random_actions(env, g))
+        env.step(env.random_actions(g))
     before = RenderState.get_num_states()
     for _ in range(100):
-        env.step(random_actions(env, g))
+        env.step(env.random_actions(g))
     per_step = RenderState.get_num_states() - before
     env.close()
     before = RenderState.get_num_states()
@@ -240,7 +232,7 @@ def test_interleaved_environments_match_each_run_alone():
                ("cartpole", dict(seed=2, depth=True)), ("spread", dict(seed=3, num_agents=2, state_obs=True))]
     envs = [make_env(name, num_worlds=W, resolution=RES, autoreset=True, max_steps=4, **kw) for name, kw in configs]
     g = torch.Generator().manual_seed(0)
-    actions = [[random_actions(env, g) for _ in range(8)] for env in envs]
+    actions = [[env.random_actions(g) for _ in range(8)] for env in envs]
     traces = [[{k: v.clone() for k, v in env.reset().items()}] for env in envs]
     for step in range(8):
         for i, env in enumerate(envs):
@@ -367,7 +359,7 @@ def test_same_seed_is_bit_identical_in_one_process_and_across_processes():
 def test_reset_with_a_seed_reproduces_an_episode(name):
     env = make_env(name, num_worlds=W, resolution=RES, seed=0, state_obs=True)
     g = torch.Generator().manual_seed(1)
-    actions = [random_actions(env, g) for _ in range(6)]
+    actions = [env.random_actions(g) for _ in range(6)]
 
     def episode(seed):
         obs = env.reset(seed=seed)
@@ -379,7 +371,7 @@ def test_reset_with_a_seed_reproduces_an_episode(name):
 
     first = episode(5)
     for _ in range(3):  # move the generator and the worlds on
-        env.step(random_actions(env, g))
+        env.step(env.random_actions(g))
     again = episode(5)
     other = episode(6)
     assert all(torch.equal(a, b) for a, b in zip(first, again)), "reset(seed=5) did not reproduce the episode"

@@ -69,12 +69,6 @@ def windows() -> int:
     return backend.context().engine.get_num_windows()
 
 
-def random_actions(env, generator):
-    if env.continuous:
-        return torch.rand(env.num_worlds, env.num_agents, env.action_dim, generator=generator) * 2 - 1
-    return torch.randint(env.num_actions, (env.num_worlds, env.num_agents), generator=generator)
-
-
 # ---------------------------------------------------------------------- constructor keywords
 def _common_cases(name):
     low, high = env_class(name).agent_range
@@ -298,7 +292,7 @@ def stepped_env(request):
     name, continuous = request.param
     env = make_env(name, num_worlds=W, resolution=RES, seed=0, continuous=continuous, state_obs=True)
     env.reset()
-    env.step(random_actions(env, torch.Generator().manual_seed(1)))
+    env.step(env.random_actions(torch.Generator().manual_seed(1)))
     yield env
     env.close()
 
@@ -314,14 +308,14 @@ def test_step_rejects_bad_actions_and_changes_nothing(stepped_env):
     twin = make_env(env.name, num_worlds=W, resolution=RES, seed=0, continuous=env.continuous, state_obs=True)
     twin.reset()
     g = torch.Generator().manual_seed(1)
-    twin.step(random_actions(twin, g))
+    twin.step(twin.random_actions(g))
     cases = _step_cases(env)
     for label, actions, error, message in cases:
         before = snapshot(env)
         expect_error(lambda: env.step(actions), error, message, f"step({label})")
         assert_unchanged(before, snapshot(env), f"step({label})")
     # ... and the env goes on exactly like one that never saw the bad calls.
-    actions = random_actions(env, g)
+    actions = env.random_actions(g)
     out, out_twin = env.step(actions), twin.step(actions)
     for key in out[0]:
         assert torch.equal(out[0][key], out_twin[0][key]), key
@@ -336,7 +330,7 @@ def test_unusual_but_valid_action_containers_step_like_int64(name):
     actions as the int64 tensor (the uint16 path used to raise NotImplementedError)."""
     reference = make_env(name, num_worlds=W, resolution=RES, seed=3)
     reference.reset()
-    actions = random_actions(reference, torch.Generator().manual_seed(0))
+    actions = reference.random_actions(torch.Generator().manual_seed(0))
     expected = reference.step(actions)
     reference.close()
     forms = [actions.to(torch.uint8), actions.to(torch.uint16), actions.to(torch.int32),
@@ -364,7 +358,7 @@ def test_list_of_grad_tensors_is_a_type_error():
 def test_reset_arguments_are_checked_before_anything_changes(name):
     env = make_env(name, num_worlds=W, resolution=RES, seed=0, state_obs=True)
     env.reset()
-    env.step(random_actions(env, torch.Generator().manual_seed(0)))
+    env.step(env.random_actions(torch.Generator().manual_seed(0)))
     cases = [
         (lambda: env.reset(seed=-1), ValueError, r"seed must be None or an int in \[0, 2\*\*63\), got -1"),
         (lambda: env.reset(seed="7"), TypeError, r"seed must be None or an int.*got '7'"),

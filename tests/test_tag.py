@@ -17,12 +17,6 @@ def make(**kwargs):
     return tag.Tag(**kwargs)
 
 
-def random_actions(env, generator):
-    if env.continuous:
-        return torch.rand(env.num_worlds, env.num_agents, 2, generator=generator) * 2 - 1
-    return torch.randint(0, env.num_actions, (env.num_worlds, env.num_agents), generator=generator)
-
-
 def noop(env):
     if env.continuous:
         return torch.zeros(env.num_worlds, env.num_agents, 2)
@@ -41,14 +35,6 @@ def green(pixels):
     """Number of prey-coloured (green) pixels in uint8 images [..., H, W, 3], per image."""
     r, g, b = pixels.to(torch.int32).unbind(-1)
     return ((g - r > 40) & (g - b > 30)).sum((-1, -2))
-
-
-def assert_same_state(a, b, worlds=slice(None)):
-    for key in a:
-        if key == "rng":
-            assert torch.equal(a[key], b[key]), key
-        else:
-            assert torch.equal(a[key][worlds], b[key][worlds]), key
 
 
 # --------------------------------------------------------------------------- contract
@@ -70,7 +56,7 @@ def test_shapes_and_dtypes(continuous):
         assert set(obs) == set(expected)
         for key, (shape, dtype) in expected.items():
             assert tuple(obs[key].shape) == shape and obs[key].dtype == dtype, key
-        obs, reward, terminated, truncated, info = env.step(random_actions(env, g))
+        obs, reward, terminated, truncated, info = env.step(env.random_actions(g))
     assert reward.shape == (W, N) and reward.dtype == torch.float32
     for flags in (terminated, truncated):
         assert flags.shape == (W, N) and flags.dtype == torch.bool
@@ -207,74 +193,7 @@ def test_speed_caps():
 
 
 # --------------------------------------------------------------------------- state handling
-@pytest.mark.parametrize("continuous", [False, True])
-def test_determinism(continuous):
-    def rollout(env, seed):
-        g = torch.Generator().manual_seed(seed)
-        frames = [env.reset(seed=seed)]
-        for _ in range(4):
-            frames.append(env.step(random_actions(env, g)))
-        return frames, env.get_state()
-
-    env = make(continuous=continuous, state_obs=True)
-    first, state = rollout(env, 7)
-    again, state_again = rollout(env, 7)
-    other = make(continuous=continuous, state_obs=True, seed=123)
-    third, state_third = rollout(other, 7)
-    for a, b in ((first, again), (first, third)):
-        assert torch.equal(a[0]["pixels"], b[0]["pixels"])
-        for (obs_a, *rest_a), (obs_b, *rest_b) in zip(a[1:], b[1:]):
-            assert all(torch.equal(obs_a[k], obs_b[k]) for k in obs_a)
-            assert all(torch.equal(x, y) for x, y in zip(rest_a[:3], rest_b[:3]))
-    assert_same_state(state, state_again)
-    assert_same_state(state, state_third)
-    different, _ = rollout(env, 8)
-    assert not torch.equal(different[0]["pixels"], first[0]["pixels"])
-    env.close()
-    other.close()
-
-
-def test_partial_reset_leaves_other_worlds_alone():
-    env = make(state_obs=True)
-    env.reset(seed=3)
-    g = torch.Generator().manual_seed(0)
-    for _ in range(3):
-        obs, *_ = env.step(random_actions(env, g))
-    before = env.get_state()
-    mask = torch.tensor([False, True, False])
-    after_obs = env.reset_worlds(mask)
-    after = env.get_state()
-    keep = ~mask
-    assert_same_state({k: v for k, v in before.items() if k != "rng"}, after, worlds=keep)
-    for key in obs:
-        assert torch.equal(obs[key][keep], after_obs[key][keep]), key
-    assert after["step_count"].tolist() == [3, 0, 3]
-    assert not torch.equal(before["pos"][1], after["pos"][1])
-    assert not torch.equal(before["obstacle_center"][1], after["obstacle_center"][1])
-    env.close()
-
-
-@pytest.mark.parametrize("continuous", [False, True])
-def test_bad_actions_raise_and_change_nothing(continuous):
-    env = make(continuous=continuous)
-    env.reset(seed=4)
-    env.step(noop(env))
-    before = env.get_state()
-    N = env.num_agents
-    if continuous:
-        bad = [(torch.zeros(W, N), ValueError), (torch.zeros(W, N, 3), ValueError),
-               (torch.full((W, N, 2), 1.5), ValueError), (torch.full((W, N, 2), math.nan), ValueError),
-               (torch.zeros(W, N, 2, dtype=torch.long), TypeError), ("forward", TypeError)]
-    else:
-        bad = [(torch.zeros(W, N + 1, dtype=torch.long), ValueError), (torch.full((W, N), 5), ValueError),
-               (torch.full((W, N), -1), ValueError), (torch.zeros(W, N), TypeError), (None, TypeError)]
-    for actions, error in bad:
-        with pytest.raises(error, match="actions"):
-            env.step(actions)
-        assert_same_state(before, env.get_state())
-    env.close()
-
-
+# Determinism, partial resets and bad actions: tests/test_envs_core.py runs them for every env.
 def test_only_declared_physics_terms_run(monkeypatch):
     calls = {name: 0 for name in P.TERM_NAMES}
 
@@ -299,7 +218,7 @@ def test_only_declared_physics_terms_run(monkeypatch):
         env.reset(seed=0)
         g = torch.Generator().manual_seed(0)
         for _ in range(3):
-            env.step(random_actions(env, g))
+            env.step(env.random_actions(g))
         assert all(calls[n] == 3 for n in declared), calls
         assert all(calls[n] == 0 for n in P.TERM_NAMES - declared), calls
         monkeypatch.undo()

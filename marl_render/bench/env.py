@@ -21,13 +21,6 @@ def add_arguments(parser):
     parser.add_argument("--continuous", action="store_true")
 
 
-def random_actions(env, generator: torch.Generator) -> torch.Tensor:
-    W, A = env.num_worlds, env.num_agents
-    if env.continuous:
-        return torch.rand(W, A, env.action_dim, generator=generator) * 2 - 1
-    return torch.randint(env.num_actions, (W, A), generator=generator)
-
-
 def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, continuous=False) -> dict:
     from marl_render.envs import make_env
 
@@ -39,11 +32,11 @@ def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, co
         generator = torch.Generator().manual_seed(0)
         env.reset(seed=0)
         for _ in range(3):
-            env.step(random_actions(env, generator))
+            env.step(env.random_actions(generator))
         render_seconds = 0.0
         start = time.perf_counter()
         for _ in range(steps):
-            env.step(random_actions(env, generator))
+            env.step(env.random_actions(generator))
             render_seconds += sum(env.renderer.last_timings.values())
         seconds = (time.perf_counter() - start) / steps
         return {"env": name, "worlds": worlds, "agents": env.num_agents, "resolution": resolution,

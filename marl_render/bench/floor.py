@@ -17,7 +17,6 @@ import torch
 
 from ..threads import single_threaded
 from .common import machine, progress
-from .env import random_actions
 
 
 def add_arguments(parser):
@@ -50,7 +49,7 @@ def measure(name: str, worlds: int, resolution: int, steps: int, repeats: int) -
     try:
         env.reset(seed=0)
         for _ in range(3):
-            env.step(random_actions(env, generator))
+            env.step(env.random_actions(generator))
         floor = _floor_renderer(env)
         for _ in range(3):
             floor.render()
@@ -58,7 +57,7 @@ def measure(name: str, worlds: int, resolution: int, steps: int, repeats: int) -
         for _ in range(repeats):
             start = time.perf_counter()
             for _ in range(steps):
-                env.step(random_actions(env, generator))
+                env.step(env.random_actions(generator))
             env_times.append((time.perf_counter() - start) / steps)
             start = time.perf_counter()
             with single_threaded():  # as the project's renderer does

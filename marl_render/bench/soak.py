@@ -119,13 +119,6 @@ def non_finite_values(step: int, obs: dict, reward: torch.Tensor, state: dict | 
 
 
 # ---------------------------------------------------------------------- run
-def _random_actions(env, generator: torch.Generator) -> torch.Tensor:
-    W, A = env.num_worlds, env.num_agents
-    if env.continuous:
-        return torch.rand(W, A, env.action_dim, generator=generator) * 2 - 1
-    return torch.randint(env.num_actions, (W, A), generator=generator)
-
-
 def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agents: int | None = None,
          resolution: int = 64, every: int = 50, warmup: int | None = None, reset_every: int = 10,
          reset_fraction: float = 0.25, max_steps: int | None = None, continuous: bool = False,
@@ -164,7 +157,7 @@ def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agent
         start = time.perf_counter()
         step_seconds = 0.0
         for step in range(1, steps + 1):
-            actions = _random_actions(env, generator)
+            actions = env.random_actions(generator)
             began = time.perf_counter()
             obs, reward, _terminated, _truncated, info = env.step(actions)
             if reset_every and step % reset_every == 0:
