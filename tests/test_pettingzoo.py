@@ -13,7 +13,7 @@ from gymnasium.utils.env_checker import data_equivalence
 from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, render_test
 from pettingzoo.utils.conversions import aec_to_parallel, parallel_to_aec
 
-from marl_render.envs import list_envs
+from marl_render.envs import list_envs, make_env
 from departing_env import Departing
 from marl_render.wrappers.pettingzoo import ActionTypeError, MarlRenderParallelEnv, make_parallel_env
 
@@ -360,3 +360,36 @@ def test_torchrl_pettingzoo_wrapper():
     with pytest.raises(KeyError, match="left the episode.*departed_actions='ignore'"):
         env.rollout(4, break_when_any_done=False)
     env.close()
+
+
+def test_supersuit_vectorising_chain():
+    ss = pytest.importorskip("supersuit", reason="pip install supersuit to test the supersuit chain")
+    env = ss.frame_stack_v1(ss.resize_v1(make("spread", seed=0), 16, 16), 2)
+    vec = ss.concat_vec_envs_v1(ss.pettingzoo_env_to_vec_env_v1(env), 2, num_cpus=0, base_class="gymnasium")
+    obs, _ = vec.reset(seed=0)
+    assert obs.shape == (6, 16, 16, 6) and obs.dtype == np.uint8  # 2 copies x 3 agents, 2 frames x RGB
+    actions = np.array([vec.action_space.sample() for _ in range(vec.num_envs)])
+    obs, reward, terminated, truncated, _ = vec.step(actions)
+    assert obs.shape == (6, 16, 16, 6) and reward.shape == (6,) and terminated.shape == (6,)
+    assert obs[:, :, :, 3:].std() > 0, "frames must show the arena"
+    vec.close()
+
+
+def test_pickling_rebuilds_the_same_configuration():
+    import pickle
+
+    env = make("spread", seed=3, resolution=24)
+    copy = pickle.loads(pickle.dumps(env))
+    try:
+        assert copy is not env and copy.possible_agents == env.possible_agents
+        first, _ = env.reset(seed=5)
+        again, _ = copy.reset(seed=5)
+        assert all(np.array_equal(first[a], again[a]) for a in env.possible_agents)
+        assert again["agent_0"].shape == (24, 24, 3)
+    finally:
+        copy.close()
+        env.close()
+    bare = MarlRenderParallelEnv(make_env("spread", num_worlds=1, resolution=16))
+    with pytest.raises(TypeError, match="only envs built by make_parallel_env can be pickled"):
+        pickle.dumps(bare)
+    bare.close()

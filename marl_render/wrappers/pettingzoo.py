@@ -94,11 +94,20 @@ def make_parallel_env(name: str, *, render_mode: str | None = None, action_mask:
     _check_policy("unknown_options", unknown_options)
     core = make_env(name, num_worlds=1, **kwargs)
     try:
-        return MarlRenderParallelEnv(core, render_mode=render_mode, action_mask=action_mask,
-                                     departed_actions=departed_actions, unknown_options=unknown_options)
+        env = MarlRenderParallelEnv(core, render_mode=render_mode, action_mask=action_mask,
+                                    departed_actions=departed_actions, unknown_options=unknown_options)
     except BaseException:
         core.close()
         raise
+    # How to build this env again: pickling (vectorising wrappers copy envs that way) makes
+    # a fresh env of the same configuration in the receiving process, not a GL state copy.
+    env._recipe = (name, dict(render_mode=render_mode, action_mask=action_mask, departed_actions=departed_actions,
+                              unknown_options=unknown_options, **kwargs))
+    return env
+
+
+def _rebuild(name, kwargs):
+    return make_parallel_env(name, **kwargs)
 
 
 def _check_render_mode(render_mode):
@@ -123,6 +132,14 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
     closes it in ``close()``."""
 
     metadata = {"name": "marl_render", "render_modes": list(RENDER_MODES), "is_parallelizable": True}
+    _recipe = None  # (name, make_parallel_env kwargs) when built by make_parallel_env
+
+    def __reduce__(self):
+        if self._recipe is None:
+            raise TypeError("only envs built by make_parallel_env can be pickled (they are rebuilt from their "
+                            "configuration; GL state itself cannot be copied)")
+        name, kwargs = self._recipe
+        return _rebuild, (name, kwargs)
 
     def __init__(self, env, *, render_mode: str | None = None, action_mask: bool = False,
                  departed_actions: str = "raise", unknown_options: str = "raise"):
