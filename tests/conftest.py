@@ -10,3 +10,39 @@ def single_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture
+def check_only_declared_terms(monkeypatch):
+    """A checker: steps `env` and asserts that each physics term it declares ran once per
+    step and that no other term ran at all (undeclared ones raise if called)."""
+    from marl_render.envs import physics
+
+    def check(env, steps=3):
+        declared = env.physics_terms
+        assert env.physics is None or env.physics.terms == declared
+        calls = dict.fromkeys(physics.TERM_NAMES, 0)
+
+        def counted(name, builder):
+            def term(*args, **kwargs):
+                calls[name] += 1
+                return builder(*args, **kwargs)
+            return term
+
+        def forbidden(name):
+            def term(*args, **kwargs):
+                raise AssertionError(f"undeclared term {name!r} was computed")
+            return term
+
+        with monkeypatch.context() as patch:
+            for name in physics.TERM_NAMES:
+                wrapped = counted(name, physics.TERMS[name]) if name in declared else forbidden(name)
+                patch.setitem(physics.TERMS, name, wrapped)
+            env.reset(seed=0)
+            generator = torch.Generator().manual_seed(0)
+            for _ in range(steps):
+                env.step(env.random_actions(generator))
+        assert all(calls[name] == steps for name in declared), calls
+        assert all(calls[name] == 0 for name in physics.TERM_NAMES - declared), calls
+
+    return check

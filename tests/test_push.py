@@ -6,7 +6,6 @@ import pytest
 import torch
 
 from marl_render.envs import list_envs, make_env, push
-from marl_render.envs import physics as P
 from marl_render.envs import egomotion
 
 W, RES = 3, 32
@@ -196,30 +195,5 @@ def test_state_obs_is_in_the_team_frame():
 
 
 # --------------------------------------------------------------------------- state handling
-# Determinism, partial resets and bad actions: tests/test_envs_core.py runs them for every env.
-def test_only_declared_physics_terms_run(monkeypatch):
-    calls = {name: 0 for name in P.TERM_NAMES}
-
-    def counted(name, fn):
-        def term(*args, **kwargs):
-            calls[name] += 1
-            return fn(*args, **kwargs)
-        return term
-
-    def forbidden(name):
-        def term(*args, **kwargs):
-            raise AssertionError(f"undeclared term {name!r} was computed")
-        return term
-
-    env = make()
-    declared = {"walls", "body_collisions", "drag"}
-    assert env.physics.terms == declared == env.physics_terms
-    for name in P.TERM_NAMES:
-        monkeypatch.setitem(P.TERMS, name, counted(name, P.TERMS[name]) if name in declared else forbidden(name))
-    env.reset(seed=0)
-    g = torch.Generator().manual_seed(0)
-    for _ in range(3):
-        env.step(env.random_actions(g))
-    assert all(calls[n] == 3 for n in declared), calls
-    assert all(calls[n] == 0 for n in P.TERM_NAMES - declared), calls
-    env.close()
+# Determinism, partial resets, bad actions and declared physics terms: tests/test_envs_core.py
+# runs them for every env.
