@@ -141,7 +141,6 @@ class _Context:
 
 def _forget_in_child():
     # The child shares the parent's GL handles but not its driver threads: mark them stale.
-    global _context
     if _context is not None:
         _context.pid = -1
 

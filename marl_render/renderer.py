@@ -19,7 +19,7 @@ import torch
 
 from . import backend, shaders
 from .meshes import MeshData, to_panda_geom
-from .scene import InstanceGroup, Scene, StaticGroup
+from .scene import Scene, StaticGroup
 from .culling import frustum_planes, mesh_radius, visible_pairs
 from .threads import caller_threads, one_thread
 from .tiling import TileLayout, copy_tiles, framebuffer_tiles, plan_layout
@@ -159,7 +159,7 @@ class BatchRenderer:
     # ------------------------------------------------------------------ GL objects
     def _build_target(self):
         from panda3d.core import (Camera, ColorBlendAttrib, CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib,
-                                  FrameBufferProperties, GeomEnums, GraphicsOutput, GraphicsPipe, LVecBase2i,
+                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, LVecBase2i,
                                   NodePath, OmniBoundingVolume, Texture, TransparencyAttrib, WindowProperties)
 
         ctx = self._context

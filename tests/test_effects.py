@@ -6,7 +6,6 @@ origin looking +Y is its -Y face (normal (0, -1, 0)).
 """
 from __future__ import annotations
 
-import math
 import re
 import warnings
 

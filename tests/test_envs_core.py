@@ -8,7 +8,7 @@ import torch
 
 import marl_render as mr
 from marl_render.envs import BatchedEnv, list_envs, make_env, register
-from marl_render.envs import physics, registry
+from marl_render.envs import registry
 
 W = 3
 RES = 32

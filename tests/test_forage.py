@@ -1,6 +1,5 @@
 """Tests for envs/forage.py: agents collect respawning items."""
 
-import math
 
 import pytest
 import torch

@@ -1,7 +1,6 @@
 """The batch renderer draws the right pixels in the right tiles."""
 import math
 
-import numpy as np
 import pytest
 import torch
 

@@ -31,7 +31,6 @@ Writes accuracy.md, accuracy.json and accuracy.png into --out.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import statistics
@@ -41,7 +40,7 @@ import time
 import numpy as np
 import torch
 
-from .common import machine
+from .common import machine, pyplot, write_report
 
 # Anti-aliasing modes: name -> (supersample, multisamples).
 AA_MODES = {"none": (1, 0), "ss2x2": (2, 0), "ss4x4": (4, 0), "msaa4": (1, 4), "msaa8": (1, 8), "ss8x8": (8, 0)}
@@ -621,7 +620,7 @@ def recommendations(result: dict) -> list:
                          and p["error"] < default["error"]]
             text = (f"{name}: the env's setting ({SHORT[default['integrator']]} x{default['substeps']}) has "
                     f"{what} error {default['error']:.2e} {unit} at {_fmt_cost(default['cost_s'])} per world-step")
-            text += (f"; it is on the Pareto front" if default["pareto"] else
+            text += ("; it is on the Pareto front" if default["pareto"] else
                      f"; it is dominated by {', '.join(p['label'] for p in dominated) or 'another point'}")
             out.append(text + ".")
         for target in targets or ():
@@ -675,9 +674,6 @@ def _num(value, digits=2):
 
 
 def _write(out: str, result: dict) -> None:
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, "accuracy.json"), "w") as f:
-        json.dump(result, f, indent=2, allow_nan=False)
     s = result["sweeps"]
     m = result["machine"]
     mark = lambda p: "**yes**" if p.get("pareto") else ""  # noqa: E731
@@ -744,16 +740,12 @@ def _write(out: str, result: dict) -> None:
         lines.append(f"| {p['integrator']} | {p['substeps']} | {p['world_steps_per_s']:,.0f} | "
                      f"{p['cost_s'] * 1e6:,.2f} | {p['drift_mean_j']:.2e} | {p['drift_max_j']:.2e} | {mark(p)} |")
     lines += ["", "![error against time](accuracy.png)", ""]
-    with open(os.path.join(out, "accuracy.md"), "w") as f:
-        f.write("\n".join(lines))
+    write_report(out, "accuracy", result, lines, allow_nan=False)
     _plot(os.path.join(out, "accuracy.png"), result)
 
 
 def _plot(path: str, result: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     s = result["sweeps"]
     fig, axes = plt.subplots(2, 3, figsize=(16, 9.5))

@@ -1,7 +1,9 @@
 """Shared pieces of the benchmarks: timing, progress, the reference arena scene."""
 from __future__ import annotations
 
+import json
 import math
+import os
 import platform
 import sys
 import time
@@ -69,3 +71,23 @@ class RandomMotion:
 def apply(renderer, updates: dict) -> None:
     for name, kwargs in updates.items():
         renderer.update(name, **kwargs)
+
+
+def write_report(out: str, name: str, result: dict, markdown: list[str] | None = None, **json_options) -> None:
+    """DIR/name.json from `result` and, given lines, DIR/name.md; creates DIR."""
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, f"{name}.json"), "w") as f:
+        json.dump(result, f, indent=2, **json_options)
+    if markdown is not None:
+        with open(os.path.join(out, f"{name}.md"), "w") as f:
+            f.write("\n".join(markdown) + "\n")
+
+
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend (no display here)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt

@@ -13,14 +13,13 @@ Writes effects.md, effects.json and effects.png into --out.
 """
 from __future__ import annotations
 
-import json
 import multiprocessing
 import os
 import time
 
 import numpy as np
 
-from .common import RandomMotion, apply, arena_scene, machine, progress, time_per_call
+from .common import RandomMotion, apply, arena_scene, machine, progress, pyplot, time_per_call, write_report
 
 EFFECT_SETS = [(), ("lighting",), ("texture",), ("fog",), ("depth",), ("segmentation",), ("log_depth",),
                ("lighting", "texture", "fog", "depth", "segmentation")]
@@ -135,9 +134,6 @@ def run(args) -> dict:
 
 
 def _write(out: str, result: dict) -> None:
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, "effects.json"), "w") as f:
-        json.dump(result, f, indent=2)
     lines = [f"Views of {result['resolution']}x{result['resolution']}, {result['views']} per frame "
              f"({result['machine']['gl_renderer']}).", "", "| effects | views/s | ms/frame | cost vs none |",
              "|---|---:|---:|---:|"]
@@ -145,13 +141,8 @@ def _write(out: str, result: dict) -> None:
               for r in result["effects"]]
     lines += ["", "| ablation step (cumulative) | views/s | speed-up |", "|---|---:|---:|"]
     lines += [f"| {r['step']} | {r['views_per_s']:,.0f} | {r['speedup_vs_first']:.1f}x |" for r in result["ablation"]]
-    with open(os.path.join(out, "effects.md"), "w") as f:
-        f.write("\n".join(lines) + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    write_report(out, "effects", result, lines)
+    plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.2))
     names = [r["effects"].replace("+", "+\n") if len(r["effects"]) > 12 else r["effects"] for r in result["effects"]]
     left.bar(names, [r["views_per_s"] for r in result["effects"]], color="#4c72b0")

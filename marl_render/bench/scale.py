@@ -8,10 +8,9 @@ Writes scale.md, scale.json and scale.png into --out.
 """
 from __future__ import annotations
 
-import json
 import os
 
-from .common import RandomMotion, apply, arena_scene, machine, progress
+from .common import RandomMotion, apply, arena_scene, machine, progress, pyplot, write_report
 
 STAGES = ("pack", "cull", "gl", "copy")
 
@@ -74,9 +73,6 @@ def run(args) -> dict:
 
 
 def _write(out: str, result: dict) -> None:
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, "scale.json"), "w") as f:
-        json.dump(result, f, indent=2)
     header = "| views | px | passes | views/s | Mpixel/s | ms/frame | pack | cull | gl | copy | KiB/view |"
     lines = [header, "|---:" * 11 + "|"]
     for row in result["by_views"] + result["by_resolution"]:
@@ -84,13 +80,8 @@ def _write(out: str, result: dict) -> None:
         lines.append(f"| {row['views']} | {row['resolution']} | {row['passes']} | {row['views_per_s']:,.0f} | "
                      f"{row['pixels_per_s'] / 1e6:,.0f} | {row['ms_per_frame']:.1f} | {s['pack']:.1f} | {s['cull']:.1f} | "
                      f"{s['gl']:.1f} | {s['copy']:.1f} | {row['memory_per_view_kib']:.0f} |")
-    with open(os.path.join(out, "scale.md"), "w") as f:
-        f.write("\n".join(lines) + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    write_report(out, "scale", result, lines)
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
     for ax, rows, key, label in ((axes[0], result["by_views"], "views", "views per frame"),
                                  (axes[1], result["by_resolution"], "resolution", "resolution (px per side)")):
