@@ -89,6 +89,7 @@ class BatchRenderer:
         if readback not in self.READBACKS:
             raise ValueError(f"readback must be one of {list(self.READBACKS)}, got {readback!r}")
         self.supersample = positive_int("supersample", supersample)
+        self._supersamples = self._accumulator = None  # reused buffers of the box filter
         if isinstance(multisamples, bool) or not isinstance(multisamples, int) or multisamples < 0:
             raise ValueError(f"multisamples must be an int >= 0, got {multisamples!r}")
         if multisamples and {"depth", "segmentation"} & set(scene.effects):
@@ -501,15 +502,14 @@ class BatchRenderer:
             image = bytes(image)
         tiles = framebuffer_tiles(image, np.uint8, self._color_channels, self.layout)[..., :3]
         k = self.supersample
-        if k > 1:
-            tiles = self._box_filter(tiles, len(views))
-        if self.channels_first:
-            tiles = tiles.permute(*range(tiles.ndim - 3), -1, -3, -2)
+        destination = rgb[views.start:views.stop]
+        if self.channels_first:  # write through a channels-last view of the output
+            destination = destination.permute(0, 2, 3, 1)
         with caller_threads():  # one large copy while the rasteriser's threads are idle
             if k > 1:
-                rgb[views.start:views.stop].copy_(tiles)
+                self._box_filter(tiles, destination)
             else:
-                copy_tiles(tiles, rgb[views.start:views.stop])
+                copy_tiles(tiles, destination)
         for name, out, dtype in (("depth", depth, np.float32), ("segmentation", segmentation, np.int32)):
             if out is not None:
                 aux = framebuffer_tiles(self.aux_textures[name].get_ram_image(), dtype, 1, self.layout)
@@ -517,18 +517,19 @@ class BatchRenderer:
                     aux = aux[:, :, k // 2::k, k // 2::k]
                 copy_tiles(aux, out[views.start:views.stop])
 
-    def _box_filter(self, tiles: torch.Tensor, count: int) -> torch.Tensor:
-        """[rows, cols, kH, kW, 3] uint8 tiles -> [count, H, W, 3], each pixel the rounded
-        mean of its k x k samples, through one reused int32 accumulator."""
-        k = self.supersample
+    def _box_filter(self, tiles: torch.Tensor, destination: torch.Tensor) -> None:
+        """[rows, cols, kH, kW, 3] uint8 tiles -> destination [n, H, W, 3], each pixel the
+        rounded mean of its k x k samples, through buffers made once per renderer."""
+        k, count = self.supersample, destination.shape[0]
         height, width = self.scene.resolution
-        samples = torch.empty((count, height * k, width * k, 3), dtype=torch.uint8)
+        if self._supersamples is None:
+            per_pass = min(self.layout.views_per_pass, self.scene.num_views)
+            self._supersamples = torch.empty((per_pass, height * k, width * k, 3), dtype=torch.uint8)
+            self._accumulator = torch.empty((per_pass, height, width, 3), dtype=torch.int32)
+        samples, total = self._supersamples[:count], self._accumulator[:count]
         copy_tiles(tiles, samples)
-        if getattr(self, "_accumulator", None) is None or self._accumulator.shape[0] < count:
-            self._accumulator = torch.empty((count, height, width, 3), dtype=torch.int32)
-        total = self._accumulator[:count]
         torch.sum(samples.view(count, height, k, width, k, 3), dim=(2, 4), dtype=torch.int32, out=total)
-        return ((total + (k * k) // 2) // (k * k)).to(torch.uint8)
+        destination.copy_(total.add_((k * k) // 2).div_(k * k, rounding_mode="floor"))
 
     # ------------------------------------------------------------------ helpers / lifecycle
     def _float_arg(self, name, value, shape):

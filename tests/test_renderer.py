@@ -216,11 +216,12 @@ def test_views_split_over_several_passes_match_one_pass():
     assert torch.allclose(one.depth, many.depth, rtol=1e-5, atol=0)
 
 
-def test_channels_first_is_a_transpose():
+@pytest.mark.parametrize("options", [{}, {"supersample": 2}])
+def test_channels_first_is_a_transpose(options):
     scene = box_scene(resolution=(16, 24))
     frames = []
     for channels_first in (False, True):
-        with mr.BatchRenderer(scene, channels_first=channels_first) as renderer:
+        with mr.BatchRenderer(scene, channels_first=channels_first, **options) as renderer:
             cameras_at_origin(renderer, 1, 1)
             renderer.update("boxes", position=[[[0.2, 3.0, 0.1]]], active=[[True]], color=[[[0.9, 0.5, 0.1]]])
             frames.append(renderer.render().rgb)
