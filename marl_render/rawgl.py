@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from . import backend, shaders
-from .culling import frustum_planes, mesh_radius
+from .culling import mesh_radius
 from .meshes import MeshData
 from .renderer import BatchRenderer, Frame, _DrawGroup
 from .scene import Scene
@@ -233,19 +233,8 @@ class RawGLRenderer(BatchRenderer):
         if self._pid != os.getpid():
             raise backend.ForkedContextError("this RawGLRenderer was created before fork(); GL contexts do not "
                                              "survive fork(): create it in the child process")
-        start = time.perf_counter()
-        # The pure-torch stages of BatchRenderer.render, called one by one.
-        position, rotation = self._camera_poses()
-        self._recentre(position)
-        view_projection = self._pack_views(position, rotation)
-        dirty = [name for name in self._dirty if name in self.scene.groups]
-        for name in dirty:
-            self._pack_group(name)
-        self._dirty.clear()
-        packed = time.perf_counter()
-        self._cull(frustum_planes(view_projection))
-        self.last_timings = dict.fromkeys(("gl", "upload", "draw", "readback", "copy"), 0.0)
-        self.last_timings.update(pack=packed - start, cull=time.perf_counter() - packed)
+        dirty = self._prepare()  # the same torch stages as BatchRenderer.render
+        self.last_timings.update(dict.fromkeys(("gl", "upload", "draw", "readback", "copy"), 0.0))
         with self.ctx:  # another EGL context (Panda3D's) may be current
             self._upload(dirty)
             return self._draw_and_read()

@@ -367,17 +367,25 @@ class BatchRenderer:
         """Draw all views; returns tensors the caller owns."""
         self._check_open()
         backend.context()  # raises in a forked child
+        self._prepare()
+        self.last_timings.update(gl=0.0, copy=0.0)
+        return self._draw_and_read()
+
+    def _prepare(self) -> list[str]:
+        """The torch stages of a frame: camera poses, view and instance packing, culling.
+        Returns the groups whose instance data was packed (to be uploaded)."""
         start = time.perf_counter()
         position, rotation = self._camera_poses()
         self._recentre(position)
         view_projection = self._pack_views(position, rotation)
-        for name in self._dirty:
+        packed_groups = list(self._dirty)
+        for name in packed_groups:
             self._pack_group(name)
         self._dirty.clear()
         packed = time.perf_counter()
         self._cull(frustum_planes(view_projection))
-        self.last_timings = {"pack": packed - start, "cull": time.perf_counter() - packed, "gl": 0.0, "copy": 0.0}
-        return self._draw_and_read()
+        self.last_timings = {"pack": packed - start, "cull": time.perf_counter() - packed}
+        return packed_groups
 
     def _camera_poses(self):
         mount = self.scene.camera_mount
