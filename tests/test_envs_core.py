@@ -129,6 +129,18 @@ def test_observation_and_step_shapes(name, continuous):
     env.close()
 
 
+@pytest.mark.parametrize("name", ["spread", "tag", "forage", "push"])
+def test_arena_envs_share_the_egocentric_action_set(name):
+    from marl_render.envs import egomotion
+
+    env = make(name, num_worlds=1, resolution=8)
+    assert env.action_meanings == egomotion.ACTION_MEANINGS and env.num_actions == 5
+    env.close()
+    env = make(name, num_worlds=1, resolution=8, continuous=True)
+    assert env.action_meanings is None and env.action_dim == 2
+    env.close()
+
+
 @pytest.mark.parametrize("name", ENVS)
 def test_minimal_obs_keys(name):
     env = make(name)
