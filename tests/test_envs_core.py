@@ -141,6 +141,17 @@ def test_arena_envs_share_the_egocentric_action_set(name):
     env.close()
 
 
+@pytest.mark.parametrize("name", ["spread", "tag", "forage", "push"])
+def test_every_agent_sees_its_own_view(name):
+    env = make(name)
+    pixels = env.reset(seed=2)["pixels"]
+    for w in range(env.num_worlds):
+        for i in range(env.num_agents):
+            for j in range(i):
+                assert not torch.equal(pixels[w, i], pixels[w, j]), (w, i, j)
+    env.close()
+
+
 @pytest.mark.parametrize("name", ENVS)
 def test_minimal_obs_keys(name):
     env = make(name)

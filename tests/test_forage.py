@@ -53,16 +53,6 @@ def test_options_and_registry():
             make(**kwargs)
 
 
-def test_pixels_differ_between_agents():
-    env = make()
-    pixels = env.reset(seed=2)["pixels"]
-    for w in range(W):
-        for i in range(env.num_agents):
-            for j in range(i):
-                assert not torch.equal(pixels[w, i], pixels[w, j]), (w, i, j)
-    env.close()
-
-
 def test_reset_spawns_items_clear_of_agents():
     env = make(num_worlds=16)
     env.reset(seed=5)

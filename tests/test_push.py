@@ -79,16 +79,6 @@ def test_reset_layout():
     env.close()
 
 
-def test_pixels_differ_between_agents():
-    env = make()
-    pixels = env.reset(seed=2)["pixels"]
-    for w in range(W):
-        for i in range(env.num_agents):
-            for j in range(i):
-                assert not torch.equal(pixels[w, i], pixels[w, j]), (w, i, j)
-    env.close()
-
-
 # --------------------------------------------------------------------------- goals
 def test_goal_scored_rewards_the_right_team_and_ends_the_episode():
     env = make()

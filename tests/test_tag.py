@@ -78,16 +78,6 @@ def test_registered():
     env.close()
 
 
-def test_pixels_differ_between_agents():
-    env = make()
-    pixels = env.reset(seed=2)["pixels"]
-    for w in range(W):
-        for i in range(env.num_agents):
-            for j in range(i):
-                assert not torch.equal(pixels[w, i], pixels[w, j]), (w, i, j)
-    env.close()
-
-
 # --------------------------------------------------------------------------- catching
 def test_catch_removes_prey_and_ends_episode_when_all_caught():
     # 3 predators, 2 prey (indices 3, 4), no obstacles. Predator 2 at (0, -1) looks along +y at
