@@ -14,6 +14,7 @@ import math
 import torch
 
 from . import physics, scenery
+from .core import BatchedEnv
 
 THRUST = 5.0  # N at full forward action
 TURN_RATE = 3.0  # rad/s at full turn action
@@ -22,6 +23,14 @@ DRAG = -math.log(0.75) / DT  # 25% of the velocity lost per step, as in MPE
 # discrete action -> (thrust, turn)
 DISCRETE_ACTIONS = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.0, -1.0), (-1.0, 0.0))
 ACTION_MEANINGS = ("noop", "forward", "turn_left", "turn_right", "backward")
+
+
+class EgocentricEnv(BatchedEnv):
+    """Base of the arena envs: every agent sees through the same kind of body camera."""
+
+    fov_y = math.radians(90.0)
+    near = 0.05
+    far = 20.0
 
 
 def declare_actions(env) -> None:

@@ -42,7 +42,6 @@ import marl_render as mr
 from marl_render.validation import positive_float, positive_int
 
 from . import egomotion, physics, scenery
-from .core import BatchedEnv
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.3  # items spawn in |x|, |y| <= SPAWN
@@ -61,7 +60,7 @@ RESPAWN_CANDIDATES = 8
 # discrete action -> (thrust, turn), the same set as spread
 
 
-class Forage(BatchedEnv):
+class Forage(egomotion.EgocentricEnv):
     """Collect respawning items; see the module docstring."""
 
     name = "forage"
@@ -70,9 +69,6 @@ class Forage(BatchedEnv):
     default_max_steps = 200
     default_resolution = 64
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
-    fov_y = math.radians(90.0)
-    near = 0.05
-    far = 20.0
     arena_half_extent = (ARENA, ARENA)
 
     def __init__(self, *, num_items: int | None = None, respawn_delay: int = 10, item_reward: float = 1.0, **common):

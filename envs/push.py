@@ -51,7 +51,6 @@ import marl_render as mr
 from marl_render.validation import positive_float
 
 from . import egomotion, physics, scenery
-from .core import BatchedEnv
 
 ARENA = (1.5, 2.0)  # half extents (m)
 GOAL_HALF_WIDTH = 0.5
@@ -98,7 +97,7 @@ def add_goals(scene: mr.Scene) -> None:
     scene.add_static("goal_frames", "box", position=positions, scale=scales, color=colors)
 
 
-class Push(BatchedEnv):
+class Push(egomotion.EgocentricEnv):
     """Two teams push a ball into the other team's goal; see the module docstring."""
 
     name = "push"
@@ -107,9 +106,6 @@ class Push(BatchedEnv):
     default_max_steps = 200
     default_resolution = 64
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
-    fov_y = math.radians(90.0)
-    near = 0.05
-    far = 20.0
     arena_half_extent = ARENA
 
     def __init__(self, *, goal_reward: float = 1.0, shaping: float = 0.0, **common):

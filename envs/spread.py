@@ -31,7 +31,6 @@ import marl_render as mr
 from marl_render.validation import positive_float, positive_int
 
 from . import egomotion, physics, scenery
-from .core import BatchedEnv
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.2  # agents and landmarks spawn in |x|, |y| <= SPAWN
@@ -45,7 +44,7 @@ CONTACT_TOLERANCE = 0.02  # a pair "collides" while its gap is below this (m)
 
 
 
-class Spread(BatchedEnv):
+class Spread(egomotion.EgocentricEnv):
     """Cooperative navigation; see the module docstring."""
 
     name = "spread"
@@ -54,9 +53,6 @@ class Spread(BatchedEnv):
     default_max_steps = 100
     default_resolution = 64
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
-    fov_y = math.radians(90.0)
-    near = 0.05
-    far = 20.0
     arena_half_extent = (ARENA, ARENA)
 
     def __init__(self, *, num_landmarks: int | None = None, collision_penalty: float = 1.0, **common):

@@ -58,7 +58,6 @@ import marl_render as mr
 from marl_render.validation import positive_float, positive_int
 
 from . import egomotion, physics, scenery
-from .core import BatchedEnv
 
 ARENA = 1.5  # half extent (m)
 OBSTACLE_HALF = 0.2  # half side of the square obstacles (m)
@@ -77,7 +76,7 @@ SPAWN_CLEARANCE = 0.05  # spawned bodies keep this much space to their spawn cel
 # discrete action -> (thrust, turn), the same set as spread
 
 
-class Tag(BatchedEnv):
+class Tag(egomotion.EgocentricEnv):
     """Predators and prey; see the module docstring."""
 
     name = "tag"
@@ -86,9 +85,6 @@ class Tag(BatchedEnv):
     default_max_steps = 100
     default_resolution = 64
     physics_terms = frozenset({"walls", "body_collisions", "obstacles", "drag"})  # "obstacles" only if K > 0
-    fov_y = math.radians(90.0)
-    near = 0.05
-    far = 20.0
     arena_half_extent = (ARENA, ARENA)
 
     def __init__(self, *, num_predators: int | None = None, num_prey: int | None = None, num_obstacles: int = 2,
