@@ -19,7 +19,8 @@ Data contract (W worlds, A agents, H x Wpx pixels)::
                continuous float  [W, A, action_dim] in [-1, 1]
       reward float32 [W, A]; terminated, truncated bool [W, A]
       info: "step_count" int64 [W] (steps of the episode just stepped),
-            "done_worlds" bool [W] (every agent terminated or truncated), plus env keys.
+            "done_worlds" bool [W] (every agent terminated or truncated), plus the env's
+            own ``info_keys`` (episode statistics, each [W] of the declared dtype).
 
 Agents that left the episode (``alive`` False, e.g. caught prey) stay in every tensor:
 their actions are ignored (they must still be valid values, e.g. 0), their reward is 0
@@ -113,6 +114,7 @@ class BatchedEnv(abc.ABC):
     default_max_steps: int = 100
     default_resolution = 64
     physics_terms: frozenset = frozenset()  # envs/physics.py terms this env computes
+    info_keys: dict = {}  # {name: dtype} of the env's own info entries, each [W], in every step's info
     background: tuple = scenery.SKY_COLOR
     fov_y: float = math.radians(70.0)
     near: float = 0.05

@@ -85,6 +85,7 @@ class Tag(egomotion.EgocentricEnv):
     default_max_steps = 100
     default_resolution = 64
     physics_terms = frozenset({"walls", "body_collisions", "obstacles", "drag"})  # "obstacles" only if K > 0
+    info_keys = {"caught": torch.int64, "prey_left": torch.int64}
     arena_half_extent = (ARENA, ARENA)
 
     def __init__(self, *, num_predators: int | None = None, num_prey: int | None = None, num_obstacles: int = 2,
