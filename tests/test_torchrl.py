@@ -137,6 +137,7 @@ def test_bad_group_maps():
         ({"a": ["agent_0", "agent_1"]}, ValueError, r"missing: \['agent_2'\]"),
         ({"a": ["agent_0", "agent_1", "agent_2", "agent_9"]}, ValueError, r"unknown agent\(s\) \['agent_9'\]"),
         ({"done": ["agent_0", "agent_1", "agent_2"]}, ValueError, "clash with TorchRL's root keys"),
+        ({"info": ["agent_0", "agent_1", "agent_2"]}, ValueError, r"group names \['info'\] clash"),
         ({"a": ["agent_0", "agent_1"], "b": ["agent_1", "agent_2"]}, ValueError, "agent_1"),
         ({"a": "agent_0"}, TypeError, "must be a list of agent names"),
     ]:
