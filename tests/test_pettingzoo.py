@@ -224,7 +224,7 @@ def test_spaces_and_outputs():
 
 @pytest.mark.parametrize("name", ENVS)
 def test_state_is_every_agents_state_observation(name):
-    env = make(name, state_obs=True)
+    env = make(name, state_obs=True, seed=0)
     space = env.state_space
     A, state_dim = len(env.possible_agents), env.core.state_dim
     assert space == spaces.Box(-np.inf, np.inf, (A * state_dim,), np.float32)
@@ -547,14 +547,15 @@ def test_tag_through_torchrl_pettingzoo_wrapper_recipe():
     from torchrl.envs import PettingZooWrapper
     from torchrl.envs.utils import check_env_specs
 
-    pz = make_parallel_env("tag", num_prey=2, num_obstacles=0, resolution=RES, max_steps=10)
+    pz = make_parallel_env("tag", num_prey=2, num_obstacles=0, resolution=RES, max_steps=10, seed=0)
     env = PettingZooWrapper(pz, use_mask=True, done_on_any=False)
     check_env_specs(env)
     td = env.reset()
-    # predator_0 within a catch of prey_0 (centres 0.28 m apart), everybody else far apart
+    # predator_0 within a catch of prey_0 (centres 0.28 m apart), everybody else far apart; all stay put
     pos = torch.tensor([[[0.0, 0.78], [-1.2, -1.2], [1.2, -1.2], [0.0, 0.5], [1.2, 1.2]]])
     pz.core.bodies = pz.core.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
-    td = env.rollout(3, auto_reset=False, tensordict=td, break_when_any_done=False)
+    noop = lambda td: td.update(env.full_action_spec.zero())  # noqa: E731
+    td = env.rollout(3, noop, auto_reset=False, tensordict=td, break_when_any_done=False)
     assert td["next", "prey", "mask"].tolist() == [[False, True]] * 3
     assert td["next", "prey", "terminated"][0].squeeze(-1).tolist() == [True, False]
     assert td["next", "prey", "reward"][0].squeeze(-1).tolist() == [-10.0, 0.0]
