@@ -30,13 +30,14 @@ def frame_image(pixels: torch.Tensor, overview: torch.Tensor, labels: list, scal
     size = (height, height * overview.shape[1] // overview.shape[0])
     side = F.interpolate(overview.permute(2, 0, 1)[None].float(), size=size, mode="nearest")[0]
     image = Image.fromarray(torch.cat((column, side.permute(1, 2, 0).to(torch.uint8)), dim=1).numpy())
-    draw = ImageDraw.Draw(image)
     width = views.shape[2]
-    boxes = [(0, i * tile, width - 1, (i + 1) * tile - 1) for i in range(len(labels))]
-    boxes.append((width, 0, image.width - 1, height - 1))
+    boxes = [(0, i * tile, width, (i + 1) * tile) for i in range(len(labels))] + [(width, 0, image.width, height)]
     for box, label in zip(boxes, list(labels) + ["overview"]):  # a few tiles per frame
-        draw.rectangle(box, outline=(25, 25, 25))
-        draw.text((box[0] + 3, box[1] + 2), label, font=font, fill="white", stroke_width=1, stroke_fill="black")
+        part = image.crop(box)  # drawn on its own, so a long label cannot spill into the next tile
+        draw = ImageDraw.Draw(part)
+        draw.rectangle((0, 0, part.width - 1, part.height - 1), outline=(25, 25, 25))
+        draw.text((3, 2), label, font=font, fill="white", stroke_width=1, stroke_fill="black")
+        image.paste(part, box[:2])
     return np.asarray(image)
 
 
