@@ -112,6 +112,7 @@ def main():
     parser.add_argument("--worlds", type=int, default=64)
     parser.add_argument("--agents", type=int, default=3)
     parser.add_argument("--resolution", type=int, default=32)
+    parser.add_argument("--max-steps", type=int, default=100, help="episode length (spread's default)")
     parser.add_argument("--rollout", type=int, default=32, help="steps per world per batch")
     parser.add_argument("--epochs", type=int, default=4)
     parser.add_argument("--minibatch", type=int, default=512, help="(world, step) samples per minibatch")
@@ -121,7 +122,7 @@ def main():
     args = parser.parse_args()
     torch.manual_seed(args.seed)
 
-    env_kwargs = dict(num_agents=args.agents, resolution=args.resolution, state_obs=True)
+    env_kwargs = dict(num_agents=args.agents, resolution=args.resolution, max_steps=args.max_steps, state_obs=True)
     env = make_torchrl_env("spread", num_worlds=args.worlds, seed=args.seed, **env_kwargs)
     eval_env = make_torchrl_env("spread", num_worlds=args.worlds, seed=10_000, **env_kwargs)
     actions = env.action_spec[GROUP, "action"].space.n
