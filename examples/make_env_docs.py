@@ -73,11 +73,9 @@ def missing(what: str, name: str) -> KeyError:
     return KeyError(f"no {what} for {name!r}: add one to {what} in examples/make_env_docs.py")
 
 
-def shape(tensor_shape, worlds: bool = True) -> str:
-    dims = [str(d) for d in tensor_shape]
-    if worlds:
-        dims[0] = "W"
-    return "[" + ", ".join(dims) + "]"
+def shape(tensor_shape) -> str:
+    """"[W, 3, 64, 64, 3]": a shape whose first dimension is the worlds'."""
+    return "[" + ", ".join(["W", *map(str, tensor_shape[1:])]) + "]"
 
 
 def dtype(value) -> str:
@@ -134,8 +132,8 @@ def actions(env, name: str) -> list:
         dims = CONTINUOUS_DIMS.get(name)
         if dims is None or len(dims) != continuous.action_dim:
             raise missing("CONTINUOUS_DIMS", name)
-        lines += ["", f"Continuous (`continuous=True`): `float32 {shape((WORLDS, env.num_agents, continuous.action_dim))}`,"
-                      " each in [-1, 1].", ""]
+        dims_shape = shape((WORLDS, env.num_agents, continuous.action_dim))
+        lines += ["", f"Continuous (`continuous=True`): `float32 {dims_shape}`, each in [-1, 1].", ""]
         lines += table(("dimension", "meaning"), list(enumerate(dims)))
     return lines
 
