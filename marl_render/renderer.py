@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from . import backend, shaders
+from .images import texture_pixels
 from .meshes import MeshData, to_panda_geom
 from .scene import Scene, StaticGroup
 from .culling import frustum_planes, mesh_radius, visible_pairs
@@ -613,19 +614,18 @@ def _vec3(values):
 
 
 def _panda_texture(texture, name):
-    """A Panda3D Texture from a uint8 array [h, w, 3|4], an image path, or a Texture."""
-    from panda3d.core import Filename, SamplerState, Texture, TexturePool
+    """A Panda3D Texture from a Texture, or from pixels: an image path or a uint8 array [h, w, 3|4].
+
+    Image files are decoded by Pillow (images.py), never by Panda3D's own readers, which
+    end the process on some corrupt files."""
+    from panda3d.core import SamplerState, Texture
 
     if type(texture).__name__ == "Texture":
         return texture
-    if isinstance(texture, str):
-        loaded = TexturePool.load_texture(Filename.from_os_specific(texture))
-        if loaded is None:
-            raise ValueError(f"texture of group {name!r}: could not load image file {texture!r}")
-        return loaded
-    array = np.asarray(texture)
-    if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] not in (3, 4):
-        raise ValueError(f"texture of group {name!r} must be uint8 [h, w, 3|4], got {describe(array)}")
+    try:
+        array = texture_pixels(texture, name="texture")
+    except (TypeError, ValueError) as error:
+        raise type(error)(f"texture of group {name!r}: {error}") from None
     h, w, channels = array.shape
     result = Texture(f"texture:{name}")
     result.setup_2d_texture(w, h, Texture.T_unsigned_byte, Texture.F_rgb if channels == 3 else Texture.F_rgba)

@@ -10,12 +10,14 @@ A Scene holds W worlds of A agents each. It has
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from . import meshes as mesh_lib
+from .images import texture_pixels
 from .shaders import EFFECTS
 from .validation import (as_tensor, check_finite, check_shape, describe, positive_float, positive_int,
                          resolution_hw)
@@ -137,6 +139,7 @@ class Scene:
             check_finite(label, value)
         if bool((scale < 0).any()):
             raise ValueError(f"scale must be >= 0 (mirrored instances are not supported), got minimum {scale.min().item()}")
+        texture = _resolve_texture(texture)
         group = StaticGroup(name, mesh, position, _unit(rotation), scale, color, texture, self._next_segment_base())
         self.static[name] = group
         return group
@@ -144,8 +147,9 @@ class Scene:
     def add_group(self, name: str, mesh, capacity: int, texture=None) -> InstanceGroup:
         """A mesh drawn up to `capacity` times per world, posed per step."""
         self._check_name(name)
-        group = InstanceGroup(name, _resolve_mesh(mesh), positive_int("capacity", capacity), texture,
-                              self._next_segment_base())
+        capacity = positive_int("capacity", capacity)
+        texture = _resolve_texture(texture)
+        group = InstanceGroup(name, _resolve_mesh(mesh), capacity, texture, self._next_segment_base())
         self.groups[name] = group
         return group
 
@@ -178,16 +182,27 @@ class Scene:
 
 
 def _resolve_mesh(mesh):
-    if isinstance(mesh, str) and mesh in mesh_lib.PROCEDURAL:
-        return mesh_lib.PROCEDURAL[mesh]()
     if isinstance(mesh, mesh_lib.MeshData):
         return mesh
-    if isinstance(mesh, str):
-        return mesh_lib.load_model(mesh)
+    if isinstance(mesh, str) and mesh in mesh_lib.PROCEDURAL:
+        return mesh_lib.PROCEDURAL[mesh]()
+    if isinstance(mesh, (str, os.PathLike)):
+        try:
+            return mesh_lib.load_model(mesh, name="mesh")
+        except FileNotFoundError as error:
+            raise FileNotFoundError(f"{error} (and it is not one of the procedural meshes "
+                                    f"{sorted(mesh_lib.PROCEDURAL)})") from None
     if type(mesh).__name__ == "NodePath":
         return mesh
     raise TypeError(f"mesh must be a MeshData, a procedural name {sorted(mesh_lib.PROCEDURAL)}, a model path "
                     f"or a Panda3D NodePath, got {describe(mesh)}")
+
+
+def _resolve_texture(texture):
+    """None, a Panda3D Texture as it is, or checked pixels the scene owns (files decoded now)."""
+    if texture is None or type(texture).__name__ == "Texture":
+        return texture
+    return texture_pixels(texture, name="texture")
 
 
 def _pose_defaults(count, rotation, scale, color):

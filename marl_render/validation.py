@@ -5,6 +5,8 @@ unchanged. Messages name the argument, what was expected and what was given.
 """
 from __future__ import annotations
 
+import os
+import stat
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -115,3 +117,31 @@ def resolution_hw(value, *, name: str = "resolution", max_size: int | None = Non
     if max_size is not None and max(hw) > max_size:
         raise ValueError(f"{name} must be at most {max_size} pixels on each side (GL limit), got {hw}")
     return hw
+
+
+_FILE_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+               (stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket"))
+
+
+def regular_file(name: str, value, *, kind: str) -> str:
+    """The path of an existing regular file, as a str; `kind` ("model", "image") words the errors.
+
+    Devices, pipes and directories are refused before anything opens them (reading a pipe
+    could block for ever, /dev/zero never ends)."""
+    if not isinstance(value, (str, os.PathLike)):
+        raise TypeError(f"{name} must be a {kind} file path (str or os.PathLike), got {describe(value)}")
+    path = os.fspath(value)
+    if not isinstance(path, str):
+        raise TypeError(f"{name} must be a {kind} file path given as str, got bytes {path!r}")
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{name}: {kind} file {path!r} does not exist") from None
+    except OSError as error:
+        raise ValueError(f"{name}: {kind} file {path!r} cannot be read ({error.strerror})") from None
+    except ValueError:  # os.stat refuses NUL characters
+        raise ValueError(f"{name} must be a {kind} file path without NUL characters, got {path!r}") from None
+    if not stat.S_ISREG(mode):
+        what = next((text for test, text in _FILE_KINDS if test(mode)), "something else")
+        raise ValueError(f"{name} must be a regular {kind} file, got {path!r}, which is {what}")
+    return path

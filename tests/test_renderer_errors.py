@@ -127,7 +127,7 @@ def test_bad_groups_and_meshes(tmp_path):
         scene.add_group("model", str(tmp_path / "missing.egg"), capacity=1)
     corrupt = tmp_path / "corrupt.egg"
     corrupt.write_text("<Group> { this is not an egg file")
-    with pytest.raises(ValueError, match="could not be loaded by Panda3D"):
+    with pytest.raises(ValueError, match=r"(?s)mesh: model file '.*corrupt.egg' could not be loaded by Panda3D.*syntax error"):
         scene.add_group("model", str(corrupt), capacity=1)
     with pytest.raises(TypeError, match="mesh must be a MeshData"):
         scene.add_group("model", 42, capacity=1)
@@ -167,6 +167,12 @@ def test_use_after_close_is_a_clear_error():
 
 def test_texture_must_be_an_image():
     scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=16, effects=("texture",))
-    scene.add_group("boxes", "box", capacity=1, texture=np.zeros((4, 4), dtype=np.uint8))
-    with pytest.raises(ValueError, match=r"texture of group 'boxes' must be uint8 \[h, w, 3\|4\]"):
-        mr.BatchRenderer(scene)
+    with pytest.raises(ValueError, match=r"texture must be a uint8 array \[h, w, 3\|4\] with h, w >= 1, got array "
+                                         r"of shape \(4, 4\), dtype uint8"):
+        scene.add_group("boxes", "box", capacity=1, texture=np.zeros((4, 4), dtype=np.uint8))
+    assert not scene.groups
+    # A group made some other way is still checked when the renderer builds its texture.
+    from marl_render.renderer import _panda_texture
+
+    with pytest.raises(ValueError, match=r"texture of group 'boxes': texture must be a uint8 array"):
+        _panda_texture(np.zeros((4, 4), dtype=np.uint8), "boxes")
