@@ -13,12 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchmarl.algorithms import MappoConfig
-from benchmarl.experiment import Experiment, ExperimentConfig
-from benchmarl.models import CnnConfig
-
 from marl_render.envs import list_envs
-from marl_render.wrappers.benchmarl import MarlRenderTask
 
 
 def main():
@@ -31,6 +26,14 @@ def main():
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="out/benchmarl")
     args = parser.parse_args()
+    try:  # imported here so that --help works without BenchMARL
+        from benchmarl.algorithms import MappoConfig
+        from benchmarl.experiment import Experiment, ExperimentConfig
+        from benchmarl.models import CnnConfig
+    except ImportError as exc:
+        parser.exit(2, f"{exc}: this example needs BenchMARL; `make test-benchmarl` builds .venv-benchmarl "
+                       f"with it, then run .venv-benchmarl/bin/python {parser.prog}\n")
+    from marl_render.wrappers.benchmarl import MarlRenderTask
 
     task = getattr(MarlRenderTask, args.env.upper()).get_task(
         config={"resolution": args.resolution, "max_steps": args.steps})

@@ -153,7 +153,8 @@ def front_ends(name: str) -> list:
     done = ", ".join(f"`{key}`" for key in env.full_done_spec.keys(True, True))
     lines += [f"TorchRL, `make_torchrl_env({name!r}, num_worlds=W)` (batch `[W]`, one group per team):", ""]
     lines += table(("key", "shape", "dtype"), rows)
-    lines += ["", f"and the bool done keys {done} (`[W, n, 1]` per group of n agents, `[W, 1]` at the root)."]
+    lines += ["", f"and the bool done keys {done} (`[W, 1]`, per world: worlds are the unit of reset, so the "
+                  f"one reset key is `_reset`; the per-agent flags are the group entries above)."]
     env.close()
     return lines
 
