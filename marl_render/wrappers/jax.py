@@ -20,8 +20,9 @@ TypeError before anything changes.
 Zero-copy: every tensor the core returns reaches JAX through DLPack, so the JAX array
 reads the tensor's memory. This is safe because the core hands out fresh tensors that the
 caller owns (nothing writes to them after the call returns). XLA's CPU client aliases a
-buffer only if it is 64-byte aligned (jaxlib 0.10.2 copies at 16- and 32-byte offsets)
-and densely strided (it refuses strided slices). torch's CPU allocator aligns every
+buffer only if it is 64-byte aligned (jaxlib 0.10.2 copies at 16- and 32-byte offsets;
+with ``copy=False`` it says "not aligned to 64 bytes") and densely strided (it refuses
+strided slices). torch's CPU allocator aligns every
 allocation to 64 bytes and the core returns contiguous tensors, so pixels, depth, state,
 action_mask, reward, terminated, truncated and 32-bit info entries arrive without a copy;
 ``to_jax`` copies any other tensor once into a fresh one. 64-bit tensors (``info
