@@ -26,6 +26,7 @@ OPTIONS = {  # beyond --help and --out, which every example takes
     "train_mappo.py": ["--minutes", "--worlds", "--agents", "--resolution", "--max-steps", "--seed"],
     "distributed_collect.py": ["--env", "--workers", "--worlds", "--resolution", "--steps-per-batch", "--batches"],
     "make_env_docs.py": ["--seed"],
+    "jax_policy_gradient.py": ["--worlds", "--resolution", "--steps", "--horizon", "--seed"],
 }
 
 
