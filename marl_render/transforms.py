@@ -5,8 +5,6 @@ Quaternions are unit (w, x, y, z). Every function works on any leading batch sha
 """
 from __future__ import annotations
 
-import math
-
 import torch
 
 # Below this norm a quaternion carries no usable direction.
@@ -85,11 +83,6 @@ def matrix_to_quat(m: torch.Tensor) -> torch.Tensor:
     best = diag.argmax(dim=-1)
     q = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
     return normalize_quat(q)
-
-
-def axis_angle(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    half = 0.5 * angle
-    return torch.cat((torch.cos(half)[..., None], torch.sin(half)[..., None] * axis), dim=-1)
 
 
 def quat_from_yaw_pitch_roll(yaw, pitch=None, roll=None) -> torch.Tensor:
@@ -191,7 +184,3 @@ def view_matrix(position: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
     bottom = torch.zeros(*position.shape[:-1], 1, 4, dtype=position.dtype, device=position.device)
     bottom[..., 0, 3] = 1.0
     return torch.cat((torch.cat((r, t[..., None]), -1), bottom), -2)
-
-
-def deg(x: float) -> float:
-    return math.radians(x)

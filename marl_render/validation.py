@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 import stat
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -84,12 +84,6 @@ def check_range(name: str, tensor: torch.Tensor, low=None, high=None) -> None:
         raise ValueError(f"{name} must be >= {low}, got minimum {tensor.min().item()}")
     if high is not None and bool((tensor > high).any()):
         raise ValueError(f"{name} must be <= {high}, got maximum {tensor.max().item()}")
-
-
-def check_choice(name: str, value, choices: Iterable) -> None:
-    choices = list(choices)
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
 
 
 def positive_int(name: str, value, *, minimum: int = 1) -> int:

@@ -95,7 +95,7 @@ def _several_processes(args) -> float:
 
 def run(args) -> dict:
     import marl_render as mr
-    from marl_render.naive import NaiveRenderer
+    from marl_render.bench.naive import NaiveRenderer
 
     result = {"benchmark": "effects", "worlds": args.worlds, "agents": args.agents, "resolution": args.resolution,
               "views": args.worlds * args.agents, "machine": machine(), "effects": [], "ablation": []}

@@ -2,8 +2,10 @@
 
 One offscreen buffer; one camera and display region per view; one scene root per world
 holding ordinary nodes (a pivot per instance, moved by Python calls, with the geometry
-and the mounted camera below it); Panda3D's own lights; one readback per frame. It takes the same Scene and the same update()/set_cameras()
-arguments as BatchRenderer, so both can render identical scenes.
+and the mounted camera below it); Panda3D's own lights; one readback per frame. It takes
+the same Scene and the same update()/set_cameras() arguments as BatchRenderer, so both
+can render identical scenes. Used by the benchmarks (`render`, `effects`) and the tests
+that compare the two renderers; it loops over worlds and instances in Python on purpose.
 """
 from __future__ import annotations
 
@@ -12,12 +14,12 @@ import math
 import numpy as np
 import torch
 
-from . import backend
-from .meshes import MeshData, to_panda_geom
-from .renderer import Frame
-from .scene import Scene
-from .tiling import plan_layout
-from .transforms import look_at_quat, normalize_quat
+from marl_render import backend
+from marl_render.meshes import MeshData, to_panda_geom
+from marl_render.renderer import Frame
+from marl_render.scene import Scene
+from marl_render.tiling import plan_layout
+from marl_render.transforms import look_at_quat, normalize_quat
 
 
 class NaiveRenderer:
