@@ -3,7 +3,7 @@
 Steps --worlds worlds (default 64) of --env (default spread) with uniformly random
 actions, auto-reset of finished worlds (autoreset=True) and, every --reset-every steps,
 reset_worlds() of a random subset (each world with probability --reset-fraction).
-Every --every steps it samples the resident memory (RSS, from /proc/self/statm) and
+Every --every steps it samples the resident memory (RSS, through psutil) and
 checks the simulation state; every step it checks the float observations and rewards
 for NaN/Inf. After --warmup steps the memory growth is reported as MB in total and MB
 per 1000 steps (least-squares slope over the samples after warm-up).
@@ -17,8 +17,6 @@ memory that is still in use rather than freed memory the allocator keeps for reu
 """
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import gc
 import json
 import os
@@ -26,7 +24,7 @@ import time
 
 import torch
 
-from .common import machine, progress
+from .common import machine, malloc_trim, progress, rss_mb
 
 
 def add_arguments(parser):
@@ -51,30 +49,6 @@ def add_arguments(parser):
 
 
 # ---------------------------------------------------------------------- memory
-def rss_mb() -> float:
-    """Resident set size of this process in MB (Linux)."""
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
-
-
-_LIBC = None
-
-
-def malloc_trim() -> bool:
-    """Return freed heap memory to the OS (glibc only); False where unavailable."""
-    global _LIBC
-    if _LIBC is None:
-        try:
-            _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-            _LIBC.malloc_trim.argtypes = [ctypes.c_size_t]
-        except (OSError, AttributeError):
-            _LIBC = False
-    if not _LIBC:
-        return False
-    _LIBC.malloc_trim(0)
-    return True
-
-
 def render_state_count() -> int | None:
     """Panda3D RenderStates alive (a leak of render states shows here first)."""
     try:
