@@ -330,7 +330,7 @@ def test_scene_arguments(kwargs):
         frame = renderer.render()
     assert frame.rgb.dtype == torch.uint8 and frame.rgb.shape == (worlds, agents, height, width, 3)
     background = torch.tensor(scene.background[:3], dtype=torch.float64) * 255
-    assert (frame.rgb.to(torch.float64) - background).abs().max() <= 0.5 + 1e-6, (scene.background, frame.rgb[0, 0, 0, 0])
+    assert (frame.rgb.to(torch.float64) - background).abs().max() <= 0.5 + 1e-6, (scene.background, frame.rgb[0, 0, 0])
 
 
 @settings(max_examples=25, **SETTINGS)

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import statistics
 import sys
 import time
@@ -302,7 +301,7 @@ class Sweeps:
             same = [p for p in points if p["resolution"] == resolution]
             flags = [dict(p) for p in same]
             pareto_flags(flags)
-            for p, f in zip(same, flags):
+            for p, f in zip(same, flags, strict=True):
                 p["pareto_at_resolution"] = f["pareto"]
         self.result["image"] = {
             "what": f"spread scene ({self.state.scene.num_views} views), lighting; error vs {REFERENCE_AA} at the "
@@ -403,7 +402,7 @@ class Sweeps:
             self.bar.update(1 + len(SPREAD_INTEGRATORS))
             points = []
             for (substeps, integrator), (bodies, rounds) in zip(
-                    settings, self._timed_rollouts("spread", settings, rollout, c["physics_rounds"])):
+                    settings, self._timed_rollouts("spread", settings, rollout, c["physics_rounds"]), strict=True):
                 seconds = min(rounds)
                 pos_err = (bodies.pos - reference.pos).norm(dim=-1)
                 vel_err = (bodies.vel - reference.vel).norm(dim=-1)
@@ -461,7 +460,7 @@ class Sweeps:
         settings = [(s, i) for i in CARTPOLE_INTEGRATORS for s in c["substeps"]]
         points, energy_points = [], []
         for (substeps, integrator), (q, rounds) in zip(
-                settings, self._timed_rollouts("cartpole", settings, rollout, c["physics_rounds"])):
+                settings, self._timed_rollouts("cartpole", settings, rollout, c["physics_rounds"]), strict=True):
             seconds = min(rounds)
             q_err = (q[:, :2] - reference[:, :2]).norm(dim=-1)
             s_err = (q - reference).norm(dim=-1)
@@ -472,7 +471,7 @@ class Sweeps:
                            "q_max": float(q_err.max()), "state_rms": float(s_err.pow(2).mean().sqrt())})
         physics_seconds = time.perf_counter() - started
         for (substeps, integrator), ((drift, e0), rounds) in zip(
-                settings, self._timed_rollouts("energy", settings, energy_rollout, c["energy_rounds"])):
+                settings, self._timed_rollouts("energy", settings, energy_rollout, c["energy_rounds"]), strict=True):
             seconds = min(rounds)
             energy_points.append({"label": f"{SHORT[integrator]} x{substeps}", "integrator": integrator,
                                   "substeps": substeps, "world_steps_per_s": W * E / seconds,

@@ -27,7 +27,7 @@ def observed_order(points: list, floor: float = 1e-12):
     pairs = [(math.log(p["substeps"]), math.log(p["error"])) for p in points if p["error"] > floor]
     if len({x for x, _ in pairs}) < 2:
         return None
-    xs, ys = zip(*pairs)
+    xs, ys = zip(*pairs, strict=True)
     return -float(np.polyfit(xs, ys, 1)[0])
 
 
@@ -111,7 +111,8 @@ def recommendations(result: dict) -> list:
                 f"MAE {worst64['error']:.3f} ({worst64['pixels_changed']:.2%} of pixels changed); positions cast "
                 f"to float32 first reach MAE {far['error']:.1f} at {far['offset_m']:.0e} m "
                 f"({far['pixels_changed']:.0%} of pixels changed, float32 spacing {far['float32_spacing_m']:g} m)")
-        text += (f"; float32 already changes {first_bad['pixels_changed']:.1%} of pixels at {first_bad['offset_m']:.0e} m "
+        text += (f"; float32 already changes {first_bad['pixels_changed']:.1%} of pixels at "
+                 f"{first_bad['offset_m']:.0e} m "
                  f"(MAE {first_bad['error']:.2f}, worst pixel off by {first_bad['max_abs']:.0f})" if first_bad else "")
         out.append(text + ". Keep world positions in float64 up to BatchRenderer.update (it recentres and splits "
                           "them); never cast them to float32 before.")
@@ -133,7 +134,8 @@ def recommendations(result: dict) -> list:
             pairs = [(p["error"], q["error"]) for p in points for q in points if p["integrator"] == integrator
                      and q["integrator"] == first and p["substeps"] == q["substeps"] and q["error"] > 0]
             if pairs:
-                ratios.append(f"{SHORT[integrator]} {min(a / b for a, b in pairs):.2g}-{max(a / b for a, b in pairs):.2g}x")
+                low, high = min(a / b for a, b in pairs), max(a / b for a, b in pairs)
+                ratios.append(f"{SHORT[integrator]} {low:.2g}-{high:.2g}x")
         if ratios:
             out.append(f"{name}: error relative to {SHORT[first]} at the same substeps: " + ", ".join(ratios) + ".")
         default = next((p for p in points if p.get("default")), None)
@@ -162,9 +164,10 @@ def recommendations(result: dict) -> list:
 
 
 # ============================================================================ accuracy.md
-def _table(headers: list, rows: list, floatfmt: list) -> list:
-    """Markdown table lines; numbers formatted per column, None shown as ∞ (PSNR of identical images)."""
-    return tabulate(rows, headers, tablefmt="pipe", floatfmt=floatfmt, missingval="∞").splitlines()
+def _table(headers: list, rows: list, floatfmt: list, missingval="∞") -> list:
+    """Markdown table lines; numbers formatted per column, None shown as `missingval` (by default
+    ∞: the PSNR of identical images)."""
+    return tabulate(rows, headers, tablefmt="pipe", floatfmt=floatfmt, missingval=missingval).splitlines()
 
 
 def _pareto(point: dict) -> str:
@@ -195,15 +198,15 @@ def write(out: str, result: dict) -> None:
                     ["", "", ",.0f", ",.1f", ".3f", ".2f", ".0f", ".1%", "", "", ""])
     for aa in dict.fromkeys(k["aa"] for k in s["image"]["skipped"]):
         skips = [k for k in s["image"]["skipped"] if k["aa"] == aa]
-        lines += ["", f"Not measured: {aa} at {', '.join(str(k['resolution']) for k in skips)} px ({skips[0]['reason']})."]
+        resolutions = ", ".join(str(k["resolution"]) for k in skips)
+        lines += ["", f"Not measured: {aa} at {resolutions} px ({skips[0]['reason']})."]
 
     lines += ["", "## Effects", "", s["effects"]["what"] + ". Pareto front within each effect set.", ""]
     lines += _table(["effects", "AA", "views/s", "µs/view", "time vs no effect", "MAE", "PSNR dB", "px changed",
                      "Pareto"],
-                    [[p["effects"], p["aa"], p["views_per_s"], p["cost_s"] * 1e6,
-                      "" if p["cost_vs_no_effect"] is None else f"{p['cost_vs_no_effect']:+.0%}", p["mae"],
+                    [[p["effects"], p["aa"], p["views_per_s"], p["cost_s"] * 1e6, p["cost_vs_no_effect"], p["mae"],
                       p["psnr_db"], p["pixels_changed"], _pareto(p)] for p in s["effects"]["points"]],
-                    ["", "", ",.0f", ",.1f", "", ".3f", ".2f", ".1%", ""])
+                    ["", "", ",.0f", ",.1f", "+.0%", ".3f", ".2f", ".1%", ""], ["", "", "", "", "", "", "∞", "", ""])
 
     lines += ["", "## Far from the origin: float64 vs float32 positions", "", s["precision"]["what"] + ".", ""]
     lines += _table(["offset (m)", "positions", "float32 spacing (m)", "views/s", "MAE", "PSNR dB", "max abs",
@@ -260,7 +263,8 @@ def _plot(path: str, result: dict) -> None:
                "RMS (x, θ) error"),
               ("cartpole_energy", "integrator", "cart-pole energy drift (frictionless)", "µs per world-step", 1e6,
                "energy drift (J)")]
-    for ax, (key, series, title, xlabel, scale, ylabel) in zip(axes.flat, panels):
+    # Five panels here; the sixth axis (precision) is drawn below.
+    for ax, (key, series, title, xlabel, scale, ylabel) in zip(axes.flat, panels, strict=False):
         points = [p for p in s[key]["points"] if not p.get("reference") and p["error"] > 0]
         names = list(dict.fromkeys(p[series] for p in points))
         for index, name in enumerate(names):

@@ -101,7 +101,7 @@ def _write(out: str, result: dict) -> None:
         for stage in STAGES:
             values = [r["stage_ms"][stage] / r["views"] * 1e3 for r in rows]
             ax.bar([str(x) for x in xs], values, bottom=bottom, label=stage)
-            bottom = [b + v for b, v in zip(bottom, values)]
+            bottom = [b + v for b, v in zip(bottom, values, strict=True)]
         ax.set_xlabel(label)
         ax.set_ylabel("µs per view (stacked stages)")
         twin = ax.twinx()

@@ -224,7 +224,7 @@ def _plot_pil(steps, rss, warmup, title, path):
                 height - margin - (height - 2 * margin) * (value - low) / (high - low))
 
     draw.rectangle([xy(0, high), xy(min(warmup, last), low)], fill=(230, 230, 230))
-    draw.line([xy(s, v) for s, v in zip(steps, rss)] or [xy(0, low)], fill=(31, 119, 180), width=2)
+    draw.line([xy(s, v) for s, v in zip(steps, rss, strict=True)] or [xy(0, low)], fill=(31, 119, 180), width=2)
     draw.rectangle([margin, margin, width - margin, height - margin], outline="black")
     draw.text((margin, 15), title, fill="black")
     draw.text((margin, height - margin + 8), f"step 0 .. {last}", fill="black")
