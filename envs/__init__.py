@@ -2,7 +2,7 @@
 
     from marl_render.envs import list_envs, make_env
     env = make_env("spread", num_worlds=256, num_agents=4, resolution=64)
-    obs = env.reset(seed=0)                      # obs["pixels"]: uint8 [W, A, H, W, 3]
+    obs = env.reset(seed=0)                      # obs["pixels"]: uint8 [W, A, H, Wpx, 3]
     obs, reward, terminated, truncated, info = env.step(actions)
 
 make_env returns the batched core (BatchedEnv, see envs/core.py). The PettingZoo and

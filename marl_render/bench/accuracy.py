@@ -177,7 +177,7 @@ _REFUSED_SAMPLES = {}  # MSAA sample counts the GL refused once: not asked for a
 
 def render_point(state: SpreadState, cfg: dict, *, resolution: int, effects, aa: str, max_framebuffer: int,
                  offset=None, float32=False, timed=True):
-    """(image [W, A, H, W, 3] uint8, seconds per view or None, skip reason or None)."""
+    """(image [W, A, H, Wpx, 3] uint8, seconds per view or None, skip reason or None)."""
     import marl_render as mr
     from marl_render import backend
 
@@ -364,14 +364,14 @@ class Sweeps:
         from marl_render.envs import make_env
 
         c = self.cfg
-        W, H = c["physics_worlds"], c["spread_horizon"]
+        W, T = c["physics_worlds"], c["spread_horizon"]  # worlds, steps (the horizon)
         started = time.perf_counter()
         env = make_env("spread", num_worlds=W, resolution=8, seed=self.args.seed)
         base = env.physics
         try:
             env.reset(seed=self.args.seed)
             generator = torch.Generator().manual_seed(self.args.seed + 1)
-            actions = torch.randint(env.num_actions, (H, W, env.num_agents), generator=generator)
+            actions = torch.randint(env.num_actions, (T, W, env.num_agents), generator=generator)
             alive = torch.ones(W, env.num_agents, dtype=torch.bool)
             b = env.bodies
             start = b._replace(pos=b.pos.double(), vel=b.vel.double(), radius=b.radius.double(),
@@ -410,7 +410,7 @@ class Sweeps:
                 points.append({
                     "label": f"{SHORT[integrator]} x{substeps}", "integrator": integrator, "substeps": substeps,
                     "default": substeps == base.substeps and integrator == base.integrator,
-                    "world_steps_per_s": W * H / seconds, "cost_s": seconds / (W * H), "cost_rounds_s": rounds,
+                    "world_steps_per_s": W * T / seconds, "cost_s": seconds / (W * T), "cost_rounds_s": rounds,
                     "error": float(pos_err.pow(2).mean().sqrt()), "pos_rms_m": float(pos_err.pow(2).mean().sqrt()),
                     "pos_max_m": float(pos_err.max()), "vel_rms_m_s": float(vel_err.pow(2).mean().sqrt()),
                     "pos_rms_vs_own_64_m": float(own_err.pow(2).mean().sqrt())})
@@ -421,7 +421,7 @@ class Sweeps:
         pareto_flags(points)
         self.result["spread_physics"] = {
             "what": f"spread physics (dt {base.dt} s, walls + collisions + drag), {W} worlds x {agents} agents, "
-                    f"{H} steps of random actions, float64; error vs velocity_verlet x{c['reference_substeps']}",
+                    f"{T} steps of random actions, float64; error vs velocity_verlet x{c['reference_substeps']}",
             "cost": "seconds per world-step", "error": "RMS position error (m)", "env_default":
                 {"substeps": base.substeps, "integrator": base.integrator}, "seconds": time.perf_counter() - started,
             "points": points, "skipped": skipped}
@@ -430,13 +430,13 @@ class Sweeps:
         from marl_render.envs import physics
 
         c = self.cfg
-        W, H, E = c["physics_worlds"], c["cartpole_horizon"], c["energy_horizon"]
+        W, T, TE = c["physics_worlds"], c["cartpole_horizon"], c["energy_horizon"]  # worlds, steps, energy steps
         started = time.perf_counter()
         g = torch.Generator().manual_seed(self.args.seed)
         f64 = dict(generator=g, dtype=torch.float64)
         start = torch.stack((torch.rand(W, **f64) - 0.5, (torch.rand(W, **f64) * 2 - 1) * math.pi,
                              torch.randn(W, **f64), torch.randn(W, **f64)), -1)
-        actions = torch.rand(H, W, **f64) * 2 - 1
+        actions = torch.rand(T, W, **f64) * 2 - 1
         zeros = torch.zeros(W, dtype=torch.float64)
 
         def rollout(substeps, integrator):
@@ -448,7 +448,7 @@ class Sweeps:
         def energy_rollout(substeps, integrator):
             q, e0 = start, physics.cartpole_energy(start)
             drift = torch.zeros(W, dtype=torch.float64)
-            for _ in range(E):
+            for _ in range(TE):
                 q = physics.cartpole_step(q, zeros, substeps=substeps, integrator=integrator, slider_damping=0.0,
                                           hinge_damping=0.0)
                 drift = torch.maximum(drift, (physics.cartpole_energy(q) - e0).abs())
@@ -466,7 +466,7 @@ class Sweeps:
             s_err = (q - reference).norm(dim=-1)
             points.append({"label": f"{SHORT[integrator]} x{substeps}", "integrator": integrator,
                            "substeps": substeps, "default": substeps == 1 and integrator == "rk4",
-                           "world_steps_per_s": W * H / seconds, "cost_s": seconds / (W * H), "cost_rounds_s": rounds,
+                           "world_steps_per_s": W * T / seconds, "cost_s": seconds / (W * T), "cost_rounds_s": rounds,
                            "error": float(q_err.pow(2).mean().sqrt()), "q_rms": float(q_err.pow(2).mean().sqrt()),
                            "q_max": float(q_err.max()), "state_rms": float(s_err.pow(2).mean().sqrt())})
         physics_seconds = time.perf_counter() - started
@@ -474,22 +474,22 @@ class Sweeps:
                 settings, self._timed_rollouts("energy", settings, energy_rollout, c["energy_rounds"]), strict=True):
             seconds = min(rounds)
             energy_points.append({"label": f"{SHORT[integrator]} x{substeps}", "integrator": integrator,
-                                  "substeps": substeps, "world_steps_per_s": W * E / seconds,
-                                  "cost_s": seconds / (W * E), "cost_rounds_s": rounds, "error": float(drift.mean()),
+                                  "substeps": substeps, "world_steps_per_s": W * TE / seconds,
+                                  "cost_s": seconds / (W * TE), "cost_rounds_s": rounds, "error": float(drift.mean()),
                                   "drift_mean_j": float(drift.mean()), "drift_max_j": float(drift.max()),
                                   "energy_spread_j": float(e0.max() - e0.min())})
         pareto_flags(points)
         pareto_flags(energy_points)
         dt = physics.CARTPOLE["timestep"]
         self.result["cartpole_physics"] = {
-            "what": f"physics.cartpole_step (dt {dt} s, dm_control dampings, no slider limit), {W} worlds, {H} steps "
-                    f"({H * dt:g} s) of random actions from random swinging states, float64; error vs rk4 x"
+            "what": f"physics.cartpole_step (dt {dt} s, dm_control dampings, no slider limit), {W} worlds, {T} steps "
+                    f"({T * dt:g} s) of random actions from random swinging states, float64; error vs rk4 x"
                     f"{c['reference_substeps']}",
             "cost": "seconds per world-step", "error": "RMS of |(dx, dtheta)| (m, rad)",
             "env_default": {"substeps": 1, "integrator": "rk4"}, "seconds": physics_seconds, "points": points,
             "skipped": []}
         self.result["cartpole_energy"] = {
-            "what": f"frictionless cart-pole (dampings 0, action 0), {W} worlds, {E} steps ({E * dt:g} s); "
+            "what": f"frictionless cart-pole (dampings 0, action 0), {W} worlds, {TE} steps ({TE * dt:g} s); "
                     "error = max over time of |E(t) - E(0)|, mean over worlds",
             "cost": "seconds per world-step", "error": "energy drift (J)",
             "seconds": time.perf_counter() - started - physics_seconds, "points": energy_points, "skipped": []}
