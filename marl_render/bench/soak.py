@@ -22,6 +22,7 @@ import json
 import os
 import time
 
+import numpy as np
 import torch
 
 from .common import machine, malloc_trim, progress, rss_mb
@@ -63,11 +64,8 @@ def slope_per_step(points: list[tuple[int, float]]) -> float:
     """Least-squares slope of (step, value) pairs; 0.0 with fewer than 2 distinct steps."""
     if len({s for s, _ in points}) < 2:
         return 0.0
-    n = len(points)
-    mean_s = sum(s for s, _ in points) / n
-    mean_v = sum(v for _, v in points) / n
-    var = sum((s - mean_s) ** 2 for s, _ in points)
-    return sum((s - mean_s) * (v - mean_v) for s, v in points) / var
+    steps, values = zip(*points, strict=True)
+    return float(np.polyfit(steps, values, 1)[0])
 
 
 # ---------------------------------------------------------------------- checks
