@@ -2,7 +2,7 @@
 
     from marl_render.envs import list_envs, make_env
     env = make_env("spread", num_worlds=256, num_agents=4, resolution=64)
-    obs = env.reset(seed=0)                      # obs["pixels"]: uint8 [W, A, H, W, 3]
+    obs = env.reset(seed=0)                      # obs["pixels"]: uint8 [W, A, H, Wpx, 3]
     obs, reward, terminated, truncated, info = env.step(actions)
 
 make_env returns the batched core (BatchedEnv, see envs/core.py). The PettingZoo and
@@ -13,11 +13,8 @@ from .registry import env_class, list_envs, make_env, register
 
 __all__ = ["BatchedEnv", "OBS_KEYS", "env_class", "list_envs", "make_env", "register"]
 
-# ---- front ends (PettingZoo / TorchRL wrappers): filled in by their authors ----------------
-# Exported lazily so that importing marl_render.envs never imports pettingzoo or torchrl.
-# Map each public name to "module:attribute", e.g.
-#   "make_parallel_env": "marl_render.envs.pettingzoo_env:make_parallel_env",
-#   "make_torchrl_env": "marl_render.envs.torchrl_env:make_torchrl_env",
+# The front ends (marl_render/wrappers/) are exported lazily, so that importing
+# marl_render.envs never imports pettingzoo or torchrl: public name -> "module:attribute".
 _LAZY_EXPORTS: dict = {
     "make_parallel_env": "marl_render.wrappers.pettingzoo:make_parallel_env",
     "make_torchrl_env": "marl_render.wrappers.torchrl:make_torchrl_env",

@@ -57,13 +57,6 @@ def palette(n: int, offset: int = 0) -> torch.Tensor:
     return base * shade[:, None]
 
 
-def team_color(team: str) -> tuple:
-    """The colour of a team name (TEAM_COLORS), or a palette colour derived from the name."""
-    if team in TEAM_COLORS:
-        return TEAM_COLORS[team]
-    return PALETTE[sum(map(ord, team)) % len(PALETTE)]
-
-
 # ---------------------------------------------------------------------- static scenery
 def add_arena(scene: mr.Scene, half_extent=(1.5, 1.5), *, wall_height: float = 0.4, wall_thickness: float = 0.1,
               floor_margin: float = 4.0, floor_color=FLOOR_COLOR, wall_color=WALL_COLOR,

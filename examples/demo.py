@@ -49,7 +49,7 @@ def random_poses(renderer, scene, generator):
 
 
 def save_grid(rgb: torch.Tensor, path: str, scale: int = 2) -> None:
-    """[W, A, H, W, 3] -> one image: a row per world, a column per agent, 2 px gaps."""
+    """[W, A, H, Wpx, 3] -> one image: a row per world, a column per agent, 2 px gaps."""
     worlds, agents, h, w, _ = rgb.shape
     canvas = np.full((worlds * (h + 2), agents * (w + 2), 3), 255, dtype=np.uint8)
     for world in range(worlds):  # a handful of tiles for a picture, not a hot path

@@ -224,7 +224,7 @@ def page(seed: int | None, picture_dir: str | None) -> str:
              "Every env is a `BatchedEnv` (envs/core.py) of W worlds x A agents: `make_env(name, num_worlds=W, "
              "...)` for the batched core, `make_parallel_env(name)` for PettingZoo (one world), "
              "`make_torchrl_env(name, num_worlds=W)` for TorchRL. Common keyword arguments: `num_worlds`, "
-             "`num_agents`, `resolution` (int or (H, W)), `max_steps`, `continuous`, `state_obs`, `depth`, "
+             "`num_agents`, `resolution` (int or (height, width)), `max_steps`, `continuous`, `state_obs`, `depth`, "
              "`device`, `seed`, `autoreset`. Agents that leave an episode (caught prey) stay in every tensor: "
              "reward 0, reported terminated, actions ignored (they must still be valid, e.g. 0), until their "
              "world is reset. `truncated` is True for the agents still in the episode when the world reaches "

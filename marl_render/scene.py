@@ -6,6 +6,18 @@ A Scene holds W worlds of A agents each. It has
   mask/owner, updated every step by the environment;
 - cameras: A per world, free or mounted on instances (egocentric);
 - the effects it declares; only those are compiled into the shaders.
+
+Names used for sizes throughout the project (code, docstrings, docs):
+  W    worlds                          Scene(num_worlds=), make_env(num_worlds=)
+  A    agents per world                Scene(agents_per_world=), make_env(num_agents=): the same
+                                       number; each agent has one camera
+  V    views = W * A                   Scene.num_views; view v = w * A + a (world-major)
+  H    image height in pixels          resolution = (H, Wpx); an int R means (R, R)
+  Wpx  image width in pixels           (not W, which is always worlds)
+  C    capacity of an instance group   add_group(capacity=): instance slots per world
+  K    count of a static group         StaticGroup.count: instances shared by all worlds
+  N    agents of one TorchRL group     a subset of the A agents
+So pixels are [W, A, H, Wpx, 3] uint8, in words [worlds, agents, height, width, 3].
 """
 from __future__ import annotations
 
@@ -66,6 +78,7 @@ class StaticGroup:
 
     @property
     def count(self) -> int:
+        """K: instances of this static group, drawn in every world."""
         return self.position.shape[0]
 
 
@@ -73,7 +86,7 @@ class StaticGroup:
 class InstanceGroup:
     name: str
     mesh: object
-    capacity: int
+    capacity: int  # C: instance slots per world (inactive slots are not drawn)
     texture: object = None
     segment_base: int = 0
 
@@ -93,7 +106,7 @@ class CameraMount:
 class Scene:
     num_worlds: int
     agents_per_world: int
-    resolution: object = 64  # int or (H, W) of each agent's view
+    resolution: object = 64  # int or (H, Wpx) of each agent's view
     effects: tuple = ("lighting",)
     background: tuple = (0.55, 0.65, 0.75)
     lighting: Lighting = field(default_factory=Lighting)

@@ -5,8 +5,6 @@ Quaternions are unit (w, x, y, z). Every function works on any leading batch sha
 """
 from __future__ import annotations
 
-import math
-
 import torch
 
 # Below this norm a quaternion carries no usable direction.
@@ -71,25 +69,25 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
 def matrix_to_quat(m: torch.Tensor) -> torch.Tensor:
     """Rotation matrices [..., 3, 3] -> unit quaternions, numerically safe in all branches."""
     m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    # Four candidate solutions; pick the one with the largest (well-conditioned) divisor.
+    w4, x4, y4, z4 = 1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22
+    # Off-diagonal sums and differences shared by the candidates.
+    xw, yw, zw = m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]
+    xy, xz, yz = m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1]
+    # Four candidates: row k is q scaled by 4 q_k (for a unit q); pick the row with the
+    # largest diagonal term, the best-conditioned one, and normalise it.
     candidates = torch.stack(
         (
-            torch.stack((1 + m00 + m11 + m22, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]), -1),
-            torch.stack((m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]), -1),
-            torch.stack((m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m00 + m11 - m22, m[..., 1, 2] + m[..., 2, 1]), -1),
-            torch.stack((m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m00 - m11 + m22), -1),
+            torch.stack((w4, xw, yw, zw), -1),
+            torch.stack((xw, x4, xy, xz), -1),
+            torch.stack((yw, xy, y4, yz), -1),
+            torch.stack((zw, xz, yz, z4), -1),
         ),
         dim=-2,
     )
-    diag = torch.stack((1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22), -1)
+    diag = torch.stack((w4, x4, y4, z4), -1)
     best = diag.argmax(dim=-1)
     q = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
     return normalize_quat(q)
-
-
-def axis_angle(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    half = 0.5 * angle
-    return torch.cat((torch.cos(half)[..., None], torch.sin(half)[..., None] * axis), dim=-1)
 
 
 def quat_from_yaw_pitch_roll(yaw, pitch=None, roll=None) -> torch.Tensor:
@@ -191,7 +189,3 @@ def view_matrix(position: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
     bottom = torch.zeros(*position.shape[:-1], 1, 4, dtype=position.dtype, device=position.device)
     bottom[..., 0, 3] = 1.0
     return torch.cat((torch.cat((r, t[..., None]), -1), bottom), -2)
-
-
-def deg(x: float) -> float:
-    return math.radians(x)

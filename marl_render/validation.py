@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 import stat
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -86,12 +86,6 @@ def check_range(name: str, tensor: torch.Tensor, low=None, high=None) -> None:
         raise ValueError(f"{name} must be <= {high}, got maximum {tensor.max().item()}")
 
 
-def check_choice(name: str, value, choices: Iterable) -> None:
-    choices = list(choices)
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
-
-
 def positive_int(name: str, value, *, minimum: int = 1) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise TypeError(f"{name} must be an int >= {minimum}, got {describe(value)}")
@@ -121,7 +115,7 @@ def positive_float(name: str, value, *, allow_zero: bool = False) -> float:
 
 
 def resolution_hw(value, *, name: str = "resolution", max_size: int | None = None) -> tuple[int, int]:
-    """int R -> (R, R); (H, W) -> (H, W). Both sides must be >= 1 (and <= max_size)."""
+    """int R -> (R, R); (H, Wpx) -> (H, Wpx). Both sides must be >= 1 (and <= max_size)."""
     if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
         hw = (int(value), int(value))
     elif isinstance(value, (tuple, list)) and len(value) == 2 and all(
@@ -129,7 +123,7 @@ def resolution_hw(value, *, name: str = "resolution", max_size: int | None = Non
     ):
         hw = (int(value[0]), int(value[1]))
     else:
-        raise TypeError(f"{name} must be an int or a pair of ints (H, W), got {describe(value)}")
+        raise TypeError(f"{name} must be an int or a pair of ints (height, width), got {describe(value)}")
     if min(hw) < 1:
         raise ValueError(f"{name} must be >= 1 pixel on each side, got {hw}")
     if max_size is not None and max(hw) > max_size:

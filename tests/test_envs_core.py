@@ -265,11 +265,18 @@ def test_bad_continuous_actions_raise_and_change_nothing(name, case):
 
 
 def test_actions_accept_numpy_and_lists():
-    env = make("spread", num_worlds=2)
+    """A numpy int32 array and a nested list step exactly like the same int64 tensors."""
+    env, twin = make("spread", num_worlds=2), make("spread", num_worlds=2)
     env.reset()
-    env.step(np.zeros((2, 3), dtype=np.int32))
-    env.step([[1, 2, 3], [4, 0, 1]])
+    twin.reset()
+    for given in (np.zeros((2, 3), dtype=np.int32), [[1, 2, 3], [4, 0, 1]]):
+        got, expected = env.step(given), twin.step(torch.tensor(np.asarray(given), dtype=torch.int64))
+        for key in expected[0]:
+            assert torch.equal(got[0][key], expected[0][key]), key
+        for a, b in zip(got[1:4], expected[1:4]):
+            assert torch.equal(a, b)
     env.close()
+    twin.close()
 
 
 # ---------------------------------------------------------------------- determinism and resets

@@ -311,11 +311,51 @@ SCENE_VALUES = st.one_of(st.integers(-3, 40), st.floats(), PYTHON_OBJECTS,
     "fov_y": st.one_of(st.floats(), PYTHON_OBJECTS), "near": st.one_of(st.floats(), PYTHON_OBJECTS),
     "far": st.one_of(st.floats(), PYTHON_OBJECTS)}))
 def test_scene_arguments(kwargs):
+    """Malformed arguments raise naming one of them; an accepted scene holds what was given
+    and renders a frame of [worlds, agents, height, width, 3] pixels of its background."""
     arguments = {"num_worlds": 1, "agents_per_world": 1, "resolution": 8, **kwargs}
     try:
-        mr.Scene(**arguments)
+        scene = mr.Scene(**arguments)
     except (ValueError, TypeError) as error:  # the defaults are valid: the message names a given argument
         assert any(name in str(error) for name in kwargs), (kwargs, error)
+        return
+    resolution = arguments["resolution"]
+    height, width = (resolution, resolution) if isinstance(resolution, int) else resolution
+    worlds, agents = arguments["num_worlds"], arguments["agents_per_world"]
+    assert (scene.num_worlds, scene.agents_per_world, scene.resolution) == (worlds, agents, (height, width))
+    assert scene.num_views == worlds * agents
+    if "effects" in kwargs:
+        assert scene.effects == tuple(sorted(set(kwargs["effects"])))
+    with mr.BatchRenderer(scene) as renderer:
+        frame = renderer.render()
+    assert frame.rgb.dtype == torch.uint8 and frame.rgb.shape == (worlds, agents, height, width, 3)
+    background = torch.tensor(scene.background[:3], dtype=torch.float64) * 255
+    assert (frame.rgb.to(torch.float64) - background).abs().max() <= 0.5 + 1e-6, (scene.background, frame.rgb[0, 0, 0])
+
+
+@settings(max_examples=25, **SETTINGS)
+@given(worlds=st.integers(1, 6), agents=st.integers(1, 4),
+       resolution=st.one_of(st.integers(1, 24), st.tuples(st.integers(1, 24), st.integers(1, 24))),
+       effects=st.sets(st.sampled_from(mr.shaders.EFFECTS), max_size=3),
+       background=st.lists(st.floats(0, 1), min_size=3, max_size=4))
+def test_valid_scene_arguments_render(worlds, agents, resolution, effects, background):
+    """The accepted side of test_scene_arguments, drawn often: the frame has the scene's shape,
+    shows the background everywhere (nothing added), and carries the outputs it declares."""
+    scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=resolution, effects=effects,
+                     background=background)
+    height, width = (resolution, resolution) if isinstance(resolution, int) else resolution
+    with mr.BatchRenderer(scene) as renderer:
+        frame = renderer.render()
+    assert frame.rgb.dtype == torch.uint8 and frame.rgb.shape == (worlds, agents, height, width, 3)
+    expected = torch.tensor(background[:3], dtype=torch.float64) * 255
+    assert (frame.rgb.to(torch.float64) - expected).abs().max() <= 0.5 + 1e-6, (background, frame.rgb[0, 0, 0, 0])
+    assert (frame.depth is not None) == ("depth" in effects or "log_depth" in effects)
+    if frame.depth is not None:
+        assert frame.depth.shape == (worlds, agents, height, width) and bool(torch.isinf(frame.depth).all())
+    assert (frame.segmentation is not None) == ("segmentation" in effects)
+    if frame.segmentation is not None:
+        assert frame.segmentation.shape == (worlds, agents, height, width)
+        assert bool((frame.segmentation == 0).all())
 
 
 def scene_with_bodies():

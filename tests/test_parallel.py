@@ -46,7 +46,7 @@ def creators(**extra):
 
 
 def assert_from_seeds(first_pixels: torch.Tensor):
-    """first_pixels [2, W, A, H, W, 3]: worker i's first frame is the reset frame of SEEDS[i]."""
+    """first_pixels [2, W, A, H, Wpx, 3]: worker i's first frame is the reset frame of SEEDS[i]."""
     assert not torch.equal(reset_pixels(SEEDS[0]), reset_pixels(SEEDS[1]))
     for i, seed in enumerate(SEEDS):
         assert torch.equal(first_pixels[i], reset_pixels(seed)), f"worker {i} did not produce seed {seed}'s frame"

@@ -512,15 +512,25 @@ def test_torchrl_missing_group_action_is_a_clear_error():
 
 @pytest.mark.parametrize("continuous,dtype", [(False, torch.int32), (True, torch.float64)])
 def test_torchrl_group_actions_of_another_dtype(continuous, dtype):
+    """int32 (discrete) or float64 (continuous) group actions step exactly like the same
+    actions in the spec's dtype (int64 / float32) on a twin env."""
     from marl_render.envs import make_torchrl_env
 
-    env = make_torchrl_env("tag", num_worlds=W, resolution=RES, seed=0, continuous=continuous, group_map="team")
+    envs = [make_torchrl_env("tag", num_worlds=W, resolution=RES, seed=0, continuous=continuous, group_map="team")
+            for _ in range(2)]
     try:
-        td = env.rand_action(env.reset())
-        td.set(("predator", "action"), td.get(("predator", "action")).to(dtype))
-        env.step(td)
+        td = envs[0].rand_action(envs[0].reset())
+        envs[1].reset()
+        other = td.clone()
+        other.set(("predator", "action"), td.get(("predator", "action")).to(dtype))
+        expected = envs[0].step(td)["next"]
+        got = envs[1].step(other)["next"]
+        assert set(got.keys(True, True)) == set(expected.keys(True, True))
+        for key in expected.keys(True, True):
+            assert torch.equal(got.get(key), expected.get(key)), key
     finally:
-        env.close()
+        for env in envs:
+            env.close()
 
 
 # ---------------------------------------------------------------------- renderer: tensors torch cannot check

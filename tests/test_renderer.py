@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import marl_render as mr
-from marl_render.naive import NaiveRenderer
+from marl_render.bench.naive import NaiveRenderer
 
 BACKGROUND = (0.2, 0.4, 0.6)
 BACKGROUND_U8 = torch.tensor([round(c * 255) for c in BACKGROUND], dtype=torch.uint8)

@@ -290,7 +290,7 @@ def test_frame_stacking_chain_with_default_arguments():
     check_env_specs(stacked)
     assert stacked.observation_spec[key].shape == (W, 3, 3, RES, RES)
 
-    frames = [rgb_to_grayscale(td[key].permute(0, 1, 4, 2, 3) / 255) for td in _drive(raw)]  # [W, 3, 1, H, W]
+    frames = [rgb_to_grayscale(td[key].permute(0, 1, 4, 2, 3) / 255) for td in _drive(raw)]  # [W, 3, 1, H, Wpx]
     seen = _drive(stacked)
     steps = [td["step_count"][:, 0].tolist() for td in seen]
     outputs = [td[key] for td in seen]

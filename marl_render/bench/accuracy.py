@@ -26,13 +26,13 @@ Physics (float64 state, one torch thread; cost = time of the rollout itself):
 Pareto front: a point is on it when no other point of its sweep (and group) is at most as
 slow and at most as wrong, and better in one. References are excluded (their error is zero
 by construction).
-Writes accuracy.md, accuracy.json and accuracy.png into --out.
+Writes accuracy.md, accuracy.json and accuracy.png into --out (the recommendations, tables
+and plot are written by marl_render.bench.accuracy_report from the result alone).
 """
 from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import statistics
 import sys
 import time
@@ -40,7 +40,9 @@ import time
 import numpy as np
 import torch
 
-from .common import machine, pyplot, write_report
+from . import accuracy_report as report
+from .accuracy_report import SHORT
+from .common import machine
 
 # Anti-aliasing modes: name -> (supersample, multisamples).
 AA_MODES = {"none": (1, 0), "ss2x2": (2, 0), "ss4x4": (4, 0), "msaa4": (1, 4), "msaa8": (1, 8), "ss8x8": (8, 0)}
@@ -48,7 +50,6 @@ REFERENCE_AA = "ss8x8"
 EFFECT_SETS = [(), ("lighting",), ("texture",), ("fog",), ("fog", "lighting", "texture")]
 SPREAD_INTEGRATORS = ("semi_implicit_euler", "velocity_verlet")
 CARTPOLE_INTEGRATORS = ("semi_implicit_euler", "velocity_verlet", "rk4")
-SHORT = {"semi_implicit_euler": "SIE", "velocity_verlet": "Verlet", "rk4": "RK4"}
 
 FULL = dict(worlds=8, resolutions=[32, 48, 64, 96, 128, 256], image_aa=["none", "ss2x2", "ss4x4", "msaa4", "msaa8",
             "ss8x8"], effects_resolution=64, effects_aa=["none", "ss2x2", "msaa4"], precision_resolution=64,
@@ -58,10 +59,6 @@ FULL = dict(worlds=8, resolutions=[32, 48, 64, 96, 128, 256], image_aa=["none", 
 QUICK = dict(FULL, worlds=1, resolutions=[32, 48], effects_resolution=32, effects_aa=["none", "ss2x2"],
              precision_resolution=32, offsets=[1e5, 1e7], physics_worlds=16, spread_horizon=5, cartpole_horizon=20,
              energy_horizon=100, rounds=1, min_time=0.0, min_frames=1, max_frames=1, physics_rounds=1, energy_rounds=1)
-
-# Thresholds the recommendations are phrased against (the answers come from the data).
-SPREAD_TARGETS_M = (1e-2, 1e-3)
-CARTPOLE_TARGETS = (1e-3, 1e-6)
 
 
 def add_arguments(parser):
@@ -111,17 +108,6 @@ def pareto_flags(points: list, group_key=None) -> None:
                   and (group_key is None or q[group_key] == p[group_key])]
         p["pareto"] = not any(q["cost_s"] <= p["cost_s"] and q["error"] <= p["error"]
                               and (q["cost_s"] < p["cost_s"] or q["error"] < p["error"]) for q in rivals)
-
-
-def observed_order(points: list, floor: float = 1e-12):
-    """Least-squares slope of -log(error) against log(substeps) (errors above `floor`)."""
-    pairs = [(math.log(p["substeps"]), math.log(p["error"])) for p in points if p["error"] > floor]
-    if len(pairs) < 2:
-        return None
-    xs, ys = zip(*pairs)
-    mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
-    sxx = sum((x - mx) ** 2 for x in xs)
-    return -sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sxx if sxx else None
 
 
 def _checker(size=64, cells=16) -> np.ndarray:
@@ -191,7 +177,7 @@ _REFUSED_SAMPLES = {}  # MSAA sample counts the GL refused once: not asked for a
 
 def render_point(state: SpreadState, cfg: dict, *, resolution: int, effects, aa: str, max_framebuffer: int,
                  offset=None, float32=False, timed=True):
-    """(image [W, A, H, W, 3] uint8, seconds per view or None, skip reason or None)."""
+    """(image [W, A, H, Wpx, 3] uint8, seconds per view or None, skip reason or None)."""
     import marl_render as mr
     from marl_render import backend
 
@@ -315,7 +301,7 @@ class Sweeps:
             same = [p for p in points if p["resolution"] == resolution]
             flags = [dict(p) for p in same]
             pareto_flags(flags)
-            for p, f in zip(same, flags):
+            for p, f in zip(same, flags, strict=True):
                 p["pareto_at_resolution"] = f["pareto"]
         self.result["image"] = {
             "what": f"spread scene ({self.state.scene.num_views} views), lighting; error vs {REFERENCE_AA} at the "
@@ -378,14 +364,14 @@ class Sweeps:
         from marl_render.envs import make_env
 
         c = self.cfg
-        W, H = c["physics_worlds"], c["spread_horizon"]
+        W, T = c["physics_worlds"], c["spread_horizon"]  # worlds, steps (the horizon)
         started = time.perf_counter()
         env = make_env("spread", num_worlds=W, resolution=8, seed=self.args.seed)
         base = env.physics
         try:
             env.reset(seed=self.args.seed)
             generator = torch.Generator().manual_seed(self.args.seed + 1)
-            actions = torch.randint(env.num_actions, (H, W, env.num_agents), generator=generator)
+            actions = torch.randint(env.num_actions, (T, W, env.num_agents), generator=generator)
             alive = torch.ones(W, env.num_agents, dtype=torch.bool)
             b = env.bodies
             start = b._replace(pos=b.pos.double(), vel=b.vel.double(), radius=b.radius.double(),
@@ -416,7 +402,7 @@ class Sweeps:
             self.bar.update(1 + len(SPREAD_INTEGRATORS))
             points = []
             for (substeps, integrator), (bodies, rounds) in zip(
-                    settings, self._timed_rollouts("spread", settings, rollout, c["physics_rounds"])):
+                    settings, self._timed_rollouts("spread", settings, rollout, c["physics_rounds"]), strict=True):
                 seconds = min(rounds)
                 pos_err = (bodies.pos - reference.pos).norm(dim=-1)
                 vel_err = (bodies.vel - reference.vel).norm(dim=-1)
@@ -424,7 +410,7 @@ class Sweeps:
                 points.append({
                     "label": f"{SHORT[integrator]} x{substeps}", "integrator": integrator, "substeps": substeps,
                     "default": substeps == base.substeps and integrator == base.integrator,
-                    "world_steps_per_s": W * H / seconds, "cost_s": seconds / (W * H), "cost_rounds_s": rounds,
+                    "world_steps_per_s": W * T / seconds, "cost_s": seconds / (W * T), "cost_rounds_s": rounds,
                     "error": float(pos_err.pow(2).mean().sqrt()), "pos_rms_m": float(pos_err.pow(2).mean().sqrt()),
                     "pos_max_m": float(pos_err.max()), "vel_rms_m_s": float(vel_err.pow(2).mean().sqrt()),
                     "pos_rms_vs_own_64_m": float(own_err.pow(2).mean().sqrt())})
@@ -435,7 +421,7 @@ class Sweeps:
         pareto_flags(points)
         self.result["spread_physics"] = {
             "what": f"spread physics (dt {base.dt} s, walls + collisions + drag), {W} worlds x {agents} agents, "
-                    f"{H} steps of random actions, float64; error vs velocity_verlet x{c['reference_substeps']}",
+                    f"{T} steps of random actions, float64; error vs velocity_verlet x{c['reference_substeps']}",
             "cost": "seconds per world-step", "error": "RMS position error (m)", "env_default":
                 {"substeps": base.substeps, "integrator": base.integrator}, "seconds": time.perf_counter() - started,
             "points": points, "skipped": skipped}
@@ -444,13 +430,13 @@ class Sweeps:
         from marl_render.envs import physics
 
         c = self.cfg
-        W, H, E = c["physics_worlds"], c["cartpole_horizon"], c["energy_horizon"]
+        W, T, TE = c["physics_worlds"], c["cartpole_horizon"], c["energy_horizon"]  # worlds, steps, energy steps
         started = time.perf_counter()
         g = torch.Generator().manual_seed(self.args.seed)
         f64 = dict(generator=g, dtype=torch.float64)
         start = torch.stack((torch.rand(W, **f64) - 0.5, (torch.rand(W, **f64) * 2 - 1) * math.pi,
                              torch.randn(W, **f64), torch.randn(W, **f64)), -1)
-        actions = torch.rand(H, W, **f64) * 2 - 1
+        actions = torch.rand(T, W, **f64) * 2 - 1
         zeros = torch.zeros(W, dtype=torch.float64)
 
         def rollout(substeps, integrator):
@@ -462,7 +448,7 @@ class Sweeps:
         def energy_rollout(substeps, integrator):
             q, e0 = start, physics.cartpole_energy(start)
             drift = torch.zeros(W, dtype=torch.float64)
-            for _ in range(E):
+            for _ in range(TE):
                 q = physics.cartpole_step(q, zeros, substeps=substeps, integrator=integrator, slider_damping=0.0,
                                           hinge_damping=0.0)
                 drift = torch.maximum(drift, (physics.cartpole_energy(q) - e0).abs())
@@ -474,171 +460,42 @@ class Sweeps:
         settings = [(s, i) for i in CARTPOLE_INTEGRATORS for s in c["substeps"]]
         points, energy_points = [], []
         for (substeps, integrator), (q, rounds) in zip(
-                settings, self._timed_rollouts("cartpole", settings, rollout, c["physics_rounds"])):
+                settings, self._timed_rollouts("cartpole", settings, rollout, c["physics_rounds"]), strict=True):
             seconds = min(rounds)
             q_err = (q[:, :2] - reference[:, :2]).norm(dim=-1)
             s_err = (q - reference).norm(dim=-1)
             points.append({"label": f"{SHORT[integrator]} x{substeps}", "integrator": integrator,
                            "substeps": substeps, "default": substeps == 1 and integrator == "rk4",
-                           "world_steps_per_s": W * H / seconds, "cost_s": seconds / (W * H), "cost_rounds_s": rounds,
+                           "world_steps_per_s": W * T / seconds, "cost_s": seconds / (W * T), "cost_rounds_s": rounds,
                            "error": float(q_err.pow(2).mean().sqrt()), "q_rms": float(q_err.pow(2).mean().sqrt()),
                            "q_max": float(q_err.max()), "state_rms": float(s_err.pow(2).mean().sqrt())})
         physics_seconds = time.perf_counter() - started
         for (substeps, integrator), ((drift, e0), rounds) in zip(
-                settings, self._timed_rollouts("energy", settings, energy_rollout, c["energy_rounds"])):
+                settings, self._timed_rollouts("energy", settings, energy_rollout, c["energy_rounds"]), strict=True):
             seconds = min(rounds)
             energy_points.append({"label": f"{SHORT[integrator]} x{substeps}", "integrator": integrator,
-                                  "substeps": substeps, "world_steps_per_s": W * E / seconds,
-                                  "cost_s": seconds / (W * E), "cost_rounds_s": rounds, "error": float(drift.mean()),
+                                  "substeps": substeps, "world_steps_per_s": W * TE / seconds,
+                                  "cost_s": seconds / (W * TE), "cost_rounds_s": rounds, "error": float(drift.mean()),
                                   "drift_mean_j": float(drift.mean()), "drift_max_j": float(drift.max()),
                                   "energy_spread_j": float(e0.max() - e0.min())})
         pareto_flags(points)
         pareto_flags(energy_points)
         dt = physics.CARTPOLE["timestep"]
         self.result["cartpole_physics"] = {
-            "what": f"physics.cartpole_step (dt {dt} s, dm_control dampings, no slider limit), {W} worlds, {H} steps "
-                    f"({H * dt:g} s) of random actions from random swinging states, float64; error vs rk4 x"
+            "what": f"physics.cartpole_step (dt {dt} s, dm_control dampings, no slider limit), {W} worlds, {T} steps "
+                    f"({T * dt:g} s) of random actions from random swinging states, float64; error vs rk4 x"
                     f"{c['reference_substeps']}",
             "cost": "seconds per world-step", "error": "RMS of |(dx, dtheta)| (m, rad)",
             "env_default": {"substeps": 1, "integrator": "rk4"}, "seconds": physics_seconds, "points": points,
             "skipped": []}
         self.result["cartpole_energy"] = {
-            "what": f"frictionless cart-pole (dampings 0, action 0), {W} worlds, {E} steps ({E * dt:g} s); "
+            "what": f"frictionless cart-pole (dampings 0, action 0), {W} worlds, {TE} steps ({TE * dt:g} s); "
                     "error = max over time of |E(t) - E(0)|, mean over worlds",
             "cost": "seconds per world-step", "error": "energy drift (J)",
             "seconds": time.perf_counter() - started - physics_seconds, "points": energy_points, "skipped": []}
 
 
-# ============================================================================ recommendations
-def _fmt_cost(seconds: float) -> str:
-    return f"{seconds * 1e6:,.1f} µs" if seconds < 1e-3 else f"{seconds * 1e3:,.2f} ms"
-
-
-def recommendations(result: dict) -> list:
-    sweeps = result["sweeps"]
-    out = []
-    image = [p for p in sweeps["image"]["points"] if not p["reference"]]
-    if image:
-        front = sorted((p for p in image if p["pareto"]), key=lambda p: p["cost_s"])
-        out.append("Images, all resolutions and anti-aliasing modes (time per view vs MAE against the 8x8 reference "
-                   "at the same resolution): the Pareto front, cheapest first, is "
-                   + ", ".join(f"{p['resolution']}x{p['resolution']} {p['aa']}" for p in front) + ".")
-        halving = {}
-        for resolution in sorted({p["resolution"] for p in image}):
-            same = [p for p in image if p["resolution"] == resolution]
-            none = next((p for p in same if p["aa"] == "none"), None)
-            if none is None:
-                continue
-            good = sorted((p for p in same if p["aa"] != "none" and p["error"] <= none["error"] / 2),
-                          key=lambda p: p["cost_s"])
-            if good:
-                p = good[0]
-                halving.setdefault(p["aa"], []).append(resolution)
-                out.append(f"At {resolution}x{resolution} the cheapest mode that at least halves the no-AA error is "
-                           f"{p['aa']}: MAE {none['error']:.2f} -> {p['error']:.2f} for "
-                           f"{p['cost_s'] / none['cost_s']:.1f}x the time per view.")
-            else:
-                out.append(f"At {resolution}x{resolution} no anti-aliasing mode halves the no-AA error "
-                           f"(MAE {none['error']:.2f}).")
-        concentrated = [p for p in image if p["aa"] == "none" and p["worst_row_share"] >= 0.25]
-        if concentrated:
-            out.append("Without AA, one image row holds much of the error at "
-                       + ", ".join(f"{p['resolution']} px (row {p['worst_row']}: {p['worst_row_share']:.0%})"
-                                   for p in concentrated)
-                       + ": a horizontal edge at the same height in every view, so the no-AA error depends on where "
-                         "that edge falls inside a pixel row and is not monotonic in resolution.")
-        if halving:
-            best = max(halving, key=lambda k: len(halving[k]))
-            out.append(f"Overall: {best} is the cheapest way to halve aliasing error at "
-                       f"{len(halving[best])} of {len({p['resolution'] for p in image})} resolutions.")
-    references = [p for p in sweeps["image"]["points"] if p["reference"]]
-    differing = [p for p in references if p["max_abs"] > 0]
-    if references and not differing:
-        out.append("A second renderer reproduced the 8x8 reference bit for bit at every resolution.")
-    for p in differing:
-        out.append(f"A second renderer did not reproduce the 8x8 reference exactly at {p['resolution']} px: "
-                   f"{p['pixels_changed']:.4%} of pixels differ, by up to {p['max_abs']:.0f} level(s) (renders of "
-                   "one state by two renderers are not always bit-identical).")
-    for aa in dict.fromkeys(k["aa"] for k in sweeps["image"]["skipped"]):
-        skips = [k for k in sweeps["image"]["skipped"] if k["aa"] == aa]
-        out.append(f"{aa} not measured at {', '.join(str(k['resolution']) for k in skips)} px: {skips[0]['reason']}.")
-    effects = sweeps["effects"]["points"]
-    none_aa = [p for p in effects if p["aa"] == "none"]
-    if none_aa:
-        base = next((p for p in none_aa if p["effects"] == "none"), None)
-        parts = [f"{p['effects']} {p['cost_vs_no_effect']:+.0%} time, MAE {p['error']:.2f}" for p in none_aa
-                 if p is not base and p["cost_vs_no_effect"] is not None]
-        if base is not None:
-            out.append(f"Effects at {base['resolution']}px without AA (no effect: MAE {base['error']:.2f}): "
-                       + "; ".join(parts) + ".")
-        worst = max(none_aa, key=lambda p: p["error"])
-        fixes = sorted((p for p in effects if p["effects"] == worst["effects"] and p["aa"] != "none"),
-                       key=lambda p: p["error"])
-        if fixes:
-            out.append(f"The effect set with the most aliasing is {worst['effects']} (MAE {worst['error']:.2f}); "
-                       f"{fixes[0]['aa']} brings it to {fixes[0]['error']:.2f} at "
-                       f"{fixes[0]['cost_s'] / worst['cost_s']:.1f}x the time.")
-    precision = sweeps["precision"]["points"]
-    if precision:
-        f64 = [p for p in precision if p["positions"] == "float64"]
-        f32 = sorted((p for p in precision if p["positions"] == "float32"), key=lambda p: p["offset_m"])
-        worst64 = max(f64, key=lambda p: p["error"])
-        first_bad = next((p for p in f32 if p["pixels_changed"] > 1e-3), None)
-        far = f32[-1]
-        text = (f"Precision: with float64 positions the worst error up to {max(p['offset_m'] for p in f64):.0e} m is "
-                f"MAE {worst64['error']:.3f} ({worst64['pixels_changed']:.2%} of pixels changed); positions cast "
-                f"to float32 first reach MAE {far['error']:.1f} at {far['offset_m']:.0e} m "
-                f"({far['pixels_changed']:.0%} of pixels changed, float32 spacing {far['float32_spacing_m']:g} m)")
-        text += (f"; float32 already changes {first_bad['pixels_changed']:.1%} of pixels at {first_bad['offset_m']:.0e} m "
-                 f"(MAE {first_bad['error']:.2f}, worst pixel off by {first_bad['max_abs']:.0f})" if first_bad else "")
-        out.append(text + ". Keep world positions in float64 up to BatchRenderer.update (it recentres and splits "
-                          "them); never cast them to float32 before.")
-    for key, targets, unit, what in (("spread_physics", SPREAD_TARGETS_M, "m", "position"),
-                                     ("cartpole_physics", CARTPOLE_TARGETS, "(m, rad)", "(x, θ)"),
-                                     ("cartpole_energy", None, "J", "energy drift")):
-        sweep = sweeps[key]
-        points = sweep["points"]
-        if not points:
-            continue
-        name = key.replace("_", " ")
-        orders = {i: observed_order([p for p in points if p["integrator"] == i])
-                  for i in dict.fromkeys(p["integrator"] for p in points)}
-        out.append(f"{name}: observed convergence order in substeps "
-                   + ", ".join(f"{SHORT[i]} {o:.1f}" for i, o in orders.items() if o is not None) + ".")
-        first = next(iter(orders))
-        ratios = []
-        for integrator in list(orders)[1:]:  # error ratio to the first integrator at equal substeps
-            pairs = [(p["error"], q["error"]) for p in points for q in points if p["integrator"] == integrator
-                     and q["integrator"] == first and p["substeps"] == q["substeps"] and q["error"] > 0]
-            if pairs:
-                ratios.append(f"{SHORT[integrator]} {min(a / b for a, b in pairs):.2g}-{max(a / b for a, b in pairs):.2g}x")
-        if ratios:
-            out.append(f"{name}: error relative to {SHORT[first]} at the same substeps: " + ", ".join(ratios) + ".")
-        default = next((p for p in points if p.get("default")), None)
-        if default is not None:
-            dominated = [p for p in points if p is not default and p["cost_s"] <= default["cost_s"]
-                         and p["error"] < default["error"]]
-            text = (f"{name}: the env's setting ({SHORT[default['integrator']]} x{default['substeps']}) has "
-                    f"{what} error {default['error']:.2e} {unit} at {_fmt_cost(default['cost_s'])} per world-step")
-            text += ("; it is on the Pareto front" if default["pareto"] else
-                     f"; it is dominated by {', '.join(p['label'] for p in dominated) or 'another point'}")
-            out.append(text + ".")
-        for target in targets or ():
-            fit = sorted((p for p in points if p["error"] <= target), key=lambda p: p["cost_s"])
-            if fit:
-                out.append(f"{name}: cheapest setting with {what} error <= {target:g} {unit}: {fit[0]['label']} "
-                           f"({fit[0]['error']:.2e}, {fit[0]['world_steps_per_s']:,.0f} world-steps/s).")
-            else:
-                out.append(f"{name}: no tested setting reaches {what} error <= {target:g} {unit}.")
-        front = sorted((p for p in points if p["pareto"]), key=lambda p: p["cost_s"])
-        out.append(f"{name}: Pareto front, cheapest first: " + ", ".join(p["label"] for p in front) + ".")
-        if sweep["skipped"]:
-            out.append(f"{name}: " + ", ".join(f"{SHORT[k['integrator']]} x{k['substeps']}" for k in sweep["skipped"])
-                       + f" not run: {sweep['skipped'][0]['reason']}.")
-    return out
-
-
-# ============================================================================ run / write
+# ============================================================================ run
 def run(args) -> dict:
     cfg = dict(QUICK if args.quick else FULL)
     for key, value in (("worlds", args.worlds), ("resolutions", args.resolutions),
@@ -662,147 +519,6 @@ def run(args) -> dict:
     finally:
         torch.set_num_threads(saved_threads)
     result["seconds"] = time.perf_counter() - started
-    result["recommendations"] = recommendations(result)
-    _write(args.out, result)
+    result["recommendations"] = report.recommendations(result)
+    report.write(args.out, result)
     return result
-
-
-def _num(value, digits=2):
-    if value is None:
-        return "∞"
-    return f"{value:.{digits}f}"
-
-
-def _write(out: str, result: dict) -> None:
-    s = result["sweeps"]
-    m = result["machine"]
-    mark = lambda p: "**yes**" if p.get("pareto") else ""  # noqa: E731
-    lines = ["# Accuracy against cost", "",
-             f"{m['gl_renderer']}, torch {m['torch']} ({m['cpu_threads']} thread), seed {result['seed']}, "
-             f"{'quick' if result['quick'] else 'full'} run of {result['seconds']:.0f} s. Costs are measured in the "
-             f"same run as the errors: renders as the fastest of {result['settings']['rounds']} round-robin passes "
-             "over the settings (each the median frame time), physics as the fastest of "
-             f"{result['settings']['physics_rounds']} round-robin passes of identical rollouts "
-             f"({result['settings']['energy_rounds']} for energy drift). The machine is shared: compare within a "
-             "table. PSNR ∞ = identical images.", "",
-             "## Recommendations (derived from the numbers below)", ""]
-    lines += [f"- {r}" for r in result["recommendations"]]
-    lines += ["", "## Resolution x anti-aliasing", "", s["image"]["what"] + ".", "",
-              "| resolution | AA | views/s | µs/view | MAE | PSNR dB | max abs | px changed | worst row (share) | Pareto "
-              "| front at res |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
-    for p in s["image"]["points"]:
-        lines.append(f"| {p['resolution']} | {p['aa']}{' (reference)' if p['reference'] else ''} | "
-                     f"{p['views_per_s']:,.0f} | {p['cost_s'] * 1e6:,.1f} | {p['mae']:.3f} | {_num(p['psnr_db'])} | "
-                     f"{p['max_abs']:.0f} | {p['pixels_changed']:.1%} | {p['worst_row']} ({p['worst_row_share']:.0%}) | "
-                     f"{mark(p)} | "
-                     f"{'yes' if p['pareto_at_resolution'] else ''} |")
-    for aa in dict.fromkeys(k["aa"] for k in s["image"]["skipped"]):
-        skips = [k for k in s["image"]["skipped"] if k["aa"] == aa]
-        lines += ["", f"Not measured: {aa} at {', '.join(str(k['resolution']) for k in skips)} px ({skips[0]['reason']})."]
-    lines += ["", "## Effects", "", s["effects"]["what"] + ". Pareto front within each effect set.", "",
-              "| effects | AA | views/s | µs/view | time vs no effect | MAE | PSNR dB | px changed | Pareto |",
-              "|---|---|---:|---:|---:|---:|---:|---:|---|"]
-    for p in s["effects"]["points"]:
-        vs = "" if p["cost_vs_no_effect"] is None else f"{p['cost_vs_no_effect']:+.0%}"
-        lines.append(f"| {p['effects']} | {p['aa']} | {p['views_per_s']:,.0f} | {p['cost_s'] * 1e6:,.1f} | {vs} | "
-                     f"{p['mae']:.3f} | {_num(p['psnr_db'])} | {p['pixels_changed']:.1%} | {mark(p)} |")
-    lines += ["", "## Far from the origin: float64 vs float32 positions", "", s["precision"]["what"] + ".", "",
-              "| offset (m) | positions | float32 spacing (m) | views/s | MAE | PSNR dB | max abs | px changed |",
-              "|---:|---|---:|---:|---:|---:|---:|---:|"]
-    for p in s["precision"]["points"]:
-        lines.append(f"| {p['offset_m']:.0e} | {p['positions']} | {p['float32_spacing_m']:g} | "
-                     f"{p['views_per_s']:,.0f} | {p['mae']:.3f} | {_num(p['psnr_db'])} | {p['max_abs']:.0f} | "
-                     f"{p['pixels_changed']:.2%} |")
-    sp = s["spread_physics"]
-    lines += ["", "## Spread physics: substeps x integrator", "", sp["what"] + ".", "",
-              "| integrator | substeps | world-steps/s | µs/world-step | pos RMS (m) | pos max (m) | vel RMS (m/s) "
-              "| pos RMS vs own x64 (m) | Pareto |", "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
-    for p in sp["points"]:
-        lines.append(f"| {p['integrator']}{' (env default)' if p['default'] else ''} | {p['substeps']} | "
-                     f"{p['world_steps_per_s']:,.0f} | {p['cost_s'] * 1e6:,.2f} | {p['pos_rms_m']:.2e} | "
-                     f"{p['pos_max_m']:.2e} | {p['vel_rms_m_s']:.2e} | {p['pos_rms_vs_own_64_m']:.2e} | {mark(p)} |")
-    if sp["skipped"]:
-        lines += ["", "Not run: " + "; ".join(f"{k['integrator']} x{k['substeps']}" for k in sp["skipped"])
-                  + f" ({sp['skipped'][0]['reason']})."]
-    cp = s["cartpole_physics"]
-    lines += ["", "## Cart-pole physics: substeps x integrator", "", cp["what"] + ".", "",
-              "| integrator | substeps | world-steps/s | µs/world-step | (x, θ) RMS | (x, θ) max | state RMS | Pareto |",
-              "|---|---:|---:|---:|---:|---:|---:|---|"]
-    for p in cp["points"]:
-        lines.append(f"| {p['integrator']}{' (env default)' if p['default'] else ''} | {p['substeps']} | "
-                     f"{p['world_steps_per_s']:,.0f} | {p['cost_s'] * 1e6:,.2f} | {p['q_rms']:.2e} | "
-                     f"{p['q_max']:.2e} | {p['state_rms']:.2e} | {mark(p)} |")
-    ce = s["cartpole_energy"]
-    lines += ["", "## Cart-pole energy drift (frictionless)", "", ce["what"] + ".", "",
-              "| integrator | substeps | world-steps/s | µs/world-step | drift mean (J) | drift max (J) | Pareto |",
-              "|---|---:|---:|---:|---:|---:|---|"]
-    for p in ce["points"]:
-        lines.append(f"| {p['integrator']} | {p['substeps']} | {p['world_steps_per_s']:,.0f} | "
-                     f"{p['cost_s'] * 1e6:,.2f} | {p['drift_mean_j']:.2e} | {p['drift_max_j']:.2e} | {mark(p)} |")
-    lines += ["", "![error against time](accuracy.png)", ""]
-    write_report(out, "accuracy", result, lines, allow_nan=False)
-    _plot(os.path.join(out, "accuracy.png"), result)
-
-
-def _plot(path: str, result: dict) -> None:
-    plt = pyplot()
-
-    s = result["sweeps"]
-    fig, axes = plt.subplots(2, 3, figsize=(16, 9.5))
-    panels = [("image", "aa", "resolution x anti-aliasing", "µs per view", 1e6, "MAE vs 8x8 reference (0-255)"),
-              ("effects", "effects", "effects x anti-aliasing (front per effect set)", "µs per view", 1e6,
-               "MAE vs 8x8 reference (0-255)"),
-              ("spread_physics", "integrator", "spread physics: substeps", "µs per world-step", 1e6,
-               "RMS position error (m)"),
-              ("cartpole_physics", "integrator", "cart-pole physics: substeps", "µs per world-step", 1e6,
-               "RMS (x, θ) error"),
-              ("cartpole_energy", "integrator", "cart-pole energy drift (frictionless)", "µs per world-step", 1e6,
-               "energy drift (J)")]
-    for ax, (key, series, title, xlabel, scale, ylabel) in zip(axes.flat, panels):
-        points = [p for p in s[key]["points"] if not p.get("reference") and p["error"] > 0]
-        names = list(dict.fromkeys(p[series] for p in points))
-        for index, name in enumerate(names):
-            group = [p for p in points if p[series] == name]
-            group.sort(key=lambda p: p["cost_s"] if series == "effects" else p.get("resolution", p.get("substeps", 0)))
-            marker = "o" if series != "effects" else "os^vD"[index % 5]
-            ax.plot([p["cost_s"] * scale for p in group], [p["error"] for p in group], marker=marker, ms=5,
-                    lw=1, label=SHORT.get(name, name), color=f"C{index}")
-            for p in group:
-                tag = p.get("resolution", p.get("substeps"))
-                if series == "effects":
-                    tag = p["aa"]
-                ax.annotate(str(tag), (p["cost_s"] * scale, p["error"]), fontsize=6, xytext=(3, 3),
-                            textcoords="offset points")
-        front = [p for p in points if p["pareto"]]
-        ax.scatter([p["cost_s"] * scale for p in front], [p["error"] for p in front], s=120, facecolors="none",
-                   edgecolors="k", linewidths=1.2, label="Pareto front", zorder=3)
-        if s[key].get("group") is None and front:
-            front.sort(key=lambda p: p["cost_s"])
-            xs = [p["cost_s"] * scale for p in front]
-            ys = [p["error"] for p in front]
-            ax.step(xs, ys, where="post", color="k", lw=0.8, ls="--", zorder=2)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_title(title, fontsize=10)
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel(ylabel)
-        ax.grid(True, which="both", alpha=0.25)
-        ax.legend(fontsize=7)
-    ax = axes.flat[5]
-    for index, dtype in enumerate(("float64", "float32")):
-        group = sorted((p for p in s["precision"]["points"] if p["positions"] == dtype), key=lambda p: p["offset_m"])
-        # zero error cannot sit on a log axis: drawn at 1e-7, labelled so
-        ax.plot([p["offset_m"] for p in group], [max(p["error"], 1e-7) for p in group], "o-", color=f"C{index}",
-                label=f"{dtype} positions")
-    ax.axhline(1e-7, color="grey", lw=0.5, ls=":")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_title("far from the origin (error 0 drawn at 1e-7)", fontsize=10)
-    ax.set_xlabel("offset (m)")
-    ax.set_ylabel("MAE vs the scene at the origin")
-    ax.grid(True, which="both", alpha=0.25)
-    ax.legend(fontsize=7)
-    fig.suptitle("error against time (log scales; circled: Pareto front)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -1,6 +1,10 @@
-"""Shared pieces of the benchmarks: timing, progress, the reference arena scene."""
+"""Shared pieces of the benchmarks: timing, progress, memory, the reference arena scene, reports."""
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
+import gc
 import json
 import math
 import os
@@ -8,6 +12,7 @@ import platform
 import sys
 import time
 
+import psutil
 import torch
 
 import marl_render as mr
@@ -26,6 +31,40 @@ def time_per_call(function, steps: int, warmup: int = 3) -> float:
     for _ in range(steps):
         function()
     return (time.perf_counter() - start) / steps
+
+
+def rss_mb() -> float:
+    """Resident set size of this process in MB."""
+    return psutil.Process().memory_info().rss / 2 ** 20
+
+
+@functools.lru_cache(maxsize=1)
+def _libc_malloc_trim():
+    try:
+        trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+    trim.argtypes = [ctypes.c_size_t]
+    return trim
+
+
+def malloc_trim() -> bool:
+    """Return freed heap memory to the OS (glibc only); False where unavailable.
+
+    glibc keeps freed blocks for reuse, so without this a reading of RSS counts memory that
+    is no longer in use (and may drop later, in the middle of another measurement)."""
+    trim = _libc_malloc_trim()
+    if trim is None:
+        return False
+    trim(0)
+    return True
+
+
+def settled_rss_mb() -> float:
+    """RSS after collecting garbage and returning freed heap memory: memory still in use."""
+    gc.collect()
+    malloc_trim()
+    return rss_mb()
 
 
 def machine() -> dict:

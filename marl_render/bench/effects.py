@@ -18,6 +18,7 @@ import os
 import time
 
 import numpy as np
+from tabulate import tabulate
 
 from .common import RandomMotion, apply, arena_scene, machine, progress, pyplot, time_per_call, write_report
 
@@ -86,7 +87,8 @@ def _several_processes(args) -> float:
     with context.Manager() as manager:
         start_event = manager.Event()
         with context.Pool(args.processes) as pool:
-            pending = pool.map_async(_worker, [(share, args.agents, args.resolution, args.steps, start_event)] * args.processes)
+            work = (share, args.agents, args.resolution, args.steps, start_event)
+            pending = pool.map_async(_worker, [work] * args.processes)
             time.sleep(1.0)
             start_event.set()
             seconds = pending.get(timeout=600)
@@ -95,7 +97,7 @@ def _several_processes(args) -> float:
 
 def run(args) -> dict:
     import marl_render as mr
-    from marl_render.naive import NaiveRenderer
+    from marl_render.bench.naive import NaiveRenderer
 
     result = {"benchmark": "effects", "worlds": args.worlds, "agents": args.agents, "resolution": args.resolution,
               "views": args.worlds * args.agents, "machine": machine(), "effects": [], "ablation": []}
@@ -134,14 +136,16 @@ def run(args) -> dict:
 
 
 def _write(out: str, result: dict) -> None:
-    lines = [f"Views of {result['resolution']}x{result['resolution']}, {result['views']} per frame "
-             f"({result['machine']['gl_renderer']}).", "", "| effects | views/s | ms/frame | cost vs none |",
-             "|---|---:|---:|---:|"]
-    lines += [f"| {r['effects']} | {r['views_per_s']:,.0f} | {r['ms_per_frame']:.1f} | {r['cost_vs_none']:+.0%} |"
-              for r in result["effects"]]
-    lines += ["", "| ablation step (cumulative) | views/s | speed-up |", "|---|---:|---:|"]
-    lines += [f"| {r['step']} | {r['views_per_s']:,.0f} | {r['speedup_vs_first']:.1f}x |" for r in result["ablation"]]
-    write_report(out, "effects", result, lines)
+    effects = tabulate([[r["effects"], r["views_per_s"], r["ms_per_frame"], r["cost_vs_none"]]
+                        for r in result["effects"]],
+                       ["effects", "views/s", "ms/frame", "cost vs none"], tablefmt="pipe",
+                       floatfmt=["", ",.0f", ".1f", "+.0%"])
+    ablation = tabulate([[r["step"], r["views_per_s"], f"{r['speedup_vs_first']:.1f}x"] for r in result["ablation"]],
+                        ["ablation step (cumulative)", "views/s", "speed-up"], tablefmt="pipe",
+                        floatfmt=["", ",.0f", ""], colalign=["left", "right", "right"])
+    write_report(out, "effects", result, [f"Views of {result['resolution']}x{result['resolution']}, {result['views']} "
+                                          f"per frame ({result['machine']['gl_renderer']}).", "", effects, "",
+                                          ablation])
     plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.2))
     names = [r["effects"].replace("+", "+\n") if len(r["effects"]) > 12 else r["effects"] for r in result["effects"]]

@@ -8,11 +8,12 @@ The same total number of worlds W is run three ways, random actions throughout:
 
 Every worker process is started with 'spawn' and owns its own GL context. env-steps/s
 counts world steps, agent-frames/s rendered agent views; "scaling" is N=2 over N=1 of the
-same kind (N=1 pays the inter-process copies without any parallelism). With --lp-threads, the worker processes are run with the Mesa llvmpipe
-rasteriser thread count LP_NUM_THREADS unset (llvmpipe's default: one thread per core)
-and/or set to the given value; the variable is set inside each worker before its GL
-context exists (env creator wrapper for ParallelEnv, the collector's init_fn for
-MultiSyncCollector). The single-process row always uses this process's setting.
+same kind (N=1 pays the inter-process copies without any parallelism). With --lp-threads,
+the worker processes are run with the Mesa llvmpipe rasteriser thread count
+LP_NUM_THREADS unset (llvmpipe's default: one thread per core) and/or set to the given
+value; the variable is set inside each worker before its GL context exists (env creator
+wrapper for ParallelEnv, the collector's init_fn for MultiSyncCollector). The
+single-process row always uses this process's setting.
 """
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 Scene: a floor plane and --instances per world (the agents' capsules with their cameras
 mounted, plus boxes), random poses every frame. The plain way: one buffer, one camera
 and display region per view, one scene root per world with ordinary nodes moved by
-Python calls, one readback (marl_render.naive). Reports views/s of both and the ratio.
+Python calls, one readback (marl_render.bench.naive). Reports views/s of both and the ratio.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def add_arguments(parser):
 
 def run(args) -> dict:
     import marl_render as mr
-    from marl_render.naive import NaiveRenderer
+    from marl_render.bench.naive import NaiveRenderer
 
     scene = arena_scene(args.worlds, args.agents, args.resolution, args.instances)
     views = scene.num_views

@@ -1,16 +1,30 @@
 """Scaling: throughput, memory per view and time per stage against views and resolution.
 
 Two sweeps on the arena scene (floor + 10 instances per world, 4 agents per world):
-views 16..4096 at --resolution, and resolutions 32..512 at --views. Stages are the
+views 16..4096 at --resolution, and resolutions 32..512 at --fixed-views. Stages are the
 renderer's own timings: pack (poses, view matrices, instance buffers), cull, gl
 (draw + readback inside Panda3D) and copy (tiles into the batch tensor).
+
+Memory per view: the resident memory (RSS, after garbage collection and malloc_trim) held
+while a renderer and its last frame are alive, above the reading just before the renderer
+was made, divided by the views. Every point runs in a fresh process: the GL driver and
+Panda3D free a closed renderer's framebuffer lazily, during later GL work, so in one
+process a small point after a large one read the large one's release (a negative
+number). In its process a 1-view renderer first takes the one-time costs (GL context,
+shader compilation).
 Writes scale.md, scale.json and scale.png into --out.
 """
 from __future__ import annotations
 
+import multiprocessing
 import os
+import time
 
-from .common import RandomMotion, apply, arena_scene, machine, progress, pyplot, write_report
+from tabulate import tabulate
+
+import marl_render as mr
+
+from .common import RandomMotion, apply, arena_scene, machine, progress, pyplot, settled_rss_mb, write_report
 
 STAGES = ("pack", "cull", "gl", "copy")
 
@@ -25,19 +39,18 @@ def add_arguments(parser):
     parser.add_argument("--out", default="out/scale")
 
 
-def _rss_bytes() -> int:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-
 def measure(views: int, resolution: int, agents: int, steps: int) -> dict:
-    import time
+    """One point of a sweep, measured in a fresh process (see the module docstring)."""
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        return pool.apply(_measure_in_this_process, (views, resolution, agents, steps))
 
-    import marl_render as mr
 
+def _measure_in_this_process(views: int, resolution: int, agents: int, steps: int) -> dict:
+    with mr.BatchRenderer(arena_scene(1, 1, 8)) as warm_up:  # GL context and shaders: not this point's memory
+        warm_up.render()
     worlds = max(1, views // agents)
     scene = arena_scene(worlds, agents, resolution)
-    before = _rss_bytes()
+    before_mb = settled_rss_mb()
     with mr.BatchRenderer(scene) as renderer:
         motion = RandomMotion(scene, seed=0)
         for _ in range(2):
@@ -51,12 +64,12 @@ def measure(views: int, resolution: int, agents: int, steps: int) -> dict:
             for stage in STAGES:
                 totals[stage] += renderer.last_timings[stage]
         seconds = (time.perf_counter() - start) / steps
-        grown = _rss_bytes() - before
+        held_mb = settled_rss_mb() - before_mb  # renderer + the frame still referenced here
         del frame
         passes = renderer.layout.num_passes
     return {"views": scene.num_views, "resolution": resolution, "passes": passes, "ms_per_frame": seconds * 1e3,
             "views_per_s": scene.num_views / seconds, "pixels_per_s": scene.num_views * resolution ** 2 / seconds,
-            "memory_per_view_kib": grown / scene.num_views / 1024,
+            "memory_mib": held_mb, "memory_per_view_kib": held_mb * 1024 / scene.num_views,
             "stage_ms": {stage: totals[stage] / steps * 1e3 for stage in STAGES}}
 
 
@@ -73,14 +86,12 @@ def run(args) -> dict:
 
 
 def _write(out: str, result: dict) -> None:
-    header = "| views | px | passes | views/s | Mpixel/s | ms/frame | pack | cull | gl | copy | KiB/view |"
-    lines = [header, "|---:" * 11 + "|"]
-    for row in result["by_views"] + result["by_resolution"]:
-        s = row["stage_ms"]
-        lines.append(f"| {row['views']} | {row['resolution']} | {row['passes']} | {row['views_per_s']:,.0f} | "
-                     f"{row['pixels_per_s'] / 1e6:,.0f} | {row['ms_per_frame']:.1f} | {s['pack']:.1f} | {s['cull']:.1f} | "
-                     f"{s['gl']:.1f} | {s['copy']:.1f} | {row['memory_per_view_kib']:.0f} |")
-    write_report(out, "scale", result, lines)
+    rows = [[r["views"], r["resolution"], r["passes"], r["views_per_s"], r["pixels_per_s"] / 1e6, r["ms_per_frame"],
+             *(r["stage_ms"][stage] for stage in STAGES), r["memory_per_view_kib"]]
+            for r in result["by_views"] + result["by_resolution"]]
+    table = tabulate(rows, ["views", "px", "passes", "views/s", "Mpixel/s", "ms/frame", *STAGES, "KiB/view"],
+                     tablefmt="pipe", floatfmt=["", "", "", ",.0f", ",.0f", ".1f", ".1f", ".1f", ".1f", ".1f", ".0f"])
+    write_report(out, "scale", result, table.splitlines())
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
     for ax, rows, key, label in ((axes[0], result["by_views"], "views", "views per frame"),
@@ -90,7 +101,7 @@ def _write(out: str, result: dict) -> None:
         for stage in STAGES:
             values = [r["stage_ms"][stage] / r["views"] * 1e3 for r in rows]
             ax.bar([str(x) for x in xs], values, bottom=bottom, label=stage)
-            bottom = [b + v for b, v in zip(bottom, values)]
+            bottom = [b + v for b, v in zip(bottom, values, strict=True)]
         ax.set_xlabel(label)
         ax.set_ylabel("µs per view (stacked stages)")
         twin = ax.twinx()

@@ -3,7 +3,7 @@
 Steps --worlds worlds (default 64) of --env (default spread) with uniformly random
 actions, auto-reset of finished worlds (autoreset=True) and, every --reset-every steps,
 reset_worlds() of a random subset (each world with probability --reset-fraction).
-Every --every steps it samples the resident memory (RSS, from /proc/self/statm) and
+Every --every steps it samples the resident memory (RSS, through psutil) and
 checks the simulation state; every step it checks the float observations and rewards
 for NaN/Inf. After --warmup steps the memory growth is reported as MB in total and MB
 per 1000 steps (least-squares slope over the samples after warm-up).
@@ -17,16 +17,15 @@ memory that is still in use rather than freed memory the allocator keeps for reu
 """
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import gc
 import json
 import os
 import time
 
+import numpy as np
 import torch
 
-from .common import machine, progress
+from .common import machine, malloc_trim, progress, rss_mb
 
 
 def add_arguments(parser):
@@ -51,30 +50,6 @@ def add_arguments(parser):
 
 
 # ---------------------------------------------------------------------- memory
-def rss_mb() -> float:
-    """Resident set size of this process in MB (Linux)."""
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
-
-
-_LIBC = None
-
-
-def malloc_trim() -> bool:
-    """Return freed heap memory to the OS (glibc only); False where unavailable."""
-    global _LIBC
-    if _LIBC is None:
-        try:
-            _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-            _LIBC.malloc_trim.argtypes = [ctypes.c_size_t]
-        except (OSError, AttributeError):
-            _LIBC = False
-    if not _LIBC:
-        return False
-    _LIBC.malloc_trim(0)
-    return True
-
-
 def render_state_count() -> int | None:
     """Panda3D RenderStates alive (a leak of render states shows here first)."""
     try:
@@ -89,11 +64,8 @@ def slope_per_step(points: list[tuple[int, float]]) -> float:
     """Least-squares slope of (step, value) pairs; 0.0 with fewer than 2 distinct steps."""
     if len({s for s, _ in points}) < 2:
         return 0.0
-    n = len(points)
-    mean_s = sum(s for s, _ in points) / n
-    mean_v = sum(v for _, v in points) / n
-    var = sum((s - mean_s) ** 2 for s, _ in points)
-    return sum((s - mean_s) * (v - mean_v) for s, v in points) / var
+    steps, values = zip(*points, strict=True)
+    return float(np.polyfit(steps, values, 1)[0])
 
 
 # ---------------------------------------------------------------------- checks
@@ -250,7 +222,7 @@ def _plot_pil(steps, rss, warmup, title, path):
                 height - margin - (height - 2 * margin) * (value - low) / (high - low))
 
     draw.rectangle([xy(0, high), xy(min(warmup, last), low)], fill=(230, 230, 230))
-    draw.line([xy(s, v) for s, v in zip(steps, rss)] or [xy(0, low)], fill=(31, 119, 180), width=2)
+    draw.line([xy(s, v) for s, v in zip(steps, rss, strict=True)] or [xy(0, low)], fill=(31, 119, 180), width=2)
     draw.rectangle([margin, margin, width - margin, height - margin], outline="black")
     draw.text((margin, 15), title, fill="black")
     draw.text((margin, height - margin + 8), f"step 0 .. {last}", fill="black")

@@ -2,8 +2,10 @@
 
 One offscreen buffer; one camera and display region per view; one scene root per world
 holding ordinary nodes (a pivot per instance, moved by Python calls, with the geometry
-and the mounted camera below it); Panda3D's own lights; one readback per frame. It takes the same Scene and the same update()/set_cameras()
-arguments as BatchRenderer, so both can render identical scenes.
+and the mounted camera below it); Panda3D's own lights; one readback per frame. It takes
+the same Scene and the same update()/set_cameras() arguments as BatchRenderer, so both
+can render identical scenes. Used by the benchmarks (`render`, `effects`) and the tests
+that compare the two renderers; it loops over worlds and instances in Python on purpose.
 """
 from __future__ import annotations
 
@@ -12,12 +14,12 @@ import math
 import numpy as np
 import torch
 
-from . import backend
-from .meshes import MeshData, to_panda_geom
-from .renderer import Frame
-from .scene import Scene
-from .tiling import plan_layout
-from .transforms import look_at_quat, normalize_quat
+from marl_render import backend
+from marl_render.meshes import MeshData, to_panda_geom
+from marl_render.renderer import Frame
+from marl_render.scene import Scene
+from marl_render.tiling import plan_layout
+from marl_render.transforms import look_at_quat, normalize_quat
 
 
 class NaiveRenderer:
@@ -25,9 +27,19 @@ class NaiveRenderer:
     tiled=False: one buffer and readback per view (the first step of the ablation)."""
 
     def __init__(self, scene: Scene, *, tiled: bool = True):
-        from panda3d.core import (AmbientLight, BitMask32, Camera, DirectionalLight, FrameBufferProperties,
-                                  GraphicsOutput, GraphicsPipe, NodePath, PerspectiveLens, Texture,
-                                  WindowProperties)
+        from panda3d.core import (
+            AmbientLight,
+            BitMask32,
+            Camera,
+            DirectionalLight,
+            FrameBufferProperties,
+            GraphicsOutput,
+            GraphicsPipe,
+            NodePath,
+            PerspectiveLens,
+            Texture,
+            WindowProperties,
+        )
 
         self.scene = scene
         ctx = self._context = backend.context()
@@ -145,7 +157,7 @@ class NaiveRenderer:
             rotation = look_at_quat(torch.as_tensor(position, dtype=torch.float64),
                                     torch.as_tensor(look_at, dtype=torch.float64))
         height, width = self.scene.resolution
-        for v, (camera, lens) in enumerate(zip(self.cameras, self.lenses)):
+        for v, (camera, lens) in enumerate(zip(self.cameras, self.lenses, strict=True)):
             w, a = divmod(v, A)
             if position is not None:
                 camera.set_pos(*map(float, position[w, a]))
@@ -156,8 +168,9 @@ class NaiveRenderer:
                 horizontal = 2 * math.atan(math.tan(vertical / 2) * width / height)
                 lens.set_fov(math.degrees(horizontal), math.degrees(vertical))
             if near is not None or far is not None:
-                n = float(torch.as_tensor(near if near is not None else lens.get_near(), dtype=torch.float64).expand(W, A)[w, a])
-                f = float(torch.as_tensor(far if far is not None else lens.get_far(), dtype=torch.float64).expand(W, A)[w, a])
+                n = near if near is not None else lens.get_near()
+                f = far if far is not None else lens.get_far()
+                n, f = (float(torch.as_tensor(x, dtype=torch.float64).expand(W, A)[w, a]) for x in (n, f))
                 lens.set_near_far(n, f)
 
     def render(self) -> Frame:
