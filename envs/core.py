@@ -35,18 +35,34 @@ obs of the old episode is not returned (there is no ``info["final_obs"]``).
 
 Every call validates all of its input before it changes anything, so a rejected call
 leaves the state (bodies, counters, RNG) exactly as it was.
+
+Actions (and a reset mask) are detached from autograd where they enter, and the calls run
+under ``torch.no_grad()``: a policy output that still requires grad steps the env like
+its detached copy, and no tensor the env returns or keeps requires grad.
+
+The batch is checked against this machine's memory before the state and the renderer are
+allocated (views, pixels, instances and env state; see marl_render/memory.py): a batch
+that cannot fit is a ValueError naming num_worlds, the bytes needed and the bytes
+available. ``render_overview`` checks its renderer the same way before it replaces the
+previous one. ``device`` is 'cpu' (or 'cpu:0') or a CUDA device; ``torch_threads`` is at
+most 1024 (marl_render/threads.py says why).
+
+``get_state`` needs a ``reset()`` first, like ``step``. An env belongs to the process that
+made it: in a child forked from that process, ``reset``, ``reset_worlds``, ``step`` and
+``render_overview`` raise ForkedContextError before anything changes (``get_state`` still
+reads the inherited state).
 """
 from __future__ import annotations
 
 import abc
 import math
-import os
 
 import numpy as np
 import torch
 
 import marl_render as mr
-from marl_render.threads import limited_threads
+from marl_render import memory
+from marl_render.threads import limited_threads, thread_count
 from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, resolution_hw
 
 from . import scenery
@@ -77,6 +93,10 @@ def _device(value) -> torch.device:
         device = torch.device(value)
     except (RuntimeError, ValueError) as exc:
         raise ValueError(f"device must name a torch device (e.g. 'cpu', 'cuda:0'), got {value!r}") from exc
+    if device.type == "cpu":  # torch has one CPU device; tensors made on 'cpu:0' report plain 'cpu'
+        if device.index not in (None, 0):
+            raise ValueError(f"device must be 'cpu' (torch has a single CPU device) or a CUDA device, got {value!r}")
+        return torch.device("cpu")
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device {value!r} was asked for but torch sees no CUDA device; use device='cpu'")
     if device.type not in ("cpu", "cuda"):
@@ -84,6 +104,18 @@ def _device(value) -> torch.device:
     if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
         raise ValueError(f"device {value!r} was asked for but torch sees {torch.cuda.device_count()} CUDA device(s)")
     return device
+
+
+def _from_user(name: str, value):
+    """A tensor the user handed in, cut from its autograd graph (a policy output that was not
+    detached would otherwise flow into the state, and through torch.where survive every
+    reset); nested, sparse and meta tensors, which have no plain data to read, are a TypeError."""
+    if not isinstance(value, torch.Tensor):
+        return value
+    if value.is_nested or value.layout != torch.strided or value.device.type == "meta":
+        kind = "a nested tensor" if value.is_nested else f"layout {value.layout}"
+        raise TypeError(f"{name} must be a dense tensor with data, got {kind} on {value.device}")
+    return value.detach()
 
 
 class BatchedEnv(abc.ABC):
@@ -96,8 +128,8 @@ class BatchedEnv(abc.ABC):
 
     Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
     (H, W)), max_steps, continuous, state_obs, depth, device, seed, autoreset, and
-    torch_threads (default 1): torch intra-op threads used *inside* env calls (the
-    caller's setting is restored on return; None leaves it alone). See marl_render/threads.py.
+    torch_threads (default 1, at most 1024): torch intra-op threads used *inside* env calls
+    (the caller's setting is restored on return; None leaves it alone). See marl_render/threads.py.
 
     Attributes: name, num_worlds (W), num_agents (A), agent_names, groups (team ->
     agent names, in agent-index order), resolution (H, W), continuous, num_actions
@@ -141,7 +173,6 @@ class BatchedEnv(abc.ABC):
         gl_limit = mr.backend.gl_info().max_framebuffer_size
         if max(self.resolution) > gl_limit:
             raise ValueError(f"resolution must be at most {gl_limit} pixels per side (GL limit), got {self.resolution}")
-        self._check_memory()
         self.max_steps = positive_int("max_steps", self.default_max_steps if max_steps is None else max_steps)
         if self.max_steps >= 2 ** 63:  # compared with the int64 step counters
             raise ValueError(f"max_steps must be an int in [1, 2**63), got {self.max_steps}")
@@ -150,12 +181,14 @@ class BatchedEnv(abc.ABC):
         self.depth = _flag("depth", depth)
         self.autoreset = _flag("autoreset", autoreset)
         self.device = _device(device)
-        if torch_threads is not None:
-            torch_threads = positive_int("torch_threads", torch_threads)
-        self.torch_threads = torch_threads
+        self.torch_threads = None if torch_threads is None else thread_count("torch_threads", torch_threads)
         seed = _seed("seed", seed)
         self.seed = int(torch.Generator().seed() % 2 ** 63) if seed is None else seed
         self.generator = torch.Generator().manual_seed(self.seed)
+        effects = ("lighting", "depth") if self.depth else ("lighting",)
+        # Views and pixels alone, before _setup allocates the state; the whole scene below.
+        self._check_memory(mr.Scene(num_worlds=self.num_worlds, agents_per_world=self.num_agents,
+                                    resolution=self.resolution, effects=effects))
 
         # Filled in by _setup().
         self.agent_names: list[str] = [f"agent_{i}" for i in range(self.num_agents)]
@@ -176,9 +209,10 @@ class BatchedEnv(abc.ABC):
         self.step_count = torch.zeros(W, dtype=torch.int64, device=self.device)
         self._needs_reset = True
         self._overview = None
-        effects = ("lighting", "depth") if self.depth else ("lighting",)
+        scene = self._make_scene(overview=False, resolution=self.resolution, effects=effects)
+        self._check_memory(scene)
         with limited_threads(self.torch_threads):
-            self.renderer = self._make_renderer(overview=False, resolution=self.resolution, effects=effects)
+            self.renderer = self._make_renderer(scene, overview=False)
         self._closed = False
 
     # ================================================================== hooks
@@ -230,9 +264,11 @@ class BatchedEnv(abc.ABC):
         """{name: tensor} of the env's own simulation state (for get_state)."""
 
     # ================================================================== public API
+    @torch.no_grad()
     def reset(self, seed: int | None = None) -> dict:
         """Reset every world; `seed` (optional) re-seeds the env's generator first."""
         self._check_open()
+        self._check_process()
         seed = _seed("seed", seed)
         if seed is not None:
             self.seed = seed
@@ -242,13 +278,15 @@ class BatchedEnv(abc.ABC):
             self._needs_reset = False
             return self._observe(full=True)
 
+    @torch.no_grad()
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
         """Reset only the worlds where mask [W] (bool) is True; returns obs of all worlds.
 
         `seed` (optional) re-seeds the env's generator before sampling."""
         self._check_open()
+        self._check_process()
         self._check_started()
-        mask = as_tensor("mask", mask, dtype_kind="bool")
+        mask = as_tensor("mask", _from_user("mask", mask), dtype_kind="bool")
         if tuple(mask.shape) != (self.num_worlds,):
             raise ValueError(f"mask must be a bool tensor of shape [{self.num_worlds}] (num_worlds), "
                              f"got shape {list(mask.shape)}")
@@ -260,9 +298,11 @@ class BatchedEnv(abc.ABC):
             self._reset_masked(mask.to(self.device))
             return self._observe(full=True)
 
+    @torch.no_grad()
     def step(self, actions):
         """Advance all worlds one step: (obs, reward, terminated, truncated, info)."""
         self._check_open()
+        self._check_process()
         self._check_started()
         with limited_threads(self.torch_threads):
             return self._step(self.check_actions(actions))
@@ -291,14 +331,14 @@ class BatchedEnv(abc.ABC):
             return torch.rand(W, A, self.action_dim, generator=generator) * 2 - 1
         return torch.randint(self.num_actions, (W, A), generator=generator)
 
+    @torch.no_grad()
     def check_actions(self, actions) -> torch.Tensor:
         """Validated actions on self.device (long [W, A] or float32 [W, A, action_dim]); raises
         TypeError / ValueError naming `actions`, the expected and the given, else changes nothing."""
         W, A = self.num_worlds, self.num_agents
         if not isinstance(actions, (torch.Tensor, np.ndarray, list, tuple)):
             raise TypeError(f"actions must be a torch.Tensor (or array-like), got {describe(actions)}")
-        if isinstance(actions, torch.Tensor) and (actions.layout != torch.strided or actions.device.type == "meta"):
-            raise TypeError(f"actions must be a dense tensor with data, got layout {actions.layout} on {actions.device}")
+        actions = _from_user("actions", actions)
         if self.continuous:
             want = f"a float tensor of shape [{W}, {A}, {self.action_dim}] (worlds, agents, action_dim) in [-1, 1]"
             if isinstance(actions, (torch.Tensor, np.ndarray)) and not (
@@ -327,19 +367,26 @@ class BatchedEnv(abc.ABC):
             raise ValueError(f"actions must be {want}, got values in [{checked.min().item()}, {checked.max().item()}]")
         return tensor.to(device=self.device, dtype=torch.int64)
 
+    @torch.no_grad()
     def render_overview(self, resolution=None) -> torch.Tensor:
         """uint8 [W, H2, W2, 3]: one camera per world that sees the whole arena, for humans.
 
         Built on the first call (a second renderer with the same groups and free cameras);
         `resolution` (int or (H, W)) defaults to `overview_resolution` and rebuilds it if changed."""
         self._check_open()
+        self._check_process()
         self._check_started()
         resolution = resolution_hw(self.overview_resolution if resolution is None else resolution)
-        if self._overview is not None and self._overview.scene.resolution != resolution:
-            self._overview.close()
-            self._overview = None
-        if self._overview is None:
-            self._overview = self._make_renderer(overview=True, resolution=resolution, effects=("lighting",))
+        if self._overview is None or self._overview.scene.resolution != resolution:
+            scene = self._make_scene(overview=True, resolution=resolution, effects=("lighting",))
+            replaced = 0 if self._overview is None else memory.renderer_bytes(self._overview.scene)
+            memory.check_fits(memory.renderer_bytes(scene) - replaced,
+                              f"render_overview(resolution={resolution}) with num_worlds={self.num_worlds}",
+                              "lower the overview's resolution")
+            if self._overview is not None:
+                self._overview.close()
+                self._overview = None
+            self._overview = self._make_renderer(scene, overview=True)
         with limited_threads(self.torch_threads):
             self._sync(self._overview, full=True)
             return self._overview.render().rgb[:, 0].to(self.device)
@@ -347,6 +394,7 @@ class BatchedEnv(abc.ABC):
     def get_state(self) -> dict:
         """Copies of the whole simulation state: env tensors, step counters, alive mask, RNG state."""
         self._check_open()
+        self._check_started()
         state = {k: v.clone() for k, v in self._state_tensors().items()}
         state.update(step_count=self.step_count.clone(), alive=self.alive.clone(), rng=self.generator.get_state())
         return state
@@ -395,31 +443,36 @@ class BatchedEnv(abc.ABC):
         if not self.continuous and not (isinstance(self.num_actions, int) and self.num_actions >= 1):
             raise RuntimeError(f"{type(self).__name__}._setup must set num_actions >= 1 for discrete actions")
 
-    def _check_memory(self) -> None:
-        """Refuse sizes whose pixel observation alone exceeds this machine's memory, before
-        anything is allocated (torch would fail late, or the OOM killer would strike)."""
+    def _check_memory(self, scene: mr.Scene) -> None:
+        """Refuse a batch whose renderer, observations and env state would not fit in this
+        machine's memory before they are allocated (torch would fail late with a raw allocator
+        error, or the OOM killer would strike). See marl_render/memory.py for what is counted."""
         height, width = self.resolution
-        needed = self.num_worlds * self.num_agents * height * width * 3
-        available = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-        if needed > available:
-            raise ValueError(
-                f"num_worlds x num_agents x resolution needs {needed / 2**30:.1f} GiB for one pixel observation "
-                f"({self.num_worlds} x {self.num_agents} x {height}x{width}x3 bytes), more than this machine's "
-                f"{available / 2**30:.1f} GiB; lower num_worlds, num_agents or resolution")
+        needed = memory.renderer_bytes(scene) + self.num_worlds * memory.ENV_WORLD_BYTES
+        memory.check_fits(needed, f"num_worlds={self.num_worlds} x num_agents={self.num_agents} at resolution "
+                                  f"{height}x{width}", "lower num_worlds, num_agents or resolution")
 
     def _check_open(self):
         if self._closed:
             raise RuntimeError(f"this {type(self).__name__} environment is closed; create a new one")
 
+    def _check_process(self):
+        """In a process forked from the one that made this env: ForkedContextError now, before
+        anything changes (the render at the end of a step would raise only after physics ran)."""
+        mr.backend.context()
+
     def _check_started(self):
         if self._needs_reset:
             raise RuntimeError(f"call reset() before using this {type(self).__name__} environment")
 
-    def _make_renderer(self, overview: bool, resolution, effects) -> mr.BatchRenderer:
+    def _make_scene(self, overview: bool, resolution, effects) -> mr.Scene:
         scene = mr.Scene(num_worlds=self.num_worlds, agents_per_world=1 if overview else self.num_agents,
                          resolution=resolution, effects=effects, background=self.background,
                          fov_y=self.overview_fov_y if overview else self.fov_y, near=self.near, far=self.far)
         self._build_scene(scene, overview)
+        return scene
+
+    def _make_renderer(self, scene: mr.Scene, overview: bool) -> mr.BatchRenderer:
         renderer = mr.BatchRenderer(scene)
         try:
             self._init_cameras(renderer, overview)

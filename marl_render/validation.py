@@ -27,12 +27,13 @@ def describe(value) -> str:
 
 def as_tensor(name: str, value, *, dtype_kind: str = "float", device=None) -> torch.Tensor:
     """Turn lists / numpy arrays / tensors into a tensor without silently changing kind.
+    Tensors come back detached from autograd.
 
     dtype_kind: "float" accepts any float tensor (or int/float lists), "bool" accepts bool,
     "int" accepts integer tensors.
     """
     if isinstance(value, torch.Tensor):
-        tensor = value
+        tensor = value.detach()  # what the library keeps must not hold the caller's autograd graph
     elif isinstance(value, (np.ndarray, list, tuple, int, float, bool, np.generic)):
         try:
             tensor = torch.as_tensor(np.asarray(value))

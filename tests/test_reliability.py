@@ -117,8 +117,10 @@ def _common_cases(name):
         ("state_obs='yes'", dict(state_obs="yes"), TypeError, r"state_obs must be a bool, got 'yes'"),
         ("depth=None", dict(depth=None), TypeError, r"depth must be a bool, got None"),
         ("autoreset=0", dict(autoreset=0), TypeError, r"autoreset must be a bool, got 0"),
-        ("torch_threads=0", dict(torch_threads=0), ValueError, r"torch_threads must be an int >= 1, got 0"),
-        ("torch_threads=1.5", dict(torch_threads=1.5), TypeError, r"torch_threads must be an int >= 1"),
+        ("torch_threads=0", dict(torch_threads=0), ValueError,
+         r"torch_threads must be None or an int in \[1, 1024\], got 0"),
+        ("torch_threads=1.5", dict(torch_threads=1.5), TypeError,
+         r"torch_threads must be None or an int in \[1, 1024\]"),
     ]
     return [(name, *case) for case in cases]
 
@@ -343,14 +345,21 @@ def test_unusual_but_valid_action_containers_step_like_int64(name):
         env.close()
 
 
-def test_list_of_grad_tensors_is_a_type_error():
-    env = make_env("spread", num_worlds=W, resolution=RES, seed=0, continuous=True)
-    env.reset()
+def test_list_of_grad_tensors_steps_like_its_detached_copy():
+    """Was a raw RuntimeError from numpy; actions are now detached where they enter."""
+    envs = [make_env("spread", num_worlds=W, resolution=RES, seed=0, continuous=True) for _ in range(2)]
     try:
-        with pytest.raises((TypeError, ValueError), match="actions"):
-            env.step([torch.zeros(env.num_agents, 2, requires_grad=True) for _ in range(W)])
+        for env in envs:
+            env.reset()
+        rows = [torch.full((envs[0].num_agents, 2), 0.25 * (w + 1), requires_grad=True) for w in range(W)]
+        assert not envs[0].check_actions(rows).requires_grad
+        out = envs[0].step(rows)
+        expected = envs[1].step(torch.stack([row.detach() for row in rows]))
+        assert torch.equal(out[0]["pixels"], expected[0]["pixels"]) and torch.equal(out[1], expected[1])
+        assert not out[1].requires_grad
     finally:
-        env.close()
+        for env in envs:
+            env.close()
 
 
 # ---------------------------------------------------------------------- reset, reset_worlds, render_overview
