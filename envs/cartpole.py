@@ -2,12 +2,12 @@
 
 One agent per world pushes a cart along a rail to keep a pole upright.
 
-* Dynamics: ``physics.cartpole_step`` (dm_control's cartpole.xml constants, one RK4
-  step of 0.01 s per env step, gear 10). The slider's range limit (+-1.8 m in the xml)
-  is modelled as a hard, inelastic stop: a cart reaching the end loses its velocity
-  and the pole receives the matching impulse (MuJoCo's limit is soft; it only differs
-  there).
-* Reward: ``physics.dmc_balance_reward`` (upright * centred * small control * small
+* Dynamics: ``cartpole_dynamics.cartpole_step`` (dm_control's cartpole.xml constants, one
+  RK4 step of 0.01 s per env step, gear 10). The slider's range limit (+-1.8 m in the
+  xml) is modelled as a hard, inelastic stop (``cartpole_dynamics.slider_limit``): a cart
+  reaching the end loses its velocity and the pole receives the matching impulse
+  (MuJoCo's limit is soft; it only differs there).
+* Reward: ``dmc_rewards.dmc_balance_reward`` (upright * centred * small control * small
   velocity), in [0, 1] per step.
 * Episode: never terminates early; truncated after ``max_steps`` = 1000 (10 s).
 * Reset: cart x ~ U(-0.1, 0.1), pole angle ~ U(-0.034, 0.034), velocities 0.01 N(0, 1).
@@ -26,11 +26,11 @@ import torch
 
 import marl_render as mr
 
-from . import physics
+from .cartpole_dynamics import CARTPOLE, cartpole_step, slider_limit
 from .core import BatchedEnv
+from .dmc_rewards import dmc_balance_reward
 
 FORCE_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)
-SLIDER_LIMIT = 1.8  # m, dm_control cartpole.xml slider range
 CART_HEIGHT = 1.0  # the cart body's z (hinge height)
 CART_SIZE = (0.4, 0.3, 0.2)  # full sizes of the cart box (geom size .2 .15 .1)
 POLE_LENGTH = 1.0
@@ -52,8 +52,8 @@ class CartPoleBalance(BatchedEnv):
     agent_range = (1, 1)
     default_max_steps = 1000
     default_resolution = 64
-    dt = physics.CARTPOLE["timestep"]  # one RK4 step per env step
-    physics_terms = frozenset()  # own dynamics (physics.cartpole_step); no planar terms
+    dt = CARTPOLE["timestep"]  # one RK4 step per env step
+    physics_terms = frozenset()  # own dynamics (cartpole_dynamics.cartpole_step); no planar terms
     background = SKY_COLOR
     fov_y = math.radians(45.0)
     near = 0.1
@@ -114,9 +114,8 @@ class CartPoleBalance(BatchedEnv):
 
     def _step_state(self, actions, alive):
         u = self.control(actions)
-        q = physics.cartpole_step(self.qstate, u)
-        q = slider_limit(q)
-        reward = physics.dmc_balance_reward(q, u)
+        q = slider_limit(cartpole_step(self.qstate, u))
+        reward = dmc_balance_reward(q, u)
         self.qstate = q
         self.last_control = u
         terminated = torch.zeros(self.num_worlds, 1, dtype=torch.bool, device=self.device)
@@ -145,17 +144,3 @@ class CartPoleBalance(BatchedEnv):
     def _state_tensors(self):
         return {"qstate": self.qstate, "last_control": self.last_control}
 
-
-def slider_limit(q: torch.Tensor, limit: float = SLIDER_LIMIT) -> torch.Tensor:
-    """Hard inelastic stop at |x| = limit: the cart's velocity into the stop is removed and the
-    pole gets the impulse that keeps the hinge constraint (d theta_dot = m l cos / J * x_dot)."""
-    x, theta, xdot, thetadot = q.unbind(-1)
-    hit = ((x > limit) & (xdot > 0)) | ((x < -limit) & (xdot < 0))
-    p = physics.CARTPOLE
-    m, l = p["pole_mass"], p["pole_com"]
-    J = p["pole_inertia"] + m * l * l
-    zero = torch.zeros_like(xdot)
-    thetadot = torch.where(hit, thetadot + m * l * torch.cos(theta) / J * xdot, thetadot)
-    xdot = torch.where(hit, zero, xdot)
-    x = x.clamp(-limit, limit)
-    return torch.stack((x, theta, xdot, thetadot), -1)

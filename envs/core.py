@@ -113,7 +113,7 @@ class BatchedEnv(abc.ABC):
     default_max_steps: int = 100
     default_resolution = 64
     dt: float = 0.1  # simulated seconds per step (a front end plays episodes back at 1 / dt frames/s)
-    physics_terms: frozenset = frozenset()  # envs/physics.py terms this env computes
+    physics_terms: frozenset = frozenset()  # envs/planar.py terms this env computes
     background: tuple = scenery.SKY_COLOR
     fov_y: float = math.radians(70.0)
     near: float = 0.05
@@ -162,7 +162,7 @@ class BatchedEnv(abc.ABC):
         self.action_dim: int | None = None
         self.action_meanings: tuple | None = None  # discrete: a short name per action
         self.state_dim: int = 0
-        self.physics = None  # PhysicsConfig of envs that use envs/physics.py
+        self.physics = None  # PhysicsConfig of envs that use envs/planar.py
         mr.backend.context()  # in a forked child: ForkedContextError now, not a torch deadlock in _setup
         self._setup()
         self._check_setup()

@@ -4,7 +4,7 @@ An agent's camera looks along its body's heading (yaw 0 faces +Y). Actions:
 discrete 5: 0 noop, 1 forward, 2 turn left, 3 turn right, 4 backward;
 continuous 2: (thrust in [-1, 1] along the heading, turn rate in [-1, 1]).
 Full thrust is THRUST newtons (an env may pass its own per agent), full turn TURN_RATE rad/s.
-Bodies move with envs/physics.py at MPE-like settings: 0.1 s steps, a quarter of the
+Bodies move with envs/planar.py at MPE-like settings: 0.1 s steps, a quarter of the
 velocity lost per step to drag.
 """
 from __future__ import annotations
@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from . import physics, scenery
+from . import planar, scenery
 from .core import BatchedEnv
 
 THRUST = 5.0  # N at full forward action
@@ -45,8 +45,8 @@ def declare_actions(env) -> None:
 
 
 def arena_physics(terms, half_extent, *, max_speed: float, min_body_radius: float,
-                  substeps: int = 2) -> physics.PhysicsConfig:
-    return physics.PhysicsConfig(dt=DT, substeps=substeps, terms=terms, restitution=0.5, drag=DRAG,
+                  substeps: int = 2) -> planar.PhysicsConfig:
+    return planar.PhysicsConfig(dt=DT, substeps=substeps, terms=terms, restitution=0.5, drag=DRAG,
                                  arena_half_extent=half_extent, max_speed=max_speed,
                                  min_body_radius=min_body_radius)
 

@@ -4,7 +4,7 @@ N agents (default 3) drive around a walled arena picking up floating yellow sphe
 Every agent sees the arena through its own camera mounted on its body.
 
 * Arena: |x|, |y| <= 1.5 m, walls and floor are static geometry.
-* Agents: blue capsules of radius 0.15 m, mass 1, physics from ``envs/physics.py`` with
+* Agents: blue capsules of radius 0.15 m, mass 1, physics from ``envs/planar.py`` with
   the terms walls + body_collisions + drag (MPE-like damping 0.25 per 0.1 s step), as
   in ``spread``. The camera sits at 0.4 m, pitched 0.2 rad down; a dark "nose" box
   shows other agents which way a body faces.
@@ -41,7 +41,7 @@ import marl_render as mr
 
 from marl_render.validation import positive_float, positive_int
 
-from . import egomotion, physics, scenery
+from . import egomotion, planar, scenery
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.3  # items spawn in |x|, |y| <= SPAWN
@@ -92,7 +92,7 @@ class Forage(egomotion.EgocentricEnv):
         self.physics = egomotion.arena_physics(self.physics_terms, (ARENA, ARENA), max_speed=2.0,
                                                min_body_radius=AGENT_RADIUS)
         dev = self.device
-        self.bodies = physics.BodyState.make(torch.zeros(W, N, 2, device=dev), AGENT_RADIUS)
+        self.bodies = planar.BodyState.make(torch.zeros(W, N, 2, device=dev), AGENT_RADIUS)
         self.yaw = torch.zeros(W, N, device=dev)
         self.items = torch.zeros(W, I, 2, device=dev)
         # Steps until an item is back; 0: available.
@@ -144,7 +144,7 @@ class Forage(egomotion.EgocentricEnv):
 
     def _step_state(self, actions, alive):
         yaw, force = egomotion.drive(self, actions, alive)
-        bodies = physics.step(self.bodies._replace(active=alive), force, None, self.physics)
+        bodies = planar.step(self.bodies._replace(active=alive), force, None, self.physics)
 
         # Items away count down; those reaching 0 come back somewhere clear of the agents.
         timer = (self.item_timer - 1).clamp_min(0)

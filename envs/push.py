@@ -14,7 +14,7 @@ its own camera mounted on its body.
   The camera sits at 0.4 m, pitched 0.2 rad down; a dark "nose" box shows which way a
   body faces.
 * Ball: a physics body (circle) of radius 0.15 m and mass 0.5, drawn as a white sphere.
-  Physics from ``envs/physics.py`` with the terms walls + body_collisions + drag
+  Physics from ``envs/planar.py`` with the terms walls + body_collisions + drag
   (MPE-like damping 0.25 per 0.1 s step for agents and ball alike), restitution 0.5.
 * Actions, egocentric, as in ``spread``: discrete 5: 0 noop, 1 forward, 2 turn left,
   3 turn right, 4 backward; continuous 2: (thrust in [-1, 1] along the heading, turn
@@ -50,7 +50,7 @@ import marl_render as mr
 
 from marl_render.validation import positive_float
 
-from . import egomotion, physics, scenery
+from . import egomotion, planar, scenery
 
 ARENA = (1.5, 2.0)  # half extents (m)
 GOAL_HALF_WIDTH = 0.5
@@ -129,7 +129,7 @@ class Push(egomotion.EgocentricEnv):
         # Bodies 0 .. N-1 are the agents, body N is the ball.
         radius = torch.tensor([AGENT_RADIUS] * N + [BALL_RADIUS], device=dev)
         mass = torch.tensor([1.0] * N + [BALL_MASS], device=dev)
-        self.bodies = physics.BodyState.make(torch.zeros(W, N + 1, 2, device=dev), radius, mass=mass)
+        self.bodies = planar.BodyState.make(torch.zeros(W, N + 1, 2, device=dev), radius, mass=mass)
         self.yaw = torch.zeros(W, N, device=dev)
         self.is_team_a = torch.arange(N, device=dev) < T
         self.side = torch.where(self.is_team_a, 1.0, -1.0)  # +1: attacks +y (team_a), -1: attacks -y
@@ -185,7 +185,7 @@ class Push(egomotion.EgocentricEnv):
         yaw, force = egomotion.drive(self, actions, alive)
         force = torch.cat((force, torch.zeros_like(force[:, :1])), 1)  # no force on the ball
         active = torch.cat((alive, torch.ones_like(alive[:, :1])), 1)
-        bodies = physics.step(self.bodies._replace(active=active), force, None, self.physics)
+        bodies = planar.step(self.bodies._replace(active=active), force, None, self.physics)
 
         ball_before, ball = self.bodies.pos[:, -1], bodies.pos[:, -1]
         in_mouth = ball[:, 0].abs() < GOAL_HALF_WIDTH

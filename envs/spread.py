@@ -4,7 +4,7 @@ N agents (default 3) must cover N landmarks in a walled arena. Every agent sees 
 arena through its own camera mounted on its body, so it has to turn to look around.
 
 * Arena: |x|, |y| <= 1.5 m, walls and floor are static geometry.
-* Agents: capsules of radius 0.15 m, mass 1, physics from ``envs/physics.py`` with
+* Agents: capsules of radius 0.15 m, mass 1, physics from ``envs/planar.py`` with
   the terms walls + body_collisions + drag (MPE-like damping 0.25 per 0.1 s step).
   The camera sits at 0.4 m, pitched 0.2 rad down; a small dark "nose" box shows
   other agents which way a body faces (its own nose is hidden from its own view).
@@ -30,7 +30,7 @@ import marl_render as mr
 
 from marl_render.validation import positive_float, positive_int
 
-from . import egomotion, physics, scenery
+from . import egomotion, planar, scenery
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.2  # agents and landmarks spawn in |x|, |y| <= SPAWN
@@ -75,7 +75,7 @@ class Spread(egomotion.EgocentricEnv):
         self.physics = egomotion.arena_physics(self.physics_terms, (ARENA, ARENA), max_speed=2.0,
                                                min_body_radius=AGENT_RADIUS)
         dev = self.device
-        self.bodies = physics.BodyState.make(torch.zeros(W, N, 2, device=dev), AGENT_RADIUS)
+        self.bodies = planar.BodyState.make(torch.zeros(W, N, 2, device=dev), AGENT_RADIUS)
         self.yaw = torch.zeros(W, N, device=dev)
         self.landmarks = torch.zeros(W, L, 2, device=dev)
         # Index of the other agents of each agent, [N, N-1], for the state obs.
@@ -117,7 +117,7 @@ class Spread(egomotion.EgocentricEnv):
 
     def _step_state(self, actions, alive):
         yaw, force = egomotion.drive(self, actions, alive)
-        bodies = physics.step(self.bodies._replace(active=alive), force, None, self.physics)
+        bodies = planar.step(self.bodies._replace(active=alive), force, None, self.physics)
         reward, collisions, coverage = self.reward(bodies.pos)
         self.bodies, self.yaw = bodies, yaw
         terminated = torch.zeros_like(alive)

@@ -18,7 +18,7 @@ Every agent sees the arena through its own camera mounted on its body.
   [-45, 45] degrees, agents a random yaw. So nothing overlaps at the start and every
   prey starts at least 0.1 m from touching any predator.
 * Bodies: capsules, predators radius 0.15 m, prey 0.12 m, mass 1, physics from
-  ``envs/physics.py`` with the terms walls + body_collisions + obstacles (only when
+  ``envs/planar.py`` with the terms walls + body_collisions + obstacles (only when
   ``num_obstacles`` > 0) + drag (MPE-like damping 0.25 per 0.1 s step).
   Speeds as in MPE: predators thrust 3 N and at most 1.0 m/s, prey thrust 4 N and at
   most 1.3 m/s (the physics clamps to 1.3; the predators' cap is applied after each
@@ -59,7 +59,7 @@ import marl_render as mr
 
 from marl_render.validation import positive_float, positive_int
 
-from . import egomotion, physics, scenery
+from . import egomotion, planar, scenery
 
 ARENA = 1.5  # half extent (m)
 OBSTACLE_HALF = 0.2  # half side of the square obstacles (m)
@@ -138,9 +138,9 @@ class Tag(egomotion.EgocentricEnv):
         self.radius = team({"predator": PREDATOR_RADIUS, "prey": PREY_RADIUS})  # [N] float32
         self.thrust = team(THRUST)
         self.max_speed = team(MAX_SPEED)
-        self.bodies = physics.BodyState.make(torch.zeros(W, N, 2, device=dev), self.radius)
+        self.bodies = planar.BodyState.make(torch.zeros(W, N, 2, device=dev), self.radius)
         self.yaw = torch.zeros(W, N, device=dev)
-        self.obstacles = physics.Obstacles(torch.zeros(W, K, 2, device=dev),
+        self.obstacles = planar.Obstacles(torch.zeros(W, K, 2, device=dev),
                                            torch.full((W, K, 2), OBSTACLE_HALF, device=dev),
                                            torch.zeros(W, K, device=dev))
         self._others = torch.tensor([[j for j in range(N) if j != i] for i in range(N)], dtype=torch.long,
@@ -195,8 +195,8 @@ class Tag(egomotion.EgocentricEnv):
 
     def _step_state(self, actions, alive):
         yaw, force = egomotion.drive(self, actions, alive, thrust=self.thrust)
-        bodies = physics.step(self.bodies._replace(active=alive), force, self.obstacles, self.physics)
-        bodies = bodies._replace(vel=physics.clamp_norm(bodies.vel, self.max_speed[:, None]))
+        bodies = planar.step(self.bodies._replace(active=alive), force, self.obstacles, self.physics)
+        bodies = bodies._replace(vel=planar.clamp_norm(bodies.vel, self.max_speed[:, None]))
 
         dist = torch.cdist(bodies.pos, bodies.pos)  # [W, N, N]
         touch = dist < self.radius[:, None] + self.radius[None, :] + CONTACT_TOLERANCE

@@ -6,8 +6,10 @@ import math
 import pytest
 import torch
 
-from marl_render.envs import make_env, physics
-from marl_render.envs.cartpole import FORCE_LEVELS, SLIDER_LIMIT, CartPoleBalance, slider_limit
+from marl_render.envs import make_env
+from marl_render.envs.cartpole import FORCE_LEVELS, CartPoleBalance
+from marl_render.envs.cartpole_dynamics import CARTPOLE, SLIDER_LIMIT, cartpole_step, slider_limit
+from marl_render.envs.dmc_rewards import dmc_balance_reward
 
 
 def make(**kw):
@@ -51,9 +53,9 @@ def test_dynamics_and_reward_agree_with_physics_functions(continuous):
             u = torch.tensor(FORCE_LEVELS, dtype=torch.float64)[actions[:, 0]]
         before = env.qstate.clone()
         obs, reward, terminated, truncated, _ = env.step(actions)
-        expected = physics.cartpole_step(before, u)
+        expected = cartpole_step(before, u)
         assert torch.equal(env.qstate, expected)  # no slider stop in this range
-        assert torch.allclose(reward[:, 0], physics.dmc_balance_reward(expected, u).float())
+        assert torch.allclose(reward[:, 0], dmc_balance_reward(expected, u).float())
         x, theta, xdot, thetadot = expected.unbind(-1)
         state = torch.stack((x, torch.cos(theta), torch.sin(theta), xdot, thetadot), -1).float()
         assert torch.allclose(obs["state"][:, 0], state)
@@ -76,7 +78,7 @@ def test_slider_stop_keeps_cart_on_the_rail():
     out = slider_limit(q)
     assert out[:, 0].tolist() == [SLIDER_LIMIT, -SLIDER_LIMIT, SLIDER_LIMIT]
     assert out[0, 2] == 0 and out[1, 2] == 0 and out[2, 2] == -1.0  # moving back in: kept
-    p = physics.CARTPOLE
+    p = CARTPOLE
     J = p["pole_inertia"] + p["pole_mass"] * p["pole_com"] ** 2
     assert math.isclose(float(out[0, 3]), 0.5 + p["pole_mass"] * p["pole_com"] * math.cos(0.1) / J * 2.0)
     env = make(num_worlds=1)
