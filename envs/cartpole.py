@@ -20,12 +20,14 @@ One agent per world pushes a cart along a rail to keep a pole upright.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
 
 import marl_render as mr
 
+from . import state as explicit_state
 from .cartpole_dynamics import CARTPOLE, cartpole_step, slider_limit
 from .core import BatchedEnv
 from .dmc_rewards import dmc_balance_reward
@@ -42,6 +44,12 @@ POLE_COLOR = (0.6, 0.42, 0.25)
 DECORATION_COLOR = (0.3, 0.5, 0.7)
 FLOOR_COLOR = (0.15, 0.25, 0.35)
 SKY_COLOR = (0.4, 0.6, 0.8)
+
+
+@dataclasses.dataclass(frozen=True)
+class CartPoleState:
+    qstate: torch.Tensor  # [W, 4] float64 (x, theta, x_dot, theta_dot), like MuJoCo's qpos + qvel
+    last_control: torch.Tensor  # [W] float64: the motor control of the last step
 
 
 class CartPoleBalance(BatchedEnv):
@@ -72,9 +80,8 @@ class CartPoleBalance(BatchedEnv):
             self.action_meanings = tuple(f"force_{u:+g}" for u in FORCE_LEVELS)
         self.state_dim = 5
         self.force_levels = torch.tensor(FORCE_LEVELS, dtype=torch.float64, device=self.device)
-        # (x, theta, x_dot, theta_dot), float64 like MuJoCo.
-        self.qstate = torch.zeros(W, 4, dtype=torch.float64, device=self.device)
-        self.last_control = torch.zeros(W, dtype=torch.float64, device=self.device)
+        self.sim = CartPoleState(qstate=torch.zeros(W, 4, dtype=torch.float64, device=self.device),
+                                 last_control=torch.zeros(W, dtype=torch.float64, device=self.device))
         # Constant parts of the instance data: [cart, pole].
         self._scale = torch.tensor([CART_SIZE, (POLE_WIDTH, POLE_WIDTH, POLE_LENGTH)]).expand(W, 2, 3)
         self._color = torch.tensor([SELF_COLOR, POLE_COLOR]).expand(W, 2, 3)
@@ -105,8 +112,8 @@ class CartPoleBalance(BatchedEnv):
         theta = torch.rand(W, generator=g, dtype=torch.float64) * 0.068 - 0.034
         qvel = 0.01 * torch.randn(W, 2, generator=g, dtype=torch.float64)
         fresh = torch.cat((x[:, None], theta[:, None], qvel), 1).to(self.device)
-        self.qstate = torch.where(mask[:, None], fresh, self.qstate)
-        self.last_control = torch.where(mask, torch.zeros_like(self.last_control), self.last_control)
+        new = CartPoleState(qstate=fresh, last_control=torch.zeros_like(self.sim.last_control))
+        self.sim = explicit_state.select_worlds(mask, new, self.sim)
 
     def control(self, actions: torch.Tensor) -> torch.Tensor:
         """Motor control [W] in [-1, 1] for validated actions."""
@@ -114,15 +121,14 @@ class CartPoleBalance(BatchedEnv):
 
     def _step_state(self, actions, alive):
         u = self.control(actions)
-        q = slider_limit(cartpole_step(self.qstate, u))
+        q = slider_limit(cartpole_step(self.sim.qstate, u))
+        self.sim = CartPoleState(qstate=q, last_control=u)
         reward = dmc_balance_reward(q, u)
-        self.qstate = q
-        self.last_control = u
         terminated = torch.zeros(self.num_worlds, 1, dtype=torch.bool, device=self.device)
         return reward[:, None], terminated, {}
 
     def _instances(self, full: bool) -> dict:
-        q = self.qstate.to("cpu", torch.float32)
+        q = self.sim.qstate.to("cpu", torch.float32)
         x, theta = q[:, 0], q[:, 1]
         half = 0.5 * theta
         position, rotation = self._position, self._rotation
@@ -137,10 +143,6 @@ class CartPoleBalance(BatchedEnv):
         return {"cartpole": update}
 
     def _state_obs(self):
-        x, theta, xdot, thetadot = self.qstate.unbind(-1)
+        x, theta, xdot, thetadot = self.sim.qstate.unbind(-1)
         state = torch.stack((x, torch.cos(theta), torch.sin(theta), xdot, thetadot), -1)
         return state[:, None].to(torch.float32)
-
-    def _state_tensors(self):
-        return {"qstate": self.qstate, "last_control": self.last_control}
-

@@ -387,18 +387,17 @@ class Sweeps:
             generator = torch.Generator().manual_seed(self.args.seed + 1)
             actions = torch.randint(env.num_actions, (H, W, env.num_agents), generator=generator)
             alive = torch.ones(W, env.num_agents, dtype=torch.bool)
-            b = env.bodies
-            start = b._replace(pos=b.pos.double(), vel=b.vel.double(), radius=b.radius.double(),
-                               mass=b.mass.double())
-            yaw0 = env.yaw.double()
-            env.landmarks = env.landmarks.double()
+            s = env.sim  # the env's own step, in float64: its state and body constants cast (bench only)
+            start = dataclasses.replace(s, pos=s.pos.double(), vel=s.vel.double(), yaw=s.yaw.double(),
+                                        landmarks=s.landmarks.double())
+            env.radius, env.mass = env.radius.double(), env.mass.double()
 
             def rollout(substeps, integrator):
                 env.physics = dataclasses.replace(base, substeps=substeps, integrator=integrator)
-                env.bodies, env.yaw = start, yaw0
+                env.sim = start
                 for a in actions:
                     env._step_state(a, alive)  # the env's physics step, without rendering
-                return env.bodies
+                return env.sim
 
             settings, skipped = [], []
             for integrator in SPREAD_INTEGRATORS:
