@@ -2,12 +2,12 @@
 
 One agent per world pushes a cart along a rail to keep a pole upright.
 
-* Dynamics: ``physics.cartpole_step`` (dm_control's cartpole.xml constants, one RK4
-  step of 0.01 s per env step, gear 10). The slider's range limit (+-1.8 m in the xml)
-  is modelled as a hard, inelastic stop: a cart reaching the end loses its velocity
-  and the pole receives the matching impulse (MuJoCo's limit is soft; it only differs
-  there).
-* Reward: ``physics.dmc_balance_reward`` (upright * centred * small control * small
+* Dynamics: ``cartpole_dynamics.cartpole_step`` (dm_control's cartpole.xml constants, one
+  RK4 step of 0.01 s per env step, gear 10). The slider's range limit (+-1.8 m in the
+  xml) is modelled as a hard, inelastic stop (``cartpole_dynamics.slider_limit``): a cart
+  reaching the end loses its velocity and the pole receives the matching impulse
+  (MuJoCo's limit is soft; it only differs there).
+* Reward: ``dmc_rewards.dmc_balance_reward`` (upright * centred * small control * small
   velocity), in [0, 1] per step.
 * Episode: never terminates early; truncated after ``max_steps`` = 1000 (10 s).
 * Reset: cart x ~ U(-0.1, 0.1), pole angle ~ U(-0.034, 0.034), velocities 0.01 N(0, 1).
@@ -20,17 +20,19 @@ One agent per world pushes a cart along a rail to keep a pole upright.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
 
 import marl_render as mr
 
-from . import physics
+from . import state as explicit_state
+from .cartpole_dynamics import CARTPOLE, cartpole_step, slider_limit
 from .core import BatchedEnv
+from .dmc_rewards import dmc_balance_reward
 
 FORCE_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)
-SLIDER_LIMIT = 1.8  # m, dm_control cartpole.xml slider range
 CART_HEIGHT = 1.0  # the cart body's z (hinge height)
 CART_SIZE = (0.4, 0.3, 0.2)  # full sizes of the cart box (geom size .2 .15 .1)
 POLE_LENGTH = 1.0
@@ -44,6 +46,12 @@ FLOOR_COLOR = (0.15, 0.25, 0.35)
 SKY_COLOR = (0.4, 0.6, 0.8)
 
 
+@dataclasses.dataclass(frozen=True)
+class CartPoleState:
+    qstate: torch.Tensor  # [W, 4] float64 (x, theta, x_dot, theta_dot), like MuJoCo's qpos + qvel
+    last_control: torch.Tensor  # [W] float64: the motor control of the last step
+
+
 class CartPoleBalance(BatchedEnv):
     """dm_control cartpole-balance, batched over worlds; see the module docstring."""
 
@@ -52,8 +60,8 @@ class CartPoleBalance(BatchedEnv):
     agent_range = (1, 1)
     default_max_steps = 1000
     default_resolution = 64
-    dt = physics.CARTPOLE["timestep"]  # one RK4 step per env step
-    physics_terms = frozenset()  # own dynamics (physics.cartpole_step); no planar terms
+    dt = CARTPOLE["timestep"]  # one RK4 step per env step
+    physics_terms = frozenset()  # own dynamics (cartpole_dynamics.cartpole_step); no planar terms
     background = SKY_COLOR
     fov_y = math.radians(45.0)
     near = 0.1
@@ -72,9 +80,8 @@ class CartPoleBalance(BatchedEnv):
             self.action_meanings = tuple(f"force_{u:+g}" for u in FORCE_LEVELS)
         self.state_dim = 5
         self.force_levels = torch.tensor(FORCE_LEVELS, dtype=torch.float64, device=self.device)
-        # (x, theta, x_dot, theta_dot), float64 like MuJoCo.
-        self.qstate = torch.zeros(W, 4, dtype=torch.float64, device=self.device)
-        self.last_control = torch.zeros(W, dtype=torch.float64, device=self.device)
+        self.sim = CartPoleState(qstate=torch.zeros(W, 4, dtype=torch.float64, device=self.device),
+                                 last_control=torch.zeros(W, dtype=torch.float64, device=self.device))
         # Constant parts of the instance data: [cart, pole].
         self._scale = torch.tensor([CART_SIZE, (POLE_WIDTH, POLE_WIDTH, POLE_LENGTH)]).expand(W, 2, 3)
         self._color = torch.tensor([SELF_COLOR, POLE_COLOR]).expand(W, 2, 3)
@@ -105,8 +112,8 @@ class CartPoleBalance(BatchedEnv):
         theta = torch.rand(W, generator=g, dtype=torch.float64) * 0.068 - 0.034
         qvel = 0.01 * torch.randn(W, 2, generator=g, dtype=torch.float64)
         fresh = torch.cat((x[:, None], theta[:, None], qvel), 1).to(self.device)
-        self.qstate = torch.where(mask[:, None], fresh, self.qstate)
-        self.last_control = torch.where(mask, torch.zeros_like(self.last_control), self.last_control)
+        new = CartPoleState(qstate=fresh, last_control=torch.zeros_like(self.sim.last_control))
+        self.sim = explicit_state.select_worlds(mask, new, self.sim)
 
     def control(self, actions: torch.Tensor) -> torch.Tensor:
         """Motor control [W] in [-1, 1] for validated actions."""
@@ -114,16 +121,14 @@ class CartPoleBalance(BatchedEnv):
 
     def _step_state(self, actions, alive):
         u = self.control(actions)
-        q = physics.cartpole_step(self.qstate, u)
-        q = slider_limit(q)
-        reward = physics.dmc_balance_reward(q, u)
-        self.qstate = q
-        self.last_control = u
+        q = slider_limit(cartpole_step(self.sim.qstate, u))
+        self.sim = CartPoleState(qstate=q, last_control=u)
+        reward = dmc_balance_reward(q, u)
         terminated = torch.zeros(self.num_worlds, 1, dtype=torch.bool, device=self.device)
         return reward[:, None], terminated, {}
 
     def _instances(self, full: bool) -> dict:
-        q = self.qstate.to("cpu", torch.float32)
+        q = self.sim.qstate.to("cpu", torch.float32)
         x, theta = q[:, 0], q[:, 1]
         half = 0.5 * theta
         position, rotation = self._position, self._rotation
@@ -138,24 +143,6 @@ class CartPoleBalance(BatchedEnv):
         return {"cartpole": update}
 
     def _state_obs(self):
-        x, theta, xdot, thetadot = self.qstate.unbind(-1)
+        x, theta, xdot, thetadot = self.sim.qstate.unbind(-1)
         state = torch.stack((x, torch.cos(theta), torch.sin(theta), xdot, thetadot), -1)
         return state[:, None].to(torch.float32)
-
-    def _state_tensors(self):
-        return {"qstate": self.qstate, "last_control": self.last_control}
-
-
-def slider_limit(q: torch.Tensor, limit: float = SLIDER_LIMIT) -> torch.Tensor:
-    """Hard inelastic stop at |x| = limit: the cart's velocity into the stop is removed and the
-    pole gets the impulse that keeps the hinge constraint (d theta_dot = m l cos / J * x_dot)."""
-    x, theta, xdot, thetadot = q.unbind(-1)
-    hit = ((x > limit) & (xdot > 0)) | ((x < -limit) & (xdot < 0))
-    p = physics.CARTPOLE
-    m, l = p["pole_mass"], p["pole_com"]
-    J = p["pole_inertia"] + m * l * l
-    zero = torch.zeros_like(xdot)
-    thetadot = torch.where(hit, thetadot + m * l * torch.cos(theta) / J * xdot, thetadot)
-    xdot = torch.where(hit, zero, xdot)
-    x = x.clamp(-limit, limit)
-    return torch.stack((x, theta, xdot, thetadot), -1)

@@ -51,10 +51,15 @@ most 1024 (marl_render/threads.py says why).
 made it: in a child forked from that process, ``reset``, ``reset_worlds``, ``step`` and
 ``render_overview`` raise ForkedContextError before anything changes (``get_state`` still
 reads the inherited state).
+
+The state is explicit (envs/state.py): an env's simulation lives in one frozen dataclass of
+tensors, ``env.sim``; ``get_state()`` copies it out with the step counters, the alive mask and
+the RNG state, and ``set_state(state)`` restores all of it exactly.
 """
 from __future__ import annotations
 
 import abc
+import dataclasses
 import math
 
 import numpy as np
@@ -66,6 +71,7 @@ from marl_render.threads import limited_threads, thread_count
 from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, resolution_hw
 
 from . import scenery
+from . import state as explicit_state
 
 OBS_KEYS = ("pixels", "depth", "state", "action_mask")
 
@@ -122,9 +128,9 @@ class BatchedEnv(abc.ABC):
     """Abstract base of all environments: see the module docstring for the contract.
 
     Subclasses set the class attributes below and implement the hooks
-    ``_setup``, ``_build_scene``, ``_reset_state``, ``_step_state``, ``_instances``,
-    ``_state_obs``, ``_state_tensors`` (and optionally ``_init_cameras``,
-    ``_action_mask``, ``_overview_camera``).
+    ``_setup`` (which also sets ``sim``, the simulation state: a frozen dataclass of
+    tensors), ``_build_scene``, ``_reset_state``, ``_step_state``, ``_instances``,
+    ``_state_obs`` (and optionally ``_init_cameras``, ``_action_mask``, ``_overview_camera``).
 
     Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
     (H, W)), max_steps, continuous, state_obs, depth, device, seed, autoreset, and
@@ -135,8 +141,10 @@ class BatchedEnv(abc.ABC):
     agent names, in agent-index order), resolution (H, W), continuous, num_actions
     (discrete, else None), action_dim (continuous, else None), action_meanings,
     obs_keys, state_dim, max_steps, dt, device, seed, generator, renderer, physics
-    (PhysicsConfig or None), physics_terms, alive [W, A] bool, step_count [W] int64.
-    Methods: reset, reset_worlds, step, check_actions, render_overview, get_state, close.
+    (PhysicsConfig or None), physics_terms, sim (the simulation state), alive [W, A] bool,
+    step_count [W] int64.
+    Methods: reset, reset_worlds, step, check_actions, render_overview, state_observation,
+    get_state, set_state, close.
     """
 
     # ---- declared by each environment
@@ -146,7 +154,7 @@ class BatchedEnv(abc.ABC):
     default_max_steps: int = 100
     default_resolution = 64
     dt: float = 0.1  # simulated seconds per step (a front end plays episodes back at 1 / dt frames/s)
-    physics_terms: frozenset = frozenset()  # envs/physics.py terms this env computes
+    physics_terms: frozenset = frozenset()  # envs/planar.py terms this env computes
     info_keys: dict = {}  # {name: dtype} of the env's own info entries, each [W], in every step's info
     background: tuple = scenery.SKY_COLOR
     fov_y: float = math.radians(70.0)
@@ -197,7 +205,8 @@ class BatchedEnv(abc.ABC):
         self.action_dim: int | None = None
         self.action_meanings: tuple | None = None  # discrete: a short name per action
         self.state_dim: int = 0
-        self.physics = None  # PhysicsConfig of envs that use envs/physics.py
+        self.physics = None  # PhysicsConfig of envs that use envs/planar.py
+        self.sim = None  # the simulation state, a frozen dataclass of tensors (envs/state.py)
         mr.backend.context()  # in a forked child: ForkedContextError now, not a torch deadlock in _setup
         self._setup()
         self._check_setup()
@@ -218,7 +227,8 @@ class BatchedEnv(abc.ABC):
     # ================================================================== hooks
     @abc.abstractmethod
     def _setup(self) -> None:
-        """Set agent_names, groups, num_actions / action_dim, state_dim, physics; allocate state."""
+        """Set agent_names, groups, num_actions / action_dim, state_dim, physics, and `sim`: the
+        simulation state (a frozen dataclass of tensors; its shapes are what set_state accepts)."""
 
     @abc.abstractmethod
     def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
@@ -238,13 +248,14 @@ class BatchedEnv(abc.ABC):
 
     @abc.abstractmethod
     def _reset_state(self, mask: torch.Tensor) -> None:
-        """Sample a new episode into the worlds where mask [W] is True, using self.generator.
-        Leave the other worlds' tensors bit-identical (sample for all, select with where)."""
+        """Replace `sim` by one with a new episode in the worlds where mask [W] is True, sampled
+        with self.generator; the other worlds' tensors stay bit-identical (sample for all worlds,
+        then state.select_worlds)."""
 
     @abc.abstractmethod
     def _step_state(self, actions: torch.Tensor, alive: torch.Tensor):
-        """Advance every world by one step with validated actions; agents with alive False
-        must be ignored. Returns (reward [W, A] float, terminated [W, A] bool, info dict)."""
+        """Replace `sim` by the state one step later, for validated actions; agents with alive
+        False must be ignored. Returns (reward [W, A] float, terminated [W, A] bool, info dict)."""
 
     @abc.abstractmethod
     def _instances(self, full: bool) -> dict:
@@ -258,10 +269,6 @@ class BatchedEnv(abc.ABC):
     def _action_mask(self) -> torch.Tensor:
         """[W, A, num_actions] bool; default: every action valid."""
         return torch.ones(self.num_worlds, self.num_agents, self.num_actions, dtype=torch.bool, device=self.device)
-
-    @abc.abstractmethod
-    def _state_tensors(self) -> dict:
-        """{name: tensor} of the env's own simulation state (for get_state)."""
 
     # ================================================================== public API
     @torch.no_grad()
@@ -391,13 +398,49 @@ class BatchedEnv(abc.ABC):
             self._sync(self._overview, full=True)
             return self._overview.render().rgb[:, 0].to(self.device)
 
-    def get_state(self) -> dict:
-        """Copies of the whole simulation state: env tensors, step counters, alive mask, RNG state."""
+    def state_observation(self) -> torch.Tensor:
+        """float32 [W, A, state_dim]: the low-dimensional observation of the current state (obs
+        key "state"), whether or not the env was built with state_obs=True."""
         self._check_open()
         self._check_started()
-        state = {k: v.clone() for k, v in self._state_tensors().items()}
-        state.update(step_count=self.step_count.clone(), alive=self.alive.clone(), rng=self.generator.get_state())
+        if not self.state_dim:
+            raise NotImplementedError(f"{type(self).__name__} has no state observation")
+        with limited_threads(self.torch_threads):
+            return self._state_obs().to(torch.float32)
+
+    def get_state(self) -> dict:
+        """Copies of the whole state as {name: tensor}: the fields of `sim` (the simulation),
+        "step_count" [W] int64, "alive" [W, A] bool and "rng" (the generator's state, uint8, CPU).
+        set_state(state) restores it exactly: the steps that follow are bit-identical."""
+        self._check_open()
+        self._check_started()
+        state = {name: value.clone() for name, value in {**explicit_state.fields(self.sim), **self._counters()}.items()}
+        state["rng"] = self.generator.get_state()
         return state
+
+    def set_state(self, state: dict) -> None:
+        """Restore a state from get_state() (of this env or one built with the same arguments),
+        RNG included; the env then continues from it as if it had never left it.
+
+        Every key must be there, each tensor of the current shape, dtype and device, floats
+        finite; else TypeError / ValueError naming the key, and nothing changes."""
+        self._check_open()
+        template = {**explicit_state.fields(self.sim), **self._counters(), "rng": self.generator.get_state()}
+        state = explicit_state.checked(state, template)
+        if bool((state["step_count"] < 0).any()):
+            raise ValueError(f"state['step_count'] must be >= 0, got minimum {int(state['step_count'].min())}")
+        rng = state.pop("rng")
+        try:
+            torch.Generator().set_state(rng)
+        except RuntimeError as exc:
+            raise ValueError(f"state['rng'] must be a torch.Generator state (from get_state()), got an invalid one: "
+                             f"{exc}") from exc
+        self.step_count, self.alive = state.pop("step_count"), state.pop("alive")
+        self.sim = type(self.sim)(**state)
+        self.generator.set_state(rng)
+        self._needs_reset = False
+        with limited_threads(self.torch_threads):
+            self._sync(self.renderer, full=True)  # per-episode instance data (landmarks, ...) changed too
 
     def close(self) -> None:
         """Release the renderers; safe to call twice. Any later use raises RuntimeError."""
@@ -431,8 +474,14 @@ class BatchedEnv(abc.ABC):
                 f"resolution={self.resolution}, {kind}, obs_keys={self.obs_keys}, max_steps={self.max_steps})")
 
     # ================================================================== internals
+    def _counters(self) -> dict:
+        """The core's part of the state (get_state / set_state)."""
+        return {"step_count": self.step_count, "alive": self.alive}
+
     def _check_setup(self):
         A = self.num_agents
+        if not (dataclasses.is_dataclass(self.sim) and not isinstance(self.sim, type)):
+            raise RuntimeError(f"{type(self).__name__}._setup must set sim to a dataclass of tensors (envs/state.py)")
         if len(self.agent_names) != A or len(set(self.agent_names)) != A:
             raise RuntimeError(f"{type(self).__name__}._setup must give {A} distinct agent_names")
         grouped = [n for names in self.groups.values() for n in names]

@@ -4,7 +4,7 @@ N agents (default 3) drive around a walled arena picking up floating yellow sphe
 Every agent sees the arena through its own camera mounted on its body.
 
 * Arena: |x|, |y| <= 1.5 m, walls and floor are static geometry.
-* Agents: blue capsules of radius 0.15 m, mass 1, physics from ``envs/physics.py`` with
+* Agents: blue capsules of radius 0.15 m, mass 1, physics from ``envs/planar.py`` with
   the terms walls + body_collisions + drag (MPE-like damping 0.25 per 0.1 s step), as
   in ``spread``. The camera sits at 0.4 m, pitched 0.2 rad down; a dark "nose" box
   shows other agents which way a body faces.
@@ -33,6 +33,7 @@ Every agent sees the arena through its own camera mounted on its body.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -41,15 +42,13 @@ import marl_render as mr
 
 from marl_render.validation import positive_float, positive_int
 
-from . import egomotion, physics, scenery
+from . import scenery
+from .arena import ArenaEnv, ArenaState, numbered
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.3  # items spawn in |x|, |y| <= SPAWN
 SPAWN_GRID = 4  # agents spawn in distinct cells of a SPAWN_GRID x SPAWN_GRID grid (no overlaps)
 AGENT_RADIUS = 0.15
-AGENT_HEIGHT = 0.5
-EYE_HEIGHT = 0.4
-CAMERA_PITCH = -0.2
 ITEM_RADIUS = 0.1
 ITEM_HEIGHT = 0.15  # centre height of the floating spheres
 ITEM_COLOR = (0.95, 0.80, 0.15)
@@ -57,13 +56,19 @@ REACH = AGENT_RADIUS + ITEM_RADIUS  # an agent touches an item while their centr
 RESPAWN_CLEARANCE = REACH + 0.1  # items respawn at least this far from every agent
 RESPAWN_CANDIDATES = 8
 
-# discrete action -> (thrust, turn), the same set as spread
+
+@dataclasses.dataclass(frozen=True)
+class ForageState(ArenaState):
+    items: torch.Tensor  # [W, I, 2] item centres (m), also while away
+    item_timer: torch.Tensor  # [W, I] int64: steps until the item is back; 0: available
+    team_score: torch.Tensor  # [W] float32: the team's reward in this episode so far
 
 
-class Forage(egomotion.EgocentricEnv):
+class Forage(ArenaEnv):
     """Collect respawning items; see the module docstring."""
 
     name = "forage"
+    State = ForageState
     default_num_agents = 3
     agent_range = (1, 12)
     default_max_steps = 200
@@ -86,39 +91,13 @@ class Forage(egomotion.EgocentricEnv):
     def _setup(self):
         W, N = self.num_worlds, self.num_agents
         I = self.num_items = min(2 * N, 32) if self.num_items is None else self.num_items  # noqa: E741
-        self.agent_names = [f"agent_{i}" for i in range(N)]
-        self.groups = {"agents": list(self.agent_names)}
-        egomotion.declare_actions(self)
-        self.state_dim = 6 + 3 * I + 2 * (N - 1)
-        self.physics = egomotion.arena_physics(self.physics_terms, (ARENA, ARENA), max_speed=2.0,
-                                               min_body_radius=AGENT_RADIUS)
-        dev = self.device
-        self.bodies = physics.BodyState.make(torch.zeros(W, N, 2, device=dev), AGENT_RADIUS)
-        self.yaw = torch.zeros(W, N, device=dev)
-        self.items = torch.zeros(W, I, 2, device=dev)
-        # Steps until an item is back; 0: available.
-        self.item_timer = torch.zeros(W, I, dtype=torch.int64, device=dev)
-        self.team_score = torch.zeros(W, device=dev)
-        self._others = torch.tensor([[j for j in range(N) if j != i] for i in range(N)], dtype=torch.long,
-                                    device=dev).reshape(N, N - 1)
-        self._agent_index = torch.arange(N, device=dev)
-        # Constant instance data.
-        self._agent_color = torch.tensor(scenery.TEAM_COLORS["agents"]).expand(W, N, 3)
+        self.setup_arena({"agents": numbered("agent", N)}, state_dim=6 + 3 * I + 2 * (N - 1), radius=AGENT_RADIUS,
+                         max_speed=2.0)
+        self.sim = self.at_rest(torch.zeros(W, N, 2), torch.zeros(W, N), items=torch.zeros(W, I, 2),
+                                item_timer=torch.zeros(W, I, dtype=torch.int64), team_score=torch.zeros(W))
+        self._agent_index = torch.arange(N, device=self.device)
         self._item_color = torch.tensor(ITEM_COLOR).expand(W, I, 3)
         self._item_scale = torch.full((W, I, 3), 2 * ITEM_RADIUS)
-        self._nose_scale = torch.tensor([0.08, 0.12, 0.08]).expand(W, N, 3)
-        self._nose_color = torch.tensor([0.1, 0.1, 0.12]).expand(W, N, 3)
-        self._owner = torch.arange(N).expand(W, N)
-        self._all_agents = torch.ones(W, N, dtype=torch.bool)
-
-    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
-        scenery.add_arena(scene, (ARENA, ARENA))
-        scene.add_group("agents", scenery.agent_mesh(AGENT_RADIUS, AGENT_HEIGHT), capacity=self.num_agents)
-        scene.add_group("noses", "box", capacity=self.num_agents)
-        scene.add_group("items", mr.sphere(segments=10, rings=5), capacity=self.num_items)
-        if not overview:
-            scene.mount_cameras("agents", instance=range(self.num_agents),
-                                offset=(0.0, 0.0, EYE_HEIGHT - AGENT_HEIGHT / 2), pitch=CAMERA_PITCH)
 
     def _item_spawn(self, agent_pos: torch.Tensor) -> torch.Tensor:
         """Random item positions [W, I, 2] clear of agent_pos [W, N, 2] (uses self.generator)."""
@@ -129,75 +108,50 @@ class Forage(egomotion.EgocentricEnv):
         pick = clear.to(torch.uint8).argmax(-1)  # the first clear candidate
         return candidates.reshape(W, I, M, 2).gather(2, pick[..., None, None].expand(W, I, 1, 2)).squeeze(2)
 
-    def _reset_state(self, mask):
+    def spawn(self):
         W, N, g = self.num_worlds, self.num_agents, self.generator
         pos = scenery.cell_spawn(g, W, torch.full((N,), AGENT_RADIUS + 0.05), SPAWN_GRID, ARENA).to(self.device)
-        yaw = ((torch.rand(W, N, generator=g) * 2 - 1) * math.pi).to(self.device)
-        items = self._item_spawn(pos)
-        m1, m2, m3 = mask, mask[:, None], mask[:, None, None]
-        b = self.bodies
-        self.bodies = b._replace(pos=torch.where(m3, pos, b.pos), vel=torch.where(m3, torch.zeros_like(b.vel), b.vel),
-                                 active=b.active | m2)
-        self.yaw = torch.where(m2, yaw, self.yaw)
-        self.items = torch.where(m3, items, self.items)
-        self.item_timer = torch.where(m2, torch.zeros_like(self.item_timer), self.item_timer)
-        self.team_score = torch.where(m1, torch.zeros_like(self.team_score), self.team_score)
+        yaw = (torch.rand(W, N, generator=g) * 2 - 1) * math.pi
+        return self.at_rest(pos, yaw, items=self._item_spawn(pos), item_timer=torch.zeros_like(self.sim.item_timer),
+                            team_score=torch.zeros_like(self.sim.team_score))
 
-    def _step_state(self, actions, alive):
-        yaw, force = egomotion.drive(self, actions, alive)
-        bodies = physics.step(self.bodies._replace(active=alive), force, None, self.physics)
-
+    def rules(self, moved, alive):
         # Items away count down; those reaching 0 come back somewhere clear of the agents.
-        timer = (self.item_timer - 1).clamp_min(0)
-        back = (self.item_timer > 0) & (timer == 0)
-        items = torch.where(back[..., None], self._item_spawn(bodies.pos), self.items)
+        timer = (self.sim.item_timer - 1).clamp_min(0)
+        back = (self.sim.item_timer > 0) & (timer == 0)
+        items = torch.where(back[..., None], self._item_spawn(moved.pos), self.sim.items)
         # Collection: the closest live agent touching an available item takes it.
-        dist = torch.cdist(bodies.pos, items)  # [W, N, I]
+        dist = torch.cdist(moved.pos, items)  # [W, N, I]
         touching = (dist < REACH) & (timer == 0)[:, None, :] & alive[:, :, None]
         collected = touching.any(1)  # [W, I]
         taker = torch.where(touching, dist, torch.full_like(dist, math.inf)).argmin(1)  # [W, I]
         got = (taker[:, None, :] == self._agent_index[None, :, None]) & collected[:, None, :]  # [W, N, I]
         reward = self.item_reward * got.sum(-1).to(torch.float32)
-        self.item_timer = torch.where(collected, torch.full_like(timer, self.respawn_delay), timer)
-        self.items = items
-        self.bodies, self.yaw = bodies, yaw
-        self.team_score = self.team_score + reward.sum(-1)
-        terminated = torch.zeros_like(alive)
-        return reward, terminated, {"collected": collected.sum(-1), "team_score": self.team_score.clone()}
+        timer = torch.where(collected, torch.full_like(timer, self.respawn_delay), timer)
+        team_score = self.sim.team_score + reward.sum(-1)
+        state = dataclasses.replace(moved, items=items, item_timer=timer, team_score=team_score)
+        info = {"collected": collected.sum(-1), "team_score": team_score.clone()}
+        return state, reward, torch.zeros_like(alive), info
 
     @property
     def item_available(self) -> torch.Tensor:
         """bool [W, I]: items that can be collected (and are drawn)."""
-        return self.item_timer == 0
+        return self.sim.item_timer == 0
+
+    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
+        super()._build_scene(scene, overview)
+        scene.add_group("items", mr.sphere(segments=10, rings=5), capacity=self.num_items)
 
     def _instances(self, full: bool) -> dict:
-        pos = self.bodies.pos.to("cpu", torch.float32)
-        yaw = self.yaw.cpu()
-        rotation = scenery.yaw_quat(yaw)
-        update = {
-            "agents": {"position": scenery.planar_to_3d(pos, AGENT_HEIGHT / 2), "rotation": rotation},
-            "noses": {"position": scenery.planar_to_3d(pos + AGENT_RADIUS * scenery.heading(yaw), 0.3),
-                      "rotation": rotation},
-            "items": {"position": scenery.planar_to_3d(self.items.to("cpu", torch.float32), ITEM_HEIGHT),
-                      "active": self.item_available.cpu()},
-        }
+        update = super()._instances(full)
+        update["items"] = {"position": scenery.planar_to_3d(self.sim.items.to("cpu", torch.float32), ITEM_HEIGHT),
+                           "active": self.item_available.cpu()}
         if full:
-            update["agents"].update(color=self._agent_color, active=self._all_agents)
-            update["noses"].update(color=self._nose_color, scale=self._nose_scale, active=self._all_agents,
-                                   owner=self._owner)
             update["items"].update(scale=self._item_scale, color=self._item_color)
         return update
 
     def _state_obs(self):
-        pos, vel, yaw = self.bodies.pos, self.bodies.vel, self.yaw
-        W, N = pos.shape[:2]
-        available = self.item_available[:, None, :, None].to(pos.dtype)  # [W, 1, I, 1]
-        rel_items = ((self.items[:, None] - pos[:, :, None]) * available).reshape(W, N, -1)
-        others = pos[:, self._others] - pos[:, :, None]  # [W, N, N-1, 2]
-        return torch.cat((pos, vel, torch.cos(yaw)[..., None], torch.sin(yaw)[..., None], rel_items,
-                          available[..., 0].expand(W, N, -1), others.reshape(W, N, -1)), -1)
-
-    def _state_tensors(self):
-        b = self.bodies
-        return {"pos": b.pos, "vel": b.vel, "active": b.active, "yaw": self.yaw, "items": self.items,
-                "item_timer": self.item_timer, "team_score": self.team_score}
+        W, N = self.num_worlds, self.num_agents
+        available = self.item_available[:, None, :, None].to(self.sim.pos.dtype)  # [W, 1, I, 1]
+        return torch.cat((self.own_obs(), (self.relative(self.sim.items) * available).reshape(W, N, -1),
+                          available[..., 0].expand(W, N, -1), self.others_obs().reshape(W, N, -1)), -1)

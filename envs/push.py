@@ -14,7 +14,7 @@ its own camera mounted on its body.
   The camera sits at 0.4 m, pitched 0.2 rad down; a dark "nose" box shows which way a
   body faces.
 * Ball: a physics body (circle) of radius 0.15 m and mass 0.5, drawn as a white sphere.
-  Physics from ``envs/physics.py`` with the terms walls + body_collisions + drag
+  Physics from ``envs/planar.py`` with the terms walls + body_collisions + drag
   (MPE-like damping 0.25 per 0.1 s step for agents and ball alike), restitution 0.5.
 * Actions, egocentric, as in ``spread``: discrete 5: 0 noop, 1 forward, 2 turn left,
   3 turn right, 4 backward; continuous 2: (thrust in [-1, 1] along the heading, turn
@@ -50,7 +50,8 @@ import marl_render as mr
 
 from marl_render.validation import positive_float
 
-from . import egomotion, physics, scenery
+from . import scenery
+from .arena import ArenaEnv, numbered
 
 ARENA = (1.5, 2.0)  # half extents (m)
 GOAL_HALF_WIDTH = 0.5
@@ -60,9 +61,6 @@ SPAWN_Y = (0.45, 1.6)  # |y| range of the spawn area in the own half
 SPAWN_CLEARANCE = 0.02
 SPAWN_YAW_JITTER = 0.5
 AGENT_RADIUS = 0.15
-AGENT_HEIGHT = 0.5
-EYE_HEIGHT = 0.4
-CAMERA_PITCH = -0.2
 BALL_RADIUS = 0.15
 BALL_MASS = 0.5
 BALL_COLOR = (0.95, 0.95, 0.92)
@@ -70,8 +68,6 @@ WALL_THICKNESS = 0.1  # scenery.add_arena's default
 POST_SIZE = 0.08
 POST_HEIGHT = 0.6
 TEAM_COLORS = {"team_a": scenery.TEAM_COLORS["red"], "team_b": scenery.TEAM_COLORS["blue"]}
-
-# discrete action -> (thrust, turn), the same set as spread
 
 
 def add_goals(scene: mr.Scene) -> None:
@@ -97,7 +93,7 @@ def add_goals(scene: mr.Scene) -> None:
     scene.add_static("goal_frames", "box", position=positions, scale=scales, color=colors)
 
 
-class Push(egomotion.EgocentricEnv):
+class Push(ArenaEnv):
     """Two teams push a ball into the other team's goal; see the module docstring."""
 
     name = "push"
@@ -108,6 +104,7 @@ class Push(egomotion.EgocentricEnv):
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
     info_keys = {"goal": torch.int64}
     arena_half_extent = ARENA
+    team_colors = TEAM_COLORS
 
     def __init__(self, *, goal_reward: float = 1.0, shaping: float = 0.0, **common):
         """Common kwargs: see BatchedEnv (num_agents must be even)."""
@@ -120,50 +117,27 @@ class Push(egomotion.EgocentricEnv):
         if N % 2:
             raise ValueError(f"num_agents must be even for push (two equal teams), got {N}")
         T = N // 2
-        self.agent_names = [f"team_a_{i}" for i in range(T)] + [f"team_b_{i}" for i in range(T)]
-        self.groups = {"team_a": self.agent_names[:T], "team_b": self.agent_names[T:]}
-        egomotion.declare_actions(self)
-        self.state_dim = 10 + 2 * (N - 1)
-        self.physics = egomotion.arena_physics(self.physics_terms, ARENA, max_speed=3.0, substeps=3,
-                                               min_body_radius=min(AGENT_RADIUS, BALL_RADIUS))
-        dev = self.device
         # Bodies 0 .. N-1 are the agents, body N is the ball.
-        radius = torch.tensor([AGENT_RADIUS] * N + [BALL_RADIUS], device=dev)
-        mass = torch.tensor([1.0] * N + [BALL_MASS], device=dev)
-        self.bodies = physics.BodyState.make(torch.zeros(W, N + 1, 2, device=dev), radius, mass=mass)
-        self.yaw = torch.zeros(W, N, device=dev)
-        self.is_team_a = torch.arange(N, device=dev) < T
-        self.side = torch.where(self.is_team_a, 1.0, -1.0)  # +1: attacks +y (team_a), -1: attacks -y
+        self.setup_arena({"team_a": numbered("team_a", T), "team_b": numbered("team_b", T)},
+                         state_dim=10 + 2 * (N - 1), radius=AGENT_RADIUS, max_speed=3.0, substeps=3,
+                         bodies=((BALL_RADIUS, BALL_MASS),))
+        self.sim = self.at_rest(torch.zeros(W, N + 1, 2), torch.zeros(W, N))
+        self.is_team_a = torch.arange(N, device=self.device) < T
+        self.side = self.per_agent({"team_a": 1.0, "team_b": -1.0})  # +1: attacks +y (team_a), -1: attacks -y
         # Per agent: teammates then opponents, each in index order, [N, N-1].
-        self._others = torch.tensor([[j for j in range(N) if j != i and (j < T) == (i < T)]
-                                     + [j for j in range(N) if (j < T) != (i < T)] for i in range(N)],
-                                    dtype=torch.long, device=dev).reshape(N, N - 1)
-        # Constant instance data.
-        colors = torch.tensor([TEAM_COLORS["team_a"], TEAM_COLORS["team_b"]])
-        self._agent_color = colors[(~self.is_team_a).long().cpu()].expand(W, N, 3)
-        self._nose_scale = torch.tensor([0.08, 0.12, 0.08]).expand(W, N, 3)
-        self._nose_color = torch.tensor([0.1, 0.1, 0.12]).expand(W, N, 3)
-        self._owner = torch.arange(N).expand(W, N)
+        self.others = torch.tensor([[j for j in range(N) if j != i and (j < T) == (i < T)]
+                                    + [j for j in range(N) if (j < T) != (i < T)] for i in range(N)],
+                                   dtype=torch.long, device=self.device).reshape(N, N - 1)
         self._ball_scale = torch.full((W, 1, 3), 2 * BALL_RADIUS)
         self._ball_color = torch.tensor(BALL_COLOR).expand(W, 1, 3)
-        self._all = {"agents": torch.ones(W, N, dtype=torch.bool), "ball": torch.ones(W, 1, dtype=torch.bool)}
-
-    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
-        scenery.add_arena(scene, ARENA, wall_thickness=WALL_THICKNESS)
-        add_goals(scene)
-        scene.add_group("agents", scenery.agent_mesh(AGENT_RADIUS, AGENT_HEIGHT), capacity=self.num_agents)
-        scene.add_group("noses", "box", capacity=self.num_agents)
-        scene.add_group("ball", mr.sphere(segments=10, rings=5), capacity=1)
-        if not overview:
-            scene.mount_cameras("agents", instance=range(self.num_agents),
-                                offset=(0.0, 0.0, EYE_HEIGHT - AGENT_HEIGHT / 2), pitch=CAMERA_PITCH)
+        self._ball_active = torch.ones(W, 1, dtype=torch.bool)
 
     @property
     def ball(self) -> tuple:
         """(position [W, 2], velocity [W, 2]) of the ball."""
-        return self.bodies.pos[:, -1], self.bodies.vel[:, -1]
+        return self.sim.pos[:, -1], self.sim.vel[:, -1]
 
-    def _reset_state(self, mask):
+    def spawn(self):
         W, N, g = self.num_worlds, self.num_agents, self.generator
         T = N // 2
         # Each team's agents take the T lanes across the pitch in a random order (so they never
@@ -175,57 +149,36 @@ class Push(egomotion.EgocentricEnv):
         y = -self.side * (SPAWN_Y[0] + u[..., 1] * (SPAWN_Y[1] - SPAWN_Y[0]))  # own half
         yaw = torch.where(self.is_team_a, 0.0, math.pi) + (u[..., 2] * 2 - 1) * SPAWN_YAW_JITTER
         ball = ((torch.rand(W, 1, 2, generator=g) * 2 - 1) * torch.tensor([0.3, 0.1])).to(self.device)
-        pos = torch.cat((torch.stack((x, y), -1), ball), 1)
-        m2, m3 = mask[:, None], mask[:, None, None]
-        b = self.bodies
-        self.bodies = b._replace(pos=torch.where(m3, pos, b.pos), vel=torch.where(m3, torch.zeros_like(b.vel), b.vel),
-                                 active=b.active | m2)
-        self.yaw = torch.where(m2, scenery.wrap_angle(yaw), self.yaw)
+        return self.at_rest(torch.cat((torch.stack((x, y), -1), ball), 1), scenery.wrap_angle(yaw))
 
-    def _step_state(self, actions, alive):
-        yaw, force = egomotion.drive(self, actions, alive)
-        force = torch.cat((force, torch.zeros_like(force[:, :1])), 1)  # no force on the ball
-        active = torch.cat((alive, torch.ones_like(alive[:, :1])), 1)
-        bodies = physics.step(self.bodies._replace(active=active), force, None, self.physics)
-
-        ball_before, ball = self.bodies.pos[:, -1], bodies.pos[:, -1]
+    def rules(self, moved, alive):
+        ball_before, ball = self.sim.pos[:, -1], moved.pos[:, -1]
         in_mouth = ball[:, 0].abs() < GOAL_HALF_WIDTH
         goal = ((in_mouth & (ball[:, 1] > GOAL_LINE)).long() - (in_mouth & (ball[:, 1] < -GOAL_LINE)).long())  # [W]
         reward = self.goal_reward * goal[:, None].to(torch.float32) * self.side  # [W, N]
         if self.shaping:
             reward = reward + self.shaping * (ball[:, 1] - ball_before[:, 1])[:, None] * self.side
         terminated = (goal != 0)[:, None].expand(-1, self.num_agents)
-        self.bodies, self.yaw = bodies, yaw
-        return reward, terminated, {"goal": goal}
+        return moved, reward, terminated, {"goal": goal}
+
+    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
+        super()._build_scene(scene, overview)
+        add_goals(scene)
+        scene.add_group("ball", mr.sphere(segments=10, rings=5), capacity=1)
 
     def _instances(self, full: bool) -> dict:
-        pos = self.bodies.pos.to("cpu", torch.float32)
-        agents, ball = pos[:, :-1], pos[:, -1:]
-        yaw = self.yaw.cpu()
-        rotation = scenery.yaw_quat(yaw)
-        update = {
-            "agents": {"position": scenery.planar_to_3d(agents, AGENT_HEIGHT / 2), "rotation": rotation},
-            "noses": {"position": scenery.planar_to_3d(agents + AGENT_RADIUS * scenery.heading(yaw), 0.3),
-                      "rotation": rotation},
-            "ball": {"position": scenery.planar_to_3d(ball, BALL_RADIUS)},
-        }
+        update = super()._instances(full)
+        update["ball"] = {"position": scenery.planar_to_3d(self.sim.pos[:, -1:].to("cpu", torch.float32), BALL_RADIUS)}
         if full:
-            update["agents"].update(color=self._agent_color, active=self._all["agents"])
-            update["noses"].update(color=self._nose_color, scale=self._nose_scale, active=self._all["agents"],
-                                   owner=self._owner)
-            update["ball"].update(scale=self._ball_scale, color=self._ball_color, active=self._all["ball"])
+            update["ball"].update(scale=self._ball_scale, color=self._ball_color, active=self._ball_active)
         return update
 
     def _state_obs(self):
         s = self.side[None, :, None]  # team frame: team_b's coordinates turned by 180 degrees
-        agents, vel = self.bodies.pos[:, :-1], self.bodies.vel[:, :-1]
+        agents, vel = self.sim.pos[:, :-1], self.sim.vel[:, :-1]
         ball, ball_vel = self.ball
         W, N = agents.shape[:2]
-        yaw = self.yaw + torch.where(self.is_team_a, 0.0, math.pi)
-        others = (agents[:, self._others] - agents[:, :, None]) * s[..., None]  # [W, N, N-1, 2]
+        yaw = self.sim.yaw + torch.where(self.is_team_a, 0.0, math.pi)
+        others = self.others_obs() * s[..., None]  # [W, N, N-1, 2]
         return torch.cat((agents * s, vel * s, torch.cos(yaw)[..., None], torch.sin(yaw)[..., None],
                           (ball[:, None] - agents) * s, ball_vel[:, None] * s, others.reshape(W, N, -1)), -1)
-
-    def _state_tensors(self):
-        b = self.bodies
-        return {"pos": b.pos, "vel": b.vel, "active": b.active, "yaw": self.yaw}

@@ -18,7 +18,7 @@ Every agent sees the arena through its own camera mounted on its body.
   [-45, 45] degrees, agents a random yaw. So nothing overlaps at the start and every
   prey starts at least 0.1 m from touching any predator.
 * Bodies: capsules, predators radius 0.15 m, prey 0.12 m, mass 1, physics from
-  ``envs/physics.py`` with the terms walls + body_collisions + obstacles (only when
+  ``envs/planar.py`` with the terms walls + body_collisions + obstacles (only when
   ``num_obstacles`` > 0) + drag (MPE-like damping 0.25 per 0.1 s step).
   Speeds as in MPE: predators thrust 3 N and at most 1.0 m/s, prey thrust 4 N and at
   most 1.3 m/s (the physics clamps to 1.3; the predators' cap is applied after each
@@ -51,6 +51,7 @@ Every agent sees the arena through its own camera mounted on its body.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -59,29 +60,32 @@ import marl_render as mr
 
 from marl_render.validation import positive_float, positive_int
 
-from . import egomotion, physics, scenery
+from . import planar, scenery
+from .arena import ArenaEnv, ArenaState, numbered
 
 ARENA = 1.5  # half extent (m)
 OBSTACLE_HALF = 0.2  # half side of the square obstacles (m)
 OBSTACLE_HEIGHT = 0.4
 OBSTACLE_COLOR = (0.35, 0.33, 0.30)
-PREDATOR_RADIUS = 0.15
-PREY_RADIUS = 0.12
-AGENT_HEIGHT = 0.5
-EYE_HEIGHT = 0.4
-CAMERA_PITCH = -0.2
+RADIUS = {"predator": 0.15, "prey": 0.12}  # m
 THRUST = {"predator": 3.0, "prey": 4.0}  # N at full forward action
 MAX_SPEED = {"predator": 1.0, "prey": 1.3}  # m/s
 CONTACT_TOLERANCE = 0.02  # a predator "touches" a prey while their gap is below this (m)
 SPAWN_CLEARANCE = 0.05  # spawned bodies keep this much space to their spawn cell's borders
 
-# discrete action -> (thrust, turn), the same set as spread
+
+@dataclasses.dataclass(frozen=True)
+class TagState(ArenaState):
+    obstacle_center: torch.Tensor  # [W, K, 2] (m)
+    obstacle_angle: torch.Tensor  # [W, K] rad
+    shown: torch.Tensor  # [W, A] bool: agents drawn in the current frame (those caught in it still are)
 
 
-class Tag(egomotion.EgocentricEnv):
+class Tag(ArenaEnv):
     """Predators and prey; see the module docstring."""
 
     name = "tag"
+    State = TagState
     default_num_agents = 4
     agent_range = (2, 16)
     default_max_steps = 100
@@ -108,7 +112,6 @@ class Tag(egomotion.EgocentricEnv):
         self.shaping = positive_float("shaping", shaping, allow_zero=True)
         super().__init__(**common)
 
-    # ------------------------------------------------------------------ setup
     def _team_sizes(self, N: int) -> tuple:
         P, Q = self.num_predators, self.num_prey
         if P is not None and Q is not None and P + Q != N:
@@ -125,81 +128,39 @@ class Tag(egomotion.EgocentricEnv):
     def _setup(self):
         W, N, K = self.num_worlds, self.num_agents, self.num_obstacles
         P, Q = self.num_predators, self.num_prey = self._team_sizes(N)
-        self.agent_names = [f"predator_{i}" for i in range(P)] + [f"prey_{j}" for j in range(Q)]
-        self.groups = {"predator": self.agent_names[:P], "prey": self.agent_names[P:]}
-        egomotion.declare_actions(self)
-        self.state_dim = 6 + 3 * (N - 1) + 2 * K
         self.physics_terms = frozenset({"walls", "body_collisions", "drag"} | ({"obstacles"} if K else set()))
-        self.physics = egomotion.arena_physics(self.physics_terms, (ARENA, ARENA), max_speed=max(MAX_SPEED.values()),
-                                               min_body_radius=PREY_RADIUS)
-        dev = self.device
-        self.is_predator = torch.arange(N, device=dev) < P  # [N]
+        self.setup_arena({"predator": numbered("predator", P), "prey": numbered("prey", Q)},
+                         state_dim=6 + 3 * (N - 1) + 2 * K, radius=RADIUS, max_speed=max(MAX_SPEED.values()))
+        self.sim = self.at_rest(torch.zeros(W, N, 2), torch.zeros(W, N), obstacle_center=torch.zeros(W, K, 2),
+                                obstacle_angle=torch.zeros(W, K), shown=torch.ones(W, N, dtype=torch.bool))
+        self.thrust, self.max_speed = self.per_agent(THRUST), self.per_agent(MAX_SPEED)
+        self.is_predator = torch.arange(N, device=self.device) < P  # [N]
         self.is_prey = ~self.is_predator
-        team = lambda values: torch.where(self.is_predator, values["predator"], values["prey"])  # noqa: E731
-        self.radius = team({"predator": PREDATOR_RADIUS, "prey": PREY_RADIUS})  # [N] float32
-        self.thrust = team(THRUST)
-        self.max_speed = team(MAX_SPEED)
-        self.bodies = physics.BodyState.make(torch.zeros(W, N, 2, device=dev), self.radius)
-        self.yaw = torch.zeros(W, N, device=dev)
-        self.obstacles = physics.Obstacles(torch.zeros(W, K, 2, device=dev),
-                                           torch.full((W, K, 2), OBSTACLE_HALF, device=dev),
-                                           torch.zeros(W, K, device=dev))
-        self._others = torch.tensor([[j for j in range(N) if j != i] for i in range(N)], dtype=torch.long,
-                                    device=dev).reshape(N, N - 1)
+        self._hunt = self.is_predator[:, None] & self.is_prey[None, :]  # [N, N] pairs (predator, prey)
+        self._obstacle_half = torch.full((W, K, 2), OBSTACLE_HALF, device=self.device)
         # Spawn: obstacles (their half diagonal) then agents (radius + SPAWN_CLEARANCE), one cell each.
         self._spawn_grid = 4 if K + N <= 16 else 5
         self._spawn_margin = torch.cat((torch.full((K,), OBSTACLE_HALF * math.sqrt(2)),
                                         self.radius.cpu() + SPAWN_CLEARANCE))
-        # [N, N] pairs (i, j) with i a predator and j a prey.
-        self._hunt = self.is_predator[:, None] & self.is_prey[None, :]
-        # Constant instance data (CPU, for the renderer).
-        colors = torch.tensor([scenery.TEAM_COLORS["predator"], scenery.TEAM_COLORS["prey"]])
-        self._agent_color = colors[self.is_prey.long().cpu()].expand(W, N, 3)
-        xy = (self.radius.cpu() / PREDATOR_RADIUS)[:, None]
-        self._agent_scale = torch.cat((xy, xy, torch.ones(N, 1)), 1).expand(W, N, 3)
-        self._nose_offset = (self.radius.cpu())[:, None]  # [N, 1]
-        self._nose_scale = torch.tensor([0.08, 0.12, 0.08]).expand(W, N, 3)
-        self._nose_color = torch.tensor([0.1, 0.1, 0.12]).expand(W, N, 3)
-        self._owner = torch.arange(N).expand(W, N)
         self._obstacle_color = torch.tensor(OBSTACLE_COLOR).expand(W, K, 3)
         self._obstacle_active = torch.ones(W, K, dtype=torch.bool)
-        self._shown = torch.ones(W, N, dtype=torch.bool, device=dev)  # agents drawn in the current frame
 
-    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
-        scenery.add_arena(scene, (ARENA, ARENA))
-        N = self.num_agents
-        scene.add_group("agents", scenery.agent_mesh(PREDATOR_RADIUS, AGENT_HEIGHT), capacity=N)
-        scene.add_group("noses", "box", capacity=N)
-        if self.num_obstacles:
-            scene.add_group("obstacles", "box", capacity=self.num_obstacles)
-        if not overview:
-            scene.mount_cameras("agents", instance=range(N), offset=(0.0, 0.0, EYE_HEIGHT - AGENT_HEIGHT / 2),
-                                pitch=CAMERA_PITCH)
+    def obstacles(self):
+        return planar.Obstacles(self.sim.obstacle_center, self._obstacle_half, self.sim.obstacle_angle)
 
-    # ------------------------------------------------------------------ dynamics
-    def _reset_state(self, mask):
-        W, N, K, g = self.num_worlds, self.num_agents, self.num_obstacles, self.generator
+    def spawn(self):
         # Obstacles and agents each get their own random cell of the grid (see cell_spawn): nothing
         # overlaps at the start and no predator starts within a catch of a prey.
-        pos = scenery.cell_spawn(g, W, self._spawn_margin, self._spawn_grid, ARENA).to(self.device)
-        angle = ((torch.rand(W, K, generator=g) * 2 - 1) * (math.pi / 4)).to(self.device)
-        yaw = ((torch.rand(W, N, generator=g) * 2 - 1) * math.pi).to(self.device)
-        center, pos = pos[:, :K], pos[:, K:]
-        m2, m3 = mask[:, None], mask[:, None, None]
-        b = self.bodies
-        self.bodies = b._replace(pos=torch.where(m3, pos, b.pos), vel=torch.where(m3, torch.zeros_like(b.vel), b.vel),
-                                 active=b.active | m2)
-        self.yaw = torch.where(m2, yaw, self.yaw)
-        o = self.obstacles
-        self.obstacles = o._replace(center=torch.where(m3, center, o.center), angle=torch.where(m2, angle, o.angle))
-        self._shown = self._shown | m2
+        W, N, K, g = self.num_worlds, self.num_agents, self.num_obstacles, self.generator
+        pos = scenery.cell_spawn(g, W, self._spawn_margin, self._spawn_grid, ARENA)
+        angle = (torch.rand(W, K, generator=g) * 2 - 1) * (math.pi / 4)
+        yaw = (torch.rand(W, N, generator=g) * 2 - 1) * math.pi
+        return self.at_rest(pos[:, K:], yaw, obstacle_center=pos[:, :K], obstacle_angle=angle,
+                            shown=torch.ones(W, N, dtype=torch.bool))
 
-    def _step_state(self, actions, alive):
-        yaw, force = egomotion.drive(self, actions, alive, thrust=self.thrust)
-        bodies = physics.step(self.bodies._replace(active=alive), force, self.obstacles, self.physics)
-        bodies = bodies._replace(vel=physics.clamp_norm(bodies.vel, self.max_speed[:, None]))
-
-        dist = torch.cdist(bodies.pos, bodies.pos)  # [W, N, N]
+    def rules(self, moved, alive):
+        moved = dataclasses.replace(moved, vel=planar.clamp_norm(moved.vel, self.max_speed[:, None]))
+        dist = torch.cdist(moved.pos, moved.pos)  # [W, N, N]
         touch = dist < self.radius[:, None] + self.radius[None, :] + CONTACT_TOLERANCE
         hunt = self._hunt & alive[:, :, None] & alive[:, None, :]
         caught = (touch & hunt).any(dim=1)  # [W, N], only prey can be caught
@@ -217,50 +178,36 @@ class Tag(egomotion.EgocentricEnv):
             shaping = torch.where(torch.isfinite(shaping) & left, shaping, torch.zeros_like(shaping))
             reward = reward + self.shaping * shaping
         terminated = caught | (prey_left == 0)[:, None]
+        # Caught prey stop and leave; this step's frame still shows them (shown = alive before the step).
+        stopped = torch.where(caught[..., None], torch.zeros_like(moved.vel), moved.vel)
+        state = dataclasses.replace(moved, vel=stopped, active=alive & ~terminated, shown=alive)
+        return state, reward, terminated, {"caught": n_caught, "prey_left": prey_left}
 
-        stopped = torch.where(caught[..., None], torch.zeros_like(bodies.vel), bodies.vel)
-        self.bodies = bodies._replace(active=alive & ~terminated, vel=stopped)
-        self.yaw = yaw
-        self._shown = alive  # this step's frame still shows who was caught in it
-        return reward, terminated, {"caught": n_caught, "prey_left": prey_left}
-
-    # ------------------------------------------------------------------ observations
     def _action_mask(self):
         mask = self.alive[:, :, None].expand(-1, -1, self.num_actions).clone()
         mask[..., 0] = True  # noop is always valid
         return mask
 
+    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
+        super()._build_scene(scene, overview)
+        if self.num_obstacles:
+            scene.add_group("obstacles", "box", capacity=self.num_obstacles)
+
     def _instances(self, full: bool) -> dict:
-        pos = self.bodies.pos.to("cpu", torch.float32)
-        yaw = self.yaw.cpu()
-        shown = self._shown.cpu()
-        rotation = scenery.yaw_quat(yaw)
-        nose = pos + self._nose_offset * scenery.heading(yaw)
-        update = {
-            "agents": {"position": scenery.planar_to_3d(pos, AGENT_HEIGHT / 2), "rotation": rotation, "active": shown},
-            "noses": {"position": scenery.planar_to_3d(nose, 0.3), "rotation": rotation, "active": shown},
-        }
-        if full:
-            update["agents"].update(color=self._agent_color, scale=self._agent_scale)
-            update["noses"].update(color=self._nose_color, scale=self._nose_scale, owner=self._owner)
-            if self.num_obstacles:
-                o = self.obstacles
-                scale = torch.cat((2 * o.half_extent, torch.full_like(o.angle[..., None], OBSTACLE_HEIGHT)), -1)
-                update["obstacles"] = {"position": scenery.planar_to_3d(o.center.cpu(), OBSTACLE_HEIGHT / 2),
-                                       "rotation": scenery.yaw_quat(o.angle.cpu()), "scale": scale.cpu(),
-                                       "color": self._obstacle_color, "active": self._obstacle_active}
+        update = super()._instances(full)
+        update["agents"]["active"] = update["noses"]["active"] = self.sim.shown.cpu()
+        if full and self.num_obstacles:
+            s = self.sim
+            height = torch.full_like(s.obstacle_angle[..., None], OBSTACLE_HEIGHT)
+            scale = torch.cat((2 * self._obstacle_half, height), -1)
+            update["obstacles"] = {"position": scenery.planar_to_3d(s.obstacle_center.cpu(), OBSTACLE_HEIGHT / 2),
+                                   "rotation": scenery.yaw_quat(s.obstacle_angle.cpu()), "scale": scale.cpu(),
+                                   "color": self._obstacle_color, "active": self._obstacle_active}
         return update
 
     def _state_obs(self):
-        pos, vel, yaw, alive = self.bodies.pos, self.bodies.vel, self.yaw, self.alive
-        W, N = pos.shape[:2]
-        others_alive = alive[:, self._others]  # [W, N, N-1]
-        others = (pos[:, self._others] - pos[:, :, None]) * others_alive[..., None]
-        obstacles = (self.obstacles.center[:, None] - pos[:, :, None]).reshape(W, N, -1)
-        return torch.cat((pos, vel, torch.cos(yaw)[..., None], torch.sin(yaw)[..., None], others.reshape(W, N, -1),
-                          others_alive.to(pos.dtype), obstacles), -1)
-
-    def _state_tensors(self):
-        b, o = self.bodies, self.obstacles
-        return {"pos": b.pos, "vel": b.vel, "active": b.active, "yaw": self.yaw,
-                "obstacle_center": o.center, "obstacle_angle": o.angle}
+        W, N = self.num_worlds, self.num_agents
+        others_alive = self.alive[:, self.others]  # [W, N, N-1]
+        others = self.others_obs() * others_alive[..., None]
+        return torch.cat((self.own_obs(), others.reshape(W, N, -1), others_alive.to(self.sim.pos.dtype),
+                          self.relative(self.sim.obstacle_center).reshape(W, N, -1)), -1)

@@ -97,7 +97,7 @@ def own_kwargs(cls) -> str:
 
 def physics_text(env) -> str:
     if env.physics is None:
-        return "none of envs/physics.py's planar terms; its own dynamics (see the rules)"
+        return "none of envs/planar.py's planar terms; its own dynamics (see the rules)"
     p = env.physics
     return (f"terms {', '.join(sorted(env.physics_terms))}; dt {p.dt:g} s per step in {p.substeps} substeps, "
             f"{p.integrator}, restitution {p.restitution:g}, drag {p.drag:.3g} /s, speed limit {p.max_speed:g} m/s")

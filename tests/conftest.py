@@ -16,12 +16,12 @@ def single_torch_thread():
 def check_only_declared_terms(monkeypatch):
     """A checker: steps `env` and asserts that each physics term it declares ran once per
     step and that no other term ran at all (undeclared ones raise if called)."""
-    from marl_render.envs import physics
+    from marl_render.envs import planar
 
     def check(env, steps=3):
         declared = env.physics_terms
         assert env.physics is None or env.physics.terms == declared
-        calls = dict.fromkeys(physics.TERM_NAMES, 0)
+        calls = dict.fromkeys(planar.TERM_NAMES, 0)
 
         def counted(name, builder):
             def term(*args, **kwargs):
@@ -35,14 +35,14 @@ def check_only_declared_terms(monkeypatch):
             return term
 
         with monkeypatch.context() as patch:
-            for name in physics.TERM_NAMES:
-                wrapped = counted(name, physics.TERMS[name]) if name in declared else forbidden(name)
-                patch.setitem(physics.TERMS, name, wrapped)
+            for name in planar.TERM_NAMES:
+                wrapped = counted(name, planar.TERMS[name]) if name in declared else forbidden(name)
+                patch.setitem(planar.TERMS, name, wrapped)
             env.reset(seed=0)
             generator = torch.Generator().manual_seed(0)
             for _ in range(steps):
                 env.step(env.random_actions(generator))
         assert all(calls[name] == steps for name in declared), calls
-        assert all(calls[name] == 0 for name in physics.TERM_NAMES - declared), calls
+        assert all(calls[name] == 0 for name in planar.TERM_NAMES - declared), calls
 
     return check

@@ -6,8 +6,10 @@ import math
 import pytest
 import torch
 
-from marl_render.envs import make_env, physics
-from marl_render.envs.cartpole import FORCE_LEVELS, SLIDER_LIMIT, CartPoleBalance, slider_limit
+from marl_render.envs import make_env
+from marl_render.envs.cartpole import FORCE_LEVELS, CartPoleBalance
+from marl_render.envs.cartpole_dynamics import CARTPOLE, SLIDER_LIMIT, cartpole_step, slider_limit
+from marl_render.envs.dmc_rewards import dmc_balance_reward
 
 
 def make(**kw):
@@ -30,7 +32,7 @@ def test_defaults_follow_dm_control():
 def test_reset_distribution_matches_balance_task():
     env = make(num_worlds=256)
     env.reset()
-    x, theta, xdot, thetadot = env.qstate.unbind(-1)
+    x, theta, xdot, thetadot = env.sim.qstate.unbind(-1)
     assert float(x.abs().max()) <= 0.1 and float(x.std()) > 0.03
     assert float(theta.abs().max()) <= 0.034 and float(theta.std()) > 0.01
     assert float(xdot.abs().max()) < 0.05 and float(thetadot.abs().max()) < 0.05
@@ -49,11 +51,11 @@ def test_dynamics_and_reward_agree_with_physics_functions(continuous):
         else:
             actions = torch.randint(0, env.num_actions, (3, 1), generator=g)
             u = torch.tensor(FORCE_LEVELS, dtype=torch.float64)[actions[:, 0]]
-        before = env.qstate.clone()
+        before = env.sim.qstate
         obs, reward, terminated, truncated, _ = env.step(actions)
-        expected = physics.cartpole_step(before, u)
-        assert torch.equal(env.qstate, expected)  # no slider stop in this range
-        assert torch.allclose(reward[:, 0], physics.dmc_balance_reward(expected, u).float())
+        expected = cartpole_step(before, u)
+        assert torch.equal(env.sim.qstate, expected)  # no slider stop in this range
+        assert torch.allclose(reward[:, 0], dmc_balance_reward(expected, u).float())
         x, theta, xdot, thetadot = expected.unbind(-1)
         state = torch.stack((x, torch.cos(theta), torch.sin(theta), xdot, thetadot), -1).float()
         assert torch.allclose(obs["state"][:, 0], state)
@@ -65,7 +67,9 @@ def test_dynamics_and_reward_agree_with_physics_functions(continuous):
 def test_balanced_pole_earns_high_reward_fallen_pole_low():
     env = make(num_worlds=2)
     env.reset()
-    env.qstate = torch.tensor([[0.0, 0.0, 0.0, 0.0], [0.0, math.pi, 0.0, 0.0]], dtype=torch.float64)
+    state = env.get_state()
+    state["qstate"] = torch.tensor([[0.0, 0.0, 0.0, 0.0], [0.0, math.pi, 0.0, 0.0]], dtype=torch.float64)
+    env.set_state(state)
     _, reward, _, _, _ = env.step(torch.full((2, 1), FORCE_LEVELS.index(0.0)))
     assert float(reward[0, 0]) > 0.99 and float(reward[1, 0]) < 0.01
     env.close()
@@ -76,14 +80,14 @@ def test_slider_stop_keeps_cart_on_the_rail():
     out = slider_limit(q)
     assert out[:, 0].tolist() == [SLIDER_LIMIT, -SLIDER_LIMIT, SLIDER_LIMIT]
     assert out[0, 2] == 0 and out[1, 2] == 0 and out[2, 2] == -1.0  # moving back in: kept
-    p = physics.CARTPOLE
+    p = CARTPOLE
     J = p["pole_inertia"] + p["pole_mass"] * p["pole_com"] ** 2
     assert math.isclose(float(out[0, 3]), 0.5 + p["pole_mass"] * p["pole_com"] * math.cos(0.1) / J * 2.0)
     env = make(num_worlds=1)
     env.reset()
     for _ in range(200):
         env.step(torch.tensor([[len(FORCE_LEVELS) - 1]]))  # full force right
-    assert float(env.qstate[0, 0]) <= SLIDER_LIMIT
+    assert float(env.sim.qstate[0, 0]) <= SLIDER_LIMIT
     env.close()
 
 
@@ -104,7 +108,7 @@ def test_cart_pixels_follow_the_cart(direction):
     action = FORCE_LEVELS.index(float(direction))
     for _ in range(25):
         obs = env.step(torch.full((2, 1), action))[0]
-    moved = env.qstate[:, 0]
+    moved = env.sim.qstate[:, 0]
     assert bool((moved * direction > 0.2).all())
     shift = cart_centroid(obs["pixels"]) - start
     assert bool((shift * direction > 2).all()), shift  # pixels, same direction as the cart

@@ -2,6 +2,8 @@
 and on a small toy environment that exercises agents leaving the episode."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -314,6 +316,103 @@ def test_seeds_differ_and_reset_seed_reproduces(name):
     env.close(), other.close()
 
 
+# ---------------------------------------------------------------------- explicit state
+def run_steps(env, actions) -> list:
+    """(obs, reward, terminated, truncated, info) of each step, every tensor copied."""
+    out = []
+    for a in actions:
+        obs, reward, terminated, truncated, info = env.step(a)
+        out.append(({k: v.clone() for k, v in obs.items()}, reward, terminated, truncated, dict(info)))
+    return out
+
+
+def assert_steps_equal(a: list, b: list):
+    assert len(a) == len(b)
+    for (obs_a, *out_a, info_a), (obs_b, *out_b, info_b) in zip(a, b):
+        assert obs_a.keys() == obs_b.keys() and info_a.keys() == info_b.keys()
+        for key in obs_a:
+            assert torch.equal(obs_a[key], obs_b[key]), key
+        for x, y in zip(out_a, out_b):
+            assert torch.equal(x, y)
+        for key in info_a:
+            assert torch.equal(info_a[key], info_b[key]), key
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_set_state_restores_the_env_exactly(name):
+    # autoreset with a short max_steps: the steps after the restore reset worlds, so the RNG counts.
+    kw = dict(autoreset=True, max_steps=4, state_obs=True, depth=True)
+    env = make(name, **kw)
+    env.reset(seed=3)
+    g = torch.Generator().manual_seed(2)
+    for _ in range(2):
+        env.step(env.random_actions(g))
+    saved = env.get_state()
+    assert {"step_count", "alive", "rng"} <= saved.keys() and saved["rng"].dtype == torch.uint8
+    actions = [env.random_actions(g) for _ in range(6)]
+    first = run_steps(env, actions)
+    assert not torch.equal(env.get_state()["rng"], saved["rng"])  # the autoresets drew from the generator
+    env.set_state(saved)
+    assert_state_equal(saved, env.get_state())
+    assert_steps_equal(first, run_steps(env, actions))
+    # An env built with another seed and never reset continues the same way from that state.
+    twin = make(name, seed=99, **kw)
+    twin.set_state(saved)
+    assert_steps_equal(first, run_steps(twin, actions))
+    env.close(), twin.close()
+
+
+def first_float_key(state: dict) -> str:
+    return next(k for k, v in state.items() if v.is_floating_point())
+
+
+BAD_STATES = [  # (change the state, error, words of the message)
+    (lambda s: list(s.items()), TypeError, r"state must be a dict"),
+    (lambda s: {k: v for k, v in s.items() if k != "alive"}, ValueError, r"missing \['alive'\]"),
+    (lambda s: {**s, "extra": torch.zeros(3)}, ValueError, r"unknown \['extra'\]"),
+    (lambda s: {**s, "step_count": s["step_count"].tolist()}, TypeError,
+     r"state\['step_count'\] must be a torch.Tensor"),
+    (lambda s: {**s, "step_count": s["step_count"][:-1]}, ValueError,
+     r"state\['step_count'\] must have shape \[3\], got \[2\]"),
+    (lambda s: {**s, "alive": s["alive"].int()}, ValueError,
+     r"state\['alive'\] must have dtype torch.bool, got torch.int32"),
+    (lambda s: {**s, "rng": s["rng"].to("meta")}, ValueError, r"state\['rng'\] must have device cpu, got meta"),
+    (lambda s: {**s, first_float_key(s): torch.full_like(s[first_float_key(s)], float("nan"))}, ValueError,
+     r"must be finite"),
+    (lambda s: {**s, "step_count": s["step_count"] - 10}, ValueError, r"state\['step_count'\] must be >= 0"),
+    (lambda s: {**s, "rng": torch.zeros_like(s["rng"])}, ValueError, r"state\['rng'\] must be a torch.Generator state"),
+]
+
+
+@pytest.mark.parametrize("name", ["spread", "cartpole"])  # an arena env and one with its own state
+def test_set_state_rejects_bad_states_and_changes_nothing(name):
+    env, twin = make(name), make(name)
+    env.reset(), twin.reset()
+    env.step(random_actions(env)), twin.step(random_actions(twin))
+    before = env.get_state()
+    for change, error, words in BAD_STATES:
+        with pytest.raises(error, match=words):
+            env.set_state(change(env.get_state()))
+        assert_state_equal(before, env.get_state())
+    # ... and the env continues exactly like one that never saw the bad calls.
+    a = [random_actions(env, torch.Generator().manual_seed(s)) for s in range(2)]
+    assert_steps_equal(run_steps(env, a), run_steps(twin, a))
+    env.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        env.set_state(before)
+    twin.close()
+
+
+def test_set_state_copies_what_it_is_given():
+    env = make("spread")
+    env.reset()
+    state = env.get_state()
+    env.set_state(state)
+    state["pos"].fill_(0.5)  # the caller's tensors stay the caller's
+    assert not torch.equal(env.get_state()["pos"], state["pos"])
+    env.close()
+
+
 @pytest.mark.parametrize("name", ENVS)
 def test_partial_reset_leaves_other_worlds_identical(name):
     env = make(name, state_obs=True)
@@ -417,6 +516,11 @@ def test_only_declared_physics_terms_run(name, check_only_declared_terms):
 
 
 # ---------------------------------------------------------------------- agents leaving the episode
+@dataclasses.dataclass(frozen=True)
+class ToyState:
+    pos: torch.Tensor  # [W, 2] the agents' places on the line
+
+
 class ToyEnv(BatchedEnv):
     """Two agents on a line. Action 1 moves an agent one unit and earns 1; agent 1 leaves
     the episode (terminated) when it reaches position 2; both leave at position 3."""
@@ -433,7 +537,7 @@ class ToyEnv(BatchedEnv):
         self.num_actions = 2
         self.action_dim = 1 if self.continuous else None
         self.state_dim = 1
-        self.pos = torch.zeros(self.num_worlds, 2)
+        self.sim = ToyState(pos=torch.zeros(self.num_worlds, 2))
 
     def _build_scene(self, scene, overview):
         scene.add_static("floor", "plane", position=[0, 0, 0], scale=[10, 10, 1])
@@ -442,33 +546,31 @@ class ToyEnv(BatchedEnv):
             scene.mount_cameras("bodies", instance=[0, 1], offset=(0, 0, 0.5))
 
     def _reset_state(self, mask):
-        self.pos = torch.where(mask[:, None], torch.zeros_like(self.pos), self.pos)
+        self.sim = ToyState(pos=torch.where(mask[:, None], torch.zeros_like(self.sim.pos), self.sim.pos))
 
     def _step_state(self, actions, alive):
         if self.continuous:
             actions = (actions[..., 0] > 0).long()
         move = (actions == 1) & alive
-        self.pos = self.pos + move
+        pos = self.sim.pos + move
+        self.sim = ToyState(pos=pos)
         terminated = torch.zeros_like(alive)
-        terminated[:, 1] = self.pos[:, 1] >= 2
-        terminated |= (self.pos >= 3)
+        terminated[:, 1] = pos[:, 1] >= 2
+        terminated |= (pos >= 3)
         # Rewarded for asking to move, alive or not: the core must zero the reward of
         # agents that had already left the episode.
         return (actions == 1).float(), terminated, {}
 
     def _instances(self, full):
         position = torch.zeros(self.num_worlds, 2, 3)
-        position[..., 0] = self.pos
+        position[..., 0] = self.sim.pos
         out = {"position": position}
         if full:
             out["active"] = torch.ones(self.num_worlds, 2, dtype=torch.bool)
         return {"bodies": out}
 
     def _state_obs(self):
-        return self.pos[..., None]
-
-    def _state_tensors(self):
-        return {"pos": self.pos}
+        return self.sim.pos[..., None]
 
 
 def test_dead_agents_are_ignored_but_keep_their_slot():
@@ -482,7 +584,7 @@ def test_dead_agents_are_ignored_but_keep_their_slot():
     assert env.alive.tolist() == [[True, False]] * 2
     assert reward.tolist() == [[1.0, 1.0]] * 2  # the terminating step is still rewarded
     obs, reward, terminated, truncated, info = env.step(move)
-    assert env.pos.tolist() == [[3.0, 2.0]] * 2  # the dead walker's action was ignored
+    assert env.sim.pos.tolist() == [[3.0, 2.0]] * 2  # the dead walker's action was ignored
     assert reward.tolist() == [[1.0, 0.0]] * 2
     assert terminated.tolist() == [[True, True]] * 2  # runner reached 3, walker stays terminated
     assert info["done_worlds"].tolist() == [True, True]
@@ -512,7 +614,7 @@ def test_autoreset_when_all_agents_left():
     _, _, terminated, _, info = env.step(torch.tensor([[1, 1], [0, 0]]))
     assert terminated.tolist() == [[True, True], [False, False]]
     assert info["done_worlds"].tolist() == [True, False]
-    assert env.pos.tolist() == [[0.0, 0.0], [0.0, 0.0]]
+    assert env.sim.pos.tolist() == [[0.0, 0.0], [0.0, 0.0]]
     assert env.alive.tolist() == [[True, True], [True, True]]
     assert env.step_count.tolist() == [0, 3]
     env.close()

@@ -20,6 +20,15 @@ def noop(env):
     return torch.zeros(env.num_worlds, env.num_agents, dtype=torch.long)
 
 
+def place(env, pos, items, yaw=None):
+    """Agents at rest at pos [W, N, 2] (facing yaw [W, N]) and items at [W, I, 2], through set_state."""
+    state = env.get_state()
+    state.update(pos=pos, vel=torch.zeros_like(pos), items=items)
+    if yaw is not None:
+        state["yaw"] = yaw
+    env.set_state(state)
+
+
 def yellow(pixels):
     """Number of item-coloured (yellow) pixels in uint8 images [..., H, W, 3], per image."""
     r, g, b = pixels.to(torch.int32).unbind(-1)
@@ -56,9 +65,9 @@ def test_options_and_registry():
 def test_reset_spawns_items_clear_of_agents():
     env = make(num_worlds=16)
     env.reset(seed=5)
-    gap = torch.cdist(env.items, env.bodies.pos)
+    gap = torch.cdist(env.sim.items, env.sim.pos)
     assert (gap > forage.RESPAWN_CLEARANCE).float().mean() > 0.99  # the last-candidate fallback is rare
-    agents = torch.cdist(env.bodies.pos, env.bodies.pos) + torch.eye(3) * 9
+    agents = torch.cdist(env.sim.pos, env.sim.pos) + torch.eye(3) * 9
     assert (agents >= 2 * forage.AGENT_RADIUS).all()  # agents never start overlapping
     env.close()
 
@@ -74,9 +83,7 @@ def test_touching_agent_collects_and_item_respawns():
     items = torch.stack((torch.linspace(-1.25, 1.25, 6), torch.full((6,), 1.2)), -1).repeat(W, 1, 1)
     items[0, 0] = torch.tensor([-1.0, -0.8])  # world 0: item 0 within reach of agent 0 only
     items[1, 0] = torch.tensor([-0.13, -1.0])  # world 1: both reach item 0, agent 1 is closer
-    env.bodies = env.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
-    env.yaw = torch.zeros(W, 3)
-    env.items = items
+    place(env, pos, items, yaw=torch.zeros(W, 3))
     seen_before = yellow(env.render_overview(64))
     obs, reward, terminated, truncated, info = env.step(noop(env))
 
@@ -86,14 +93,14 @@ def test_touching_agent_collects_and_item_respawns():
     away = torch.zeros(W, 6, dtype=torch.bool)
     away[0, 0] = away[1, 0] = True
     assert torch.equal(env.item_available, ~away)
-    assert torch.equal(env.renderer._state["items"]["active"], ~away)
+    assert torch.equal(env.renderer.instance_state("items")["active"], ~away)
     state = obs["state"].reshape(W, 3, -1)
     assert torch.equal(state[:, :, 6 + 12:6 + 18], (~away)[:, None].expand(W, 3, 6).float())  # availability flags
     seen_after = yellow(env.render_overview(64))
     assert seen_after[0] < seen_before[0] and seen_after[2] == seen_before[2], (seen_before, seen_after)
 
     # Away for `delay` steps (nobody collects it again although agent 0 still stands there) ...
-    old = env.items.clone()
+    old = env.sim.items.clone()
     for step in range(1, delay):
         obs, reward, _, _, info = env.step(noop(env))
         assert (reward == 0).all() and torch.equal(env.item_available, ~away), step
@@ -101,14 +108,14 @@ def test_touching_agent_collects_and_item_respawns():
     # ... then back somewhere else, clear of every agent.
     obs, reward, _, _, info = env.step(noop(env))
     assert (reward == 0).all() and env.item_available.all()
-    assert env.renderer._state["items"]["active"].all()
-    assert torch.equal(env.items[~away], old[~away]) and not torch.equal(env.items[away], old[away])
-    assert (torch.cdist(env.items[:2, :1], env.bodies.pos[:2]) > forage.RESPAWN_CLEARANCE).all()
-    assert (env.items.abs() <= forage.SPAWN).all()
+    assert env.renderer.instance_state("items")["active"].all()
+    assert torch.equal(env.sim.items[~away], old[~away]) and not torch.equal(env.sim.items[away], old[away])
+    assert (torch.cdist(env.sim.items[:2, :1], env.sim.pos[:2]) > forage.RESPAWN_CLEARANCE).all()
+    assert (env.sim.items.abs() <= forage.SPAWN).all()
 
     # The team score restarts with its world only.
     env.reset_worlds(torch.tensor([True, False, False]))
-    assert env.team_score.tolist() == [0.0, 1.0, 0.0]
+    assert env.sim.team_score.tolist() == [0.0, 1.0, 0.0]
     env.close()
 
 
@@ -117,8 +124,7 @@ def test_reward_is_per_item_and_agent():
     env.reset(seed=0)
     pos = torch.tensor([[-1.0, -1.0], [0.0, -1.0], [1.0, -1.0]]).repeat(W, 1, 1)
     items = torch.tensor([[-1.05, -1.0], [-0.95, -0.95], [1.0, -0.9], [0.0, 1.0]]).repeat(W, 1, 1)
-    env.bodies = env.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
-    env.items = items
+    place(env, pos, items)
     _, reward, _, _, info = env.step(noop(env))
     assert reward.tolist() == [[2.0, 0.0, 1.0]] * W
     assert info["collected"].tolist() == [3] * W and info["team_score"].tolist() == [3.0] * W

@@ -366,9 +366,10 @@ def test_tag_last_frame_shows_the_catch():
     env = make("tag", num_obstacles=0, render_mode="rgb_array")
     env.reset(seed=0)
     # predator_0 within a catch of the prey, all looking along +y; predator_2 watches from behind
-    pos = torch.tensor([[[0.0, 0.78], [-1.2, 1.2], [0.0, -1.0], [0.0, 0.5]]])
-    env.core.bodies = env.core.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
-    env.core.yaw = torch.zeros(1, 4)
+    state = env.core.get_state()
+    state["pos"] = torch.tensor([[[0.0, 0.78], [-1.2, 1.2], [0.0, -1.0], [0.0, 0.5]]])
+    state["vel"], state["yaw"] = torch.zeros(1, 4, 2), torch.zeros(1, 4)
+    env.core.set_state(state)
     obs, rew, term, trunc, _ = env.step({a: 0 for a in env.agents})
     assert all(term.values()) and env.agents == [] and rew["prey_0"] == -10.0
 
@@ -553,8 +554,10 @@ def test_tag_through_torchrl_pettingzoo_wrapper_recipe():
     check_env_specs(env)
     td = env.reset()
     # predator_0 within a catch of prey_0 (centres 0.28 m apart), everybody else far apart; all stay put
-    pos = torch.tensor([[[0.0, 0.78], [-1.2, -1.2], [1.2, -1.2], [0.0, 0.5], [1.2, 1.2]]])
-    pz.core.bodies = pz.core.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
+    state = pz.core.get_state()
+    state["pos"] = torch.tensor([[[0.0, 0.78], [-1.2, -1.2], [1.2, -1.2], [0.0, 0.5], [1.2, 1.2]]])
+    state["vel"] = torch.zeros(1, 5, 2)
+    pz.core.set_state(state)
     noop = lambda td: td.update(env.full_action_spec.zero())  # noqa: E731
     td = env.rollout(3, noop, auto_reset=False, tensordict=td, break_when_any_done=False)
     assert td["next", "prey", "mask"].tolist() == [[False, True]] * 3

@@ -1,4 +1,5 @@
-"""Tests for envs/physics.py: batched planar physics and dm_control cart-pole."""
+"""Tests for envs/planar.py (batched planar physics), envs/cartpole_dynamics.py and envs/dmc_rewards.py
+(dm_control's cart-pole and its rewards)."""
 
 import math
 import sys
@@ -10,10 +11,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 try:  # installed package layout
-    from marl_render.envs import physics as P
+    from marl_render.envs import cartpole_dynamics as C
+    from marl_render.envs import dmc_rewards as R
+    from marl_render.envs import planar as P
 except ImportError:  # repository checkout: envs/ at the root
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from envs import physics as P
+    from envs import cartpole_dynamics as C
+    from envs import dmc_rewards as R
+    from envs import planar as P
 
 
 DTYPES = [torch.float32, torch.float64]
@@ -612,7 +617,7 @@ def test_cartpole_matches_mujoco_rk4_trajectory():
     }
     s = torch.tensor([[0.05, 0.03, 0.01, -0.02]], dtype=torch.float64)
     for t in range(300):
-        s = P.cartpole_step(s, torch.tensor([0.3 * math.sin(0.05 * t)], dtype=torch.float64))
+        s = C.cartpole_step(s, torch.tensor([0.3 * math.sin(0.05 * t)], dtype=torch.float64))
         if t + 1 in ref:
             assert s[0].tolist() == pytest.approx(ref[t + 1], abs=1e-9), t + 1
 
@@ -636,40 +641,40 @@ def test_cartpole_step_and_reward_match_dm_control():
     action = torch.tensor([r[1] for r in DMC_STEPS], dtype=torch.float64)
     after = torch.tensor([r[2] for r in DMC_STEPS], dtype=torch.float64)
     reward = torch.tensor([r[3] for r in DMC_STEPS], dtype=torch.float64)
-    assert torch.allclose(P.cartpole_step(before, action), after, atol=1e-12, rtol=0)
-    assert torch.allclose(P.dmc_balance_reward(after, action), reward, atol=1e-12, rtol=0)
+    assert torch.allclose(C.cartpole_step(before, action), after, atol=1e-12, rtol=0)
+    assert torch.allclose(R.dmc_balance_reward(after, action), reward, atol=1e-12, rtol=0)
 
 
 def test_tolerance_like_dm_control():
     x = torch.tensor([-3.0, -1.0, 0.0, 0.5, 1.0, 2.0, 3.0], dtype=torch.float64)
-    t = P.tolerance(x, bounds=(0.0, 1.0), margin=2.0)
+    t = R.tolerance(x, bounds=(0.0, 1.0), margin=2.0)
     assert t[1:5].tolist() == pytest.approx([math.exp(-0.5 * 0.5 ** 2 * -2 * math.log(0.1)), 1, 1, 1])
     assert t[-2].item() == pytest.approx(math.exp(-0.5 * 0.5 ** 2 * -2 * math.log(0.1)))
     assert t[-1].item() == pytest.approx(0.1)  # value_at_margin at distance == margin
-    assert P.tolerance(x, bounds=(0.0, 1.0)).tolist() == [0, 0, 1, 1, 1, 0, 0]
-    q = P.tolerance(x, margin=1.0, value_at_margin=0.0, sigmoid="quadratic")
+    assert R.tolerance(x, bounds=(0.0, 1.0)).tolist() == [0, 0, 1, 1, 1, 0, 0]
+    q = R.tolerance(x, margin=1.0, value_at_margin=0.0, sigmoid="quadratic")
     assert q.tolist() == pytest.approx([0, 0, 1, 0.75, 0, 0, 0])
     with pytest.raises(ValueError, match="bounds"):
-        P.tolerance(x, bounds=(1.0, 0.0))
+        R.tolerance(x, bounds=(1.0, 0.0))
 
 
 def test_balance_reward_is_one_when_perfect_and_sparse_reward():
     s = torch.zeros(2, 4, dtype=torch.float64)
     s[1, 1] = math.pi  # hanging down
-    r = P.dmc_balance_reward(s, torch.zeros(2, dtype=torch.float64))
+    r = R.dmc_balance_reward(s, torch.zeros(2, dtype=torch.float64))
     assert r[0].item() == 1.0 and r[1].item() == pytest.approx(0.0, abs=1e-12)
-    assert P.dmc_balance_sparse_reward(s).tolist() == [1.0, 0.0]
+    assert R.dmc_balance_sparse_reward(s).tolist() == [1.0, 0.0]
 
 
 def _energy_drift(integrator, substeps, steps=1000):
     s = torch.tensor([[0.0, 0.1, 0.0, 0.0], [0.3, -0.5, 0.2, 1.0], [0.0, 3.0, 0.0, 0.0]], dtype=torch.float64)
-    e0 = P.cartpole_energy(s)
+    e0 = C.cartpole_energy(s)
     a = torch.zeros(3, dtype=torch.float64)
     worst = torch.zeros(3, dtype=torch.float64)
     for _ in range(steps):
-        s = P.cartpole_step(s, a, dt=0.01, substeps=substeps, integrator=integrator,
+        s = C.cartpole_step(s, a, dt=0.01, substeps=substeps, integrator=integrator,
                             slider_damping=0.0, hinge_damping=0.0)
-        worst = torch.maximum(worst, ((P.cartpole_energy(s) - e0) / e0.abs()).abs())
+        worst = torch.maximum(worst, ((C.cartpole_energy(s) - e0) / e0.abs()).abs())
     return worst.max().item()
 
 
@@ -690,7 +695,7 @@ def test_cartpole_substeps_converge_to_reference(integrator, order):
     def roll(substeps):
         s = s0
         for _ in range(50):
-            s = P.cartpole_step(s, action, substeps=substeps, integrator=integrator)
+            s = C.cartpole_step(s, action, substeps=substeps, integrator=integrator)
         return s
 
     ref = roll(64)
@@ -702,11 +707,11 @@ def test_cartpole_substeps_converge_to_reference(integrator, order):
 
 def test_cartpole_action_is_clipped_and_validated():
     s = torch.tensor([[0.0, 0.05, 0.0, 0.0]], dtype=torch.float64)
-    a = P.cartpole_step(s, torch.tensor([1.0], dtype=torch.float64))
-    b = P.cartpole_step(s, torch.tensor([7.0], dtype=torch.float64))
+    a = C.cartpole_step(s, torch.tensor([1.0], dtype=torch.float64))
+    b = C.cartpole_step(s, torch.tensor([7.0], dtype=torch.float64))
     assert torch.equal(a, b)
-    assert P.cartpole_step(s.float(), torch.tensor([0.2])).dtype == torch.float32
+    assert C.cartpole_step(s.float(), torch.tensor([0.2])).dtype == torch.float32
     with pytest.raises(ValueError, match="integrator"):
-        P.cartpole_step(s, torch.zeros(1), integrator="euler")
+        C.cartpole_step(s, torch.zeros(1), integrator="euler")
     with pytest.raises(ValueError, match="substeps"):
-        P.cartpole_step(s, torch.zeros(1), substeps=0)
+        C.cartpole_step(s, torch.zeros(1), substeps=0)

@@ -21,17 +21,21 @@ def noop(env):
     return torch.zeros(env.num_worlds, env.num_agents, dtype=torch.long)
 
 
-def place(env, agents, ball, ball_vel=(0.0, 0.0), yaw=None):
-    """Agents at `agents` [W, N, 2] and the ball at `ball` [W, 2] with `ball_vel`, all else at rest."""
+def place(env, agents, ball, ball_vel=(0.0, 0.0), yaw=None, agent_vel=None):
+    """Agents at `agents` [W, N, 2] (moving at agent_vel, else at rest) and the ball at `ball` [W, 2]
+    with `ball_vel`, through get_state / set_state."""
     N = env.num_agents
+    state = env.get_state()
     agents = torch.as_tensor(agents, dtype=torch.float32).expand(W, N, 2)
     ball = torch.as_tensor(ball, dtype=torch.float32).expand(W, 2)
-    pos = torch.cat((agents, ball[:, None]), 1).clone()
-    vel = torch.zeros_like(pos)
-    vel[:, -1] = torch.as_tensor(ball_vel, dtype=torch.float32)
-    env.bodies = env.bodies._replace(pos=pos, vel=vel)
+    state["pos"] = torch.cat((agents, ball[:, None]), 1).clone()
+    state["vel"] = torch.zeros_like(state["pos"])
+    state["vel"][:, -1] = torch.as_tensor(ball_vel, dtype=torch.float32)
+    if agent_vel is not None:
+        state["vel"][:, :-1] = agent_vel
     if yaw is not None:
-        env.yaw = torch.as_tensor(yaw, dtype=torch.float32).expand(W, N).clone()
+        state["yaw"] = torch.as_tensor(yaw, dtype=torch.float32).expand(W, N).clone()
+    env.set_state(state)
 
 
 SIDELINE = [[-1.2, -0.3], [1.2, -0.3], [-1.2, 0.3], [1.2, 0.3]]  # 4 agents out of the ball's way
@@ -69,12 +73,12 @@ def test_team_sizes_and_registry():
 def test_reset_layout():
     env = make(num_worlds=32, num_agents=12)
     env.reset(seed=6)
-    agents, ball = env.bodies.pos[:, :-1], env.bodies.pos[:, -1]
+    agents, ball = env.sim.pos[:, :-1], env.sim.pos[:, -1]
     assert (agents[:, :6, 1] < -0.4).all() and (agents[:, 6:, 1] > 0.4).all()  # own halves
-    assert (ball.abs() <= torch.tensor([0.3, 0.1])).all() and (env.bodies.vel == 0).all()
-    gaps = torch.cdist(env.bodies.pos, env.bodies.pos) + torch.eye(13) * 9
+    assert (ball.abs() <= torch.tensor([0.3, 0.1])).all() and (env.sim.vel == 0).all()
+    gaps = torch.cdist(env.sim.pos, env.sim.pos) + torch.eye(13) * 9
     assert (gaps >= 2 * push.AGENT_RADIUS).all()  # nobody overlaps at the start
-    facing = push.scenery.heading(env.yaw)[..., 1]
+    facing = push.scenery.heading(env.sim.yaw)[..., 1]
     assert (facing[:, :6] > 0.8).all() and (facing[:, 6:] < -0.8).all()  # facing the opponents' goal
     env.close()
 
@@ -93,7 +97,7 @@ def test_goal_scored_rewards_the_right_team_and_ends_the_episode():
     assert reward.tolist() == [[1.0, 1.0, -1.0, -1.0], [-1.0, -1.0, 1.0, 1.0], [0.0] * 4]
     assert terminated.tolist() == [[True] * 4, [True] * 4, [False] * 4]
     assert info["done_worlds"].tolist() == [True, True, False] and not truncated.any()
-    assert env.bodies.pos[2, -1, 1] > push.GOAL_LINE  # deep enough, but outside the mouth
+    assert env.sim.pos[2, -1, 1] > push.GOAL_LINE  # deep enough, but outside the mouth
     # Terminated worlds stay over (no autoreset): rewards 0, still terminated.
     _, reward, terminated, _, _ = env.step(noop(env))
     assert (reward[:2] == 0).all() and terminated[:2].all()
@@ -108,7 +112,7 @@ def test_goal_with_autoreset_starts_a_new_episode():
     assert reward[0].tolist() == [2.0, 2.0, -2.0, -2.0] and terminated[0].all()
     assert info["done_worlds"].tolist() == [True, False, False]
     assert env.step_count.tolist() == [0, 1, 1] and env.alive.all()
-    assert env.bodies.pos[0, -1].abs().max() <= 0.3 and (env.bodies.vel[0] == 0).all()
+    assert env.sim.pos[0, -1].abs().max() <= 0.3 and (env.sim.vel[0] == 0).all()
     env.close()
 
 
@@ -136,7 +140,7 @@ def test_shaping_is_zero_sum_and_follows_the_ball():
     _, reward, _, _, _ = env.step(noop(env))
     assert (reward[0, :2] > 0.05).all() and (reward[1, :2] < -0.05).all() and (reward[2] == 0).all()
     assert torch.allclose(reward[:, :2], -reward[:, 2:])
-    assert torch.allclose(reward[0, 0], env.bodies.pos[0, -1, 1])
+    assert torch.allclose(reward[0, 0], env.sim.pos[0, -1, 1])
     env.close()
 
 
@@ -147,10 +151,9 @@ def test_state_obs_is_in_the_team_frame():
     env.reset(seed=0)
     a = torch.tensor([[-0.7, -0.9], [0.4, -0.3]])
     yaw = torch.tensor([0.3, -1.0, 0.3 + math.pi, -1.0 + math.pi])
-    place(env, torch.cat((a, -a)), torch.tensor([0.0, 0.0]), yaw=yaw)
-    env.bodies = env.bodies._replace(vel=torch.tensor([[0.2, 0.1], [0.0, -0.3], [-0.2, -0.1], [0.0, 0.3],
-                                                       [0.0, 0.0]]).expand(W, 5, 2).clone())
-    state = env._state_obs()
+    place(env, torch.cat((a, -a)), torch.tensor([0.0, 0.0]), yaw=yaw,
+          agent_vel=torch.tensor([[0.2, 0.1], [0.0, -0.3], [-0.2, -0.1], [0.0, 0.3]]))
+    state = env.state_observation()
     assert torch.allclose(state[:, :2], state[:, 2:], atol=1e-6)
     # team_a's own frame is the world frame.
     assert torch.allclose(state[0, 0, :6], torch.tensor([-0.7, -0.9, 0.2, 0.1, math.cos(0.3), math.sin(0.3)]))

@@ -20,13 +20,15 @@ def make(**kw):
 
 
 def place(env, pos, yaw, landmarks=None):
-    """Put the bodies of every world where we want them (test helper)."""
+    """Put the bodies of every world where we want them, at rest (through get_state / set_state)."""
     W = env.num_worlds
-    pos = torch.as_tensor(pos, dtype=torch.float32).expand(W, -1, -1).clone()
-    env.bodies = env.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
-    env.yaw = torch.as_tensor(yaw, dtype=torch.float32).expand(W, -1).clone()
+    state = env.get_state()
+    state["pos"] = torch.as_tensor(pos, dtype=torch.float32).expand(W, -1, -1).clone()
+    state["vel"] = torch.zeros_like(state["vel"])
+    state["yaw"] = torch.as_tensor(yaw, dtype=torch.float32).expand(W, -1).clone()
     if landmarks is not None:
-        env.landmarks = torch.as_tensor(landmarks, dtype=torch.float32).expand(W, -1, -1).clone()
+        state["landmarks"] = torch.as_tensor(landmarks, dtype=torch.float32).expand(W, -1, -1).clone()
+    env.set_state(state)
 
 
 def noop(env):
@@ -97,15 +99,15 @@ def test_egocentric_actions():
     env = make(num_agents=3)
     env.reset()
     place(env, [[0.0, 0.0], [-1.0, 0.0], [1.0, 0.0]], [0.0, math.pi / 2, 0.0])
-    yaw0 = env.yaw.clone()
+    yaw0 = env.sim.yaw.clone()
     env.step(torch.tensor([[FORWARD, FORWARD, LEFT]] * 2))
-    pos = env.bodies.pos
+    pos = env.sim.pos
     assert bool((pos[:, 0, 1] > 0.01).all()) and bool((pos[:, 0, 0].abs() < 1e-6).all())  # +Y
     assert bool((pos[:, 1, 0] < -1.01).all())  # yaw pi/2 faces -X
-    assert bool((env.yaw[:, 2] > yaw0[:, 2]).all())  # left turn increases yaw
+    assert bool((env.sim.yaw[:, 2] > yaw0[:, 2]).all())  # left turn increases yaw
     assert bool((pos[:, 2] == torch.tensor([1.0, 0.0])).all())  # turning does not move
     env.step(torch.tensor([[BACK, RIGHT, NOOP]] * 2))
-    assert bool((env.yaw[:, 1] < math.pi / 2 + 1e-6).all())
+    assert bool((env.sim.yaw[:, 1] < math.pi / 2 + 1e-6).all())
     env.close()
 
 
@@ -115,8 +117,8 @@ def test_continuous_actions_thrust_and_turn():
     place(env, [[0.0, 0.0], [-1.0, 0.0], [1.0, 0.0]], [0.0, 0.0, 0.0])
     a = torch.tensor([[[1.0, 0.0], [-1.0, 0.0], [0.0, -0.5]]] * 2)
     env.step(a)
-    assert bool((env.bodies.pos[:, 0, 1] > 0).all()) and bool((env.bodies.pos[:, 1, 1] < 0).all())
-    assert torch.allclose(env.yaw[:, 2], torch.tensor(-0.5 * 3.0 * 0.1))
+    assert bool((env.sim.pos[:, 0, 1] > 0).all()) and bool((env.sim.pos[:, 1, 1] < 0).all())
+    assert torch.allclose(env.sim.yaw[:, 2], torch.tensor(-0.5 * 3.0 * 0.1))
     env.close()
 
 
@@ -126,7 +128,7 @@ def test_walls_keep_agents_inside():
     for _ in range(40):
         env.step(torch.full((2, 3), FORWARD))
     limit = ARENA - AGENT_RADIUS + 1e-5
-    assert float(env.bodies.pos.abs().max()) <= limit
+    assert float(env.sim.pos.abs().max()) <= limit
     env.close()
 
 
@@ -137,8 +139,8 @@ def test_reward_is_shared_coverage_minus_collisions():
     place(env, [[0.0, 0.0], [0.29, 0.0], [-1.0, -1.0]], [0.0, 0.0, 0.0],
           landmarks=[[0.0, 0.0], [0.29, 0.0], [-1.0, -0.5]])
     _, reward, _, _, info = noop(env)
-    pos = env.bodies.pos
-    coverage = torch.cdist(env.landmarks, pos).amin(-1).sum(-1)
+    pos = env.sim.pos
+    coverage = torch.cdist(env.sim.landmarks, pos).amin(-1).sum(-1)
     assert torch.allclose(info["coverage"], coverage)
     assert info["collisions"].tolist() == [1, 1]
     assert torch.allclose(reward, (-coverage - 1.0)[:, None].expand(2, 3))

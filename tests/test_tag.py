@@ -23,11 +23,13 @@ def noop(env):
 
 
 def place(env, pos, yaw=None):
-    """Put the bodies at `pos` [W, N, 2] at rest (and yaw [W, N])."""
-    pos = torch.as_tensor(pos, dtype=torch.float32).expand(env.num_worlds, env.num_agents, 2).clone()
-    env.bodies = env.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
+    """Put the bodies at `pos` [W, N, 2] at rest (and yaw [W, N]), through get_state / set_state."""
+    state = env.get_state()
+    state["pos"] = torch.as_tensor(pos, dtype=torch.float32).expand(env.num_worlds, env.num_agents, 2).clone()
+    state["vel"] = torch.zeros_like(state["vel"])
     if yaw is not None:
-        env.yaw = torch.as_tensor(yaw, dtype=torch.float32).expand(env.num_worlds, env.num_agents).clone()
+        state["yaw"] = torch.as_tensor(yaw, dtype=torch.float32).expand(env.num_worlds, env.num_agents).clone()
+    env.set_state(state)
 
 
 def green(pixels):
@@ -104,7 +106,7 @@ def test_catch_removes_prey_and_ends_episode_when_all_caught():
     assert not truncated.any()
     assert reward.tolist() == [[10.0, 10.0, 10.0, -10.0, 0.0], [20.0, 20.0, 20.0, -10.0, -10.0], [0.0] * 5]
     # The caught prey's body no longer collides ...
-    assert env.bodies.active.tolist() == env.alive.tolist()
+    assert env.sim.active.tolist() == env.alive.tolist()
     # ... but the frame of the catch still shows it (world 1's is the episode's last frame):
     # the watcher sees both prey in every world, and so does the overview.
     seen = green(obs["pixels"][:, 2])
@@ -118,14 +120,14 @@ def test_catch_removes_prey_and_ends_episode_when_all_caught():
     assert mask[1, :, 0].all() and not mask[1, :, 1:].any()
 
     # Next step: the dead stay dead (terminated, reward 0, frozen) whatever they were told.
-    frozen = env.bodies.pos[:, 3].clone()
+    frozen = env.sim.pos[:, 3].clone()
     actions = torch.ones(W, 5, dtype=torch.long)
     obs, reward, terminated, truncated, info = env.step(actions)
-    assert torch.equal(env.bodies.pos[:, 3][:2], frozen[:2])
+    assert torch.equal(env.sim.pos[:, 3][:2], frozen[:2])
     assert reward[0, 3] == 0 and (reward[1] == 0).all()
     assert terminated[0, 3] and terminated[1].all() and not terminated[2].any()
     # From this frame on the caught prey are gone: world 0 keeps prey 4, world 1 none.
-    assert env.renderer._state["agents"]["active"].tolist() == env.alive.tolist()
+    assert env.renderer.instance_state("agents")["active"].tolist() == env.alive.tolist()
     seen = green(obs["pixels"][:, 2])
     assert seen[1] == 0 and 0 < seen[0] < seen[2], seen.tolist()
     overview = green(env.render_overview(64))
@@ -133,9 +135,26 @@ def test_catch_removes_prey_and_ends_episode_when_all_caught():
 
     # Resetting world 0 brings its prey back; world 1 stays over.
     obs = env.reset_worlds(torch.tensor([True, False, False]))
-    assert env.alive[0].all() and not env.alive[1].any() and env.bodies.active[0].all()
-    assert env.renderer._state["agents"]["active"][0].all()
+    assert env.alive[0].all() and not env.alive[1].any() and env.sim.active[0].all()
+    assert env.renderer.instance_state("agents")["active"][0].all()
     assert green(obs["pixels"][1]).sum() == 0
+    env.close()
+
+
+def test_restored_state_shows_what_its_frame_showed():
+    # A state saved in the frame of a catch ("shown": the caught prey is still drawn) shows the
+    # prey again when restored after it has gone.
+    env = make(num_predators=3, num_prey=2, num_obstacles=0)
+    env.reset(seed=0)
+    place(env, [[0.0, 0.78], [-1.2, 1.2], [0.0, -1.0], [0.0, 0.5], [1.2, -1.2]], yaw=torch.zeros(W, 5))
+    _, _, _, _, info = env.step(noop(env))
+    assert info["caught"].tolist() == [1] * W
+    saved, catch_frame = env.get_state(), green(env.render_overview(64))
+    assert saved["shown"].all() and not saved["alive"][:, 3].any()
+    env.step(noop(env))
+    assert (green(env.render_overview(64)) < catch_frame).all()
+    env.set_state(saved)
+    assert torch.equal(green(env.render_overview(64)), catch_frame)
     env.close()
 
 
@@ -158,7 +177,7 @@ def test_speed_caps():
     top = torch.zeros(W, 4)
     for _ in range(12):
         env.step(forward)
-        top = torch.maximum(top, env.bodies.vel.norm(dim=-1))
+        top = torch.maximum(top, env.sim.vel.norm(dim=-1))
     assert (top[:, :3] <= tag.MAX_SPEED["predator"] + 1e-5).all() and (top[:, :3] > 0.9).all()
     assert (top[:, 3] <= tag.MAX_SPEED["prey"] + 1e-5).all() and (top[:, 3] > 1.2).all()
     env.close()

@@ -20,7 +20,7 @@ Physics (float64 state, one torch thread; cost = time of the rollout itself):
   spread_physics    spread's step (walls, collisions, drag) with 1..16 substeps and both
                     planar integrators; error = RMS position error after a fixed horizon
                     against velocity Verlet with 64 substeps (same start, same actions).
-  cartpole_physics  physics.cartpole_step (no slider limit), 1..16 substeps, semi-implicit
+  cartpole_physics  cartpole_dynamics.cartpole_step (no slider limit), 1..16 substeps, semi-implicit
                     Euler / velocity Verlet / RK4; error against RK4 with 64 substeps.
   cartpole_energy   frictionless cart-pole (dampings 0, zero action): energy drift.
 Pareto front: a point is on it when no other point of its sweep (and group) is at most as
@@ -373,18 +373,17 @@ class Sweeps:
             generator = torch.Generator().manual_seed(self.args.seed + 1)
             actions = torch.randint(env.num_actions, (T, W, env.num_agents), generator=generator)
             alive = torch.ones(W, env.num_agents, dtype=torch.bool)
-            b = env.bodies
-            start = b._replace(pos=b.pos.double(), vel=b.vel.double(), radius=b.radius.double(),
-                               mass=b.mass.double())
-            yaw0 = env.yaw.double()
-            env.landmarks = env.landmarks.double()
+            s = env.sim  # the env's own step, in float64: its state and body constants cast (bench only)
+            start = dataclasses.replace(s, pos=s.pos.double(), vel=s.vel.double(), yaw=s.yaw.double(),
+                                        landmarks=s.landmarks.double())
+            env.radius, env.mass = env.radius.double(), env.mass.double()
 
             def rollout(substeps, integrator):
                 env.physics = dataclasses.replace(base, substeps=substeps, integrator=integrator)
-                env.bodies, env.yaw = start, yaw0
+                env.sim = start
                 for a in actions:
                     env._step_state(a, alive)  # the env's physics step, without rendering
-                return env.bodies
+                return env.sim
 
             settings, skipped = [], []
             for integrator in SPREAD_INTEGRATORS:
@@ -427,7 +426,7 @@ class Sweeps:
             "points": points, "skipped": skipped}
 
     def cartpole(self):
-        from marl_render.envs import physics
+        from marl_render.envs import cartpole_dynamics
 
         c = self.cfg
         W, T, TE = c["physics_worlds"], c["cartpole_horizon"], c["energy_horizon"]  # worlds, steps, energy steps
@@ -442,16 +441,16 @@ class Sweeps:
         def rollout(substeps, integrator):
             q = start
             for a in actions:
-                q = physics.cartpole_step(q, a, substeps=substeps, integrator=integrator)
+                q = cartpole_dynamics.cartpole_step(q, a, substeps=substeps, integrator=integrator)
             return q
 
         def energy_rollout(substeps, integrator):
-            q, e0 = start, physics.cartpole_energy(start)
+            q, e0 = start, cartpole_dynamics.cartpole_energy(start)
             drift = torch.zeros(W, dtype=torch.float64)
             for _ in range(TE):
-                q = physics.cartpole_step(q, zeros, substeps=substeps, integrator=integrator, slider_damping=0.0,
-                                          hinge_damping=0.0)
-                drift = torch.maximum(drift, (physics.cartpole_energy(q) - e0).abs())
+                q = cartpole_dynamics.cartpole_step(q, zeros, substeps=substeps, integrator=integrator,
+                                                    slider_damping=0.0, hinge_damping=0.0)
+                drift = torch.maximum(drift, (cartpole_dynamics.cartpole_energy(q) - e0).abs())
             return drift, e0
 
         self.bar.set_description("cartpole reference")
@@ -480,10 +479,10 @@ class Sweeps:
                                   "energy_spread_j": float(e0.max() - e0.min())})
         pareto_flags(points)
         pareto_flags(energy_points)
-        dt = physics.CARTPOLE["timestep"]
+        dt = cartpole_dynamics.CARTPOLE["timestep"]
         self.result["cartpole_physics"] = {
-            "what": f"physics.cartpole_step (dt {dt} s, dm_control dampings, no slider limit), {W} worlds, {T} steps "
-                    f"({T * dt:g} s) of random actions from random swinging states, float64; error vs rk4 x"
+            "what": f"cartpole_dynamics.cartpole_step (dt {dt} s, dm_control dampings, no slider limit), {W} worlds, "
+                    f"{T} steps ({T * dt:g} s) of random actions from random swinging states, float64; error vs rk4 x"
                     f"{c['reference_substeps']}",
             "cost": "seconds per world-step", "error": "RMS of |(dx, dtheta)| (m, rad)",
             "env_default": {"substeps": 1, "integrator": "rk4"}, "seconds": physics_seconds, "points": points,

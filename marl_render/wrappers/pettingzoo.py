@@ -74,7 +74,6 @@ import pettingzoo
 import torch
 from gymnasium import spaces
 
-from marl_render.threads import limited_threads
 from marl_render.validation import describe
 from marl_render.wrappers.window import Window
 
@@ -284,8 +283,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         if not self.core.state_dim:
             return super().state()  # NotImplementedError: this env has no state observation
         self._check_started("state()")
-        with limited_threads(self.core.torch_threads):
-            state = self.core._state_obs()[0].detach()
+        state = self.core.state_observation()[0].detach()
         return state.to(device="cpu", dtype=torch.float32).reshape(-1).numpy()
 
     def render(self):

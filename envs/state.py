@@ -1,0 +1,59 @@
+"""Explicit env state: everything a later step depends on, as named tensors.
+
+An environment keeps its simulation in one frozen dataclass of ``[W, ...]`` tensors, ``env.sim``
+(for spread: body positions, velocities, yaws and landmarks). Reset and step replace it with a
+new one and never write into it, as gymnax does with its state. With the core's step counters,
+alive mask and random generator it is the whole state of the env:
+
+    state = env.get_state()     # {name: tensor} copies: the fields of env.sim, "step_count",
+                                # "alive" and "rng" (the generator's state, uint8 on the CPU)
+    state["pos"][0, 1] = torch.tensor([0.5, 0.0])
+    env.set_state(state)        # validated against the current state, then restored exactly
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from marl_render.validation import describe
+
+
+def fields(sim) -> dict:
+    """{name: tensor} of a simulation-state dataclass, in field order (no copies)."""
+    return {f.name: getattr(sim, f.name) for f in dataclasses.fields(sim)}
+
+
+def select_worlds(mask: torch.Tensor, new, old):
+    """The state with `new`'s worlds where mask [W] (bool) is True and `old`'s elsewhere."""
+    def pick(a, b):
+        return torch.where(mask.reshape(-1, *(1,) * (a.ndim - 1)), a, b)
+    return type(old)(**{name: pick(value, getattr(old, name)) for name, value in fields(new).items()})
+
+
+def checked(state, template: dict) -> dict:
+    """Copies of `state`'s tensors after checking them against `template` (the env's current state):
+    the same keys, and per key a tensor of the same shape, dtype and device, finite where floating.
+    Raises TypeError / ValueError naming the key, the expected and the given."""
+    if not isinstance(state, dict):
+        raise TypeError(f"state must be a dict of tensors as returned by get_state(), got {describe(state)}")
+    missing, unknown = sorted(set(template) - set(state)), sorted(set(state) - set(template))
+    if missing or unknown:
+        raise ValueError(f"state must have the keys {sorted(template)}, got missing {missing} and unknown {unknown}")
+    copies = {}
+    for key, want in template.items():
+        given = state[key]
+        if not isinstance(given, torch.Tensor):
+            raise TypeError(f"state[{key!r}] must be a torch.Tensor, got {describe(given)}")
+        for what in ("shape", "dtype", "device"):
+            if getattr(given, what) != getattr(want, what):
+                raise ValueError(f"state[{key!r}] must have {what} {_show(getattr(want, what))}, "
+                                 f"got {_show(getattr(given, what))}")
+        if given.is_floating_point() and not bool(torch.isfinite(given).all()):
+            raise ValueError(f"state[{key!r}] must be finite, got NaN or Inf values")
+        copies[key] = given.detach().clone()
+    return copies
+
+
+def _show(value) -> str:
+    return str(list(value)) if isinstance(value, torch.Size) else str(value)
