@@ -11,6 +11,7 @@ Per step:
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass
 
@@ -115,8 +116,11 @@ class BatchRenderer:
         self.buffer = self.root = None
         self._groups = {}
         try:
-            self._build_target()
-            self._build_groups()
+            # Panda3D opens the framebuffer right away; until it is inactive, any frame
+            # drawn by another thread would draw it too.
+            with self._context.current():
+                self._build_target()
+                self._build_groups()
         except BaseException:
             self.close()  # free whatever GL objects were made before the failure
             raise
@@ -364,12 +368,14 @@ class BatchRenderer:
     # ------------------------------------------------------------------ rendering
     @one_thread
     def render(self) -> Frame:
-        """Draw all views; returns tensors the caller owns."""
+        """Draw all views; returns tensors the caller owns. Any thread may call it (one at a
+        time per renderer): the GL context is made current in the calling thread."""
         self._check_open()
         backend.context()  # raises in a forked child
-        self._prepare()
-        self.last_timings.update(gl=0.0, copy=0.0)
-        return self._draw_and_read()
+        with self._context.current():
+            self._prepare()
+            self.last_timings.update(gl=0.0, copy=0.0)
+            return self._draw_and_read()
 
     def _prepare(self) -> list[str]:
         """The torch stages of a frame: camera poses, view and instance packing, culling.
@@ -573,8 +579,10 @@ class BatchRenderer:
             return
         self._closed = True
         if self.buffer is not None:
-            self.buffer.clear_render_textures()
-            self._context.engine.remove_window(self.buffer)
+            if self._context.pid == os.getpid():  # a forked child must not touch its parent's GL objects
+                with self._context.current():  # Panda3D deletes the framebuffer right away
+                    self.buffer.clear_render_textures()
+                    self._context.engine.remove_window(self.buffer)
             self.buffer = None
         if self.root is not None:
             self.root.remove_node()
