@@ -172,6 +172,25 @@ class _Context:
             finally:
                 self._egl.set(previous, self._binding[0])
 
+    def drop_render_texture_events(self) -> None:
+        """Remove the "render-texture-targets-changed" events that Panda3D queues whenever a
+        buffer's render textures change. Without ShowBase nothing consumes the global event
+        queue, so they would accumulate (about 60 bytes per renderer, and they scatter small
+        live blocks over the heap, which kept about 1 KB of RSS per renderer). Other events are
+        put back in order."""
+        from panda3d.core import EventQueue
+
+        queue = EventQueue.get_global_event_queue()
+        if queue.is_queue_empty():
+            return
+        kept = []
+        while not queue.is_queue_empty():
+            event = queue.dequeue_event()
+            if event.name != "render-texture-targets-changed":
+                kept.append(event)
+        for event in kept:
+            queue.queue_event(event)
+
     def _log_tail(self) -> str:
         lines = self.drain_log()
         return ("\nGL log:\n" + "\n".join(lines)) if lines else ""

@@ -43,7 +43,7 @@ class NaiveRenderer:
         self.buffers, self.textures = [], []
         for index in range(1 if tiled else scene.num_views):
             with ctx.current():  # the new buffer is open and active until set_active(False)
-                buffer = ctx.engine.make_output(ctx.pipe, f"naive_{id(self)}_{index}", 0, props,
+                buffer = ctx.engine.make_output(ctx.pipe, "marl_render_naive", 0, props,
                                                 WindowProperties.size(*self.layout.framebuffer_size),
                                                 GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
                 buffer.set_active(False)
@@ -52,6 +52,7 @@ class NaiveRenderer:
             buffer.set_clear_color(tuple(scene.background[:3]) + (1.0,))
             self.buffers.append(buffer)
             self.textures.append(texture)
+        ctx.drop_render_texture_events()
 
         W, A = scene.num_worlds, scene.agents_per_world
         lighting = scene.lighting
@@ -189,6 +190,7 @@ class NaiveRenderer:
         with self._context.current():
             for buffer in self.buffers:
                 self._context.engine.remove_window(buffer)
+            self._context.drop_render_texture_events()
         self.buffers, self.textures = [], []
         for root in self.world_roots:
             root.remove_node()

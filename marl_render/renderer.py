@@ -179,8 +179,10 @@ class BatchRenderer:
         props.set_depth_bits(24)
         props.set_aux_rgba(len(aux))
         props.set_multisamples(self.multisamples)
+        # One name for all buffers: Panda3D keeps a statistics collector per buffer name
+        # for the life of the process (a unique name per renderer leaked about 3 KB each).
         self.buffer = ctx.engine.make_output(
-            ctx.pipe, f"marl_render_{id(self)}", 0, props, WindowProperties.size(width, height),
+            ctx.pipe, "marl_render", 0, props, WindowProperties.size(width, height),
             GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
         if self.buffer is None:
             raise backend.GLUnavailableError(
@@ -199,6 +201,7 @@ class BatchRenderer:
             self.buffer.set_clear_active(plane, True)
             self.buffer.set_clear_value(plane, clear)
             self.aux_textures[name] = texture
+        ctx.drop_render_texture_events()
         r, g, b = self.scene.background[:3]
         self.buffer.set_clear_color((b, g, r, 1.0))  # swizzled like the shader output
         self.buffer.set_active(False)
@@ -583,6 +586,7 @@ class BatchRenderer:
                 with self._context.current():  # Panda3D deletes the framebuffer right away
                     self.buffer.clear_render_textures()
                     self._context.engine.remove_window(self.buffer)
+                    self._context.drop_render_texture_events()
             self.buffer = None
         if self.root is not None:
             self.root.remove_node()
