@@ -164,7 +164,7 @@ class BatchRenderer:
     # ------------------------------------------------------------------ GL objects
     def _build_target(self):
         from panda3d.core import (Camera, ColorBlendAttrib, CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib,
-                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, LVecBase2i,
+                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, LVecBase2f, LVecBase2i,
                                   NodePath, OmniBoundingVolume, Texture, TransparencyAttrib, WindowProperties)
 
         ctx = self._context
@@ -222,6 +222,7 @@ class BatchRenderer:
         self.root.set_shader_input("views", self.views_texture)
         self.root.set_shader_input("agents", _int(self.scene.agents_per_world))
         self.root.set_shader_input("grid", LVecBase2i(self.layout.columns, self.layout.rows))
+        self.root.set_shader_input("tile_size", LVecBase2f(self.layout.tile_width, self.layout.tile_height))
         self._view_offset = _int(0)  # updated in place per pass (a new PTA would make a new render state)
         self.root.set_shader_input("view_offset", self._view_offset)
         lighting, fog = self.scene.lighting, self.scene.fog

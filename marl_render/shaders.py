@@ -58,7 +58,7 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
 
 
 def variant_source(stage: str, defines: tuple[str, ...]) -> str:
-    """Full GLSL text of one stage ("vert" or "frag") for the given defines."""
+    """Full GLSL text of one stage ("vert", "geom" or "frag") for the given defines."""
     header = GLSL_VERSION + "".join(f"#define {d}\n" for d in defines)
     return header + source(f"batch.{stage}")
 
@@ -68,7 +68,9 @@ def compiled(defines: tuple[str, ...]):
     """Cached Panda3D Shader for one variant (compiled by the driver on first draw)."""
     from panda3d.core import Shader
 
-    shader = Shader.make(Shader.SL_GLSL, variant_source("vert", defines), variant_source("frag", defines))
+    # The depth output needs each triangle's plane: a geometry shader adds it.
+    geometry = variant_source("geom", defines) if "OUTPUT_DEPTH" in defines else ""
+    shader = Shader.make(Shader.SL_GLSL, variant_source("vert", defines), variant_source("frag", defines), geometry)
     if shader is None:
         raise RuntimeError(f"shader variant {defines} failed to parse; see the GL log above")
     return shader

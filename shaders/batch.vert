@@ -19,7 +19,10 @@ uniform int view_offset;          // first view drawn by this pass
 uniform ivec2 grid;               // tiles per pass (columns, rows)
 uniform int segment_base;         // segmentation id of this group's instance 0
 
-out vec4 v_color;
+// One colour per triangle: an instance's colour, lit per vertex only on flat meshes, whose
+// three vertices share a normal. Flat, because interpolating a constant is not exact and
+// its rounding would depend on where the tile sits.
+flat out vec4 v_color;
 #ifdef LIGHT_PER_FRAGMENT
 out vec3 v_normal;
 #endif
@@ -33,6 +36,12 @@ out float v_depth;
 #endif
 #ifdef LOG_DEPTH
 flat out vec2 v_near_far;
+#endif
+#ifdef OUTPUT_DEPTH
+// For the geometry shader (batch.geom), which computes depth from each triangle's plane.
+uniform vec2 tile_size;       // pixels
+out vec3 v_clip;              // (x, y, w) before the move into the tile
+flat out vec2 v_tile_origin;  // pixel of the tile's lower-left corner
 #endif
 #ifdef OUTPUT_SEGMENTATION
 flat out int v_segment;
@@ -107,6 +116,10 @@ void main() {
 #endif
 #if defined(EFFECT_FOG) || defined(OUTPUT_DEPTH) || defined(LOG_DEPTH)
     v_depth = clip.w;
+#endif
+#ifdef OUTPUT_DEPTH
+    v_clip = clip.xyw;
+    v_tile_origin = vec2(tile_x, tile_y) * tile_size;
 #endif
 #ifdef LOG_DEPTH
     v_near_far = vec2(texelFetch(views, vrow + 4).w, texelFetch(views, vrow + 5).w);
