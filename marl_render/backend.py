@@ -19,6 +19,8 @@ import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+from . import triton_guard
+
 _CONFIG = """
 load-display p3headlessgl
 window-type offscreen
@@ -112,6 +114,7 @@ class _Context:
         from panda3d.core import (FrameBufferProperties, GraphicsEngine, GraphicsPipe,
                                   GraphicsPipeSelection, WindowProperties, loadPrcFileData)
 
+        triton_guard.install()  # before Mesa's LLVM is loaded: see triton_guard.py
         config = _CONFIG
         if egl_device_index is not None:
             config += f"egl-device-index {int(egl_device_index)}\n"

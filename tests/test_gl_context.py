@@ -2,6 +2,10 @@
 native libraries loaded next to it."""
 from __future__ import annotations
 
+import importlib.util
+import subprocess
+import sys
+import textwrap
 import threading
 
 import pytest
@@ -136,3 +140,33 @@ def test_a_second_egl_device_index_is_an_error():
         mr.BatchRenderer(scene, egl_device_index="0")
     with pytest.raises(ValueError, match=r"egl_device_index must be an int >= 0 or None, got -1"):
         mr.BatchRenderer(scene, egl_device_index=-1)
+
+
+# ---------------------------------------------------------------------- other LLVMs in the process
+TRITON_AFTER_THE_FIRST_ENV = textwrap.dedent("""
+    import sys
+    import torch
+    from marl_render.envs import make_env
+
+    env = make_env("cartpole", num_worlds=2, resolution=32, seed=0)
+    first = env.reset()["pixels"].clone()
+    assert "triton" not in sys.modules, "triton was loaded before anyone imported it"
+    import triton
+    import triton.language
+    import torch._dynamo  # what torch.compile imports
+    for _ in range(20):
+        pixels = env.step(torch.ones(2, 1, dtype=torch.long))[0]["pixels"]
+    assert not torch.equal(pixels, first), "rendering stopped after triton was imported"
+    print("rendered after importing triton", triton.__version__)
+""")
+
+
+@pytest.mark.skipif(importlib.util.find_spec("triton") is None,
+                    reason="triton is not installed (the CUDA builds of torch ship it)")
+def test_importing_triton_after_the_first_env_does_not_crash():
+    """triton carries its own LLVM; Mesa's llvmpipe loads another one globally. In a child
+    process, so that a segmentation fault fails this test instead of ending pytest."""
+    out = subprocess.run([sys.executable, "-c", TRITON_AFTER_THE_FIRST_ENV], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, f"exit status {out.returncode} (-11: segmentation fault)\n{out.stderr[-3000:]}"
+    assert "rendered after importing triton" in out.stdout
