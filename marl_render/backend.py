@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import numbers
 import os
 import threading
 from contextlib import contextmanager
@@ -76,6 +77,9 @@ class GLInfo:
         return dict(self.__dict__)
 
 
+_EGL_DRAW, _EGL_READ = 0x3059, 0x305A  # eglGetCurrentSurface's argument
+
+
 class _EGLBinding:
     """What eglMakeCurrent binds in one thread: display, draw and read surfaces, context
     (all None: nothing current)."""
@@ -102,9 +106,6 @@ class _EGLBinding:
         if not self._egl.eglMakeCurrent(display, draw, read, context):
             raise RuntimeError(f"eglMakeCurrent failed with EGL error 0x{self._egl.eglGetError():04x}; the GL "
                                "context may be current in a thread that holds it outside marl-render")
-
-
-_EGL_DRAW, _EGL_READ = 0x3059, 0x305A
 
 
 class _Context:
@@ -178,9 +179,9 @@ class _Context:
     def drop_render_texture_events(self) -> None:
         """Remove the "render-texture-targets-changed" events that Panda3D queues whenever a
         buffer's render textures change. Without ShowBase nothing consumes the global event
-        queue, so they would accumulate (about 60 bytes per renderer, and they scatter small
-        live blocks over the heap, which kept about 1 KB of RSS per renderer). Other events are
-        put back in order."""
+        queue, so they would pile up for the life of the process (two per renderer, each a
+        small block that keeps a heap page from being returned). Other events are put back
+        in order."""
         from panda3d.core import EventQueue
 
         queue = EventQueue.get_global_event_queue()
@@ -237,7 +238,8 @@ def context(egl_device_index: int | None = None) -> _Context:
     (None: $MARL_RENDER_EGL_DEVICE, else the default display). Once it exists, asking for
     another device is an error: a process renders on one device."""
     global _context
-    if egl_device_index is not None and (isinstance(egl_device_index, bool) or not isinstance(egl_device_index, int)):
+    if egl_device_index is not None and (isinstance(egl_device_index, bool)
+                                         or not isinstance(egl_device_index, numbers.Integral)):
         raise TypeError(f"egl_device_index must be an int >= 0 or None, got {type(egl_device_index).__name__} "
                         f"{egl_device_index!r}")
     if egl_device_index is not None and egl_device_index < 0:
@@ -248,6 +250,8 @@ def context(egl_device_index: int | None = None) -> _Context:
                 "this process was forked after OpenGL was initialised in its parent; GL contexts do not "
                 "survive fork(). Start workers with the 'spawn' start method "
                 "(multiprocessing.set_start_method('spawn'), or TorchRL's ParallelEnv default).")
+        if egl_device_index is not None:
+            egl_device_index = int(egl_device_index)
         if _context is None:
             _context = _Context(egl_device_index if egl_device_index is not None else _env_device_index())
         elif egl_device_index is not None and egl_device_index != _context.device_index:
