@@ -20,6 +20,7 @@ import torch
 
 from . import backend, shaders
 from .meshes import MeshData, to_panda_geom
+from .triangle_corners import to_panda_geom_with_corners
 from .scene import Scene, StaticGroup
 from .culling import frustum_planes, mesh_radius, visible_pairs
 from .threads import caller_threads, one_thread
@@ -240,7 +241,11 @@ class BatchRenderer:
         groups = [(g, True) for g in self.scene.static.values()] + [(g, False) for g in self.scene.groups.values()]
         for order, (group, static) in enumerate(groups):
             mesh = group.mesh
-            node = NodePath(to_panda_geom(mesh)) if isinstance(mesh, MeshData) else mesh.copy_to(NodePath())
+            procedural = isinstance(mesh, MeshData)
+            if procedural:  # the depth output needs each triangle's corners at its provoking vertex
+                node = NodePath((to_panda_geom_with_corners if "depth" in self.effects else to_panda_geom)(mesh))
+            else:
+                node = mesh.copy_to(NodePath())
             node.reparent_to(self.root)
             # A fixed draw order: Panda3D would otherwise sort by render state (memory
             # addresses), and surfaces that touch exactly would tie differently per run.
@@ -249,7 +254,7 @@ class BatchRenderer:
             node.node().set_final(True)
             textured = group.texture is not None
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
-                                          flat=isinstance(mesh, MeshData) and mesh.flat)
+                                          flat=procedural and mesh.flat, corners=procedural)
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(_panda_texture(group.texture, group.name), 1)

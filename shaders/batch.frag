@@ -1,6 +1,6 @@
 // Colour, then only the declared effects. Outputs are written in B, G, R, A order
 // because Panda3D reads the framebuffer back as BGRA: memory then holds R, G, B, A.
-#ifdef OUTPUT_DEPTH
+#ifdef DEPTH_PLANE_FROM_GEOMETRY
 // The geometry shader batch.geom sits between the stages; its outputs are named g_*.
 #define v_color g_color
 #ifdef LIGHT_PER_FRAGMENT
@@ -16,6 +16,8 @@
 #ifdef OUTPUT_SEGMENTATION
 #define v_segment g_segment
 #endif
+#endif
+#ifdef OUTPUT_DEPTH
 flat in vec4 depth_plane;  // the triangle's plane n.(x, y, w) = d in its view's clip space
 flat in vec4 depth_tile;   // tile origin (pixels), smallest and largest w of the triangle
 uniform vec2 tile_size;    // pixels
@@ -79,7 +81,7 @@ void main() {
     // Depth where this pixel's ray meets the triangle's plane, from the pixel's position
     // inside its tile. An interpolated value would carry rounding that depends on where
     // the tile sits in the framebuffer (the rasteriser evaluates it at absolute pixel
-    // positions), so depth would change in its last bits with max_framebuffer_size.
+    // positions), so depth would change in its last bits with the tile layout.
     precise vec2 inside_tile = gl_FragCoord.xy - depth_tile.xy;
     precise vec2 ndc = inside_tile / tile_size * 2.0 - 1.0;
     precise float depth = depth_plane.w / dot(depth_plane.xyz, vec3(ndc.x, -ndc.y, 1.0));  // tiles are flipped

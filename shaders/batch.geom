@@ -1,7 +1,8 @@
-// Only with the depth output: passes each triangle through unchanged and adds its plane
-// in its view's own clip space, from which the fragment shader computes depth at the
-// pixel's position inside the tile. That makes depth independent of where the tile
-// sits, so of the tile layout (max_framebuffer_size).
+// Only with the depth output, for meshes from model files (procedural meshes carry their
+// triangles' corners instead, see marl_render/triangle_corners.py): passes each triangle
+// through unchanged and adds its plane in its view's own clip space, from which the
+// fragment shader computes depth at the pixel's position inside the tile. That makes
+// depth independent of where the tile sits, so of the tile layout.
 layout(triangles) in;
 layout(triangle_strip, max_vertices = 3) out;
 

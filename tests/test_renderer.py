@@ -1,6 +1,7 @@
 """The batch renderer draws the right pixels in the right tiles."""
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -224,6 +225,60 @@ def test_views_split_over_several_passes_match_one_pass(effects, supersample):
     assert torch.equal(one.depth, many.depth)
     if "segmentation" in effects:
         assert torch.equal(one.segmentation, many.segmentation)
+
+
+@pytest.mark.parametrize("mesh", [mr.meshes.box(), mr.sphere(segments=10, rings=5), mr.meshes.plane()])
+def test_every_triangle_gets_its_own_provoking_vertex_carrying_its_corners(mesh):
+    from marl_render.triangle_corners import with_triangle_corners
+
+    columns = with_triangle_corners(mesh)
+    triangles = columns["triangles"].astype(np.int64)
+    last = triangles[:, 2]
+    assert len(np.unique(last)) == len(triangles), "two triangles share a provoking vertex"
+    positions = columns["vertex"]
+    assert np.array_equal(columns["corner_a"][last], positions[triangles[:, 0]])
+    assert np.array_equal(columns["corner_b"][last], positions[triangles[:, 1]])
+    # The same triangles with the same winding: each one only rotated.
+    original = mesh.positions[mesh.triangles]
+    for t, triangle in enumerate(positions[triangles]):
+        assert any(np.array_equal(np.roll(triangle, shift, axis=0), original[t]) for shift in range(3))
+    assert len(positions) <= len(mesh.positions) + len(mesh.triangles)
+    for name in ("normal", "texcoord"):
+        assert columns[name].shape == (len(positions), 3 if name == "normal" else 2)
+
+
+CUBE_EGG = """<CoordinateSystem> { Z-up }
+<VertexPool> cube {
+""" + "".join(f"  <Vertex> {i} {{ {x} {y} {z} }}\n" for i, (x, y, z) in enumerate(
+    (x, y, z) for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5))) + """}
+""" + "".join(f"<Polygon> {{ <VertexRef> {{ {face} <Ref> {{ cube }} }} }}\n" for face in (
+    "0 1 3 2", "4 6 7 5", "0 4 5 1", "2 3 7 6", "0 2 6 4", "1 5 7 3"))
+
+
+def test_model_file_depth_is_the_same_whatever_the_layout(tmp_path):
+    """Meshes from model files take their triangle planes from a geometry shader (procedural
+    meshes carry them as vertex attributes): depth is bit-identical too, and agrees with
+    the procedural box's."""
+    path = tmp_path / "cube.egg"
+    path.write_text(CUBE_EGG)
+    worlds, agents, capacity = 3, 3, 4
+    instances, camera, target = random_scene_inputs(torch.Generator().manual_seed(2), worlds, agents, capacity)
+    depths = {}
+    for mesh in ("box", str(path)):
+        scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=(20, 30), effects=("depth",),
+                         background=BACKGROUND)
+        scene.add_group("cubes", mesh, capacity=capacity)
+        for max_size in (None, 40):
+            with mr.BatchRenderer(scene, max_framebuffer_size=max_size) as renderer:
+                renderer.update("cubes", **instances)
+                renderer.set_cameras(position=camera, look_at=target)
+                depths[mesh, max_size] = renderer.render().depth
+    model, box = depths[str(path), None], depths["box", None]
+    assert torch.equal(model, depths[str(path), 40])
+    assert torch.equal(box, depths["box", 40])
+    both = torch.isfinite(model)
+    assert torch.equal(both, torch.isfinite(box)) and both.float().mean() > 0.05  # the same cube
+    assert torch.allclose(model[both], box[both], rtol=1e-4, atol=0)
 
 
 @pytest.mark.parametrize("options", [{}, {"supersample": 2}])
