@@ -11,6 +11,7 @@ Per step:
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass
 
@@ -20,6 +21,7 @@ import torch
 from . import backend, shaders
 from .images import texture_pixels
 from .meshes import MeshData, to_panda_geom
+from .triangle_corners import to_panda_geom_with_corners
 from .scene import Scene, StaticGroup
 from .culling import frustum_planes, mesh_radius, visible_pairs
 from .threads import caller_threads, one_thread
@@ -116,8 +118,11 @@ class BatchRenderer:
         self.buffer = self.root = None
         self._groups = {}
         try:
-            self._build_target()
-            self._build_groups()
+            # Panda3D opens the framebuffer right away; until it is inactive, any frame
+            # drawn by another thread would draw it too.
+            with self._context.current():
+                self._build_target()
+                self._build_groups()
         except BaseException:
             self.close()  # free whatever GL objects were made before the failure
             raise
@@ -161,7 +166,7 @@ class BatchRenderer:
     # ------------------------------------------------------------------ GL objects
     def _build_target(self):
         from panda3d.core import (Camera, ColorBlendAttrib, CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib,
-                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, LVecBase2i,
+                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, LVecBase2f, LVecBase2i,
                                   NodePath, OmniBoundingVolume, Texture, TransparencyAttrib, WindowProperties)
 
         ctx = self._context
@@ -176,8 +181,10 @@ class BatchRenderer:
         props.set_depth_bits(24)
         props.set_aux_rgba(len(aux))
         props.set_multisamples(self.multisamples)
+        # One name for all buffers: Panda3D keeps a statistics collector per buffer name
+        # for the life of the process (a unique name per renderer leaked about 3 KB each).
         self.buffer = ctx.engine.make_output(
-            ctx.pipe, f"marl_render_{id(self)}", 0, props, WindowProperties.size(width, height),
+            ctx.pipe, "marl_render", 0, props, WindowProperties.size(width, height),
             GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
         if self.buffer is None:
             raise backend.GLUnavailableError(
@@ -196,6 +203,7 @@ class BatchRenderer:
             self.buffer.set_clear_active(plane, True)
             self.buffer.set_clear_value(plane, clear)
             self.aux_textures[name] = texture
+        ctx.drop_render_texture_events()
         r, g, b = self.scene.background[:3]
         self.buffer.set_clear_color((b, g, r, 1.0))  # swizzled like the shader output
         self.buffer.set_active(False)
@@ -216,6 +224,7 @@ class BatchRenderer:
         self.root.set_shader_input("views", self.views_texture)
         self.root.set_shader_input("agents", _int(self.scene.agents_per_world))
         self.root.set_shader_input("grid", LVecBase2i(self.layout.columns, self.layout.rows))
+        self.root.set_shader_input("tile_size", LVecBase2f(self.layout.tile_width, self.layout.tile_height))
         self._view_offset = _int(0)  # updated in place per pass (a new PTA would make a new render state)
         self.root.set_shader_input("view_offset", self._view_offset)
         lighting, fog = self.scene.lighting, self.scene.fog
@@ -233,7 +242,11 @@ class BatchRenderer:
         groups = [(g, True) for g in self.scene.static.values()] + [(g, False) for g in self.scene.groups.values()]
         for order, (group, static) in enumerate(groups):
             mesh = group.mesh
-            node = NodePath(to_panda_geom(mesh)) if isinstance(mesh, MeshData) else mesh.copy_to(NodePath())
+            procedural = isinstance(mesh, MeshData)
+            if procedural:  # the depth output needs each triangle's corners at its provoking vertex
+                node = NodePath((to_panda_geom_with_corners if "depth" in self.effects else to_panda_geom)(mesh))
+            else:
+                node = mesh.copy_to(NodePath())
             node.reparent_to(self.root)
             # A fixed draw order: Panda3D would otherwise sort by render state (memory
             # addresses), and surfaces that touch exactly would tie differently per run.
@@ -242,7 +255,7 @@ class BatchRenderer:
             node.node().set_final(True)
             textured = group.texture is not None
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
-                                          flat=isinstance(mesh, MeshData) and mesh.flat)
+                                          flat=procedural and mesh.flat, corners=procedural)
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(_panda_texture(group.texture, group.name), 1)
@@ -364,12 +377,14 @@ class BatchRenderer:
     # ------------------------------------------------------------------ rendering
     @one_thread
     def render(self) -> Frame:
-        """Draw all views; returns tensors the caller owns."""
+        """Draw all views; returns tensors the caller owns. Any thread may call it (one at a
+        time per renderer): the GL context is made current in the calling thread."""
         self._check_open()
         backend.context()  # raises in a forked child
-        self._prepare()
-        self.last_timings.update(gl=0.0, copy=0.0)
-        return self._draw_and_read()
+        with self._context.current():
+            self._prepare()
+            self.last_timings.update(gl=0.0, copy=0.0)
+            return self._draw_and_read()
 
     def _prepare(self) -> list[str]:
         """The torch stages of a frame: camera poses, view and instance packing, culling.
@@ -578,8 +593,11 @@ class BatchRenderer:
             return
         self._closed = True
         if self.buffer is not None:
-            self.buffer.clear_render_textures()
-            self._context.engine.remove_window(self.buffer)
+            if self._context.pid == os.getpid():  # a forked child must not touch its parent's GL objects
+                with self._context.current():  # Panda3D deletes the framebuffer right away
+                    self.buffer.clear_render_textures()
+                    self._context.engine.remove_window(self.buffer)
+                    self._context.drop_render_texture_events()
             self.buffer = None
         if self.root is not None:
             self.root.remove_node()

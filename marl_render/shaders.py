@@ -33,14 +33,19 @@ def source(name: str) -> str:
     return resources.files("marl_render.glsl").joinpath(name).read_text()
 
 
-def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False) -> tuple[str, ...]:
+def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False,
+                corners: bool = False) -> tuple[str, ...]:
     """The sorted #define lines of one variant (texture only for groups that have one).
 
     Lighting runs per vertex for meshes whose faces each have one normal (flat), where
-    it is exact, and per fragment otherwise."""
+    it is exact, and per fragment otherwise. Depth needs each triangle's plane: from the
+    corners that procedural meshes carry (`corners`, see triangle_corners.py), else from
+    a geometry shader (model files)."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
     if "lighting" in effects:
         defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
+    if "depth" in effects:
+        defines.add("DEPTH_PLANE_FROM_CORNERS" if corners else "DEPTH_PLANE_FROM_GEOMETRY")
     if "texture" in effects and textured:
         defines.add("EFFECT_TEXTURE")
     defines.add(f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}")
@@ -58,7 +63,7 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
 
 
 def variant_source(stage: str, defines: tuple[str, ...]) -> str:
-    """Full GLSL text of one stage ("vert" or "frag") for the given defines."""
+    """Full GLSL text of one stage ("vert", "geom" or "frag") for the given defines."""
     header = GLSL_VERSION + "".join(f"#define {d}\n" for d in defines)
     return header + source(f"batch.{stage}")
 
@@ -68,7 +73,8 @@ def compiled(defines: tuple[str, ...]):
     """Cached Panda3D Shader for one variant (compiled by the driver on first draw)."""
     from panda3d.core import Shader
 
-    shader = Shader.make(Shader.SL_GLSL, variant_source("vert", defines), variant_source("frag", defines))
+    geometry = variant_source("geom", defines) if "DEPTH_PLANE_FROM_GEOMETRY" in defines else ""
+    shader = Shader.make(Shader.SL_GLSL, variant_source("vert", defines), variant_source("frag", defines), geometry)
     if shader is None:
         raise RuntimeError(f"shader variant {defines} failed to parse; see the GL log above")
     return shader

@@ -1,6 +1,28 @@
 // Colour, then only the declared effects. Outputs are written in B, G, R, A order
 // because Panda3D reads the framebuffer back as BGRA: memory then holds R, G, B, A.
-in vec4 v_color;
+#ifdef DEPTH_PLANE_FROM_GEOMETRY
+// The geometry shader batch.geom sits between the stages; its outputs are named g_*.
+#define v_color g_color
+#ifdef LIGHT_PER_FRAGMENT
+#define v_normal g_normal
+#endif
+#ifdef EFFECT_TEXTURE
+#define v_uv g_uv
+#endif
+#define v_depth g_depth
+#ifdef LOG_DEPTH
+#define v_near_far g_near_far
+#endif
+#ifdef OUTPUT_SEGMENTATION
+#define v_segment g_segment
+#endif
+#endif
+#ifdef OUTPUT_DEPTH
+flat in vec4 depth_plane;  // the triangle's plane n.(x, y, w) = d in its view's clip space
+flat in vec4 depth_tile;   // tile origin (pixels), smallest and largest w of the triangle
+uniform vec2 tile_size;    // pixels
+#endif
+flat in vec4 v_color;
 #ifdef EFFECT_TEXTURE
 in vec2 v_uv;
 uniform sampler2D p3d_Texture0;
@@ -56,7 +78,14 @@ void main() {
     gl_FragDepth = log2(max(v_depth, v_near_far.x) / v_near_far.x) / log2(v_near_far.y / v_near_far.x);
 #endif
 #ifdef OUTPUT_DEPTH
-    out_depth = bytes_of(floatBitsToUint(v_depth));
+    // Depth where this pixel's ray meets the triangle's plane, from the pixel's position
+    // inside its tile. An interpolated value would carry rounding that depends on where
+    // the tile sits in the framebuffer (the rasteriser evaluates it at absolute pixel
+    // positions), so depth would change in its last bits with the tile layout.
+    precise vec2 inside_tile = gl_FragCoord.xy - depth_tile.xy;
+    precise vec2 ndc = inside_tile / tile_size * 2.0 - 1.0;
+    precise float depth = depth_plane.w / dot(depth_plane.xyz, vec3(ndc.x, -ndc.y, 1.0));  // tiles are flipped
+    out_depth = bytes_of(floatBitsToUint(clamp(depth, depth_tile.z, depth_tile.w)));
 #endif
 #ifdef OUTPUT_SEGMENTATION
     out_segment = bytes_of(uint(v_segment));

@@ -19,7 +19,10 @@ uniform int view_offset;          // first view drawn by this pass
 uniform ivec2 grid;               // tiles per pass (columns, rows)
 uniform int segment_base;         // segmentation id of this group's instance 0
 
-out vec4 v_color;
+// One colour per triangle: an instance's colour, lit per vertex only on flat meshes, whose
+// three vertices share a normal. Flat, because interpolating a constant is not exact and
+// its rounding would depend on where the tile sits.
+flat out vec4 v_color;
 #ifdef LIGHT_PER_FRAGMENT
 out vec3 v_normal;
 #endif
@@ -33,6 +36,22 @@ out float v_depth;
 #endif
 #ifdef LOG_DEPTH
 flat out vec2 v_near_far;
+#endif
+#ifdef OUTPUT_DEPTH
+// Depth comes from each triangle's plane (see batch.frag).
+uniform vec2 tile_size;       // pixels
+#ifdef DEPTH_PLANE_FROM_CORNERS
+// This vertex is the provoking (last) vertex of at most one triangle and carries that
+// triangle's two other corners (marl_render/triangle_corners.py).
+in vec3 corner_a;
+in vec3 corner_b;
+flat out vec4 depth_plane;    // n.(x, y, w) = d in the view's clip space
+flat out vec4 depth_tile;     // tile origin (pixels), smallest and largest w of the triangle
+#else
+// For the geometry shader (batch.geom), which has the whole triangle (model files).
+out vec3 v_clip;              // (x, y, w) before the move into the tile
+flat out vec2 v_tile_origin;  // pixel of the tile's lower-left corner
+#endif
 #endif
 #ifdef OUTPUT_SEGMENTATION
 flat out int v_segment;
@@ -107,6 +126,19 @@ void main() {
 #endif
 #if defined(EFFECT_FOG) || defined(OUTPUT_DEPTH) || defined(LOG_DEPTH)
     v_depth = clip.w;
+#endif
+#ifdef OUTPUT_DEPTH
+#ifdef DEPTH_PLANE_FROM_CORNERS
+    vec3 q0 = (view_projection * vec4(relative + rotate(rotation, corner_a * scale.xyz), 1.0)).xyw;
+    vec3 q1 = (view_projection * vec4(relative + rotate(rotation, corner_b * scale.xyz), 1.0)).xyw;
+    vec3 q2 = clip.xyw;
+    vec3 plane_normal = cross(q1 - q0, q2 - q0);
+    depth_plane = vec4(plane_normal, dot(plane_normal, q0));
+    depth_tile = vec4(vec2(tile_x, tile_y) * tile_size, min(q0.z, min(q1.z, q2.z)), max(q0.z, max(q1.z, q2.z)));
+#else
+    v_clip = clip.xyw;
+    v_tile_origin = vec2(tile_x, tile_y) * tile_size;
+#endif
 #endif
 #ifdef LOG_DEPTH
     v_near_far = vec2(texelFetch(views, vrow + 4).w, texelFetch(views, vrow + 5).w);

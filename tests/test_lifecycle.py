@@ -133,22 +133,68 @@ def test_close_returns_host_memory():
 
 
 # ---------------------------------------------------------------------- many environments, long runs
-def test_200_environments_in_one_process_keep_memory_flat():
-    def one(seed):
-        env = make_env("spread", num_worlds=2, resolution=32, seed=seed)
-        env.reset()
-        env.step(torch.zeros(2, env.num_agents, dtype=torch.long))
-        env.close()
+CYCLES = 300
+GROWTH_LIMIT_MB = 5.0  # ~17 KB per cycle; a renderer used to leave ~3.5 KB here (37-45 KB elsewhere)
 
-    for seed in range(5):  # warm-up: shader cache, torch kernels, allocator pools
-        one(seed)
+
+def _small_renderer_cycle():
+    scene = mr.Scene(num_worlds=2, agents_per_world=2, resolution=16, effects=("lighting", "depth"))
+    scene.add_group("boxes", "box", capacity=2)
+    with mr.BatchRenderer(scene) as renderer:
+        renderer.update("boxes", active=torch.ones(2, 2, dtype=torch.bool))
+        renderer.render()
+
+
+def _small_env_cycle(seed):
+    env = make_env("spread", num_worlds=2, resolution=16, seed=seed)
+    env.reset()
+    env.step(torch.zeros(2, env.num_agents, dtype=torch.long))
+    env.render_overview(resolution=16)
+    env.close()
+
+
+def _growth_mb(cycle) -> float:
+    for seed in range(30):  # warm-up: shader cache, torch kernels, allocator pools, llvmpipe threads
+        cycle(seed)
     baseline_windows, baseline = windows(), memory_mb()
-    for seed in range(200):
-        one(seed)
-    grown = memory_mb() - baseline
-    print(f"200 environments created and closed: resident memory {grown:+.1f} MB")
+    for seed in range(CYCLES):
+        cycle(seed)
     assert windows() == baseline_windows
-    assert grown < 50, f"creating and closing 200 environments grew resident memory by {grown:.1f} MB"
+    return memory_mb() - baseline
+
+
+def test_300_renderers_in_one_process_keep_memory_flat():
+    grown = _growth_mb(lambda seed: _small_renderer_cycle())
+    print(f"{CYCLES} renderers created and closed: resident memory {grown:+.2f} MB")
+    assert grown < GROWTH_LIMIT_MB, f"creating and closing {CYCLES} renderers grew resident memory by {grown:.1f} MB"
+
+
+def test_300_environments_in_one_process_keep_memory_flat():
+    grown = _growth_mb(_small_env_cycle)
+    print(f"{CYCLES} environments created and closed: resident memory {grown:+.2f} MB")
+    assert grown < GROWTH_LIMIT_MB, f"creating and closing {CYCLES} environments grew resident memory by {grown:.1f} MB"
+
+
+def test_closed_renderers_leave_no_panda3d_bookkeeping_behind():
+    """What used to grow per renderer: a statistics collector per (uniquely named) buffer and
+    the "render-texture-targets-changed" events nobody consumes without ShowBase. Events of
+    others stay queued, in order."""
+    from panda3d.core import Event, EventQueue, PStatClient
+
+    queue, stats = EventQueue.get_global_event_queue(), PStatClient.get_global_pstats()
+    _small_renderer_cycle()
+    _small_env_cycle(0)
+    queue.queue_event(Event("user-event-1"))
+    queue.queue_event(Event("user-event-2"))
+    collectors = stats.get_num_collectors()
+    for seed in range(10):
+        _small_renderer_cycle()
+        _small_env_cycle(seed)
+    assert stats.get_num_collectors() == collectors, "Panda3D statistics collectors accumulate"
+    names = []
+    while not queue.is_queue_empty():
+        names.append(queue.dequeue_event().name)
+    assert names == ["user-event-1", "user-event-2"]
 
 
 def test_render_states_do_not_accumulate():

@@ -1,6 +1,7 @@
 """The batch renderer draws the right pixels in the right tiles."""
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -196,24 +197,88 @@ def test_segmentation_ids_are_exact():
     assert set(seg.unique().tolist()) <= {0, floor_id, *ids}
 
 
-def test_views_split_over_several_passes_match_one_pass():
+@pytest.mark.parametrize("effects, supersample", [(("lighting", "depth", "segmentation"), 1),
+                                                  (("lighting", "fog", "depth", "log_depth"), 1),
+                                                  (("depth",), 2)])
+def test_views_split_over_several_passes_match_one_pass(effects, supersample):
     worlds, agents, capacity = 3, 3, 4
-    scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=(20, 30), effects=("lighting", "depth"),
+    scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=(20, 30), effects=effects,
                      background=BACKGROUND)
     scene.add_static("floor", "plane", position=[0, 0, 0], scale=[30, 30, 1], color=[0.3, 0.6, 0.3])
     scene.add_group("boxes", "box", capacity=capacity)
+    scene.add_group("balls", "sphere", capacity=1)  # smooth normals: per-fragment lighting
     instances, camera, target = random_scene_inputs(torch.Generator().manual_seed(5), worlds, agents, capacity)
     frames = []
-    for max_size in (None, 40):
-        with mr.BatchRenderer(scene, max_framebuffer_size=max_size) as renderer:
+    for max_size in (None, 40 * supersample):
+        with mr.BatchRenderer(scene, max_framebuffer_size=max_size, supersample=supersample) as renderer:
             renderer.update("boxes", **instances)
+            renderer.update("balls", position=torch.tensor([0.3, 2.5, 0.6]).expand(worlds, 1, 3),
+                            active=torch.ones(worlds, 1, dtype=torch.bool))
             renderer.set_cameras(position=camera, look_at=target)
             frames.append((renderer.layout.num_passes, renderer.render()))
     (passes_one, one), (passes_many, many) = frames
     assert passes_one == 1 and passes_many == 5  # 1 x 2 tiles of 30x20 fit in 40x40
     assert torch.equal(one.rgb, many.rgb)
-    # Same pixels; depth may differ in the last float bits since tiles sit elsewhere.
-    assert torch.allclose(one.depth, many.depth, rtol=1e-5, atol=0)
+    # Bit for bit: depth comes from each triangle's plane at the pixel's place in its tile,
+    # not from values interpolated at absolute framebuffer positions.
+    assert torch.isfinite(one.depth).float().mean() > 0.5
+    assert torch.equal(one.depth, many.depth)
+    if "segmentation" in effects:
+        assert torch.equal(one.segmentation, many.segmentation)
+
+
+@pytest.mark.parametrize("mesh", [mr.meshes.box(), mr.sphere(segments=10, rings=5), mr.meshes.plane()])
+def test_every_triangle_gets_its_own_provoking_vertex_carrying_its_corners(mesh):
+    from marl_render.triangle_corners import with_triangle_corners
+
+    columns = with_triangle_corners(mesh)
+    triangles = columns["triangles"].astype(np.int64)
+    last = triangles[:, 2]
+    assert len(np.unique(last)) == len(triangles), "two triangles share a provoking vertex"
+    positions = columns["vertex"]
+    assert np.array_equal(columns["corner_a"][last], positions[triangles[:, 0]])
+    assert np.array_equal(columns["corner_b"][last], positions[triangles[:, 1]])
+    # The same triangles with the same winding: each one only rotated.
+    original = mesh.positions[mesh.triangles]
+    for t, triangle in enumerate(positions[triangles]):
+        assert any(np.array_equal(np.roll(triangle, shift, axis=0), original[t]) for shift in range(3))
+    assert len(positions) <= len(mesh.positions) + len(mesh.triangles)
+    for name in ("normal", "texcoord"):
+        assert columns[name].shape == (len(positions), 3 if name == "normal" else 2)
+
+
+CUBE_EGG = """<CoordinateSystem> { Z-up }
+<VertexPool> cube {
+""" + "".join(f"  <Vertex> {i} {{ {x} {y} {z} }}\n" for i, (x, y, z) in enumerate(
+    (x, y, z) for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5))) + """}
+""" + "".join(f"<Polygon> {{ <VertexRef> {{ {face} <Ref> {{ cube }} }} }}\n" for face in (
+    "0 1 3 2", "4 6 7 5", "0 4 5 1", "2 3 7 6", "0 2 6 4", "1 5 7 3"))
+
+
+def test_model_file_depth_is_the_same_whatever_the_layout(tmp_path):
+    """Meshes from model files take their triangle planes from a geometry shader (procedural
+    meshes carry them as vertex attributes): depth is bit-identical too, and agrees with
+    the procedural box's."""
+    path = tmp_path / "cube.egg"
+    path.write_text(CUBE_EGG)
+    worlds, agents, capacity = 3, 3, 4
+    instances, camera, target = random_scene_inputs(torch.Generator().manual_seed(2), worlds, agents, capacity)
+    depths = {}
+    for mesh in ("box", str(path)):
+        scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=(20, 30), effects=("depth",),
+                         background=BACKGROUND)
+        scene.add_group("cubes", mesh, capacity=capacity)
+        for max_size in (None, 40):
+            with mr.BatchRenderer(scene, max_framebuffer_size=max_size) as renderer:
+                renderer.update("cubes", **instances)
+                renderer.set_cameras(position=camera, look_at=target)
+                depths[mesh, max_size] = renderer.render().depth
+    model, box = depths[str(path), None], depths["box", None]
+    assert torch.equal(model, depths[str(path), 40])
+    assert torch.equal(box, depths["box", 40])
+    both = torch.isfinite(model)
+    assert torch.equal(both, torch.isfinite(box)) and both.float().mean() > 0.05  # the same cube
+    assert torch.allclose(model[both], box[both], rtol=1e-4, atol=0)
 
 
 @pytest.mark.parametrize("options", [{}, {"supersample": 2}])

@@ -54,15 +54,17 @@ class NaiveRenderer:
         props.set_depth_bits(24)
         self.buffers, self.textures = [], []
         for index in range(1 if tiled else scene.num_views):
-            buffer = ctx.engine.make_output(ctx.pipe, f"naive_{id(self)}_{index}", 0, props,
-                                            WindowProperties.size(*self.layout.framebuffer_size),
-                                            GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
+            with ctx.current():  # the new buffer is open and active until set_active(False)
+                buffer = ctx.engine.make_output(ctx.pipe, "marl_render_naive", 0, props,
+                                                WindowProperties.size(*self.layout.framebuffer_size),
+                                                GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
+                buffer.set_active(False)
             texture = Texture(f"naive_color_{index}")
             buffer.add_render_texture(texture, GraphicsOutput.RTM_copy_ram)
             buffer.set_clear_color(tuple(scene.background[:3]) + (1.0,))
-            buffer.set_active(False)
             self.buffers.append(buffer)
             self.textures.append(texture)
+        ctx.drop_render_texture_events()
 
         W, A = scene.num_worlds, scene.agents_per_world
         lighting = scene.lighting
@@ -175,13 +177,14 @@ class NaiveRenderer:
 
     def render(self) -> Frame:
         engine = self._context.engine
-        for buffer in self.buffers:
-            buffer.set_active(True)
-        try:
-            engine.render_frame()
-        finally:
+        with self._context.current():  # only this renderer's buffers are active while it draws
             for buffer in self.buffers:
-                buffer.set_active(False)
+                buffer.set_active(True)
+            try:
+                engine.render_frame()
+            finally:
+                for buffer in self.buffers:
+                    buffer.set_active(False)
         height, width = self.scene.resolution
         layout = self.layout
         images = [np.frombuffer(memoryview(t.get_ram_image()), np.uint8) for t in self.textures]
@@ -197,8 +200,10 @@ class NaiveRenderer:
         return Frame(rgb.view(self.scene.num_worlds, self.scene.agents_per_world, height, width, 3))
 
     def close(self):
-        for buffer in self.buffers:
-            self._context.engine.remove_window(buffer)
+        with self._context.current():
+            for buffer in self.buffers:
+                self._context.engine.remove_window(buffer)
+            self._context.drop_render_texture_events()
         self.buffers, self.textures = [], []
         for root in self.world_roots:
             root.remove_node()

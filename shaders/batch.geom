@@ -1,0 +1,65 @@
+// Only with the depth output, for meshes from model files (procedural meshes carry their
+// triangles' corners instead, see marl_render/triangle_corners.py): passes each triangle
+// through unchanged and adds its plane in its view's own clip space, from which the
+// fragment shader computes depth at the pixel's position inside the tile. That makes
+// depth independent of where the tile sits, so of the tile layout.
+layout(triangles) in;
+layout(triangle_strip, max_vertices = 3) out;
+
+flat in vec4 v_color[];
+flat out vec4 g_color;
+#ifdef LIGHT_PER_FRAGMENT
+in vec3 v_normal[];
+out vec3 g_normal;
+#endif
+#ifdef EFFECT_TEXTURE
+in vec2 v_uv[];
+out vec2 g_uv;
+#endif
+in float v_depth[];
+out float g_depth;
+#ifdef LOG_DEPTH
+flat in vec2 v_near_far[];
+flat out vec2 g_near_far;
+#endif
+#ifdef OUTPUT_SEGMENTATION
+flat in int v_segment[];
+flat out int g_segment;
+#endif
+in vec3 v_clip[];              // (x, y, w) before the move into the tile
+flat in vec2 v_tile_origin[];
+flat out vec4 depth_plane;     // n.(x, y, w) = d
+flat out vec4 depth_tile;      // tile origin, smallest and largest w
+
+void main() {
+    vec3 normal = cross(v_clip[1] - v_clip[0], v_clip[2] - v_clip[0]);
+    vec4 plane = vec4(normal, dot(normal, v_clip[0]));
+    vec2 w_range = vec2(min(v_clip[0].z, min(v_clip[1].z, v_clip[2].z)),
+                        max(v_clip[0].z, max(v_clip[1].z, v_clip[2].z)));
+    for (int i = 0; i < 3; ++i) {
+        gl_Position = gl_in[i].gl_Position;
+        // The vertex shader's clip distances, which a geometry shader must write again.
+        gl_ClipDistance[0] = v_clip[i].z + v_clip[i].x;
+        gl_ClipDistance[1] = v_clip[i].z - v_clip[i].x;
+        gl_ClipDistance[2] = v_clip[i].z + v_clip[i].y;
+        gl_ClipDistance[3] = v_clip[i].z - v_clip[i].y;
+        g_color = v_color[i];
+#ifdef LIGHT_PER_FRAGMENT
+        g_normal = v_normal[i];
+#endif
+#ifdef EFFECT_TEXTURE
+        g_uv = v_uv[i];
+#endif
+        g_depth = v_depth[i];
+#ifdef LOG_DEPTH
+        g_near_far = v_near_far[i];
+#endif
+#ifdef OUTPUT_SEGMENTATION
+        g_segment = v_segment[i];
+#endif
+        depth_plane = plane;
+        depth_tile = vec4(v_tile_origin[i], w_range);
+        EmitVertex();
+    }
+    EndPrimitive();
+}
