@@ -16,7 +16,7 @@ uniform int pair_offset;          // first pair of this pass
 uniform int capacity;             // instances per world in this group
 uniform int agents;               // views per world
 uniform int view_offset;          // first view drawn by this pass
-uniform ivec2 grid;               // tiles per pass (columns, rows)
+uniform int tiles;                // tiles per pass, stacked in one column
 uniform int segment_base;         // segmentation id of this group's instance 0
 
 out vec4 v_color;
@@ -75,19 +75,14 @@ void main() {
     vec4 clip = view_projection * vec4(world_position, 1.0);
 
     // Clip against this view's own frustum before moving it into its tile, so nothing
-    // spills into a neighbour.
-    gl_ClipDistance[0] = clip.w + clip.x;
-    gl_ClipDistance[1] = clip.w - clip.x;
-    gl_ClipDistance[2] = clip.w + clip.y;
-    gl_ClipDistance[3] = clip.w - clip.y;
+    // spills into a neighbour. Tiles span the framebuffer's width (one column), so the
+    // viewport clips x; only the top and bottom need planes.
+    gl_ClipDistance[0] = clip.w + clip.y;
+    gl_ClipDistance[1] = clip.w - clip.y;
 
-    // Tiles are stored top row first in memory (glReadPixels reads bottom-up), so each
-    // view is flipped vertically; the renderer flips the cull mode to match.
-    int tile_x = pass_view % grid.x;
-    int tile_y = pass_view / grid.x;
-    vec2 flipped = vec2(clip.x, -clip.y);
-    vec2 tile_shift = vec2(2 * tile_x + 1 - grid.x, 2 * tile_y + 1 - grid.y);
-    gl_Position = vec4((flipped + clip.w * tile_shift) / vec2(grid), clip.z, clip.w);
+    // Tiles are stored top row first in memory (GL reads back bottom-up), so each view is
+    // flipped vertically; the renderer flips the cull mode to match.
+    gl_Position = vec4(clip.x, (float(2 * pass_view + 1 - tiles) * clip.w - clip.y) / float(tiles), clip.z, clip.w);
 
 #ifdef EFFECT_LIGHTING
     // Normals scale inversely (inverse transpose); a zero scale flattens the mesh, and

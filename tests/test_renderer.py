@@ -212,8 +212,9 @@ def test_views_split_over_several_passes_match_one_pass():
     (passes_one, one), (passes_many, many) = frames
     assert passes_one == 1 and passes_many == 5  # 1 x 2 tiles of 30x20 fit in 40x40
     assert torch.equal(one.rgb, many.rgb)
-    # Same pixels; depth may differ in the last float bits since tiles sit elsewhere.
-    assert torch.allclose(one.depth, many.depth, rtol=1e-5, atol=0)
+    # Same pixels; depth may differ in the last float bits since tiles sit elsewhere (the
+    # rasteriser interpolates clipped triangles in window coordinates of the framebuffer).
+    assert torch.allclose(one.depth, many.depth, rtol=5e-5, atol=0)
 
 
 @pytest.mark.parametrize("options", [{}, {"supersample": 2}])

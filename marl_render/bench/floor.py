@@ -8,7 +8,8 @@ render + readback, everything a training loop pays) and the floor (pack + upload
 draw + readback, no physics) run in alternating timed blocks, several rounds, and the
 medians are compared: ratio = env-steps/s / floor frames/s (a frame = one step of every
 world). The floor runs twice, without and with frustum culling, and the faster of the
-two is the floor (culling pays in the arena scenes, not in cart-pole). Each env row also carries the renderer's median stage times per step (pack,
+two is the floor (culling pays in the arena scenes, not in cart-pole). Each env row
+also carries the renderer's median stage times per step (pack,
 cull, gl, copy; `update`: validating and storing the new poses) and the env's own
 code outside the renderer (`env`), the fixed cost that dominates at small batches.
 """
@@ -22,7 +23,7 @@ import torch
 from ..threads import single_threaded
 from .common import machine, progress, write_report
 
-STAGES = ("update", "pack", "cull", "gl", "copy")
+STAGES = ("update", "pack", "cull", "gl", "copy")  # update: BatchRenderer.update calls; the rest: last_timings
 
 
 def add_arguments(parser):
@@ -59,11 +60,24 @@ def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds:
     generator = torch.Generator().manual_seed(0)
     stages = {key: [] for key in STAGES + ("env",)}
 
+    updating = [0.0]
+    update = env.renderer.update
+
+    def timed_update(*args, **kwargs):  # instrumentation of this benchmark only
+        start = time.perf_counter()
+        try:
+            return update(*args, **kwargs)
+        finally:
+            updating[0] += time.perf_counter() - start
+
+    env.renderer.update = timed_update
+
     def env_step():
+        updating[0] = 0.0
         start = time.perf_counter()
         env.step(env.random_actions(generator))
         total = time.perf_counter() - start
-        timings = env.renderer.last_timings
+        timings = dict(env.renderer.last_timings, update=updating[0])
         for key in STAGES:
             stages[key].append(timings.get(key, 0.0))
         stages["env"].append(total - sum(timings.get(key, 0.0) for key in STAGES))

@@ -23,8 +23,10 @@ What it does per frame, each choice measured on Mesa llvmpipe (2 cores):
 - flat-shaded meshes (boxes) are welded to shared corners: a box has 8 vertices
   instead of 24, and each face's normal rides on its triangles' provoking (last)
   vertex, lit per vertex and passed `flat`. Smooth meshes are lit per fragment.
-- the viewer's own body and inactive instances are clipped away in the vertex shader;
-  no culling on the CPU (the scenes of the suite are small).
+- cull=False: the viewer's own body and inactive instances are clipped away in the
+  vertex shader; cull=True: a torch frustum test per (view, instance) leaves them and
+  everything out of view out of the draw (pays in the arena scenes, where most vertex
+  work is out of sight).
 Only the `lighting` effect and `MeshData` meshes are supported.
 """
 from __future__ import annotations
