@@ -22,6 +22,7 @@ import torch
 
 from . import backend, readback, shaders
 from .meshes import MeshData, to_panda_geom
+from .provoking import shared_corner_mesh
 from .scene import Scene, StaticGroup
 from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
 from .threads import one_thread
@@ -256,15 +257,18 @@ class BatchRenderer:
         groups = [(g, True) for g in self.scene.static.values()] + [(g, False) for g in self.scene.groups.values()]
         for order, (group, static) in enumerate(groups):
             mesh = group.mesh
-            node = NodePath(to_panda_geom(mesh)) if isinstance(mesh, MeshData) else mesh.copy_to(NodePath())
+            textured = group.texture is not None
+            # Untextured flat meshes are drawn from their shared corners (8 vertices a box, not 24).
+            corners = isinstance(mesh, MeshData) and mesh.flat and not (textured and "texture" in self.effects)
+            drawn = shared_corner_mesh(mesh) if corners else mesh
+            node = NodePath(to_panda_geom(drawn)) if isinstance(mesh, MeshData) else mesh.copy_to(NodePath())
             # A fixed draw order: Panda3D would otherwise sort by render state (memory
             # addresses), and surfaces that touch exactly would tie differently per run.
             node.set_bin("fixed", order)
             node.node().set_bounds(OmniBoundingVolume())
             node.node().set_final(True)
-            textured = group.texture is not None
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
-                                          flat=isinstance(mesh, MeshData) and mesh.flat)
+                                          flat=isinstance(mesh, MeshData) and mesh.flat, shared_corners=corners)
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(_panda_texture(group.texture, group.name), 1)

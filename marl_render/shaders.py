@@ -33,14 +33,18 @@ def source(name: str) -> str:
     return resources.files("marl_render.glsl").joinpath(name).read_text()
 
 
-def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False) -> tuple[str, ...]:
+def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False,
+                shared_corners: bool = False) -> tuple[str, ...]:
     """The sorted #define lines of one variant (texture only for groups that have one).
 
     Lighting runs per vertex for meshes whose faces each have one normal (flat), where
-    it is exact, and per fragment otherwise."""
+    it is exact, and per fragment otherwise. shared_corners: a flat mesh drawn from its
+    welded corners (marl_render/provoking.py), its colour taken from the provoking vertex."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
     if "lighting" in effects:
         defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
+    if shared_corners:
+        defines.add("FLAT_FACES")
     if "texture" in effects and textured:
         defines.add("EFFECT_TEXTURE")
     defines.add(f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}")

@@ -1,6 +1,10 @@
 // Colour, then only the declared effects. The renderer reads the render textures back
 // with GL itself, in R, G, B(, A) order.
+#ifdef FLAT_FACES
+flat in vec4 v_color;
+#else
 in vec4 v_color;
+#endif
 #ifdef EFFECT_TEXTURE
 in vec2 v_uv;
 uniform sampler2D p3d_Texture0;

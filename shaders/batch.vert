@@ -19,7 +19,11 @@ uniform int view_offset;          // first view drawn by this pass
 uniform int tiles;                // tiles per pass, stacked in one column
 uniform int segment_base;         // segmentation id of this group's instance 0
 
+#ifdef FLAT_FACES
+flat out vec4 v_color;  // shared corners: the provoking (last) vertex carries its face's normal
+#else
 out vec4 v_color;
+#endif
 #ifdef LIGHT_PER_FRAGMENT
 out vec3 v_normal;
 #endif
