@@ -347,7 +347,13 @@ class FloorGL:
             s = self._state[name]
             torch.cat((s["position"], s["active"], s["rotation"], s["scale"], s["owner"], s["color"]), -1, out=block)
         view_projection = self._pack_views()
-        pairs = [self._visible(draw, view_projection) for draw in self._draws] if self.cull else None
+        pairs = None
+        if self.cull:
+            W, A = self.scene.num_worlds, self.scene.agents_per_world
+            r0, r1, r2, r3 = view_projection.reshape(W, A, 4, 4).unbind(-2)
+            planes = torch.stack((r3 + r0, r3 - r0, r3 + r1, r3 - r1, r3 + r2, r3 - r2), -2)  # [W, A, 6, 4]
+            planes = planes / planes[..., :3].norm(dim=-1, keepdim=True)
+            pairs = [self._visible(draw, planes) for draw in self._draws]
         with self.ctx:  # another context (Panda3D's) may be current in this thread
             ctx = self.ctx
             self._instance_buffer.write(self._instances.numpy())
@@ -403,19 +409,18 @@ class FloorGL:
         views[:, 3] = shift
         return views.transpose(1, 2)
 
-    def _visible(self, draw: _MeshDraw, view_projection: torch.Tensor) -> torch.Tensor:
-        """int32 view * per_view + slot of the pairs whose bounding sphere meets the view's frustum,
-        sorted by view; sets draw.ranges per framebuffer."""
-        W, A = self.scene.num_worlds, self.scene.agents_per_world
+    def _visible(self, draw: _MeshDraw, planes: torch.Tensor) -> torch.Tensor:
+        """int32 view * per_view + slot of the pairs whose bounding sphere meets the view's
+        frustum (planes [W, A, 6, 4]), sorted by view; sets draw.ranges per framebuffer."""
         rows = self._instances[draw.row_index]  # [W, K, 16]
         radius = draw.radius * rows[..., 8:11].amax(-1)  # [W, K]
-        r0, r1, r2, r3 = view_projection.reshape(W, A, 4, 4).unbind(-2)
-        planes = torch.stack((r3 + r0, r3 - r0, r3 + r1, r3 - r1, r3 + r2, r3 - r2), -2)  # [W, A, 6, 4]
-        planes = planes / planes[..., :3].norm(dim=-1, keepdim=True)
         distance = planes[..., :3] @ rows[:, None, :, 0:3].transpose(-1, -2) + planes[..., 3:]  # [W, A, 6, K]
         seen = (distance >= -radius[:, None, None]).all(-2)
         seen &= (rows[:, None, :, 3] != 0) & (rows[:, None, :, 11] != self._agent)
         pairs = seen.view(-1).nonzero().view(-1).to(torch.int32)
+        if len(self._framebuffers) == 1:
+            draw.ranges = [(0, len(pairs))]
+            return pairs
         bounds = torch.searchsorted(pairs, self._framebuffer_starts * draw.per_view).tolist()
         draw.ranges = [(bounds[i], bounds[i + 1] - bounds[i]) for i in range(len(self._framebuffers))]
         return pairs
