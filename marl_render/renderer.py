@@ -183,6 +183,8 @@ class BatchRenderer:
         self._mask_dirty = set(s.groups)  # groups whose active / owner masks changed
         self._cameras_dirty = True  # free cameras or their lenses changed
         self._projection = None  # [W, A, 4, 4] float64, made again when a lens changes
+        self._origin_moved = True  # world origins not yet written to the views texture
+        self._candidate_cache = {}  # group -> ([W, A, C] bool candidate pairs, their count)
 
     # ------------------------------------------------------------------ GL objects
     def _build_passes(self):
@@ -453,22 +455,24 @@ class BatchRenderer:
         if bool(far_worlds.any()):
             self.world_origin[far_worlds] = camera_position[far_worlds].mean(dim=1)
             self._dirty.update(self.scene.groups)
+            self._origin_moved = True
 
     def _pack_views(self, position: torch.Tensor, rotation: torch.Tensor):
-        if self._projection is None:
+        memory = _writable(self.views_texture, np.float32).view(-1, shaders.VIEW_TEXELS, 4)
+        if self._projection is None or self._origin_moved:  # lenses or world origins changed
             height, width = self.scene.resolution
             self._projection = perspective(self.fov_y, width / height, self.near, self.far)
+            origin_hi = self.world_origin.to(torch.float32)
+            origin_lo = (self.world_origin - origin_hi.to(torch.float64)).to(torch.float32)
+            A = self.scene.agents_per_world
+            memory[:, 4, :3] = origin_hi.repeat_interleave(A, dim=0)
+            memory[:, 5, :3] = origin_lo.repeat_interleave(A, dim=0)
+            memory[:, 4, 3] = self.near.reshape(-1)
+            memory[:, 5, 3] = self.far.reshape(-1)
+            self._origin_moved = False
         relative = position - self.world_origin[:, None]
         view_projection = self._projection @ view_matrix(relative, rotation.to(torch.float64))
-        memory = _writable(self.views_texture, np.float32).view(-1, shaders.VIEW_TEXELS, 4)
         memory[:, :4] = view_projection.reshape(-1, 4, 4).transpose(1, 2)  # texel j = column j
-        origin_hi = self.world_origin.to(torch.float32)
-        origin_lo = (self.world_origin - origin_hi.to(torch.float64)).to(torch.float32)
-        A = self.scene.agents_per_world
-        memory[:, 4, :3] = origin_hi.repeat_interleave(A, dim=0)
-        memory[:, 5, :3] = origin_lo.repeat_interleave(A, dim=0)
-        memory[:, 4, 3] = self.near.reshape(-1)
-        memory[:, 5, 3] = self.far.reshape(-1)
         return view_projection
 
     def _pack_group(self, name: str):
@@ -501,7 +505,7 @@ class BatchRenderer:
                 if mask_changed or draw.frustum_culled:
                     candidates_only.append(name)
         for name in candidates_only:
-            candidate = self._candidates(name)
+            candidate, _ = self._candidates(name)
             self._store_pairs(self._groups[name], pair_list(candidate) if candidate is not None else None, False)
         if not tested:
             return
@@ -511,10 +515,8 @@ class BatchRenderer:
         for name, count in zip(tested, (c.shape[1] for c in centers)):
             draw, visible = self._groups[name], inside[:, :, first:first + count]
             first += count
-            candidate = self._candidates(name)
-            kept = visible if candidate is None else visible & candidate
-            pairs = pair_list(kept)
-            possible = kept.numel() if candidate is None else int(candidate.sum())
+            candidate, possible = self._candidates(name)
+            pairs = pair_list(visible if candidate is None else visible & candidate)
             if len(pairs) > CULL_KEEPS * possible:
                 draw.frustum_pause = CULL_RECHECK
             self._store_pairs(draw, pairs, True)
@@ -529,13 +531,18 @@ class BatchRenderer:
         state = self._state[name]
         return state["position"] - self.world_origin[:, None], draw.radius * state["scale"].abs().amax(-1)
 
-    def _candidates(self, name: str) -> torch.Tensor | None:
-        """[W, A, C] bool: the instance is active and not the viewing agent's own body (None: all)."""
-        if self._groups[name].static:
-            return None
-        state = self._state[name]
-        agent = torch.arange(self.scene.agents_per_world)[None, :, None]
-        return state["active"][:, None, :] & (state["owner"][:, None, :] != agent)
+    def _candidates(self, name: str):
+        """([W, A, C] bool, count): the instance is active and not the viewing agent's own body
+        ((None, all pairs) for static groups); kept until the group's masks change."""
+        draw = self._groups[name]
+        if draw.static:
+            return None, self.scene.num_views * draw.count
+        if name in self._mask_dirty or name not in self._candidate_cache:
+            state = self._state[name]
+            agent = torch.arange(self.scene.agents_per_world)[None, :, None]
+            candidate = state["active"][:, None, :] & (state["owner"][:, None, :] != agent)
+            self._candidate_cache[name] = (candidate, int(candidate.sum()))
+        return self._candidate_cache[name]
 
     def _store_pairs(self, draw: _DrawGroup, pairs: torch.Tensor | None, culled: bool):
         """Upload a group's drawn pairs (None: every pair of a static group) and split them per pass."""
