@@ -27,12 +27,15 @@ from .scene import Scene, StaticGroup
 from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
 from .threads import one_thread
 from .tiling import TileLayout, column_layout
-from .transforms import normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_multiply, quat_rotate, view_matrix, look_at_quat
+from .transforms import look_at_quat, normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_to_matrix
 from .validation import FLOAT_DTYPES, as_tensor, check_finite, check_range, check_shape, describe, positive_int
 
 # Worlds are re-centred when a camera strays this far from its world's origin, so that
 # float32 positions relative to the origin stay precise (see the static-group shader).
 RECENTRE_DISTANCE = 1024.0
+
+# Camera frame (x right, y forward, z up) -> GL eye frame (x right, y up, looking down -z).
+_CAMERA_TO_GL = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
 
 # Frustum culling of a group is paused for CULL_RECHECK frames when its last test kept more
 # than CULL_KEEPS of the candidate pairs: drawing those few hidden pairs costs less than
@@ -80,6 +83,7 @@ class _DrawGroup:
     pass_nodes: list | None = None  # [(NodePath, PTA_int pair offset, instance count drawn)] per pass
     frustum_pause: int = 0  # frames left without frustum tests (see CULL_KEEPS)
     frustum_culled: bool = False  # whether the current pair list came from a frustum test
+    static_bounds: tuple | None = None  # (centres, radii) of a static group for the current origins
 
 
 @dataclass
@@ -162,8 +166,8 @@ class BatchRenderer:
         if mount is not None:
             tilt = None
             if mount.pitch:
-                tilt = quat_from_yaw_pitch_roll(torch.tensor(0.0, dtype=torch.float64),
-                                                torch.tensor(mount.pitch, dtype=torch.float64))
+                tilt = quat_to_matrix(quat_from_yaw_pitch_roll(torch.tensor(0.0, dtype=torch.float64),
+                                                               torch.tensor(mount.pitch, dtype=torch.float64)))
             self._mount_constants = (torch.tensor(mount.instance), torch.tensor(mount.offset, dtype=torch.float64), tilt)
         self._state = {}
         for name, group in s.groups.items():
@@ -422,7 +426,7 @@ class BatchRenderer:
         mount = self.scene.camera_mount
         cameras_moved = self._cameras_dirty or (mount is not None and mount.group in self._dirty)
         if cameras_moved:
-            position, rotation = self._camera_poses()
+            position, rotation = self._camera_frames()
             self._recentre(position)
             self._planes = frustum_planes(self._pack_views(position, rotation))
             self._cameras_dirty = False
@@ -436,18 +440,16 @@ class BatchRenderer:
         self.last_timings = {"pack": packed - start, "cull": time.perf_counter() - packed}
         return packed_groups
 
-    def _camera_poses(self):
+    def _camera_frames(self):
+        """Camera positions [W, A, 3] and camera-to-world rotations [W, A, 3, 3], float64."""
         mount = self.scene.camera_mount
         if mount is None:
-            return self.camera_position, self.camera_rotation
+            return self.camera_position, quat_to_matrix(self.camera_rotation.to(torch.float64))
         state = self._state[mount.group]
         index, offset, tilt = self._mount_constants
-        body_position = state["position"][:, index]
-        body_rotation = state["rotation"][:, index].to(torch.float64)
-        position = body_position + quat_rotate(body_rotation, offset.expand_as(body_position))
-        if tilt is not None:
-            body_rotation = quat_multiply(body_rotation, tilt.expand_as(body_rotation))
-        return position, body_rotation
+        body = quat_to_matrix(state["rotation"][:, index].to(torch.float64))
+        position = state["position"][:, index] + body @ offset
+        return position, body if tilt is None else body @ tilt
 
     def _recentre(self, camera_position: torch.Tensor):
         distance = (camera_position - self.world_origin[:, None]).norm(dim=-1).amax(dim=1)
@@ -456,12 +458,18 @@ class BatchRenderer:
             self.world_origin[far_worlds] = camera_position[far_worlds].mean(dim=1)
             self._dirty.update(self.scene.groups)
             self._origin_moved = True
+            for draw in self._groups.values():
+                draw.static_bounds = None
 
     def _pack_views(self, position: torch.Tensor, rotation: torch.Tensor):
+        """View-projections [W, A, 4, 4] of cameras at `position` with camera-to-world
+        `rotation` [W, A, 3, 3], written to the views texture (and origins / lenses when changed)."""
         memory = _writable(self.views_texture, np.float32).view(-1, shaders.VIEW_TEXELS, 4)
         if self._projection is None or self._origin_moved:  # lenses or world origins changed
             height, width = self.scene.resolution
-            self._projection = perspective(self.fov_y, width / height, self.near, self.far)
+            projection = perspective(self.fov_y, width / height, self.near, self.far)
+            # The camera frame (x right, y forward, z up) to GL's eye frame folded into the lens.
+            self._projection = (projection[..., :3] @ _CAMERA_TO_GL, projection[..., 3])
             origin_hi = self.world_origin.to(torch.float32)
             origin_lo = (self.world_origin - origin_hi.to(torch.float64)).to(torch.float32)
             A = self.scene.agents_per_world
@@ -470,8 +478,10 @@ class BatchRenderer:
             memory[:, 4, 3] = self.near.reshape(-1)
             memory[:, 5, 3] = self.far.reshape(-1)
             self._origin_moved = False
-        relative = position - self.world_origin[:, None]
-        view_projection = self._projection @ view_matrix(relative, rotation.to(torch.float64))
+        lens, lens_shift = self._projection
+        linear = lens @ rotation.transpose(-1, -2)  # [W, A, 4, 3]: world directions to clip space
+        shift = lens_shift - (linear @ (position - self.world_origin[:, None])[..., None])[..., 0]
+        view_projection = torch.cat((linear, shift[..., None]), -1)
         memory[:, :4] = view_projection.reshape(-1, 4, 4).transpose(1, 2)  # texel j = column j
         return view_projection
 
@@ -522,14 +532,17 @@ class BatchRenderer:
             self._store_pairs(draw, pairs, True)
 
     def _bounds(self, name: str):
-        """Bounding-sphere centres [W, K, 3] (relative to the world origin) and radii [W, K] of a group."""
+        """Bounding-sphere centres [W, K, 3] (relative to the world origin) and radii [W, K] of a
+        group (scales are >= 0); those of static groups are kept until the world origins move."""
         draw, W = self._groups[name], self.scene.num_worlds
         if draw.static:
-            group = self.scene.static[name]
-            return (group.position[None] - self.world_origin[:, None],
-                    (draw.radius * group.scale.abs().amax(-1)).expand(W, -1))
+            if draw.static_bounds is None:
+                group = self.scene.static[name]
+                draw.static_bounds = (group.position[None] - self.world_origin[:, None],
+                                      (draw.radius * group.scale.amax(-1)).expand(W, -1))
+            return draw.static_bounds
         state = self._state[name]
-        return state["position"] - self.world_origin[:, None], draw.radius * state["scale"].abs().amax(-1)
+        return state["position"] - self.world_origin[:, None], state["scale"].amax(-1) * draw.radius
 
     def _candidates(self, name: str):
         """([W, A, C] bool, count): the instance is active and not the viewing agent's own body
