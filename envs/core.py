@@ -8,7 +8,9 @@ only its world: state tensors, a reset, a step, a scene and the instance poses.
 Data contract (W worlds, A agents, H x Wpx pixels)::
 
     obs = env.reset(seed=0)          # dict of tensors, all [W, A, ...]
-      "pixels"       uint8   [W, A, H, Wpx, 3]   always
+      "pixels"       uint8   [W, A, H, Wpx, C]   always; C = 3, or 1 with grayscale=True (BT.601
+                                                  luma drawn by the renderer, a third of the
+                                                  bytes read back)
       "depth"        float32 [W, A, H, Wpx]      depth=True (metres along the view axis;
                                                   background = the camera's far plane)
       "state"        float32 [W, A, state_dim]   state_obs=True
@@ -94,8 +96,8 @@ class BatchedEnv(abc.ABC):
     ``_action_mask``, ``_overview_camera``).
 
     Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
-    (H, W)), max_steps, continuous, state_obs, depth, device, seed, autoreset, and
-    torch_threads (default 1): torch intra-op threads used *inside* env calls (the
+    (H, W)), max_steps, continuous, state_obs, depth, device, seed, autoreset, grayscale
+    (one-channel pixels, `pixel_channels`), and torch_threads (default 1): torch intra-op threads used *inside* env calls (the
     caller's setting is restored on return; None leaves it alone). See marl_render/threads.py.
 
     Attributes: name, num_worlds (W), num_agents (A), agent_names, groups (team ->
@@ -124,7 +126,7 @@ class BatchedEnv(abc.ABC):
     def __init__(self, *, num_worlds: int = 1, num_agents: int | None = None, resolution=None,
                  max_steps: int | None = None, continuous: bool = False, state_obs: bool = False,
                  depth: bool = False, device="cpu", seed: int | None = None, autoreset: bool = False,
-                 torch_threads: int | None = 1):
+                 torch_threads: int | None = 1, grayscale: bool = False):
         self._closed = True  # until fully built: close() and __del__ then do nothing
         self.num_worlds = positive_int("num_worlds", num_worlds)
         low, high = self.agent_range
@@ -145,6 +147,8 @@ class BatchedEnv(abc.ABC):
         self.continuous = _flag("continuous", continuous)
         self.state_obs = _flag("state_obs", state_obs)
         self.depth = _flag("depth", depth)
+        self.grayscale = _flag("grayscale", grayscale)
+        self.pixel_channels = 1 if self.grayscale else 3
         self.autoreset = _flag("autoreset", autoreset)
         self.device = _device(device)
         if torch_threads is not None:
@@ -417,7 +421,7 @@ class BatchedEnv(abc.ABC):
                          resolution=resolution, effects=effects, background=self.background,
                          fov_y=self.overview_fov_y if overview else self.fov_y, near=self.near, far=self.far)
         self._build_scene(scene, overview)
-        renderer = mr.BatchRenderer(scene)
+        renderer = mr.BatchRenderer(scene, color="gray" if self.grayscale and not overview else "rgb")
         try:
             self._init_cameras(renderer, overview)
         except BaseException:

@@ -46,7 +46,7 @@ CULL_RECHECK = 32
 
 @dataclass
 class Frame:
-    """One render: rgb [W, A, H, W, 3] uint8 (or [W, A, 3, H, W]), depth [W, A, H, W] float32
+    """One render: rgb [W, A, H, W, C] uint8 (or [W, A, C, H, W]; C = 3, or 1 for color="gray"), depth [W, A, H, W] float32
     metres along the view axis (inf where nothing was drawn), segmentation [W, A, H, W] int32
     (0 = background). Tensors are owned by the caller."""
 
@@ -102,13 +102,16 @@ class BatchRenderer:
     """Renders scene.num_worlds x scene.agents_per_world views per call of render()."""
 
     READBACKS = ("zero_copy", "copy")
+    COLORS = {"rgb": 3, "gray": 1}  # color -> channels of Frame.rgb
 
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
                  egl_device_index: int | None = None, readback: str = "zero_copy", supersample: int = 1,
-                 multisamples: int = 0):
-        """readback: "zero_copy" (default) reads the tiles straight out of Panda3D's RAM
-        image; "copy" first copies the whole image into a bytes object (the usual way,
-        kept only so that benchmarks can show what the zero-copy path saves).
+                 multisamples: int = 0, color: str = "rgb"):
+        """readback: "zero_copy" (default) reads each framebuffer straight into the output
+        tensor; "copy" reads it into a buffer first and copies that into the output (the
+        usual way, kept only so that benchmarks can show what the direct read saves).
+        color="gray": one channel, ITU-R BT.601 luma computed in the fragment shader, so
+        a third of the bytes is read back (and channels_first costs no copy).
         supersample=k renders every view at k x the resolution and box-filters it down
         (anti-aliasing; depth and segmentation take the sample nearest each pixel centre).
         multisamples=n asks the GL for n-sample MSAA (colour only)."""
@@ -116,6 +119,9 @@ class BatchRenderer:
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
         if readback not in self.READBACKS:
             raise ValueError(f"readback must be one of {list(self.READBACKS)}, got {readback!r}")
+        if not isinstance(color, str) or color not in self.COLORS:
+            raise ValueError(f"color must be one of {list(self.COLORS)}, got {color!r}")
+        self.color, self.channels = color, self.COLORS[color]
         self.supersample = positive_int("supersample", supersample)
         self._staging = self._accumulator = None  # reused buffers of reads that need a copy afterwards
         if isinstance(multisamples, bool) or not isinstance(multisamples, int) or multisamples < 0:
@@ -237,7 +243,10 @@ class BatchRenderer:
             buffer.set_clear_active(plane, True)
             buffer.set_clear_value(plane, clear)
             aux[name] = texture
-        buffer.set_clear_color(tuple(self.scene.background[:3]) + (1.0,))
+        background = np.asarray(self.scene.background[:3], dtype=float)
+        if self.color == "gray":  # the shader's luma of the background
+            background = np.full(3, float(np.dot(background, shaders.GRAY_WEIGHTS)))
+        buffer.set_clear_color(tuple(background) + (1.0,))
         buffer.set_active(False)
 
         root = NodePath(f"marl_render_pass_{views.start}")
@@ -274,7 +283,8 @@ class BatchRenderer:
             node.node().set_bounds(OmniBoundingVolume())
             node.node().set_final(True)
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
-                                          flat=isinstance(mesh, MeshData) and mesh.flat, shared_corners=corners)
+                                          flat=isinstance(mesh, MeshData) and mesh.flat, shared_corners=corners,
+                                          gray=self.color == "gray")
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(_panda_texture(group.texture, group.name), 1)
@@ -577,7 +587,8 @@ class BatchRenderer:
         s = self.scene
         W, A = s.num_worlds, s.agents_per_world
         height, width = s.resolution
-        rgb_shape = (W * A, 3, height, width) if self.channels_first else (W * A, height, width, 3)
+        C = self.channels
+        rgb_shape = (W * A, C, height, width) if self.channels_first else (W * A, height, width, C)
         rgb = torch.empty(rgb_shape, dtype=torch.uint8)
         depth = torch.empty(W * A, height, width, dtype=torch.float32) if "depth" in self.effects else None
         segmentation = torch.empty(W * A, height, width, dtype=torch.int32) if "segmentation" in self.effects else None
@@ -637,14 +648,16 @@ class BatchRenderer:
         rows, columns = len(views) * height * k, width * k
         ids = render_pass.texture_ids
         destination = rgb[views.start:views.stop]
+        C = self.channels
         copy_seconds = 0.0
-        if k == 1 and not self.channels_first and self.readback == "zero_copy":
-            readback.read_texture(ids["color"], columns, rows, 3, destination)
+        # One channel is laid out alike channels first or last: read straight into it too.
+        if k == 1 and (C == 1 or not self.channels_first) and self.readback == "zero_copy":
+            readback.read_texture(ids["color"], columns, rows, C, destination)
         else:
-            staging = self._staging_buffer(rows * columns * 3)
-            readback.read_texture(ids["color"], columns, rows, 3, staging)
+            staging = self._staging_buffer(rows * columns * C)
+            readback.read_texture(ids["color"], columns, rows, C, staging)
             started = time.perf_counter()
-            samples = staging.view(len(views), height * k, width * k, 3)
+            samples = staging.view(len(views), height * k, width * k, C)
             if self.channels_first:  # write through a channels-last view of the output
                 destination = destination.permute(0, 2, 3, 1)
             if k > 1:
@@ -674,14 +687,14 @@ class BatchRenderer:
         return self._staging[:size]
 
     def _box_filter(self, samples: torch.Tensor, destination: torch.Tensor) -> None:
-        """samples [n, kH, kW, 3] uint8 -> destination [n, H, W, 3], each pixel the rounded
+        """samples [n, kH, kW, C] uint8 -> destination [n, H, W, C], each pixel the rounded
         mean of its k x k samples (through an accumulator made once per renderer)."""
-        k, count = self.supersample, destination.shape[0]
+        k, count, C = self.supersample, destination.shape[0], self.channels
         height, width = self.scene.resolution
         if self._accumulator is None:
-            self._accumulator = torch.empty((self.layout.views_per_pass, height, width, 3), dtype=torch.int32)
+            self._accumulator = torch.empty((self.layout.views_per_pass, height, width, C), dtype=torch.int32)
         total = self._accumulator[:count]
-        torch.sum(samples.view(count, height, k, width, k, 3), dim=(2, 4), dtype=torch.int32, out=total)
+        torch.sum(samples.view(count, height, k, width, k, C), dim=(2, 4), dtype=torch.int32, out=total)
         destination.copy_(total.add_((k * k) // 2).div_(k * k, rounding_mode="floor"))
 
     # ------------------------------------------------------------------ helpers / lifecycle

@@ -16,6 +16,9 @@ INSTANCE_TEXELS = 4
 STATIC_INSTANCE_TEXELS = 5
 VIEW_TEXELS = 6
 
+# ITU-R BT.601 luma weights of the gray colour output (as torchvision's rgb_to_grayscale).
+GRAY_WEIGHTS = (0.299, 0.587, 0.114)
+
 # Effects a scene may declare, and the define each one turns on.
 EFFECT_DEFINES = {
     "lighting": "EFFECT_LIGHTING",
@@ -34,17 +37,20 @@ def source(name: str) -> str:
 
 
 def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False,
-                shared_corners: bool = False) -> tuple[str, ...]:
+                shared_corners: bool = False, gray: bool = False) -> tuple[str, ...]:
     """The sorted #define lines of one variant (texture only for groups that have one).
 
     Lighting runs per vertex for meshes whose faces each have one normal (flat), where
     it is exact, and per fragment otherwise. shared_corners: a flat mesh drawn from its
-    welded corners (marl_render/provoking.py), its colour taken from the provoking vertex."""
+    welded corners (marl_render/provoking.py), its colour taken from the provoking vertex.
+    gray: the colour output is its luma (GRAY_WEIGHTS)."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
     if "lighting" in effects:
         defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
     if shared_corners:
         defines.add("FLAT_FACES")
+    if gray:
+        defines.add("OUTPUT_GRAY")
     if "texture" in effects and textured:
         defines.add("EFFECT_TEXTURE")
     defines.add(f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}")

@@ -55,7 +55,12 @@ void main() {
 #ifdef EFFECT_FOG
     color = mix(fog_color, color, exp(-fog_density * v_depth));
 #endif
+#ifdef OUTPUT_GRAY
+    // ITU-R BT.601 luma (shaders.GRAY_WEIGHTS); read back as the red channel only.
+    out_color = vec4(vec3(dot(clamp(color, 0.0, 1.0), vec3(0.299, 0.587, 0.114))), 1.0);
+#else
     out_color = vec4(clamp(color, 0.0, 1.0), 1.0);
+#endif
 #ifdef LOG_DEPTH
     // Logarithmic depth: equal relative precision from near to far.
     gl_FragDepth = log2(max(v_depth, v_near_far.x) / v_near_far.x) / log2(v_near_far.y / v_near_far.x);

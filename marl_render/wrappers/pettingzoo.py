@@ -11,7 +11,7 @@
 
 Spaces (the same for every agent):
 
-* observation: ``Box(0, 255, (H, W, 3), uint8)`` when the core yields only pixels (the
+* observation: ``Box(0, 255, (H, W, 3), uint8)`` (1 channel with ``grayscale=True``) when the core yields only pixels (the
   default). With ``depth=True``, ``state_obs=True`` or ``action_mask=True`` it is a
   ``Dict`` with "pixels", "depth" (``Box(0, far, (H, W), float32)``: metres, clamped at the
   camera's far plane), "state" (``Box(-inf, inf, (state_dim,), float32)``) and
@@ -175,11 +175,12 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
 
         H, W = env.resolution
         keys, far, state_dim, num_actions = self._obs_keys, float(env.far), env.state_dim, env.num_actions
+        channels = env.pixel_channels
 
         def make_obs_space():
             if not self._dict_obs:
-                return spaces.Box(0, 255, (H, W, 3), np.uint8)
-            parts = {"pixels": spaces.Box(0, 255, (H, W, 3), np.uint8)}
+                return spaces.Box(0, 255, (H, W, channels), np.uint8)
+            parts = {"pixels": spaces.Box(0, 255, (H, W, channels), np.uint8)}
             if "depth" in keys:
                 parts["depth"] = spaces.Box(0.0, far, (H, W), np.float32)
             if "state" in keys:
@@ -259,7 +260,8 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         if self._pixels is None:
             raise RuntimeError("call reset() before render()")
         overview = self.core.render_overview()[0].cpu().numpy()
-        return tile_views(list(self._pixels), overview)
+        views = self._pixels if self._pixels.shape[-1] == 3 else self._pixels.repeat(3, axis=-1)  # gray
+        return tile_views(list(views), overview)
 
     def close(self):
         self.core.close()
