@@ -27,11 +27,9 @@ STAGES = ("update", "pack", "cull", "gl", "copy")  # update: BatchRenderer.updat
 
 
 def add_arguments(parser):
-    parser.add_argument("--env", nargs="+", default=["cartpole", "spread"],
-                        help="environment names, or 'all' for every registered env")
+    parser.add_argument("--env", nargs="+", default=["cartpole", "spread:4"],
+                        help="environments as NAME or NAME:AGENTS, or 'all' (every registered env, default agents)")
     parser.add_argument("--worlds", type=int, nargs="+", default=[16, 64, 256, 1024])
-    parser.add_argument("--agents", type=int, default=4,
-                        help="agents per world for envs that take num_agents (spread: 4); others use their own")
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--rounds", type=int, default=5, help="alternating env/floor blocks per size")
     parser.add_argument("--block-seconds", type=float, default=0.4, help="about how long one timed block runs")
@@ -125,13 +123,14 @@ def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds:
 def run(args) -> dict:
     from marl_render.envs import list_envs
 
-    names = list_envs() if args.env == ["all"] else args.env
+    specs = list_envs() if args.env == ["all"] else args.env
     rows = []
     for worlds in args.worlds:
-        for name in names:
-            progress(f"floor: {name}, {worlds} worlds at {args.resolution}px")
-            agents = args.agents if _takes_agents(name) else None
-            rows.append(measure(name, worlds, agents, args.resolution, args.rounds, args.block_seconds))
+        for spec in specs:
+            name, _, agents = spec.partition(":")
+            progress(f"floor: {spec}, {worlds} worlds at {args.resolution}px")
+            rows.append(measure(name, worlds, int(agents) if agents else None, args.resolution, args.rounds,
+                                args.block_seconds))
     result = {"benchmark": "floor", "machine": machine(), "results": rows}
     if args.out:
         write_report(args.out, "floor", result, markdown(rows))
@@ -150,10 +149,3 @@ def markdown(rows: list[dict]) -> list[str]:
     lines += [f"| {r['env']} | {r['agents']} | {r['worlds']} | {r['env_ms_per_step']:.2f} | "
               + " | ".join(f"{r['stages_ms'][k]:.2f}" for k in STAGES + ("env",)) + " |" for r in rows]
     return lines
-
-
-def _takes_agents(name: str) -> bool:
-    from marl_render.envs import env_class
-
-    low, high = getattr(env_class(name), "agent_range", (1, 1))
-    return low != high
