@@ -46,9 +46,9 @@ CULL_RECHECK = 32
 
 @dataclass
 class Frame:
-    """One render: rgb [W, A, H, W, C] uint8 (or [W, A, C, H, W]; C = 3, or 1 for color="gray"), depth [W, A, H, W] float32
-    metres along the view axis (inf where nothing was drawn), segmentation [W, A, H, W] int32
-    (0 = background). Tensors are owned by the caller."""
+    """One render: rgb [W, A, H, W, C] uint8 (or [W, A, C, H, W]; C = 3, or 1 for color="gray"),
+    depth [W, A, H, W] float32 metres along the view axis (inf where nothing was drawn),
+    segmentation [W, A, H, W] int32 (0 = background). Tensors are owned by the caller."""
 
     rgb: torch.Tensor
     depth: torch.Tensor | None = None
@@ -192,7 +192,7 @@ class BatchRenderer:
         self._dirty = set(s.groups)  # groups whose instance data changed since the last frame
         self._mask_dirty = set(s.groups)  # groups whose active / owner masks changed
         self._cameras_dirty = True  # free cameras or their lenses changed
-        self._projection = None  # [W, A, 4, 4] float64, made again when a lens changes
+        self._projection = None  # (lens [W, A, 4, 3], shift [W, A, 4]) float64, made again when a lens changes
         self._origin_moved = True  # world origins not yet written to the views texture
         self._candidate_cache = {}  # group -> ([W, A, C] bool candidate pairs, their count)
 
@@ -720,6 +720,12 @@ class BatchRenderer:
     @property
     def num_views(self) -> int:
         return self.scene.num_views
+
+    @property
+    def granted_multisamples(self) -> int:
+        """MSAA samples the GL gave the framebuffers (it may give fewer than asked)."""
+        self._check_open()
+        return min(p.buffer.get_fb_properties().get_multisamples() for p in self._passes)
 
     def instance_state(self, group: str) -> dict:
         """Copies of a group's current per-instance tensors."""

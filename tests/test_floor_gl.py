@@ -73,7 +73,7 @@ def test_floor_hides_the_viewer_body_and_inactive_instances(cull):
     scene = mr.Scene(1, 2, resolution=16, effects=())
     scene.add_group("boxes", "box", capacity=2)
     with FloorGL(scene, cull=cull) as floor:
-        floor.set_cameras(torch.tensor([[[0.0, -3.0, 0.0], [0.0, -3.0, 0.0]]]), torch.tensor([[1.0, 0, 0, 0]]).repeat(1, 2, 1))
+        floor.set_cameras(torch.tensor([0.0, -3.0, 0.0]).repeat(1, 2, 1), torch.tensor([1.0, 0, 0, 0]).repeat(1, 2, 1))
         floor.set_instances("boxes", position=torch.zeros(1, 2, 3), color=torch.tensor([[[1.0, 0, 0], [0, 1.0, 0]]]),
                             active=torch.tensor([[True, True]]), owner=torch.tensor([[0, -1]]))
         centre = floor.render()[0, :, 8, 8].tolist()
