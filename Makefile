@@ -4,7 +4,10 @@ PYTHON ?= python3
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+BENCHMARL_VENV ?= .venv-benchmarl
+BENCHMARL_STAMP := $(BENCHMARL_VENV)/.installed
+
+.PHONY: demo test test-benchmarl bench clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -17,8 +20,23 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
+# Second matrix entry: BenchMARL, the torchrl it pins and the CPU torch, in their own venv.
+# BenchMARL is installed without its dependencies, which follow by name minus torchvision
+# (see constraints-benchmarl.txt for why).
+$(BENCHMARL_STAMP): pyproject.toml constraints.txt constraints-benchmarl.txt
+	$(PYTHON) -m venv $(BENCHMARL_VENV)
+	grep -vE '^(torchrl|tensordict)==' constraints.txt > $(BENCHMARL_VENV)/constraints-main.txt
+	$(BENCHMARL_VENV)/bin/pip install --quiet --disable-pip-version-check -c $(BENCHMARL_VENV)/constraints-main.txt \
+		-c constraints-benchmarl.txt --no-deps benchmarl
+	$(BENCHMARL_VENV)/bin/pip install --quiet --disable-pip-version-check -c $(BENCHMARL_VENV)/constraints-main.txt \
+		-c constraints-benchmarl.txt -e ".[test]" torchrl tensordict hydra-core av tqdm numpy
+	touch $(BENCHMARL_STAMP)
+
+test-benchmarl: $(BENCHMARL_STAMP)
+	$(BENCHMARL_VENV)/bin/python -m pytest -q tests/test_torchrl.py tests/test_benchmarl.py
+
 bench: $(STAMP)
 	$(PY) -m marl_render.bench render --json
 
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) $(BENCHMARL_VENV) out

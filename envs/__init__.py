@@ -21,6 +21,7 @@ __all__ = ["BatchedEnv", "OBS_KEYS", "env_class", "list_envs", "make_env", "regi
 _LAZY_EXPORTS: dict = {
     "make_parallel_env": "marl_render.wrappers.pettingzoo:make_parallel_env",
     "make_torchrl_env": "marl_render.wrappers.torchrl:make_torchrl_env",
+    "make_jax_env": "marl_render.wrappers.jax:make_jax_env",
 }
 __all__ += list(_LAZY_EXPORTS)
 

@@ -52,6 +52,7 @@ class CartPoleBalance(BatchedEnv):
     agent_range = (1, 1)
     default_max_steps = 1000
     default_resolution = 64
+    dt = physics.CARTPOLE["timestep"]  # one RK4 step per env step
     physics_terms = frozenset()  # own dynamics (physics.cartpole_step); no planar terms
     background = SKY_COLOR
     fov_y = math.radians(45.0)

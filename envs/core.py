@@ -21,7 +21,8 @@ Data contract (W worlds, A agents, H x Wpx pixels)::
                continuous float  [W, A, action_dim] in [-1, 1]
       reward float32 [W, A]; terminated, truncated bool [W, A]
       info: "step_count" int64 [W] (steps of the episode just stepped),
-            "done_worlds" bool [W] (every agent terminated or truncated), plus env keys.
+            "done_worlds" bool [W] (every agent terminated or truncated), plus the env's
+            own ``info_keys`` (episode statistics, each [W] of the declared dtype).
 
 Agents that left the episode (``alive`` False, e.g. caught prey) stay in every tensor:
 their actions are ignored (they must still be valid values, e.g. 0), their reward is 0
@@ -103,7 +104,7 @@ class BatchedEnv(abc.ABC):
     Attributes: name, num_worlds (W), num_agents (A), agent_names, groups (team ->
     agent names, in agent-index order), resolution (H, W), continuous, num_actions
     (discrete, else None), action_dim (continuous, else None), action_meanings,
-    obs_keys, state_dim, max_steps, device, seed, generator, renderer, physics
+    obs_keys, state_dim, max_steps, dt, device, seed, generator, renderer, physics
     (PhysicsConfig or None), physics_terms, alive [W, A] bool, step_count [W] int64.
     Methods: reset, reset_worlds, step, check_actions, render_overview, get_state, close.
     """
@@ -114,7 +115,9 @@ class BatchedEnv(abc.ABC):
     agent_range: tuple = (1, 64)  # allowed num_agents (inclusive)
     default_max_steps: int = 100
     default_resolution = 64
+    dt: float = 0.1  # simulated seconds per step (a front end plays episodes back at 1 / dt frames/s)
     physics_terms: frozenset = frozenset()  # envs/physics.py terms this env computes
+    info_keys: dict = {}  # {name: dtype} of the env's own info entries, each [W], in every step's info
     background: tuple = scenery.SKY_COLOR
     fov_y: float = math.radians(70.0)
     near: float = 0.05

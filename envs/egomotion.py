@@ -28,6 +28,7 @@ ACTION_MEANINGS = ("noop", "forward", "turn_left", "turn_right", "backward")
 class EgocentricEnv(BatchedEnv):
     """Base of the arena envs: every agent sees through the same kind of body camera."""
 
+    dt = DT
     fov_y = math.radians(90.0)
     near = 0.05
     far = 20.0

@@ -69,6 +69,7 @@ class Forage(egomotion.EgocentricEnv):
     default_max_steps = 200
     default_resolution = 64
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
+    info_keys = {"collected": torch.int64, "team_score": torch.float32}
     arena_half_extent = (ARENA, ARENA)
 
     def __init__(self, *, num_items: int | None = None, respawn_delay: int = 10, item_reward: float = 1.0, **common):

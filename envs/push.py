@@ -106,6 +106,7 @@ class Push(egomotion.EgocentricEnv):
     default_max_steps = 200
     default_resolution = 64
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
+    info_keys = {"goal": torch.int64}
     arena_half_extent = ARENA
 
     def __init__(self, *, goal_reward: float = 1.0, shaping: float = 0.0, **common):

@@ -16,6 +16,8 @@ arena through its own camera mounted on its body, so it has to turn to look arou
 * Reward, shared by all agents: -(sum over landmarks of the distance to the closest
   agent) - ``collision_penalty`` x (number of agent pairs touching).
 * Episode: never terminates; truncated after ``max_steps`` = 100.
+* info: ``"collisions"`` int64 [W] agent pairs touching after the step, ``"coverage"``
+  float32 [W] sum over landmarks of the distance to the closest agent (the reward's term).
 * State obs (6 + 2 L + 2 (N - 1)): own position (2), velocity (2), cos/sin yaw (2),
   landmark positions relative to the agent (2 per landmark), other agents' positions
   relative to the agent (2 each, in agent-index order skipping itself), world frame.
@@ -53,6 +55,7 @@ class Spread(egomotion.EgocentricEnv):
     default_max_steps = 100
     default_resolution = 64
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
+    info_keys = {"collisions": torch.int64, "coverage": torch.float32}
     arena_half_extent = (ARENA, ARENA)
 
     def __init__(self, *, num_landmarks: int | None = None, collision_penalty: float = 1.0, **common):

@@ -29,8 +29,10 @@ Every agent sees the arena through its own camera mounted on its body.
   rate in [-1, 1]). Movement as in envs/egomotion.py, with the thrust per team below.
 * Catching: a live prey is caught when a live predator's body comes within
   ``CONTACT_TOLERANCE`` of touching it (after the physics step). A caught prey leaves
-  the episode: it is terminated (``alive`` False), its body stops colliding and its
-  instance is inactive, so it disappears from every view and from the overview.
+  the episode: it is terminated (``alive`` False) and its body stops colliding. The
+  frame of the step in which it is caught still shows it beside its catcher (the moment
+  worth watching, and the last frame of an episode that ends with the catch); from the
+  next step on its instance is inactive, so it is gone from every view and the overview.
 * Reward: every predator gets ``+catch_reward`` (default 10) per prey caught in the
   step by any predator (shared, as in MPE); a prey gets ``-catch_reward`` when it is
   caught. Optional shaping (``shaping`` >= 0, default 0): predators additionally get
@@ -85,6 +87,7 @@ class Tag(egomotion.EgocentricEnv):
     default_max_steps = 100
     default_resolution = 64
     physics_terms = frozenset({"walls", "body_collisions", "obstacles", "drag"})  # "obstacles" only if K > 0
+    info_keys = {"caught": torch.int64, "prey_left": torch.int64}
     arena_half_extent = (ARENA, ARENA)
 
     def __init__(self, *, num_predators: int | None = None, num_prey: int | None = None, num_obstacles: int = 2,
@@ -160,6 +163,7 @@ class Tag(egomotion.EgocentricEnv):
         self._owner = torch.arange(N).expand(W, N)
         self._obstacle_color = torch.tensor(OBSTACLE_COLOR).expand(W, K, 3)
         self._obstacle_active = torch.ones(W, K, dtype=torch.bool)
+        self._shown = torch.ones(W, N, dtype=torch.bool, device=dev)  # agents drawn in the current frame
 
     def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
         scenery.add_arena(scene, (ARENA, ARENA))
@@ -188,6 +192,7 @@ class Tag(egomotion.EgocentricEnv):
         self.yaw = torch.where(m2, yaw, self.yaw)
         o = self.obstacles
         self.obstacles = o._replace(center=torch.where(m3, center, o.center), angle=torch.where(m2, angle, o.angle))
+        self._shown = self._shown | m2
 
     def _step_state(self, actions, alive):
         yaw, force = egomotion.drive(self, actions, alive, thrust=self.thrust)
@@ -216,6 +221,7 @@ class Tag(egomotion.EgocentricEnv):
         stopped = torch.where(caught[..., None], torch.zeros_like(bodies.vel), bodies.vel)
         self.bodies = bodies._replace(active=alive & ~terminated, vel=stopped)
         self.yaw = yaw
+        self._shown = alive  # this step's frame still shows who was caught in it
         return reward, terminated, {"caught": n_caught, "prey_left": prey_left}
 
     # ------------------------------------------------------------------ observations
@@ -227,12 +233,12 @@ class Tag(egomotion.EgocentricEnv):
     def _instances(self, full: bool) -> dict:
         pos = self.bodies.pos.to("cpu", torch.float32)
         yaw = self.yaw.cpu()
-        alive = self.alive.cpu()
+        shown = self._shown.cpu()
         rotation = scenery.yaw_quat(yaw)
         nose = pos + self._nose_offset * scenery.heading(yaw)
         update = {
-            "agents": {"position": scenery.planar_to_3d(pos, AGENT_HEIGHT / 2), "rotation": rotation, "active": alive},
-            "noses": {"position": scenery.planar_to_3d(nose, 0.3), "rotation": rotation, "active": alive},
+            "agents": {"position": scenery.planar_to_3d(pos, AGENT_HEIGHT / 2), "rotation": rotation, "active": shown},
+            "noses": {"position": scenery.planar_to_3d(nose, 0.3), "rotation": rotation, "active": shown},
         }
         if full:
             update["agents"].update(color=self._agent_color, scale=self._agent_scale)

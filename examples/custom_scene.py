@@ -1,4 +1,6 @@
-"""A custom two-agent scene in about 30 lines: two robots facing each other across a table."""
+"""A custom two-agent scene in about 30 lines: two robots facing each other across a table.
+Writes OUT/custom_scene.png: a row per world, robot 0's view left of robot 1's."""
+import argparse
 import math
 import os
 
@@ -7,8 +9,14 @@ from PIL import Image
 
 import marl_render as mr
 
-worlds, agents = 4, 2
-scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=(96, 128), effects=("lighting", "fog"))
+parser = argparse.ArgumentParser(description=__doc__)
+parser.add_argument("--out", default="out", help="output folder (default: out)")
+parser.add_argument("--worlds", type=int, default=4, help="worlds, each with its own balls (default: 4)")
+parser.add_argument("--resolution", type=int, nargs=2, default=(96, 128), metavar=("H", "W"), help="view size")
+args = parser.parse_args()
+
+worlds, agents, path = args.worlds, 2, os.path.join(args.out, "custom_scene.png")
+scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=args.resolution, effects=("lighting", "fog"))
 scene.add_static("floor", "plane", position=[0, 0, 0], scale=[8, 8, 1], color=[0.8, 0.8, 0.75])
 scene.add_static("table", "box", position=[0, 0, 0.4], scale=[1.2, 0.8, 0.8], color=[0.55, 0.35, 0.2])
 scene.add_group("robots", mr.capsule(0.25, 1.4), capacity=agents)
@@ -23,9 +31,9 @@ renderer.update("robots", position=torch.tensor([[-1.5, 0, 0.7], [1.5, 0, 0.7]])
 balls = torch.rand(worlds, 3, 3) * torch.tensor([1.0, 0.6, 0.0]) - torch.tensor([0.5, 0.3, -0.95])
 renderer.update("balls", position=balls, scale=torch.full((worlds, 3, 3), 0.2), active=torch.ones(worlds, 3, dtype=torch.bool),
                 color=torch.rand(worlds, 3, 3))
-rgb = renderer.render().rgb  # [4, 2, 96, 128, 3] uint8
-os.makedirs("out", exist_ok=True)
-grid = torch.cat(tuple(torch.cat(tuple(rgb[w]), dim=1) for w in range(worlds)), dim=0)  # worlds down, agents across
-Image.fromarray(grid.numpy()).save("out/custom_scene.png")
-print("wrote out/custom_scene.png", tuple(rgb.shape))
+rgb = renderer.render().rgb  # [worlds, 2, H, W, 3] uint8
+grid = rgb.permute(0, 2, 1, 3, 4).reshape(worlds * rgb.shape[2], agents * rgb.shape[3], 3)  # worlds down, agents across
+os.makedirs(args.out, exist_ok=True)
+Image.fromarray(grid.numpy()).save(path)
+print("wrote", path, tuple(rgb.shape))
 renderer.close()

@@ -1,9 +1,14 @@
 """The main demo: several worlds, several agents, every agent's own camera.
 
-Renders 8 worlds x 4 agents of an arena, writes a PNG grid of all 32 views to
-out/demo.png, then measures the throughput of 256 worlds x 4 agents at 64x64 and
-prints views/s together with the OpenGL renderer in use.
+    python examples/demo.py [--out out] [--worlds 8] [--agents 4] [--resolution 96]
+                            [--bench-worlds 256] [--steps 20]
+
+Renders --worlds x --agents views of an arena, writes a PNG grid of all of them to
+OUT/demo.png (a row per world, a column per agent), then measures the throughput of
+--bench-worlds x --agents views at 64x64 over --steps frames and prints views/s together
+with the OpenGL renderer in use (--steps 0 skips the measurement).
 """
+import argparse
 import math
 import os
 import time
@@ -50,31 +55,48 @@ def save_grid(rgb: torch.Tensor, path: str, scale: int = 2) -> None:
     for world in range(worlds):  # a handful of tiles for a picture, not a hot path
         for agent in range(agents):
             canvas[world * (h + 2): world * (h + 2) + h, agent * (w + 2): agent * (w + 2) + w] = rgb[world, agent].numpy()
-    os.makedirs(os.path.dirname(path), exist_ok=True)
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     Image.fromarray(canvas).resize((canvas.shape[1] * scale, canvas.shape[0] * scale), Image.NEAREST).save(path)
 
 
-def main():
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default="out", help="folder for demo.png (default: %(default)s)")
+    parser.add_argument("--worlds", type=int, default=8, help="worlds in the picture (default: %(default)s)")
+    parser.add_argument("--agents", type=int, default=4, help="agents (views) per world (default: %(default)s)")
+    parser.add_argument("--resolution", type=int, default=96, help="pixels per side of a view in the picture "
+                                                                   "(default: %(default)s)")
+    parser.add_argument("--bench-worlds", type=int, default=256, help="worlds in the throughput measurement, "
+                                                                      "64x64 views (default: %(default)s)")
+    parser.add_argument("--steps", type=int, default=20, help="timed frames of the throughput measurement; "
+                                                              "0 skips it (default: %(default)s)")
+    return parser.parse_args(argv)
+
+
+def main(argv=None):
+    args = parse_args(argv)
     generator = torch.Generator().manual_seed(0)
-    scene = arena(8, 4, 96)
+    scene = arena(args.worlds, args.agents, args.resolution)
     with mr.BatchRenderer(scene) as renderer:
         random_poses(renderer, scene, generator)
         frame = renderer.render()
-    save_grid(frame.rgb, "out/demo.png")
-    print(f"wrote out/demo.png: {scene.num_worlds} worlds x {scene.agents_per_world} agents, "
+    path = os.path.join(args.out, "demo.png")
+    save_grid(frame.rgb, path)
+    print(f"wrote {path}: {scene.num_worlds} worlds x {scene.agents_per_world} agents, "
           f"{scene.resolution[0]}x{scene.resolution[1]} each")
+    if args.steps <= 0:
+        return
 
-    scene = arena(256, 4, 64)
+    scene = arena(args.bench_worlds, args.agents, 64)
     with mr.BatchRenderer(scene) as renderer:
         for _ in range(3):  # warm-up: shader compile, first upload
             random_poses(renderer, scene, generator)
             renderer.render()
-        steps = 20
         start = time.perf_counter()
-        for _ in range(steps):
+        for _ in range(args.steps):
             random_poses(renderer, scene, generator)
             renderer.render()
-        seconds = (time.perf_counter() - start) / steps
+        seconds = (time.perf_counter() - start) / args.steps
     info = backend.gl_info()
     print(f"throughput: {scene.num_views / seconds:,.0f} views/s ({scene.num_views} views of 64x64 per frame, "
           f"{seconds * 1e3:.1f} ms per frame incl. pose upload and readback)")

@@ -1,7 +1,7 @@
 """Distributed collection with TorchRL's torch.distributed collector, two local workers.
 
     python examples/distributed_collect.py [--launcher mp|delayed] [--env spread] [--workers 2]
-        [--worlds 8] [--resolution 32] [--steps-per-batch 8] [--batches 4] [--timeout 180] [--json]
+        [--worlds 8] [--resolution 32] [--steps-per-batch 8] [--batches 4] [--timeout 180] [--json] [--out DIR]
 
 ``torchrl.collectors.distributed.DistributedCollector(sync=True, backend="gloo")`` in the
 main process is rank 0; each worker (ranks 1..N, 'spawn', each with its own GL context and
@@ -126,7 +126,9 @@ def parse_args(argv=None):
     parser.add_argument("--seed", type=int, default=0, help="worker r (1..N) gets seed + r - 1")
     parser.add_argument("--port", type=int, default=0, help="rendezvous port (0: a free one)")
     parser.add_argument("--timeout", type=float, default=180.0, help="watchdog, seconds for the whole run")
-    parser.add_argument("--save", default=None, help="torch.save the list of batches (TensorDicts) there")
+    parser.add_argument("--out", default=None, help="folder: write summary.json and batches.pt (the list of "
+                                                    "batches, TensorDicts) there (default: write nothing)")
+    parser.add_argument("--save", default=None, help="torch.save the list of batches (TensorDicts) to this file")
     parser.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
     return parser.parse_args(argv)
 
@@ -223,11 +225,18 @@ def main(argv=None) -> dict:
     print(f"setup {setup_s:.1f} s (workers start, connect, first frames), shutdown {shutdown_s:.1f} s; "
           f"{fps:.0f} env-steps/s, {fps * agents:.0f} agent-frames/s over batches 1..{len(batches) - 1}; "
           f"worker exit codes {exitcodes}", flush=True)
+    summary = {"launcher": args.launcher, "workers": args.workers, "worlds_per_worker": args.worlds,
+               "resolution": args.resolution, "port": port, "batches": summaries, "env_steps_per_s": fps,
+               "agent_frames_per_s": fps * agents, "setup_s": setup_s, "shutdown_s": shutdown_s,
+               "worker_exitcodes": exitcodes}
     if args.save:
         torch.save(batches, args.save)
-    summary = {"launcher": args.launcher, "workers": args.workers, "worlds_per_worker": args.worlds,
-               "resolution": args.resolution, "port": port, "batches": summaries, "env_steps_per_s": fps, "agent_frames_per_s": fps * agents,
-               "setup_s": setup_s, "shutdown_s": shutdown_s, "worker_exitcodes": exitcodes}
+    if args.out:
+        os.makedirs(args.out, exist_ok=True)
+        torch.save(batches, os.path.join(args.out, "batches.pt"))
+        with open(os.path.join(args.out, "summary.json"), "w") as f:
+            json.dump(summary, f, indent=2)
+        print(f"wrote {os.path.join(args.out, 'summary.json')} and batches.pt", flush=True)
     if args.json:
         print(json.dumps(summary))
     watchdog.cancel()

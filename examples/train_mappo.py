@@ -5,9 +5,14 @@
   (MAPPO's global state) and outputs one value per agent.
 - TorchRL pieces: the marl-render TorchRL env, a Collector, GAE and ClipPPOLoss.
 
-Before and after training, the same evaluation (greedy policy vs uniform random
-actions, fixed seeds) is run; the script writes out/mappo/curve.png, result.json and
-prints both returns. Usage:  python examples/train_mappo.py [--minutes 12]
+Before and after training, the same evaluation is run: one episode in each of --worlds
+fresh worlds (fixed seeds), played by the greedy policy and by uniform random actions.
+The reported return is the true episode return: the sum of an agent's rewards over its
+episode, averaged over agents and episodes. The script prints the returns and writes
+OUT/curve.png (the returns of the training episodes as they end, against time, with the
+evaluations) and OUT/result.json.
+
+    python examples/train_mappo.py [--minutes 12] [--worlds 64] [--resolution 32] [--out out/mappo]
 """
 import argparse
 import json
@@ -61,22 +66,44 @@ class CentralCritic(nn.Module):
         return self.net(state.flatten(-2)).unsqueeze(-1)
 
 
-def evaluate(env, actor, episodes_seed: int, random: bool) -> float:
-    """Mean episode return per agent over every world of `env`, fixed seed."""
-    env.set_seed(episodes_seed)
+def evaluate(env, actor, seed: int, random: bool) -> tuple[float, int]:
+    """(mean return, episodes): the first episode of every world of `env` from a seeded reset,
+    played by `actor` (greedy) or by uniform random actions. An agent's return is the sum of
+    its rewards over the episode; the mean is over agents and episodes (one per world)."""
+    env.set_seed(seed)
     td = env.reset()
-    total = torch.zeros(env.batch_size[0])
-    steps = env.base_env.max_steps if hasattr(env, "base_env") else env.core.max_steps
-    for _ in range(steps):
+    worlds = env.batch_size[0]
+    returns = torch.zeros(worlds)  # sum over the episode of the reward averaged over agents
+    playing = torch.ones(worlds, dtype=torch.bool)  # still in its first episode
+    for _ in range(env.core.max_steps):  # every episode ends by max_steps
         if random:
             td = env.rand_action(td)
         else:
             with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
                 td = actor(td)
-        td = env.step(td)
-        total += td["next", GROUP, "reward"].mean(dim=(1, 2))
-        td = td["next"]
-    return float(total.mean())
+        td, next_td = env.step_and_maybe_reset(td)
+        returns += torch.where(playing, td["next", GROUP, "reward"].mean(dim=(1, 2)), 0.0)
+        playing &= ~td["next", "done"][:, 0]
+        td = next_td
+        if not playing.any():
+            break
+    if playing.any():
+        raise RuntimeError(f"{int(playing.sum())} worlds did not finish an episode in max_steps steps")
+    return float(returns.mean()), worlds
+
+
+def completed_episodes(batch, running: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Returns of the episodes that ended in a collector batch [worlds, steps], and the running
+    returns of the episodes still going. `running` [worlds] carries them from batch to batch;
+    a return is the sum over the episode of the reward averaged over agents."""
+    reward = batch["next", GROUP, "reward"].mean(dim=(-2, -1))  # [worlds, steps]
+    done = batch["next", "done"][..., 0]
+    ended = []
+    for step in range(reward.shape[1]):  # over time; all worlds at once
+        running = running + reward[:, step]
+        ended.append(running[done[:, step]])
+        running = torch.where(done[:, step], 0.0, running)
+    return torch.cat(ended), running
 
 
 def main():
@@ -85,6 +112,7 @@ def main():
     parser.add_argument("--worlds", type=int, default=64)
     parser.add_argument("--agents", type=int, default=3)
     parser.add_argument("--resolution", type=int, default=32)
+    parser.add_argument("--max-steps", type=int, default=100, help="episode length (spread's default)")
     parser.add_argument("--rollout", type=int, default=32, help="steps per world per batch")
     parser.add_argument("--epochs", type=int, default=4)
     parser.add_argument("--minibatch", type=int, default=512, help="(world, step) samples per minibatch")
@@ -94,9 +122,9 @@ def main():
     args = parser.parse_args()
     torch.manual_seed(args.seed)
 
-    env_kwargs = dict(num_agents=args.agents, resolution=args.resolution, state_obs=True)
+    env_kwargs = dict(num_agents=args.agents, resolution=args.resolution, max_steps=args.max_steps, state_obs=True)
     env = make_torchrl_env("spread", num_worlds=args.worlds, seed=args.seed, **env_kwargs)
-    eval_env = make_torchrl_env("spread", num_worlds=32, seed=10_000, **env_kwargs)
+    eval_env = make_torchrl_env("spread", num_worlds=args.worlds, seed=10_000, **env_kwargs)
     actions = env.action_spec[GROUP, "action"].space.n
     state_dim = env.observation_spec[GROUP, "state"].shape[-1]
 
@@ -114,19 +142,21 @@ def main():
     loss.make_value_estimator(ValueEstimators.GAE, gamma=0.97, lmbda=0.95)
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr)
 
-    print("evaluating the untrained and the random policy ...", flush=True)
-    random_return = evaluate(eval_env, actor, 123, random=True)
-    untrained_return = evaluate(eval_env, actor, 123, random=False)
-    print(f"random policy return {random_return:.2f}, untrained greedy {untrained_return:.2f}", flush=True)
+    print(f"evaluating the untrained and the random policy on {args.worlds} episodes ...", flush=True)
+    random_return, episodes = evaluate(eval_env, actor, 123, random=True)
+    untrained_return, _ = evaluate(eval_env, actor, 123, random=False)
+    print(f"episode return per agent: random policy {random_return:.2f}, untrained greedy {untrained_return:.2f}",
+          flush=True)
 
     frames_per_batch = args.worlds * args.rollout
     collector = Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=-1)
     budget = args.minutes * 60
     start = time.perf_counter()
-    curve = []  # (seconds, agent-frames, mean reward per agent-step)
+    curve = []  # (seconds, agent-frames, mean reward per agent-step, mean return of the episodes ended or None)
     progress = tqdm(total=int(budget), unit="s", desc="training", bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt}s {postfix}")
-    agent_frames = 0
+    agent_frames, running, last_return = 0, torch.zeros(args.worlds), float("nan")
     for batch in collector:
+        ended, running = completed_episodes(batch, running)
         batch = batch.reshape(-1)  # [worlds * rollout] samples, each with its N agents
         with torch.no_grad():
             loss.value_estimator(batch, params=loss.critic_network_params, target_params=loss.target_critic_network_params)
@@ -142,20 +172,25 @@ def main():
         agent_frames += frames_per_batch * args.agents
         elapsed = time.perf_counter() - start
         reward = float(batch["next", GROUP, "reward"].mean())
-        curve.append((elapsed, agent_frames, reward))
+        episode_return = float(ended.mean()) if len(ended) else None
+        last_return = last_return if episode_return is None else episode_return
+        curve.append((elapsed, agent_frames, reward, episode_return))
         progress.n = min(int(elapsed), int(budget))
-        progress.set_postfix_str(f"reward/step {reward:.3f}, {agent_frames / elapsed:,.0f} agent-frames/s")
+        progress.set_postfix_str(f"episode return {last_return:.1f}, {agent_frames / elapsed:,.0f} agent-frames/s")
         progress.refresh()
         if elapsed > budget:
             break
     progress.close()
     collector.shutdown()
 
-    trained_return = evaluate(eval_env, actor, 123, random=False)
+    trained_return, _ = evaluate(eval_env, actor, 123, random=False)
     result = {"random_return": random_return, "untrained_return": untrained_return, "trained_return": trained_return,
+              "return": "sum of an agent's rewards over its episode, mean over agents and episodes",
+              "eval_episodes": episodes, "episode_steps": eval_env.core.max_steps,
               "minutes": (time.perf_counter() - start) / 60, "agent_frames": agent_frames,
               "worlds": args.worlds, "agents": args.agents, "resolution": args.resolution}
-    print(f"return per agent and episode: random {random_return:.2f} -> trained {trained_return:.2f}")
+    print(f"return per agent and episode ({episodes} episodes): random {random_return:.2f} -> trained "
+          f"{trained_return:.2f}")
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "result.json"), "w") as f:
         json.dump({**result, "curve": curve}, f, indent=2)
@@ -170,14 +205,15 @@ def plot(curve, result, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    steps = result["worlds"] and [c[0] / 60 for c in curve]
+    ended = [(seconds / 60, episode_return) for seconds, _, _, episode_return in curve if episode_return is not None]
     fig, ax = plt.subplots(figsize=(6, 3.6))
-    ax.plot(steps, [c[2] * 100 for c in curve], label="training batches (reward/step x 100)")
+    ax.plot([m for m, _ in ended], [r for _, r in ended], marker=".", label="training episodes (sampled actions)")
     ax.axhline(result["random_return"], color="gray", linestyle="--", label=f"random policy ({result['random_return']:.1f})")
     ax.axhline(result["trained_return"], color="green", linestyle=":", label=f"trained, greedy ({result['trained_return']:.1f})")
     ax.set_xlabel("minutes of training (2 CPU cores)")
     ax.set_ylabel("episode return per agent")
-    ax.set_title(f"MAPPO on spread from {result['resolution']}x{result['resolution']} pixels")
+    ax.set_title(f"MAPPO on spread from {result['resolution']}x{result['resolution']} pixels, "
+                 f"{result['worlds']} worlds x {result['agents']} agents", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

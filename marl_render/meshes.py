@@ -1,9 +1,12 @@
-"""Meshes: procedural shapes with normals and UVs, and model files Panda3D can load.
+"""Meshes: procedural shapes with normals and UVs, and the triangles of model files.
 
 Procedural meshes are unit-sized and centred at the origin, so an instance's scale
 sets its size: box and plane span [-0.5, 0.5], sphere/cylinder/cone have radius 0.5
 and height 1 along +Z. A capsule keeps its round ends under uniform scale only, so its
 radius and length are arguments.
+
+This module imports only numpy and the standard library at the top: the child process
+that parses model files runs it on its own, without the rest of the package.
 """
 from __future__ import annotations
 
@@ -32,10 +35,19 @@ class MeshData:
         return bool(np.abs(corners - corners[:, :1]).max(initial=0.0) < 1e-6)
 
     def __post_init__(self):
+        arrays = (("positions", self.positions, "f"), ("normals", self.normals, "f"), ("uvs", self.uvs, "f"),
+                  ("triangles", self.triangles, "iu"))
+        for label, arr, kinds in arrays:
+            if not isinstance(arr, np.ndarray) or arr.dtype.kind not in kinds:
+                kind = "floating" if kinds == "f" else "integer"
+                given = f"array of dtype {arr.dtype}" if isinstance(arr, np.ndarray) else type(arr).__name__
+                raise TypeError(f"mesh {self.name!r}: {label} must be a numpy array of {kind} dtype, got {given}")
         n = len(self.positions)
         for label, arr, width in (("positions", self.positions, 3), ("normals", self.normals, 3), ("uvs", self.uvs, 2)):
             if arr.shape != (n, width):
                 raise ValueError(f"mesh {self.name!r}: {label} must have shape [{n}, {width}], got {list(arr.shape)}")
+            if not np.isfinite(arr).all():
+                raise ValueError(f"mesh {self.name!r}: {label} must be finite (no NaN/inf)")
         if self.triangles.ndim != 2 or self.triangles.shape[1] != 3:
             raise ValueError(f"mesh {self.name!r}: triangles must have shape [T, 3], got {list(self.triangles.shape)}")
         if len(self.triangles) and (self.triangles.min() < 0 or self.triangles.max() >= n):
@@ -178,21 +190,160 @@ def to_panda_geom(mesh: MeshData):
     return node
 
 
-def load_model(path: str):
-    """Load any model file Panda3D reads (.egg, .bam, .gltf with panda3d-gltf, ...) as one node."""
-    from panda3d.core import Filename, Loader, LoaderOptions, NodePath
+# ---------------------------------------------------------------------- model files
+# Panda3D's loaders run native parsers and image decoders that can end the process on a
+# corrupt file (a truncated BMP texture exits with status 1, no exception). So a model
+# file is parsed in a child process, which sends back only triangle arrays; this process
+# never parses it. Textures the model references are then decoded here with Pillow (see
+# images.py): the renderer never shows a model's own textures (a group's `texture=`
+# replaces them), but a model whose textures are corrupt is refused, not half-loaded.
+MODEL_LOAD_TIMEOUT = 120.0  # seconds; a file that hangs the parser is refused after this
 
-    if not isinstance(path, (str, os.PathLike)):
-        raise TypeError(f"model path must be a str or os.PathLike, got {type(path).__name__}")
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"model file {path!r} does not exist")
+# Runs meshes.py in the child without importing the marl_render package (torch is slow
+# to import and not needed there); the module needs only numpy and Panda3D.
+_CHILD_BOOTSTRAP = """
+import importlib.util, sys
+spec = importlib.util.spec_from_file_location("marl_render_model_child", sys.argv[1])
+module = importlib.util.module_from_spec(spec)
+sys.modules[spec.name] = module
+spec.loader.exec_module(module)
+module._write_model_arrays(sys.argv[2], sys.argv[3])
+"""
+
+
+def load_model(path, *, name: str = "mesh") -> MeshData:
+    """Triangles of a model file Panda3D reads (.egg, .bam, and through Assimp .gltf, .obj,
+    .fbx, ...), in the model's frame with its node transforms applied, as MeshData.
+
+    Raises FileNotFoundError for a missing file and ValueError for anything that is not a
+    regular file, not a model, corrupt or without triangles, or that references a texture
+    file that is not a complete image (textures that cannot be found are left out, as
+    Panda3D does); every message names `name` and the file."""
+    import subprocess
+    import sys
+    import tempfile
+
+    from .validation import regular_file
+
+    path = os.path.abspath(regular_file(name, path, kind="model"))
+    with tempfile.TemporaryDirectory(prefix="marl_render_model_") as folder:
+        output = os.path.join(folder, "arrays.npz")
+        try:
+            child = subprocess.run([sys.executable, "-c", _CHILD_BOOTSTRAP, __file__, path, output],
+                                   stdin=subprocess.DEVNULL, capture_output=True, timeout=MODEL_LOAD_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            raise ValueError(f"{name}: model file {path!r} was still loading after {MODEL_LOAD_TIMEOUT:.0f} s; "
+                             "refused") from None
+        log = child.stderr.decode(errors="replace")
+        textures = _textures_in_log(log)
+        _check_textures(name, path, textures)  # first: a corrupt texture is the likely cause of a crash
+        if child.returncode != 0 or not os.path.exists(output):
+            last = f" while reading its texture {textures[-1]!r}" if textures else ""
+            raise ValueError(f"{name}: model file {path!r} could not be loaded: Panda3D's loader ended with exit "
+                             f"status {child.returncode}{last}.{_messages(log)}")
+        with np.load(output, allow_pickle=False) as arrays:
+            result = {key: arrays[key] for key in arrays.files}
+    if "error" in result:
+        reason = str(result["error"])
+        if "is unrecognized" in log:
+            reason = f"is not a model file: Panda3D has no loader for its extension {os.path.splitext(path)[1]!r}"
+            log = ""  # its list of every known extension is too long for a message
+        raise ValueError(f"{name}: model file {path!r} {reason}.{_messages(log)}")
+    return _mesh(os.path.basename(path), result["positions"], result["normals"], result["uvs"], result["triangles"])
+
+
+def _textures_in_log(log: str) -> list[str]:
+    """Image files Panda3D opened for a model, from its "Loading texture A [and alpha component B]" lines."""
+    files = []
+    for line in log.splitlines():
+        if "Loading texture " in line:
+            files += line.split("Loading texture ", 1)[1].strip().split(" and alpha component ")
+    return list(dict.fromkeys(files))
+
+
+def _messages(log: str) -> str:
+    """The last lines Panda3D wrote, less its progress notes, to end an error message with."""
+    lines = [line for line in log.strip().splitlines()
+             if line.strip() and not line.startswith((":loader: loading file type", ":gobj: Loading texture"))]
+    return " Panda3D said:\n" + "\n".join(lines[-6:]) if lines else ""
+
+
+def _check_textures(name: str, path: str, textures: list[str]) -> None:
+    from .images import decode_image
+
+    for texture in textures:
+        if not os.path.isfile(texture):
+            continue  # not found: Panda3D leaves it out (and the renderer never shows a model's textures)
+        try:
+            decode_image(texture)
+        except ValueError as reason:
+            raise ValueError(f"{name}: model file {path!r} references the texture {texture!r}, which is not a "
+                             f"complete image: {reason}") from None
+
+
+def _write_model_arrays(path: str, output: str) -> None:
+    """In the child process: load `path` with Panda3D and save its triangles to `output` (.npz).
+
+    The log names every texture just before Panda3D decodes it, so that the parent can say
+    which one ended the process if one does."""
+    from panda3d.core import Filename, Loader, LoaderOptions, NodePath, loadPrcFileData
+
+    loadPrcFileData("marl_render model child", "notify-level-gobj info")
     options = LoaderOptions(LoaderOptions.LF_no_cache | LoaderOptions.LF_report_errors)
-    node = Loader.get_global_ptr().load_sync(Filename.from_os_specific(os.path.abspath(path)), options)
+    node = Loader.get_global_ptr().load_sync(Filename.from_os_specific(path), options)
     if node is None:
-        raise ValueError(f"model file {path!r} could not be loaded by Panda3D (unknown format or corrupt file)")
+        np.savez(output, error="could not be loaded by Panda3D (not a model file, or a corrupt one)")
+        return
     model = NodePath(node)
-    model.flatten_strong()
-    if model.find_all_matches("**/+GeomNode").get_num_paths() == 0:
-        raise ValueError(f"model file {path!r} contains no geometry")
-    return model
+    parts = [_geom_arrays(geom, geom_node.get_net_transform().get_mat())
+             for geom_node in model.find_all_matches("**/+GeomNode") for geom in geom_node.node().get_geoms()]
+    parts = [part for part in parts if len(part[3])]
+    if not parts:
+        np.savez(output, error="contains no triangles")
+        return
+    offsets = np.cumsum([0] + [len(part[0]) for part in parts[:-1]])
+    positions, normals, uvs = (np.concatenate([part[k] for part in parts]) for k in range(3))
+    triangles = np.concatenate([part[3] + offset for part, offset in zip(parts, offsets)])
+    np.savez(output, positions=positions, normals=normals, uvs=uvs, triangles=triangles)
+
+
+def _geom_arrays(geom, matrix):
+    """(positions, normals, uvs, triangles) of one Panda3D Geom, transformed by its node's
+    net transform. Points and lines are left out: the renderer draws triangles."""
+    from panda3d.core import Geom, GeomVertexFormat
+
+    vertex_data = geom.get_vertex_data()
+    has_normals = vertex_data.has_column("normal")
+    rows = np.frombuffer(memoryview(vertex_data.convert_to(GeomVertexFormat.get_v3n3t2()).get_array(0)),
+                         dtype=np.float32).reshape(-1, 8).astype(np.float64)
+    triangles = []
+    for primitive in geom.get_primitives():
+        if primitive.get_primitive_type() != Geom.PT_polygons:
+            continue
+        primitive = primitive.decompose().make_copy()  # strips and fans -> triangles
+        primitive.make_indexed()
+        primitive.set_index_type(Geom.NT_uint32)
+        triangles.append(np.frombuffer(memoryview(primitive.get_vertices()), dtype=np.uint32).reshape(-1, 3))
+    triangles = np.concatenate(triangles).astype(np.int64) if triangles else np.zeros((0, 3), np.int64)
+    # Panda3D multiplies row vectors: p' = p M. Normals take the inverse transpose.
+    m = np.array(matrix, dtype=np.float64)
+    positions = rows[:, :3] @ m[:3, :3] + m[3, :3]
+    if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform turns faces inside out: restore the winding
+        triangles = triangles[:, ::-1]
+    if has_normals:
+        normals = rows[:, 3:6] @ np.linalg.inv(m[:3, :3]).T
+    else:
+        normals = _vertex_normals(positions, triangles)
+    lengths = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, lengths, out=np.zeros_like(normals), where=lengths > 0)
+    return positions, normals, rows[:, 6:8], triangles
+
+
+def _vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals, for models that do not store any."""
+    corners = positions[triangles]
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = np.zeros_like(positions)
+    for corner in range(3):
+        np.add.at(normals, triangles[:, corner], face_normals)
+    return normals

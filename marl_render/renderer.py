@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from . import backend, readback, shaders
+from .images import texture_pixels
 from .meshes import MeshData, to_panda_geom
 from .provoking import shared_corner_mesh
 from .scene import Scene, StaticGroup
@@ -28,7 +29,7 @@ from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
 from .threads import one_thread
 from .tiling import TileLayout, column_layout
 from .transforms import look_at_quat, normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_to_matrix
-from .validation import FLOAT_DTYPES, as_tensor, check_finite, check_range, check_shape, describe, positive_int
+from .validation import FLOAT_DTYPES, as_tensor, check_finite, check_host, check_range, check_shape, describe, positive_int
 
 # Worlds are re-centred when a camera strays this far from its world's origin, so that
 # float32 positions relative to the origin stay precise (see the static-group shader).
@@ -335,8 +336,7 @@ class BatchRenderer:
         owner [W,C] int agent index (-1: none). Everything is validated before anything is stored.
         """
         self._check_open()
-        if group not in self._state:
-            raise ValueError(f"group must be one of this scene's instance groups {sorted(self._state)}, got {group!r}")
+        self._check_group(group)
         state = self._state[group]
         W, C = state["active"].shape
         staged = {}
@@ -400,7 +400,7 @@ class BatchRenderer:
         for name, value, low, high in (("fov_y", fov_y, 1e-6, math.pi - 1e-6), ("near", near, 1e-9, None),
                                         ("far", far, 1e-9, None)):
             if value is not None:
-                tensor = as_tensor(name, value).to(torch.float64)
+                tensor = as_tensor(name, value).detach().to(torch.float64)
                 self._check_device(name, tensor)
                 tensor = tensor.expand(W, A) if tensor.ndim == 0 else tensor
                 check_shape(name, tensor, (W, A))
@@ -699,7 +699,7 @@ class BatchRenderer:
 
     # ------------------------------------------------------------------ helpers / lifecycle
     def _float_arg(self, name, value, shape):
-        tensor = as_tensor(name, value)
+        tensor = as_tensor(name, value).detach()  # the renderer's state never joins an autograd graph
         tensor = tensor if tensor.dtype in FLOAT_DTYPES else tensor.float()  # float8: no isfinite kernel
         self._check_device(name, tensor)
         check_shape(name, tensor, shape)
@@ -708,10 +708,14 @@ class BatchRenderer:
 
     @staticmethod
     def _check_device(name, tensor):
-        if tensor.device.type != "cpu":
-            raise ValueError(f"{name} must be a CPU tensor (the renderer packs on the host), got device {tensor.device}")
-        if tensor.layout != torch.strided:
-            raise TypeError(f"{name} must be a dense (strided) tensor, got layout {tensor.layout}")
+        check_host(name, tensor)
+
+    def _check_group(self, group):
+        if not isinstance(group, str):
+            raise TypeError(f"group must be the name (str) of one of this scene's instance groups {sorted(self._state)}, "
+                            f"got {describe(group)}")
+        if group not in self._state:
+            raise ValueError(f"group must be one of this scene's instance groups {sorted(self._state)}, got {group!r}")
 
     def _check_open(self):
         if self._closed:
@@ -729,6 +733,7 @@ class BatchRenderer:
 
     def instance_state(self, group: str) -> dict:
         """Copies of a group's current per-instance tensors."""
+        self._check_group(group)
         return {k: v.clone() for k, v in self._state[group].items()}
 
     def close(self) -> None:
@@ -776,19 +781,18 @@ def _vec3(values):
 
 
 def _panda_texture(texture, name):
-    """A Panda3D Texture from a uint8 array [h, w, 3|4], an image path, or a Texture."""
-    from panda3d.core import Filename, SamplerState, Texture, TexturePool
+    """A Panda3D Texture from a Texture, or from pixels: an image path or a uint8 array [h, w, 3|4].
+
+    Image files are decoded by Pillow (images.py), never by Panda3D's own readers, which
+    end the process on some corrupt files."""
+    from panda3d.core import SamplerState, Texture
 
     if type(texture).__name__ == "Texture":
         return texture
-    if isinstance(texture, str):
-        loaded = TexturePool.load_texture(Filename.from_os_specific(texture))
-        if loaded is None:
-            raise ValueError(f"texture of group {name!r}: could not load image file {texture!r}")
-        return loaded
-    array = np.asarray(texture)
-    if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] not in (3, 4):
-        raise ValueError(f"texture of group {name!r} must be uint8 [h, w, 3|4], got {describe(array)}")
+    try:
+        array = texture_pixels(texture, name="texture")
+    except (TypeError, ValueError) as error:
+        raise type(error)(f"texture of group {name!r}: {error}") from None
     h, w, channels = array.shape
     result = Texture(f"texture:{name}")
     result.setup_2d_texture(w, h, Texture.T_unsigned_byte, Texture.F_rgb if channels == 3 else Texture.F_rgba)

@@ -10,15 +10,17 @@ A Scene holds W worlds of A agents each. It has
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from . import meshes as mesh_lib
+from .images import texture_pixels
 from .shaders import EFFECTS
-from .validation import (as_tensor, check_finite, check_shape, describe, positive_float, positive_int,
-                         resolution_hw)
+from .validation import (as_tensor, boolean, check_finite, check_host, check_range, check_shape, describe, finite_float,
+                         positive_float, positive_int, resolution_hw)
 
 
 @dataclass(frozen=True)
@@ -29,6 +31,15 @@ class Lighting:
     color: tuple = (0.75, 0.75, 0.75)
     ambient: tuple = (0.35, 0.35, 0.35)
 
+    def __post_init__(self):
+        direction = _numbers("lighting.direction", self.direction, (3,))
+        if not any(direction):
+            raise ValueError(f"lighting.direction must be a non-zero vector, got {direction}")
+        object.__setattr__(self, "direction", direction)
+        # Light colours may exceed 1 (a bright light); they only must not be negative.
+        object.__setattr__(self, "color", _color("lighting.color", self.color, high=None))
+        object.__setattr__(self, "ambient", _color("lighting.ambient", self.ambient, high=None))
+
 
 @dataclass(frozen=True)
 class Fog:
@@ -36,6 +47,10 @@ class Fog:
 
     color: tuple = (0.6, 0.65, 0.7)
     density: float = 0.05
+
+    def __post_init__(self):
+        object.__setattr__(self, "color", _color("fog.color", self.color))
+        object.__setattr__(self, "density", positive_float("fog.density", self.density, allow_zero=True))
 
 
 @dataclass
@@ -94,19 +109,18 @@ class Scene:
         self.num_worlds = positive_int("num_worlds", self.num_worlds)
         self.agents_per_world = positive_int("agents_per_world", self.agents_per_world)
         self.resolution = resolution_hw(self.resolution)
-        if isinstance(self.effects, str):
-            raise TypeError(f"effects must be a collection of names, got the string {self.effects!r}")
-        unknown = sorted(set(self.effects) - set(EFFECTS))
-        if unknown:
-            raise ValueError(f"effects must be drawn from {list(EFFECTS)}, got unknown {unknown}")
-        self.effects = tuple(sorted(set(self.effects)))
-        positive_float("near", self.near)
-        positive_float("far", self.far)
+        self.effects = _effect_names(self.effects)
+        self.near = positive_float("near", self.near)
+        self.far = positive_float("far", self.far)
         if not self.far > self.near:
             raise ValueError(f"far must be greater than near, got near={self.near}, far={self.far}")
+        self.fov_y = finite_float("fov_y", self.fov_y)
         if not 0 < self.fov_y < math.pi:
             raise ValueError(f"fov_y must be in (0, pi) radians, got {self.fov_y}")
-        _color3("background", self.background)
+        self.background = _color("background", self.background, sizes=(3, 4))
+        for name, kind in (("lighting", Lighting), ("fog", Fog)):
+            if not isinstance(getattr(self, name), kind):
+                raise TypeError(f"{name} must be a marl_render.{kind.__name__}, got {describe(getattr(self, name))}")
 
     @property
     def num_views(self) -> int:
@@ -124,10 +138,15 @@ class Scene:
         return max(used, default=1)
 
     def add_static(self, name: str, mesh, position, rotation=None, scale=None, color=None, texture=None) -> StaticGroup:
-        """Geometry identical in every world (floor, walls): stored and uploaded once."""
+        """Geometry identical in every world (floor, walls): stored and uploaded once.
+
+        position [K, 3] or [3]; rotation [K|1, 4] quaternions (w, x, y, z); scale [K|1, 3],
+        [K|1, 1] or a number; color [K|1, 3|4] in [0, 1]; texture an image file path or a
+        uint8 array [h, w, 3|4] (shown where the scene declares the "texture" effect)."""
         self._check_name(name)
-        mesh = _resolve_mesh(mesh)
-        position = as_tensor("position", position).to(torch.float64)
+        position = as_tensor("position", position)
+        check_host("position", position)
+        position = position.detach().to(torch.float64)
         if position.ndim == 1:
             position = position[None]
         check_shape("position", position, (None, 3))
@@ -137,35 +156,47 @@ class Scene:
             check_finite(label, value)
         if bool((scale < 0).any()):
             raise ValueError(f"scale must be >= 0 (mirrored instances are not supported), got minimum {scale.min().item()}")
-        group = StaticGroup(name, mesh, position, _unit(rotation), scale, color, texture, self._next_segment_base())
+        check_range("color", color, 0.0, 1.0)  # the same bounds as BatchRenderer.update
+        rotation = _unit(rotation)
+        texture = _resolve_texture(texture)
+        mesh = _resolve_mesh(mesh)  # last: a model file is parsed in a child process
+        group = StaticGroup(name, mesh, position, rotation, scale, color, texture, self._next_segment_base())
         self.static[name] = group
         return group
 
     def add_group(self, name: str, mesh, capacity: int, texture=None) -> InstanceGroup:
         """A mesh drawn up to `capacity` times per world, posed per step."""
         self._check_name(name)
-        group = InstanceGroup(name, _resolve_mesh(mesh), positive_int("capacity", capacity), texture,
-                              self._next_segment_base())
+        capacity = positive_int("capacity", capacity)
+        texture = _resolve_texture(texture)
+        group = InstanceGroup(name, _resolve_mesh(mesh), capacity, texture, self._next_segment_base())
         self.groups[name] = group
         return group
 
     def mount_cameras(self, group: str, instance, offset=(0.0, 0.0, 0.0), pitch: float = 0.0,
                       hide_owner: bool = True) -> CameraMount:
-        """Egocentric cameras: agent a looks out of instance `instance[a]` of `group`."""
+        """Egocentric cameras: agent a looks out of instance `instance[a]` of `group`.
+
+        instance: one integer index per agent; offset: 3 numbers (metres, in the
+        instance's frame); pitch: radians, positive looks up; hide_owner: bool."""
+        if not isinstance(group, str):
+            raise TypeError(f"group must be the name (str) of an instance group, got {describe(group)}")
         if group not in self.groups:
             raise ValueError(f"group must name an instance group of this scene ({sorted(self.groups)}), got {group!r}")
-        instance = tuple(int(i) for i in np.asarray(instance).reshape(-1))
-        if len(instance) != self.agents_per_world:
-            raise ValueError(f"instance must give one index per agent ({self.agents_per_world}), got {len(instance)}")
+        indices = as_tensor("instance", np.asarray(instance) if isinstance(instance, range) else instance,
+                            dtype_kind="int")
+        check_host("instance", indices)
+        indices = indices.reshape(-1)
+        if len(indices) != self.agents_per_world:
+            raise ValueError(f"instance must give one index per agent ({self.agents_per_world}), got {len(indices)}")
         capacity = self.groups[group].capacity
+        instance = tuple(int(i) for i in indices.tolist())
         if any(not 0 <= i < capacity for i in instance):
             raise ValueError(f"instance indices must be in [0, {capacity}), got {list(instance)}")
-        offset = tuple(float(v) for v in offset)
-        if len(offset) != 3 or not all(math.isfinite(v) for v in offset):
-            raise ValueError(f"offset must be 3 finite numbers, got {offset}")
-        if not math.isfinite(pitch):
-            raise ValueError(f"pitch must be finite, got {pitch}")
-        self.camera_mount = CameraMount(group, instance, offset, float(pitch), bool(hide_owner))
+        offset = _numbers("offset", offset, (3,))
+        pitch = finite_float("pitch", pitch)
+        hide_owner = boolean("hide_owner", hide_owner)
+        self.camera_mount = CameraMount(group, instance, offset, pitch, hide_owner)
         return self.camera_mount
 
     def segment_ids(self, name: str) -> range:
@@ -177,23 +208,55 @@ class Scene:
         return range(group.segment_base, group.segment_base + count)
 
 
+def _effect_names(effects) -> tuple:
+    if isinstance(effects, str) or not isinstance(effects, (tuple, list, set, frozenset)):
+        raise TypeError(f"effects must be a collection of names (tuple, list or set) drawn from {list(EFFECTS)}, "
+                        f"got {describe(effects)}")
+    not_names = [e for e in effects if not isinstance(e, str)]
+    if not_names:
+        raise TypeError(f"effects must be names (str) drawn from {list(EFFECTS)}, got {not_names}")
+    unknown = sorted(set(effects) - set(EFFECTS))
+    if unknown:
+        raise ValueError(f"effects must be drawn from {list(EFFECTS)}, got unknown {unknown}")
+    return tuple(sorted(set(effects)))
+
+
 def _resolve_mesh(mesh):
-    if isinstance(mesh, str) and mesh in mesh_lib.PROCEDURAL:
-        return mesh_lib.PROCEDURAL[mesh]()
     if isinstance(mesh, mesh_lib.MeshData):
         return mesh
-    if isinstance(mesh, str):
-        return mesh_lib.load_model(mesh)
+    if isinstance(mesh, str) and mesh in mesh_lib.PROCEDURAL:
+        return mesh_lib.PROCEDURAL[mesh]()
+    if isinstance(mesh, (str, os.PathLike)):
+        try:
+            return mesh_lib.load_model(mesh, name="mesh")
+        except FileNotFoundError as error:
+            raise FileNotFoundError(f"{error} (and it is not one of the procedural meshes "
+                                    f"{sorted(mesh_lib.PROCEDURAL)})") from None
     if type(mesh).__name__ == "NodePath":
         return mesh
     raise TypeError(f"mesh must be a MeshData, a procedural name {sorted(mesh_lib.PROCEDURAL)}, a model path "
                     f"or a Panda3D NodePath, got {describe(mesh)}")
 
 
+def _resolve_texture(texture):
+    """None, a Panda3D Texture as it is, or checked pixels the scene owns (files decoded now)."""
+    if texture is None or type(texture).__name__ == "Texture":
+        return texture
+    return texture_pixels(texture, name="texture")
+
+
 def _pose_defaults(count, rotation, scale, color):
     rotation = torch.tensor([[1.0, 0, 0, 0]]).expand(count, 4) if rotation is None else as_tensor("rotation", rotation)
     scale = torch.ones(count, 3) if scale is None else as_tensor("scale", scale)
     color = torch.tensor([[0.8, 0.8, 0.8, 1.0]]).expand(count, 4) if color is None else as_tensor("color", color)
+    for label, value in (("rotation", rotation), ("scale", scale), ("color", color)):
+        check_host(label, value)
+    rotation, scale, color = (t.detach() for t in (rotation, scale, color))
+    scale = scale.reshape(1, 1) if scale.ndim == 0 else scale  # one number: uniform scale
+    for label, value, width in (("rotation", rotation, "4"), ("scale", scale, "3|1"), ("color", color, "4|3")):
+        if value.ndim not in (1, 2):
+            raise ValueError(f"{label} must have shape [{count}, {width}], [1, {width}] or [{width}], "
+                             f"got {list(value.shape)}")
     rotation, scale, color = (t[None] if t.ndim == 1 else t for t in (rotation, scale, color))
     if scale.shape[-1] == 1:
         scale = scale.expand(count, 3)
@@ -212,7 +275,23 @@ def _unit(rotation: torch.Tensor) -> torch.Tensor:
     return normalize_quat(rotation.to(torch.float64)).to(torch.float32)
 
 
-def _color3(name, value):
-    arr = np.asarray(value, dtype=float)
-    if arr.shape not in ((3,), (4,)) or not np.all((arr >= 0) & (arr <= 1)):
-        raise ValueError(f"{name} must be 3 or 4 numbers in [0, 1], got {value}")
+def _numbers(name: str, value, sizes: tuple) -> tuple:
+    """A short vector of finite numbers (its length one of `sizes`) as a tuple of floats."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, (tuple, list, np.ndarray, torch.Tensor)):
+        raise TypeError(f"{name} must be a sequence of {' or '.join(map(str, sizes))} numbers, got {describe(value)}")
+    vector = as_tensor(name, value)
+    check_host(name, vector)
+    vector = vector.detach().to(torch.float64)
+    if vector.ndim != 1 or len(vector) not in sizes:
+        raise ValueError(f"{name} must be {' or '.join(map(str, sizes))} numbers, got {describe(value)}")
+    check_finite(name, vector)
+    return tuple(float(v) for v in vector.tolist())
+
+
+def _color(name: str, value, *, sizes: tuple = (3,), high: float | None = 1.0) -> tuple:
+    """An RGB(A) colour: numbers in [0, high] (high=None: any finite number >= 0)."""
+    color = _numbers(name, value, sizes)
+    if min(color) < 0 or (high is not None and max(color) > high):
+        bounds = f"in [0, {high:g}]" if high is not None else ">= 0"
+        raise ValueError(f"{name} must be {' or '.join(map(str, sizes))} numbers {bounds}, got {value}")
+    return color

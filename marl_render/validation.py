@@ -5,6 +5,8 @@ unchanged. Messages name the argument, what was expected and what was given.
 """
 from __future__ import annotations
 
+import os
+import stat
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -63,6 +65,14 @@ def check_shape(name: str, tensor: torch.Tensor, expected: Sequence[int | None])
         raise ValueError(f"{name} must have shape {want}, got {list(shape)}")
 
 
+def check_host(name: str, tensor: torch.Tensor) -> None:
+    """A dense tensor in host memory: the scene and the renderer pack on the CPU."""
+    if tensor.device.type != "cpu":
+        raise ValueError(f"{name} must be a CPU tensor (the renderer packs on the host), got device {tensor.device}")
+    if tensor.layout != torch.strided:
+        raise TypeError(f"{name} must be a dense (strided) tensor, got layout {tensor.layout}")
+
+
 def check_finite(name: str, tensor: torch.Tensor) -> None:
     if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
         bad = (~torch.isfinite(tensor)).nonzero()[0].tolist()
@@ -90,6 +100,16 @@ def positive_int(name: str, value, *, minimum: int = 1) -> int:
     return int(value)
 
 
+def finite_float(name: str, value) -> float:
+    """A real number (not a bool, not a string) that is finite, as a float."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise TypeError(f"{name} must be a number, got {describe(value)}")
+    value = float(value)
+    if not np.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value}")
+    return value
+
+
 def positive_float(name: str, value, *, allow_zero: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
         raise TypeError(f"{name} must be a number, got {describe(value)}")
@@ -115,3 +135,38 @@ def resolution_hw(value, *, name: str = "resolution", max_size: int | None = Non
     if max_size is not None and max(hw) > max_size:
         raise ValueError(f"{name} must be at most {max_size} pixels on each side (GL limit), got {hw}")
     return hw
+
+
+def boolean(name: str, value) -> bool:
+    """True or False only: bool("no") is True, so strings and numbers are refused."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a bool, got {describe(value)}")
+    return bool(value)
+
+
+_FILE_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+               (stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket"))
+
+
+def regular_file(name: str, value, *, kind: str) -> str:
+    """The path of an existing regular file, as a str; `kind` ("model", "image") words the errors.
+
+    Devices, pipes and directories are refused before anything opens them (reading a pipe
+    could block for ever, /dev/zero never ends)."""
+    if not isinstance(value, (str, os.PathLike)):
+        raise TypeError(f"{name} must be a {kind} file path (str or os.PathLike), got {describe(value)}")
+    path = os.fspath(value)
+    if not isinstance(path, str):
+        raise TypeError(f"{name} must be a {kind} file path given as str, got bytes {path!r}")
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{name}: {kind} file {path!r} does not exist") from None
+    except OSError as error:
+        raise ValueError(f"{name}: {kind} file {path!r} cannot be read ({error.strerror})") from None
+    except ValueError:  # os.stat refuses NUL characters
+        raise ValueError(f"{name} must be a {kind} file path without NUL characters, got {path!r}") from None
+    if not stat.S_ISREG(mode):
+        what = next((text for test, text in _FILE_KINDS if test(mode)), "something else")
+        raise ValueError(f"{name} must be a regular {kind} file, got {path!r}, which is {what}")
+    return path

@@ -131,13 +131,15 @@ def assert_unchanged(before: dict, after: dict, what):
     assert not changed, f"a rejected call with {what!r} changed {changed}"
 
 
-def call_checked(call, state, value, allowed=(ValueError, TypeError)):
-    """call(): success, or an `allowed` error with state() unchanged. Anything else propagates."""
+def call_checked(call, state, value, allowed=(ValueError, TypeError), names=None):
+    """call(): success, or an `allowed` error with state() unchanged (and, if `names` is given,
+    a message that names that argument). Anything else propagates."""
     before = state()
     try:
         call()
-    except allowed:
+    except allowed as error:
         assert_unchanged(before, state(), value)
+        assert names is None or names in str(error), (names, value, error)
 
 
 # ---------------------------------------------------------------------- BatchedEnv.step
@@ -284,11 +286,14 @@ def test_renderer_update_and_cameras(renderer, data):
         correct = {"position": (W, 2, 3), "look_at": (W, 2, 3), "rotation": (W, 2, 4)}.get(name, ())
         value = data.draw(st.one_of(malformed(correct, 0.01, 3.0), st.floats()), label=name)
         call = lambda: renderer.set_cameras(**{name: value})  # noqa: E731
+    elif data.draw(st.booleans(), label="group"):
+        name, value = "group", data.draw(st.one_of(PYTHON_OBJECTS, st.sampled_from(["boxes", "floor"])), label="group")
+        call = lambda: renderer.update(value, active=torch.ones(W, 3, dtype=torch.bool))  # noqa: E731
     else:
         name = data.draw(st.sampled_from(sorted(FIELDS)), label="field")
         value = data.draw(malformed(*FIELDS[name]), label=name)
         call = lambda: renderer.update("boxes", **{name: value})  # noqa: E731
-    call_checked(call, lambda: renderer_state(renderer), (name, value))
+    call_checked(call, lambda: renderer_state(renderer), (name, value), names=name)
     frame = renderer.render()  # whatever was accepted renders
     assert frame.rgb.shape == (W, 2, 8, 12, 3)
 
@@ -309,8 +314,48 @@ def test_scene_arguments(kwargs):
     arguments = {"num_worlds": 1, "agents_per_world": 1, "resolution": 8, **kwargs}
     try:
         mr.Scene(**arguments)
-    except (ValueError, TypeError):
-        pass
+    except (ValueError, TypeError) as error:  # the defaults are valid: the message names a given argument
+        assert any(name in str(error) for name in kwargs), (kwargs, error)
+
+
+def scene_with_bodies():
+    scene = mr.Scene(num_worlds=1, agents_per_world=2, resolution=8)
+    scene.add_group("bodies", "box", capacity=3)
+    return scene
+
+
+def scene_state(scene):
+    return sorted(scene.static), sorted(scene.groups), scene.camera_mount
+
+
+POSE = {"position": ((2, 3), -5.0, 5.0), "rotation": ((2, 4), -1.0, 1.0), "scale": ((2, 3), 0.0, 2.0),
+        "color": ((2, 3), 0.0, 1.0)}
+
+
+@settings(max_examples=150, **SETTINGS)
+@given(data=st.data())
+def test_scene_building_calls(data):
+    """add_static / mount_cameras with one malformed argument: success, or a ValueError /
+    TypeError whose message names that argument, with the scene unchanged."""
+    scene = scene_with_bodies()
+    if data.draw(st.booleans(), label="static"):
+        name = data.draw(st.sampled_from(sorted(POSE)), label="argument")
+        arguments = {"position": [[0, 0, 0], [1, 0, 0]], name: data.draw(malformed(*POSE[name]), label=name)}
+        call = lambda: scene.add_static("walls", "box", **arguments)  # noqa: E731
+    else:
+        name = data.draw(st.sampled_from(["group", "instance", "offset", "pitch", "hide_owner"]), label="argument")
+        value = data.draw({"group": st.one_of(st.sampled_from(["bodies", "ghosts"]), PYTHON_OBJECTS),
+                           "instance": malformed((2,), 0, 2), "offset": malformed((3,), -1.0, 1.0),
+                           "pitch": st.one_of(st.floats(), PYTHON_OBJECTS, malformed((), -1.0, 1.0)),
+                           "hide_owner": st.one_of(st.booleans(), PYTHON_OBJECTS)}[name], label=name)
+        arguments = {"group": "bodies", "instance": [0, 1], name: value}
+        call = lambda: scene.mount_cameras(**arguments)  # noqa: E731
+    before = scene_state(scene)
+    try:
+        call()
+    except (ValueError, TypeError) as error:
+        assert name in str(error), (name, error)
+        assert scene_state(scene) == before
 
 
 # ---------------------------------------------------------------------- make_env

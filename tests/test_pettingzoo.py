@@ -3,6 +3,7 @@ seed and render tests on every registered environment, agents leaving the episod
 input, and the wrappers users chain (supersuit, parallel_to_aec, torchrl)."""
 from __future__ import annotations
 
+import sys
 import warnings
 
 import numpy as np
@@ -15,6 +16,7 @@ from pettingzoo.utils.conversions import aec_to_parallel, parallel_to_aec
 
 from marl_render.envs import list_envs, make_env
 from departing_env import Departing
+from marl_render.wrappers import window
 from marl_render.wrappers.pettingzoo import ActionTypeError, MarlRenderParallelEnv, make_parallel_env
 
 RES = 32
@@ -43,27 +45,41 @@ def states_equal(a: dict, b: dict) -> bool:
 
 # ---------------------------------------------------------------------- PettingZoo's own tests
 @pytest.mark.parametrize("name", ENVS)
-@pytest.mark.parametrize("variant", [{}, {"continuous": True, "depth": True, "state_obs": True},
-                                     {"action_mask": True, "state_obs": True}])
-def test_parallel_api_test(name, variant):
-    # parallel_api_test calls reset(options={"options": 1}): unknown options are ignored only on request.
-    env = make(name, max_steps=12, unknown_options="ignore", **variant)
+def test_pettingzoo_tests_pass_with_default_arguments(name):
+    # PettingZoo's three env tests, each with its default arguments, on the env as
+    # make_parallel_env(name) builds it (default resolution, max_steps, reset options...).
+    env = make_parallel_env(name)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # PettingZoo reports API deviations as warnings
+        parallel_api_test(env)  # calls reset(options={"options": 1}): unknown options are ignored
+    env.close()
+    parallel_seed_test(lambda: make_parallel_env(name))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "human" on a headless machine warns (once per env: tested below)
+        render_test(lambda render_mode=None: parallel_to_aec(make_parallel_env(name, render_mode=render_mode)))
+
+
+@pytest.mark.parametrize("name", ENVS)
+@pytest.mark.parametrize("variant", [{"continuous": True, "depth": True, "state_obs": True},
+                                     {"action_mask": True, "state_obs": True}])
+def test_parallel_api_test_variants(name, variant):
+    env = make(name, max_steps=12, **variant)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
         parallel_api_test(env, num_cycles=30)  # > max_steps: the episode ends inside the test
     env.close()
 
 
-def test_parallel_api_test_needs_the_options_opt_in():
-    env = make("spread")
-    with pytest.raises(ValueError, match="unknown reset option.*'options'.*unknown_options='ignore'"):
-        parallel_api_test(env, num_cycles=2)
+def test_unknown_reset_options_are_ignored_unless_strict():
+    env = make("spread", seed=0)
+    first, _ = env.reset(seed=3, options={"warp": 1, "options": 1})
+    again, _ = env.reset(seed=3)
+    assert all(np.array_equal(first[a], again[a]) for a in env.possible_agents)
     env.close()
-
-
-@pytest.mark.parametrize("name", ENVS)
-def test_parallel_seed_test(name):
-    parallel_seed_test(lambda: make(name, max_steps=20), num_cycles=20)
+    strict = make("spread", unknown_options="raise")
+    with pytest.raises(ValueError, match=r"unknown reset option\(s\) 'options'.*unknown_options='raise'"):
+        parallel_api_test(strict, num_cycles=2)
+    strict.close()
 
 
 @pytest.mark.parametrize("name", ENVS)
@@ -86,16 +102,6 @@ def test_same_seed_same_episode_over_many_steps(name):
     assert not data_equivalence(a[0], c[0])
 
 
-@pytest.mark.parametrize("name", ENVS)
-def test_render_test(name):
-    # render_test builds an env with render_mode="human" only to read metadata["render_modes"]
-    # (["rgb_array"]), then drives the AEC API; "human" (a window) is not supported.
-    def env_fn(render_mode=None):
-        return parallel_to_aec(make(name, render_mode=None if render_mode == "human" else render_mode))
-
-    render_test(env_fn)
-
-
 def test_render_tiles_views_and_overview():
     env = make("spread", render_mode="rgb_array")
     with pytest.raises(RuntimeError, match="reset"):
@@ -114,6 +120,72 @@ def test_render_tiles_views_and_overview():
     with pytest.warns(UserWarning, match="render_mode"):
         assert quiet.render() is None  # render_mode=None: gymnasium warns and returns None
     quiet.close()
+
+
+def test_render_is_the_renderers_frame_not_the_callers_observation():
+    # Observations are the caller's memory: writing into them must not change what render() shows.
+    env = make("spread", render_mode="rgb_array", action_mask=True)
+    obs, _ = env.reset(seed=0)
+    before = env.render()
+    obs["agent_0"]["pixels"][:] = 255
+    obs["agent_2"]["pixels"][:] = 0
+    assert np.array_equal(env.render(), before)
+    obs, *_ = env.step({a: 0 for a in env.agents})
+    before = env.render()
+    obs["agent_1"]["pixels"][:] = 7
+    assert np.array_equal(env.render(), before)
+    env.close()
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_metadata_render_fps_is_the_simulated_rate(name):
+    env = make(name)
+    assert env.metadata["render_modes"] == ["human", "rgb_array"]
+    assert env.metadata["render_fps"] == {"cartpole": 100.0}.get(name, 10.0) == 1 / env.core.dt
+    env.close()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a Linux display is found through DISPLAY")
+def test_human_render_on_a_headless_machine_warns_once(monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    env = make("spread", render_mode="human", max_steps=3)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.render()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        env.reset(seed=0)  # "human" shows every reset and step
+        while env.agents:
+            env.step(sample(env))
+        assert env.render() is None
+    assert [str(w.message) for w in caught] == [
+        "render_mode='human' shows nothing: this machine has no display (neither DISPLAY nor WAYLAND_DISPLAY is "
+        "set). Use render_mode='rgb_array' to get the frames as arrays."]
+    assert env.core._overview is None  # nothing was rendered for a window that cannot exist
+    env.close()
+
+
+def test_human_render_shows_the_rgb_array_frame_in_a_window(monkeypatch):
+    pytest.importorskip("matplotlib", reason="render_mode='human' draws with matplotlib")
+    import matplotlib.pyplot as plt
+
+    monkeypatch.setattr(window, "window_unavailable", lambda: None)  # as on a machine with a display
+    env = make("spread", render_mode="human", seed=0)
+    twin = make("spread", render_mode="rgb_array", seed=0)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "FigureCanvasAgg is non-interactive")  # the test runs on Agg
+        env.reset(seed=1)
+        twin.reset(seed=1)
+        shown = plt.figure("marl_render spread").axes[0].images[0].get_array()
+        assert np.array_equal(shown, twin.render())
+        env.step({a: 1 for a in env.agents})
+        twin.step({a: 1 for a in twin.agents})
+        assert env.render() is None
+        shown = plt.figure("marl_render spread").axes[0].images[0].get_array()
+        assert np.array_equal(shown, twin.render())
+    env.close()
+    assert "marl_render spread" not in plt.get_figlabels()
+    twin.close()
 
 
 # ---------------------------------------------------------------------- spaces and outputs
@@ -151,6 +223,57 @@ def test_spaces_and_outputs():
         make("cartpole", continuous=True, action_mask=True)
 
 
+@pytest.mark.parametrize("name", ENVS)
+def test_state_is_every_agents_state_observation(name):
+    env = make(name, state_obs=True, seed=0)
+    space = env.state_space
+    A, state_dim = len(env.possible_agents), env.core.state_dim
+    assert space == spaces.Box(-np.inf, np.inf, (A * state_dim,), np.float32)
+    with pytest.raises(RuntimeError, match=r"reset\(\) before state\(\)"):
+        env.state()
+    obs, _ = env.reset(seed=0)
+    for _ in range(2):
+        state = env.state()
+        assert state.dtype == np.float32 and state.shape == (A * state_dim,) and space.contains(state)
+        assert np.array_equal(state, np.concatenate([obs[a]["state"] for a in env.possible_agents]))
+        obs, *_ = env.step({a: 1 for a in env.agents})  # forward: the state moves
+        assert not np.array_equal(env.state(), state)
+    env.close()
+
+
+def test_state_through_torchrl_return_state():
+    from torchrl.envs import PettingZooWrapper
+
+    pz = make("tag", max_steps=4)
+    env = PettingZooWrapper(env=pz, use_mask=True, return_state=True)
+    td = env.rollout(3)
+    assert td["next", "state"].shape == (3, *pz.state_space.shape) == (3, 4 * pz.core.state_dim)
+    assert td["next", "state"].dtype == torch.float32 and td["next", "state"].std() > 0
+    env.close()
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_infos_carry_the_envs_step_statistics(name):
+    # spread's collisions and coverage, forage's collected and team_score, tag's caught and
+    # prey_left, push's goal: the core's info of the world, per agent, as Python scalars.
+    env = make(name, seed=0)
+    env.reset(seed=0)
+    twin = make_env(name, num_worlds=1, resolution=RES, seed=0)
+    twin.reset(seed=0)
+    for _ in range(3):
+        actions = {a: 1 for a in env.agents}
+        _, _, _, _, infos = env.step(actions)
+        _, _, _, _, info = twin.step(torch.ones(1, twin.num_agents, dtype=torch.long))
+        want = {k: v[0].item() for k, v in info.items() if k != "done_worlds"}
+        assert set(want) == {"step_count"} | {"cartpole": set(), "spread": {"collisions", "coverage"},
+                                              "forage": {"collected", "team_score"}, "tag": {"caught", "prey_left"},
+                                              "push": {"goal"}}[name]
+        assert infos == {agent: want for agent in actions}
+        assert all(type(v) is type(want[k]) for i in infos.values() for k, v in i.items())
+    env.close()
+    twin.close()
+
+
 def test_episode_end_empties_agents():
     env = make("spread", max_steps=3)
     env.reset(seed=0)
@@ -169,7 +292,7 @@ def test_episode_end_empties_agents():
 
 # ---------------------------------------------------------------------- agents leaving
 def test_departed_agents_follow_pettingzoo_semantics():
-    env = departing(max_steps=5)
+    env = departing(max_steps=5, departed_actions="raise")
     obs, _ = env.reset(seed=0)
     assert env.agents == ["predator_0", "prey_0", "prey_1"]
     step = lambda: env.step(sample(env))  # noqa: E731
@@ -182,7 +305,7 @@ def test_departed_agents_follow_pettingzoo_semantics():
     assert env.agents == ["predator_0", "prey_1"]
     # an action for the departed agent is an error and changes nothing
     before = env.core.get_state()
-    with pytest.raises(KeyError, match="'prey_0'.*left the episode"):
+    with pytest.raises(KeyError, match="'prey_0'.*left the episode.*departed_actions='raise'"):
         env.step({"predator_0": 0, "prey_0": 0, "prey_1": 0})
     assert states_equal(before, env.core.get_state())
     obs, rew, term, trunc, info = step()  # step 3: prey_1 leaves
@@ -198,22 +321,25 @@ def test_departed_agents_follow_pettingzoo_semantics():
 
 
 def test_departed_agents_pass_pettingzoo_tests():
-    env = departing(max_steps=6, unknown_options="ignore")
+    env = departing(max_steps=6)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         parallel_api_test(env, num_cycles=10)
-    aec = parallel_to_aec(departing(max_steps=6, unknown_options="ignore"))
+    aec = parallel_to_aec(departing(max_steps=6))
     api_test(aec, num_cycles=10)
     aec.close()
 
 
-def test_departed_actions_can_be_ignored():
-    env = departing(departed_actions="ignore")
+def test_departed_actions_are_ignored_by_default():
+    env = departing()
     env.reset(seed=0)
     env.step(sample(env))
     env.step(sample(env))
-    obs, *_ = env.step({"predator_0": 0, "prey_0": 3, "prey_1": 0})  # prey_0's action is ignored
-    assert set(obs) == {"predator_0", "prey_1"}
+    before = env.core.get_state()
+    # prey_0 left: its action is ignored, even one that would be invalid, and it is not reported
+    obs, rew, *_ = env.step({"predator_0": 0, "prey_0": 99, "prey_1": 0})
+    assert set(obs) == set(rew) == {"predator_0", "prey_1"}
+    assert torch.equal(env.core.get_state()["pos"][0, 1], before["pos"][0, 1])
     with pytest.raises(KeyError, match="unknown agent 'ghost'"):
         env.step({"predator_0": 0, "ghost": 0})
     env.close()
@@ -231,6 +357,55 @@ def test_tag_random_episode_consistency():
         assert not (gone & set(env.agents))
         gone |= {a for a in acting if term[a] or trunc[a]}
         assert set(env.agents) == acting - gone
+    env.close()
+
+
+def test_tag_last_frame_shows_the_catch():
+    # The episode ends with the catch of the only prey: its last observations and render()
+    # still show the prey (green) beside its catcher; the next episode starts with everybody.
+    env = make("tag", num_obstacles=0, render_mode="rgb_array")
+    env.reset(seed=0)
+    # predator_0 within a catch of the prey, all looking along +y; predator_2 watches from behind
+    pos = torch.tensor([[[0.0, 0.78], [-1.2, 1.2], [0.0, -1.0], [0.0, 0.5]]])
+    env.core.bodies = env.core.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
+    env.core.yaw = torch.zeros(1, 4)
+    obs, rew, term, trunc, _ = env.step({a: 0 for a in env.agents})
+    assert all(term.values()) and env.agents == [] and rew["prey_0"] == -10.0
+
+    def green(image):
+        r, g, b = image.astype(np.int32).transpose(2, 0, 1)
+        return int(((g - r > 40) & (g - b > 30)).sum())
+
+    assert green(obs["predator_2"]) > 0
+    frame = env.render()
+    overview = frame[:, -env.core.overview_resolution[1]:]
+    assert green(overview) > 0
+    env.close()
+
+
+@pytest.mark.parametrize("name", ["cartpole", "spread"])
+def test_continuous_actions_are_checked_as_given(name):
+    # Issue 9: int arrays were accepted (the core refuses them) and float64 1.00000001 was
+    # rounded to float32 1.0 before the range check.
+    env = make(name, continuous=True, seed=0)
+    env.reset(seed=0)
+    d = env.core.action_dim
+    others = {a: np.zeros(d, np.float32) for a in env.agents[1:]}
+    first = env.agents[0]
+    before = env.core.get_state()
+    cases = [(np.ones(d, np.int64), ActionTypeError, "int64"), (np.zeros(d, np.int32), ActionTypeError, "int32"),
+             (torch.zeros(d, dtype=torch.int64), ActionTypeError, "torch.int64"),
+             (np.full(d, 1.00000001), ValueError, r"clip them first"),
+             (np.full(d, -1 - 1e-12), ValueError, r"clip them first"),
+             (torch.full((d,), 1.00000001, dtype=torch.float64), ValueError, r"clip them first"),
+             (1, ActionTypeError, "got 1")]
+    for action, error, message in cases:
+        with pytest.raises(error, match=rf"actions\['{first}'\] must be a float array.*{message}"):
+            env.step({first: action, **others})
+        assert states_equal(before, env.core.get_state())
+    # exactly the bounds, in any float precision, are fine
+    for action in (np.ones(d), np.full(d, -1.0, np.float16), torch.ones(d, dtype=torch.bfloat16)):
+        env.step({first: action, **others})
     env.close()
 
 
@@ -277,7 +452,7 @@ def test_bad_actions_name_the_agent_and_change_nothing():
 
 
 def test_bad_reset_and_construction_arguments():
-    env = make("spread")
+    env = make("spread", unknown_options="raise")
     with pytest.raises(ValueError, match=r"unknown reset option\(s\) 'warp'"):
         env.reset(options={"warp": 1})
     with pytest.raises(TypeError, match="options must be None or a dict"):
@@ -293,8 +468,8 @@ def test_bad_reset_and_construction_arguments():
     env.close()  # twice is fine
     with pytest.raises(RuntimeError, match="closed"):
         env.reset()
-    with pytest.raises(ValueError, match="render_mode must be None or one of"):
-        make("spread", render_mode="human")
+    with pytest.raises(ValueError, match=r"render_mode must be None or one of \['human', 'rgb_array'\], got 'ansi'"):
+        make("spread", render_mode="ansi")
     with pytest.raises(TypeError, match="num_worlds"):
         make("spread", num_worlds=2)
     with pytest.raises(TypeError, match="autoreset"):
@@ -349,16 +524,44 @@ def test_torchrl_pettingzoo_wrapper():
     assert td["next", "done"][3].all()  # max_steps=4
     env.close()
 
-    # Agents leaving: torchrl's wrapper sends an action for every agent (departed ones too), and
-    # by default (done_on_any=True for parallel envs) resets as soon as one agent is done.
-    env = PettingZooWrapper(env=departing(max_steps=5, departed_actions="ignore"), use_mask=True, done_on_any=False)
+    # Agents leaving: torchrl's wrapper sends an action for every agent (departed ones too); they
+    # are ignored by default. done_on_any=False keeps the episode going until every agent is done.
+    env = PettingZooWrapper(env=departing(max_steps=5), use_mask=True, done_on_any=False)
     td = env.rollout(4, break_when_any_done=False)
     assert td["next", "prey", "mask"].tolist() == [[True, True], [False, True], [False, False], [False, False]]
     assert td["next", "prey", "terminated"][1].squeeze(-1).tolist() == [True, False]
+    assert td["next", "done"].squeeze(-1).tolist() == [False, False, False, False]
     env.close()
-    env = PettingZooWrapper(env=departing(max_steps=5), use_mask=True, done_on_any=False)
-    with pytest.raises(KeyError, match="left the episode.*departed_actions='ignore'"):
+    # With torchrl's default (done_on_any=True for parallel envs) the first agent to leave ends the episode.
+    env = PettingZooWrapper(env=departing(max_steps=5), use_mask=True)
+    td = env.rollout(4, break_when_any_done=False)
+    assert td["next", "done"].squeeze(-1).tolist() == [False, True, False, True]
+    env.close()
+    env = PettingZooWrapper(env=departing(max_steps=5, departed_actions="raise"), use_mask=True, done_on_any=False)
+    with pytest.raises(KeyError, match="left the episode.*departed_actions='raise'"):
         env.rollout(4, break_when_any_done=False)
+    env.close()
+
+
+def test_tag_through_torchrl_pettingzoo_wrapper_recipe():
+    # The README's recipe, on tag with two prey: the first catch removes one prey, the episode goes on.
+    from torchrl.envs import PettingZooWrapper
+    from torchrl.envs.utils import check_env_specs
+
+    pz = make_parallel_env("tag", num_prey=2, num_obstacles=0, resolution=RES, max_steps=10, seed=0)
+    env = PettingZooWrapper(pz, use_mask=True, done_on_any=False)
+    check_env_specs(env)
+    td = env.reset()
+    # predator_0 within a catch of prey_0 (centres 0.28 m apart), everybody else far apart; all stay put
+    pos = torch.tensor([[[0.0, 0.78], [-1.2, -1.2], [1.2, -1.2], [0.0, 0.5], [1.2, 1.2]]])
+    pz.core.bodies = pz.core.bodies._replace(pos=pos, vel=torch.zeros_like(pos))
+    noop = lambda td: td.update(env.full_action_spec.zero())  # noqa: E731
+    td = env.rollout(3, noop, auto_reset=False, tensordict=td, break_when_any_done=False)
+    assert td["next", "prey", "mask"].tolist() == [[False, True]] * 3
+    assert td["next", "prey", "terminated"][0].squeeze(-1).tolist() == [True, False]
+    assert td["next", "prey", "reward"][0].squeeze(-1).tolist() == [-10.0, 0.0]
+    assert td["next", "predator", "reward"][0].squeeze(-1).tolist() == [10.0] * 3
+    assert not td["next", "done"].any() and pz.agents == pz.possible_agents[:3] + ["prey_1"]
     env.close()
 
 

@@ -185,7 +185,7 @@ def test_resolution_beyond_the_gl_limit_allocates_nothing():
 WRAPPER_CASES = [
     ("parallel", dict(num_worlds=2), TypeError, r"make_parallel_env\(\) does not accept 'num_worlds'"),
     ("parallel", dict(autoreset=True), TypeError, r"does not accept 'autoreset'"),
-    ("parallel", dict(render_mode="human"), ValueError, r"render_mode must be None or one of \['rgb_array'\]"),
+    ("parallel", dict(render_mode="ansi"), ValueError, r"render_mode must be None or one of \['human', 'rgb_array'\]"),
     ("parallel", dict(departed_actions="drop"), ValueError, r"departed_actions must be one of \['raise', 'ignore'\]"),
     ("parallel", dict(action_mask=1), TypeError, r"action_mask must be a bool, got 1"),
     ("parallel", dict(resolution=0), ValueError, r"resolution must be >= 1 pixel"),

@@ -71,6 +71,8 @@ def test_bad_update_raises_and_changes_nothing(renderer, argument, value, error,
 def test_unknown_group(renderer):
     with pytest.raises(ValueError, match=r"group must be one of this scene's instance groups \['boxes'\], got 'ball'"):
         renderer.update("ball", position=GOOD["position"])
+    with pytest.raises(ValueError, match=r"group must be one of this scene's instance groups \['boxes'\], got 'floor'"):
+        renderer.instance_state("floor")
 
 
 BAD_CAMERAS = [
@@ -108,12 +110,129 @@ def test_bad_cameras_raise_and_change_nothing(renderer, kwargs, error, message):
     ({"near": 1.0, "far": 0.5}, ValueError, r"far must be greater than near"),
     ({"fov_y": math.pi}, ValueError, r"fov_y must be in \(0, pi\) radians"),
     ({"background": (2, 0, 0)}, ValueError, r"background must be 3 or 4 numbers in \[0, 1\]"),
+    ({"effects": None}, TypeError, r"effects must be a collection of names .*got None"),
+    ({"effects": ["lighting", 3]}, TypeError, r"effects must be names \(str\) .*got \[3\]"),
+    ({"effects": [["lighting"]]}, TypeError, r"effects must be names \(str\) .*got \[\['lighting'\]\]"),
+    ({"background": "red"}, TypeError, r"background must be a sequence of 3 or 4 numbers, got 'red'"),
+    ({"background": None}, TypeError, r"background must be a sequence of 3 or 4 numbers, got None"),
+    ({"background": ("r", "g", "b")}, TypeError, r"background must be array-like of numbers"),
+    ({"background": (0.1, 0.2)}, ValueError, r"background must be 3 or 4 numbers, got \(0.1, 0.2\)"),
+    ({"fov_y": "1"}, TypeError, r"fov_y must be a number, got '1'"),
+    ({"fov_y": True}, TypeError, r"fov_y must be a number, got True"),
+    ({"fov_y": float("nan")}, ValueError, r"fov_y must be a finite number, got nan"),
+    ({"far": "100"}, TypeError, r"far must be a number, got '100'"),
+    ({"lighting": None}, TypeError, r"lighting must be a marl_render.Lighting, got None"),
+    ({"fog": {"density": 1.0}}, TypeError, r"fog must be a marl_render.Fog, got \{'density': 1.0\}"),
 ])
 def test_bad_scene_arguments(kwargs, error, message):
     arguments = dict(num_worlds=1, agents_per_world=1, resolution=16)
     arguments.update(kwargs)
     with pytest.raises(error, match=message):
         mr.Scene(**arguments)
+
+
+@pytest.mark.parametrize("make,error,message", [
+    (lambda: mr.Lighting(direction=(0, 0, 0)), ValueError, r"lighting.direction must be a non-zero vector"),
+    (lambda: mr.Lighting(direction="down"), TypeError, r"lighting.direction must be a sequence of 3 numbers, got 'down'"),
+    (lambda: mr.Lighting(color=(1, 1)), ValueError, r"lighting.color must be 3 numbers, got \(1, 1\)"),
+    (lambda: mr.Lighting(ambient=(-0.1, 0, 0)), ValueError, r"lighting.ambient must be 3 numbers >= 0"),
+    (lambda: mr.Fog(density=-1.0), ValueError, r"fog.density must be a finite number >= 0, got -1.0"),
+    (lambda: mr.Fog(density="thick"), TypeError, r"fog.density must be a number, got 'thick'"),
+    (lambda: mr.Fog(color=(2, 0, 0)), ValueError, r"fog.color must be 3 numbers in \[0, 1\], got \(2, 0, 0\)"),
+])
+def test_bad_lighting_and_fog(make, error, message):
+    with pytest.raises(error, match=message):
+        make()
+
+
+def test_lighting_may_be_brighter_than_one():
+    assert mr.Lighting(color=[2, 2, 2]).color == (2.0, 2.0, 2.0)
+
+
+def mount_scene():
+    scene = mr.Scene(num_worlds=1, agents_per_world=2, resolution=16)
+    scene.add_group("bodies", "box", capacity=3)
+    return scene
+
+
+@pytest.mark.parametrize("kwargs,error,message", [
+    ({"pitch": "x"}, TypeError, r"pitch must be a number, got 'x'"),
+    ({"pitch": float("inf")}, ValueError, r"pitch must be a finite number, got inf"),
+    ({"pitch": None}, TypeError, r"pitch must be a number, got None"),
+    ({"instance": [1.7, 0]}, TypeError, r"instance must have an integer dtype, got torch.float64"),
+    ({"instance": [1.0, 0.0]}, TypeError, r"instance must have an integer dtype, got torch.float64"),
+    ({"instance": [True, False]}, TypeError, r"instance must have an integer dtype, got torch.bool"),
+    ({"instance": ["0", "1"]}, TypeError, r"instance must be array-like of numbers"),
+    ({"instance": "01"}, TypeError, r"instance must be a torch.Tensor or array-like, got str"),
+    ({"instance": [0, 2 ** 70]}, TypeError, r"instance must be array-like of numbers"),
+    ({"instance": torch.zeros(2, dtype=torch.int64, device="meta")}, ValueError, r"instance must be a CPU tensor"),
+    ({"offset": "abc"}, TypeError, r"offset must be a sequence of 3 numbers, got 'abc'"),
+    ({"offset": 0.5}, TypeError, r"offset must be a sequence of 3 numbers, got 0.5"),
+    ({"offset": (0, 0)}, ValueError, r"offset must be 3 numbers, got \(0, 0\)"),
+    ({"offset": (0, 0, float("nan"))}, ValueError, r"offset must be finite"),
+    ({"hide_owner": "no"}, TypeError, r"hide_owner must be a bool, got 'no'"),
+    ({"hide_owner": 0}, TypeError, r"hide_owner must be a bool, got 0"),
+    ({"group": ["bodies"]}, TypeError, r"group must be the name \(str\) of an instance group, got \['bodies'\]"),
+])
+def test_bad_camera_mounts_raise_and_change_nothing(kwargs, error, message):
+    scene = mount_scene()
+    arguments = {"group": "bodies", "instance": [0, 1], **kwargs}
+    with pytest.raises(error, match=message):
+        scene.mount_cameras(**arguments)
+    assert scene.camera_mount is None
+
+
+def test_camera_mount_instances_may_be_any_integer_sequence():
+    for instance in ([2, 1], (2, 1), range(2, 0, -1), np.array([2, 1], dtype=np.uint8), torch.tensor([2, 1])):
+        assert mount_scene().mount_cameras("bodies", instance, pitch=np.float32(0.5)).instance == (2, 1)
+
+
+@pytest.mark.parametrize("kwargs,error,message", [
+    ({"color": [2, 0, 0]}, ValueError, r"color must be <= 1.0, got maximum 2.0"),  # as BatchRenderer.update says
+    ({"color": [[0.5, 0, 0], [0, -0.5, 0]]}, ValueError, r"color must be >= 0.0, got minimum -0.5"),
+    ({"color": "red"}, TypeError, r"color must be a torch.Tensor or array-like, got str"),
+    ({"scale": torch.ones(1, 1, 3)}, ValueError, r"scale must have shape \[2, 3\|1\], \[1, 3\|1\] or \[3\|1\], got \[1, 1, 3\]"),
+    ({"rotation": torch.ones(1, 1, 1, 4)}, ValueError, r"rotation must have shape \[2, 4\], \[1, 4\] or \[4\]"),
+    ({"rotation": [0, 0, 0, 0]}, ValueError, r"rotation must be non-zero quaternions"),
+    ({"position": torch.zeros(2, 3, device="meta")}, ValueError, r"position must be a CPU tensor.*meta"),
+    ({"color": torch.ones(3).to_sparse()}, TypeError, r"color must be a dense \(strided\) tensor"),
+])
+def test_bad_static_groups_raise_and_add_nothing(kwargs, error, message):
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=16)
+    arguments = {"position": [[0, 0, 0], [1, 0, 0]], **kwargs}
+    with pytest.raises(error, match=message):
+        scene.add_static("walls", "box", **arguments)
+    assert not scene.static
+
+
+def test_static_groups_take_a_uniform_scale_and_never_keep_a_graph():
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=16)
+    position = torch.zeros(2, 3, requires_grad=True)
+    group = scene.add_static("walls", "box", position=position * 2, scale=2.0, color=torch.ones(3, requires_grad=True))
+    assert group.scale.tolist() == [[2.0, 2.0, 2.0]] * 2
+    assert not any(t.requires_grad for t in (group.position, group.rotation, group.scale, group.color))
+
+
+def test_update_names_a_group_that_is_not_a_str(renderer):
+    before = renderer.instance_state("boxes")
+    for group in (["boxes"], None, 3):
+        with pytest.raises(TypeError, match=r"group must be the name \(str\) of one of this scene's instance groups "
+                                            r"\['boxes'\], got "):
+            renderer.update(group, position=GOOD["position"] + 7.0)
+    after = renderer.instance_state("boxes")
+    assert all(torch.equal(before[k], after[k]) for k in before)
+
+
+def test_update_and_set_cameras_never_keep_an_autograd_graph(renderer):
+    before = renderer.instance_state("boxes"), renderer.fov_y.clone()
+    position = torch.zeros(W, C, 3, requires_grad=True)
+    renderer.update("boxes", position=position + GOOD["position"] + 1.0, color=torch.ones(W, C, 4, requires_grad=True))
+    renderer.set_cameras(fov_y=torch.full((W, A), 1.0, requires_grad=True),
+                         position=torch.ones(W, A, 3, requires_grad=True))
+    tensors = [*renderer._state["boxes"].values(), renderer.camera_position, renderer.fov_y]
+    assert not any(t.requires_grad for t in tensors)
+    renderer.update("boxes", **{k: v for k, v in before[0].items()})
+    renderer.set_cameras(fov_y=before[1], position=torch.zeros(W, A, 3) + torch.tensor([0, 0, 1.0]))
 
 
 def test_bad_groups_and_meshes(tmp_path):
@@ -127,7 +246,7 @@ def test_bad_groups_and_meshes(tmp_path):
         scene.add_group("model", str(tmp_path / "missing.egg"), capacity=1)
     corrupt = tmp_path / "corrupt.egg"
     corrupt.write_text("<Group> { this is not an egg file")
-    with pytest.raises(ValueError, match="could not be loaded by Panda3D"):
+    with pytest.raises(ValueError, match=r"(?s)mesh: model file '.*corrupt.egg' could not be loaded by Panda3D.*syntax error"):
         scene.add_group("model", str(corrupt), capacity=1)
     with pytest.raises(TypeError, match="mesh must be a MeshData"):
         scene.add_group("model", 42, capacity=1)
@@ -167,6 +286,12 @@ def test_use_after_close_is_a_clear_error():
 
 def test_texture_must_be_an_image():
     scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=16, effects=("texture",))
-    scene.add_group("boxes", "box", capacity=1, texture=np.zeros((4, 4), dtype=np.uint8))
-    with pytest.raises(ValueError, match=r"texture of group 'boxes' must be uint8 \[h, w, 3\|4\]"):
-        mr.BatchRenderer(scene)
+    with pytest.raises(ValueError, match=r"texture must be a uint8 array \[h, w, 3\|4\] with h, w >= 1, got array "
+                                         r"of shape \(4, 4\), dtype uint8"):
+        scene.add_group("boxes", "box", capacity=1, texture=np.zeros((4, 4), dtype=np.uint8))
+    assert not scene.groups
+    # A group made some other way is still checked when the renderer builds its texture.
+    from marl_render.renderer import _panda_texture
+
+    with pytest.raises(ValueError, match=r"texture of group 'boxes': texture must be a uint8 array"):
+        _panda_texture(np.zeros((4, 4), dtype=np.uint8), "boxes")

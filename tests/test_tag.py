@@ -103,14 +103,14 @@ def test_catch_removes_prey_and_ends_episode_when_all_caught():
     assert info["done_worlds"].tolist() == [False, True, False]
     assert not truncated.any()
     assert reward.tolist() == [[10.0, 10.0, 10.0, -10.0, 0.0], [20.0, 20.0, 20.0, -10.0, -10.0], [0.0] * 5]
-    # The caught prey's instance is inactive and its body no longer collides.
-    assert env.renderer._state["agents"]["active"].tolist() == env.alive.tolist()
+    # The caught prey's body no longer collides ...
     assert env.bodies.active.tolist() == env.alive.tolist()
-    # ... so it disappears from the watcher's view: world 0 keeps prey 4, world 1 none.
+    # ... but the frame of the catch still shows it (world 1's is the episode's last frame):
+    # the watcher sees both prey in every world, and so does the overview.
     seen = green(obs["pixels"][:, 2])
-    assert seen[1] == 0 and 0 < seen[0] < seen[2], seen.tolist()
+    assert seen[0] > 0 and seen.tolist() == [seen[0]] * 3, seen.tolist()
     overview = green(env.render_overview(64))
-    assert overview[1] == 0 and 0 < overview[0] < overview[2], overview.tolist()
+    assert overview[0] > 0 and overview.tolist() == [overview[0]] * 3, overview.tolist()
     # Agents that left may only take noop.
     mask = obs["action_mask"]
     assert mask[2].all() and mask[0, :3].all() and mask[0, 4].all()
@@ -124,6 +124,12 @@ def test_catch_removes_prey_and_ends_episode_when_all_caught():
     assert torch.equal(env.bodies.pos[:, 3][:2], frozen[:2])
     assert reward[0, 3] == 0 and (reward[1] == 0).all()
     assert terminated[0, 3] and terminated[1].all() and not terminated[2].any()
+    # From this frame on the caught prey are gone: world 0 keeps prey 4, world 1 none.
+    assert env.renderer._state["agents"]["active"].tolist() == env.alive.tolist()
+    seen = green(obs["pixels"][:, 2])
+    assert seen[1] == 0 and 0 < seen[0] < seen[2], seen.tolist()
+    overview = green(env.render_overview(64))
+    assert overview[1] == 0 and 0 < overview[0] < overview[2], overview.tolist()
 
     # Resetting world 0 brings its prey back; world 1 stays over.
     obs = env.reset_worlds(torch.tensor([True, False, False]))

@@ -7,7 +7,9 @@ import functools
 
 import pytest
 import torch
-from torchrl.envs import ParallelEnv
+from torchrl.envs import (CatFrames, Compose, GrayScale, ParallelEnv, RewardSum, StepCounter, ToTensorImage,
+                          TransformedEnv)
+from torchrl.envs.transforms.functional import rgb_to_grayscale
 from torchrl.envs.utils import MarlGroupMapType, check_env_specs, step_mdp
 
 from marl_render.envs import list_envs
@@ -135,6 +137,7 @@ def test_bad_group_maps():
         ({"a": ["agent_0", "agent_1"]}, ValueError, r"missing: \['agent_2'\]"),
         ({"a": ["agent_0", "agent_1", "agent_2", "agent_9"]}, ValueError, r"unknown agent\(s\) \['agent_9'\]"),
         ({"done": ["agent_0", "agent_1", "agent_2"]}, ValueError, "clash with TorchRL's root keys"),
+        ({"info": ["agent_0", "agent_1", "agent_2"]}, ValueError, r"group names \['info'\] clash"),
         ({"a": ["agent_0", "agent_1"], "b": ["agent_1", "agent_2"]}, ValueError, "agent_1"),
         ({"a": "agent_0"}, TypeError, "must be a list of agent names"),
     ]:
@@ -167,16 +170,24 @@ def test_partial_reset_leaves_other_worlds_untouched():
     assert not torch.equal(td["agents", "pixels"][1], pixels[1])
     assert "_reset" not in td.keys()
 
-    # Per-group masks only: the world of any flagged agent is reset as a whole.
+    # Worlds are the unit of reset: a per-group mask is refused, not silently ignored.
     td = step_mdp(env.rand_step(td))
-    before, state_obs = _state(env), td["agents", "state"].clone()
+    before = _state(env)
     td.set(("agents", "_reset"), torch.tensor([[[False]] * 3, [[False]] * 3, [[False], [True], [False]]]))
-    td = env.reset(td)
+    with pytest.raises(ValueError, match=r"\(group, '_reset'\) entries are not reset keys.*\['agents'\]"):
+        env.reset(td)
     after = _state(env)
-    assert after["step_count"].tolist() == [4, 1, 0]
-    assert torch.equal(after["pos"][:2], before["pos"][:2]) and not torch.equal(after["pos"][2], before["pos"][2])
-    assert torch.equal(td["agents", "state"][:2], state_obs[:2])  # every agent of world 2 got new data
-    assert not (td["agents", "state"][2] == state_obs[2]).all(-1).any()
+    assert all(torch.equal(after[k], before[k]) for k in after)
+    env.close()
+
+
+def test_one_reset_key_and_per_agent_flags():
+    env = departing()
+    assert env.reset_keys == ["_reset"]
+    assert env.done_keys == ["done", "terminated", "truncated"]
+    for group in env.group_map:
+        for key in ("done", "terminated", "truncated"):
+            assert env.observation_spec[group, key].dtype == torch.bool
     env.close()
 
 
@@ -246,6 +257,119 @@ def test_action_mask_reaches_the_action_spec():
     assert td["agents", "action_mask"][0, :, 1].tolist() == [[False, False, False, True, False]] * 20
     actions = td["agents", "action"]
     assert (actions != 0).all() and (actions[0, :, 1] == 3).all()  # rand_action honours the mask
+    env.close()
+
+
+# ---------------------------------------------------------------------- transforms as users write them
+def _drive(env, steps=6):
+    """Reset, step once, reset world 0 alone (so the worlds' episodes are out of phase), then
+    step_and_maybe_reset with actions from a fixed generator; returns the root tensordicts."""
+    generator = torch.Generator().manual_seed(0)
+
+    def act(td):
+        return td.set(("agents", "action"), torch.randint(5, (W, 3), generator=generator))
+
+    env.set_seed(4)
+    td = env.reset()
+    seen = [td.clone()]
+    td = step_mdp(env.step(act(td)))
+    td = env.reset(td.set("_reset", torch.tensor([[True], [False]])))
+    seen.append(td.clone())
+    for _ in range(steps):
+        _, td = env.step_and_maybe_reset(act(td))
+        seen.append(td.clone())
+    return seen
+
+
+def test_frame_stacking_chain_with_default_arguments():
+    key = ("agents", "pixels")
+    raw = make("spread", max_steps=3)
+    stacked = TransformedEnv(make("spread", max_steps=3), Compose(
+        ToTensorImage(in_keys=[key]), GrayScale(in_keys=[key]), CatFrames(N=3, dim=-3, in_keys=[key]),
+        RewardSum(), StepCounter()))
+    check_env_specs(stacked)
+    assert stacked.observation_spec[key].shape == (W, 3, 3, RES, RES)
+
+    frames = [rgb_to_grayscale(td[key].permute(0, 1, 4, 2, 3) / 255) for td in _drive(raw)]  # [W, 3, 1, H, W]
+    seen = _drive(stacked)
+    steps = [td["step_count"][:, 0].tolist() for td in seen]
+    outputs = [td[key] for td in seen]
+    # Expected stack per world: restarted (the first frame repeated) where its episode starts.
+    stack = torch.cat([frames[0]] * 3, dim=2)
+    for t, (frame, out) in enumerate(zip(frames, outputs)):
+        if t:
+            restart = torch.tensor([count == 0 for count in steps[t]])
+            rolled = torch.cat((stack[:, :, 1:], frame), dim=2)
+            stack = torch.where(restart[:, None, None, None, None], torch.cat([frame] * 3, dim=2), rolled)
+        assert out.dtype == torch.float32 and out.shape == (W, 3, 3, RES, RES)
+        torch.testing.assert_close(out, stack, rtol=0, atol=1e-6, msg=f"step {t}")
+    assert steps[1] == [0, 1] and steps[4] == [0, 1]  # world 0 restarted at 1 and 4, world 1 at 3
+    assert steps[3] == [2, 0]
+    raw.close()
+    stacked.close()
+
+
+def test_resize_needs_torchvision():
+    try:
+        import torchvision  # noqa: F401
+    except ImportError:
+        pytest.skip("torchvision is not installed: no torchvision wheel for the pinned CPU torch is on the "
+                    "package index (PyPI's are CUDA builds); torchrl's Resize cannot run without it")
+    except RuntimeError as exc:  # PyPI's CUDA build next to the CPU torch fails while registering its ops
+        pytest.skip(f"torchvision is installed but does not import with this torch ({exc})")
+    from torchrl.envs import Resize
+
+    key = ("agents", "pixels")
+    env = TransformedEnv(make("spread"), Compose(ToTensorImage(in_keys=[key]), Resize(16, in_keys=[key])))
+    check_env_specs(env)
+    td = env.reset()
+    assert td[key].shape == (W, 3, 3, 16, 16) and td[key].dtype == torch.float32
+    env.close()
+
+
+# ---------------------------------------------------------------------- episode statistics
+@pytest.mark.parametrize("name", ENVS)
+def test_episode_statistics_match_the_core(name):
+    env = make(name, max_steps=3, seed=6)
+    core = make_torchrl_env(name, num_worlds=W, resolution=RES, max_steps=3, seed=6).core
+    declared = env.core.info_keys
+    if declared:
+        assert set(env.observation_spec["info"].keys()) == set(declared)
+    else:
+        assert "info" not in env.observation_spec.keys()
+    generator = torch.Generator().manual_seed(1)
+    td = env.reset()
+    core.reset()
+    for name_, dtype in declared.items():
+        assert td["info", name_].dtype == dtype and not td["info", name_].any()  # no step taken yet
+    for _ in range(3):
+        actions = core.random_actions(generator)
+        for group, names in env.group_map.items():
+            index = [env.agent_names.index(n) for n in names]
+            td.set((group, "action"), actions[:, index])
+        td = env.step(td)
+        *_, info = core.step(actions)
+        assert set(info) == {"step_count", "done_worlds", *declared}
+        for name_, dtype in declared.items():
+            assert info[name_].dtype == dtype and info[name_].shape == (W,)
+            assert torch.equal(td["next", "info", name_], info[name_]), name_
+        td = step_mdp(td)
+    core.close()
+    env.close()
+
+
+def test_episode_statistics_have_meaning():
+    # spread: coverage is the distance term of the reward; forage: team_score sums the rewards.
+    env = make("spread", seed=2)
+    td = env.rollout(3, break_when_any_done=False)
+    info = td["next", "info"]
+    reward = td["next", "agents", "reward"][:, :, 0, 0]
+    torch.testing.assert_close(reward, -info["coverage"] - info["collisions"].float())
+    env.close()
+    env = make("forage", seed=2)
+    td = env.rollout(20, break_when_any_done=False)
+    team = td["next", "agents", "reward"][..., 0].sum(-1).cumsum(1)  # [W, T]
+    torch.testing.assert_close(td["next", "info", "team_score"], team)
     env.close()
 
 
@@ -335,4 +459,27 @@ def test_collector_with_random_policy():
         assert batch["next", "agents", "reward"].shape == (W, 6, 3, 1)
     done = torch.cat([b["next", "done"] for b in batches], 1).squeeze(-1)
     assert done.sum() == W * 3  # episodes of 4 steps in 12 steps per world
+    env.close()
+
+
+@pytest.mark.parametrize("reset, error, message", [
+    (torch.ones(W, 1), TypeError, r"'_reset' must be a bool tensor of shape \[2, 1\].*float32"),
+    (torch.ones(W, 1, dtype=torch.int64), TypeError, r"'_reset' must be a bool tensor of shape \[2, 1\].*int64"),
+    (torch.ones(W, dtype=torch.bool), ValueError, r"'_reset' must be a bool tensor of shape \[2, 1\].*\(2,\)"),
+    (torch.ones(W, 3, dtype=torch.bool), ValueError, r"'_reset' must be a bool tensor of shape \[2, 1\].*\(2, 3\)"),
+])
+def test_bad_reset_mask_raises_and_changes_nothing(reset, error, message):
+    env = make("spread", seed=3)
+    td = env.reset()
+    td = step_mdp(env.rand_step(td))
+    before = _state(env)
+    env.set_seed(9)  # pending until the next reset that succeeds
+    with pytest.raises(error, match=message):
+        env.reset(td.clone().set("_reset", reset))
+    after = _state(env)
+    assert all(torch.equal(after[k], before[k]) for k in after)
+    fresh = make("spread")
+    fresh.set_seed(9)
+    assert torch.equal(env.reset()["agents", "pixels"], fresh.reset()["agents", "pixels"])
+    fresh.close()
     env.close()

@@ -9,6 +9,9 @@
     frame = env.render()                     # every agent's view + the overview, side by side
     env.close()
 
+With default arguments it passes PettingZoo's ``parallel_api_test``, ``parallel_seed_test``
+and (through ``parallel_to_aec``) ``render_test``.
+
 Spaces (the same for every agent):
 
 * observation: ``Box(0, 255, (H, W, 3), uint8)`` (1 channel with ``grayscale=True``) when the core yields only pixels (the
@@ -19,7 +22,13 @@ Spaces (the same for every agent):
   ``Discrete.sample(mask=...)`` requires). Discrete cores always compute an action mask;
   it is exposed only when asked for with ``action_mask=True`` so that the common
   pixels-only case stays a plain Box (what image wrappers such as supersuit's expect).
+  Observations are arrays the caller owns: writing into them changes nothing in the env.
 * action: ``Discrete(num_actions)`` or ``Box(-1, 1, (action_dim,), float32)``.
+* global state for centralised critics: ``state()`` is float32 ``[A * state_dim]``, every
+  agent's state observation (the env's ``state_obs``, see its docstring) in
+  ``possible_agents`` order, as PettingZoo's MPE envs concatenate their agents'
+  observations; ``state_space`` is ``Box(-inf, inf, (A * state_dim,), float32)``. Agents
+  that left the episode keep their rows (they describe where the agent left).
 
 Episode semantics follow PettingZoo: ``agents`` holds the agents still in the episode; an
 agent that leaves (caught prey, time limit) appears once more in the returned dicts with
@@ -28,35 +37,50 @@ and ``reset()`` starts a new episode. The core is built with ``autoreset=False``
 
 Infos: ``reset`` returns ``{agent: {}}``; ``step`` returns, per agent, the core's info
 entries of this world as Python scalars (or numpy arrays): ``step_count`` and the env's
-own keys (e.g. spread's ``collisions``, ``coverage``).
+own statistics of the step (spread's ``collisions`` and ``coverage``, forage's ``collected``
+and ``team_score``, tag's ``caught`` and ``prey_left``, push's ``goal``).
+
+Rendering (``render_mode``): ``"rgb_array"``: ``render()`` returns uint8 [H, W, 3], every
+agent's last view (upscaled) and the top-down overview side by side. ``"human"``: that
+frame is shown in a matplotlib window after every ``reset`` and ``step`` (and by
+``render()``, which returns None), paced at ``metadata["render_fps"]`` = 1 / the env's
+simulated seconds per step (10 for the arena envs, 100 for cartpole). Where no window can
+be opened (a headless machine) the first frame gives one warning and nothing is shown.
 
 Input checks (every call checks all of its input before it changes anything):
 
-* ``step(actions)``: a dict with exactly one action for every agent in ``agents``.
-  Unknown agent names raise KeyError; an action for an agent that already left raises
-  KeyError too unless ``departed_actions="ignore"`` (torchrl's
-  ``PettingZooWrapper(use_mask=True)`` sends an action for every agent, alive or not);
-  a missing action raises KeyError; a wrongly typed action raises ``ActionTypeError``
-  (a TypeError and a ValueError); out-of-range / NaN / wrongly shaped actions raise
-  ValueError. Every message names the agent.
-* ``reset(seed, options)``: ``options`` must be None or a dict; this env knows no option
-  keys yet, so any key raises ValueError unless ``unknown_options="ignore"``
-  (``pettingzoo.test.parallel_api_test`` calls ``reset(options={"options": 1})``).
+* ``step(actions)``: a dict with one action for every agent in ``agents``. Unknown agent
+  names raise KeyError; a missing action raises KeyError. Actions for agents that already
+  left are ignored (torchrl's ``PettingZooWrapper(use_mask=True)`` sends an action for every
+  agent, alive or not); ``departed_actions="raise"`` makes them a KeyError. A wrongly typed
+  action raises ``ActionTypeError`` (a TypeError and a ValueError): a discrete action must
+  be an integer (Python, numpy or torch, 0-d or shape (1,)), a continuous one a float array
+  (integer arrays are refused, as the core refuses them). Out-of-range, NaN or wrongly
+  shaped actions raise ValueError; a continuous action is checked in its own precision
+  before it is converted to float32 (float64 ``1.00000001`` is out of range, not 1.0).
+  Every message names the agent.
+* ``reset(seed, options)``: ``options`` must be None or a dict. This env knows no option
+  keys yet and ignores unknown ones, as PettingZoo and gymnasium envs do
+  (``parallel_api_test`` passes ``options={"options": 1}``); ``unknown_options="raise"``
+  makes them a ValueError.
 """
 from __future__ import annotations
 
 import functools
+
 import gymnasium
 import numpy as np
 import pettingzoo
 import torch
 from gymnasium import spaces
 
+from marl_render.threads import limited_threads
 from marl_render.validation import describe
+from marl_render.wrappers.window import Window
 
-RENDER_MODES = ("rgb_array",)
+RENDER_MODES = ("human", "rgb_array")
 KNOWN_OPTIONS: frozenset = frozenset()  # reset(options=...) keys this env understands
-_POLICIES = ("raise", "ignore")
+_POLICIES = ("raise", "ignore")  # the default is "ignore"; the strict "raise" is opt-in
 _GAP = 2  # pixels between the tiles of render()
 _GAP_COLOR = 40
 
@@ -73,7 +97,7 @@ class AgentKeyError(KeyError):
 
 
 def make_parallel_env(name: str, *, render_mode: str | None = None, action_mask: bool = False,
-                      departed_actions: str = "raise", unknown_options: str = "raise",
+                      departed_actions: str = "ignore", unknown_options: str = "ignore",
                       **kwargs) -> "MarlRenderParallelEnv":
     """A PettingZoo ParallelEnv of the registered environment `name`, one world.
 
@@ -142,7 +166,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         return _rebuild, (name, kwargs)
 
     def __init__(self, env, *, render_mode: str | None = None, action_mask: bool = False,
-                 departed_actions: str = "raise", unknown_options: str = "raise"):
+                 departed_actions: str = "ignore", unknown_options: str = "ignore"):
         from marl_render.envs.core import BatchedEnv
 
         if not isinstance(env, BatchedEnv):
@@ -166,7 +190,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         self.render_mode = render_mode
         self.departed_actions = departed_actions
         self.unknown_options = unknown_options
-        self.metadata = {**type(self).metadata, "name": env.name}
+        self.metadata = {**type(self).metadata, "name": env.name, "render_fps": 1.0 / env.dt}
         self.possible_agents = list(env.agent_names)
         self.agents: list[str] = []
         self._index = {agent: i for i, agent in enumerate(self.possible_agents)}
@@ -197,7 +221,12 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         # One space object per agent (seeding one agent's space must not affect another's).
         self.observation_spaces = {agent: make_obs_space() for agent in self.possible_agents}
         self.action_spaces = {agent: make_action_space() for agent in self.possible_agents}
-        self._pixels = None  # uint8 [A, H, W, 3] of the last reset / step, for render()
+        if state_dim:  # envs without a state observation keep ParallelEnv's state() (NotImplementedError)
+            self.state_space = spaces.Box(-np.inf, np.inf, (len(self.possible_agents) * state_dim,), np.float32)
+        self._started = False  # reset() was called
+        self._views = None  # uint8 [A, H, W, 3]: render()'s own copy of the last views (rendering modes only)
+        self._window = Window(f"marl_render {env.name}", self.metadata["render_fps"]) \
+            if render_mode == "human" else None
 
     # ------------------------------------------------------------------ spaces
     def observation_space(self, agent):
@@ -217,17 +246,17 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         """(observations, infos) of a new episode; `seed` re-seeds the core's generator."""
         self._check_options(options)
         obs = self.core.reset(seed=seed)  # validates seed before changing anything
+        self._started = True
         self.agents = [a for a, alive in zip(self.possible_agents, self.core.alive[0].tolist()) if alive]
         observations = self._observations(obs, self.agents)
+        if self.render_mode == "human":
+            self.render()
         return observations, {agent: {} for agent in self.agents}
 
     def step(self, actions: dict):
         """(observations, rewards, terminations, truncations, infos) of the agents that were
         in the episode before this step; agents that are done are then removed from ``agents``."""
-        if self.core.closed:
-            raise RuntimeError("this environment is closed; create a new one")
-        if self._pixels is None:
-            raise RuntimeError("call reset() before step()")
+        self._check_started("step()")
         if not self.agents:
             raise RuntimeError("the episode is over (every agent is done, agents == []); "
                                "call reset() to start a new one")
@@ -247,29 +276,49 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
             truncations[agent] = bool(trunc[i])
             infos[agent] = {k: v(i) for k, v in world_info.items()}
         self.agents = [a for a in acting if not (terminations[a] or truncations[a])]
+        if self.render_mode == "human":
+            self.render()
         return observations, rewards, terminations, truncations, infos
 
-    def render(self):
-        """uint8 [H, W, 3]: every agent's last view (upscaled) and the overview, side by side.
+    def state(self) -> np.ndarray:
+        """float32 [A * state_dim]: every agent's state observation, in possible_agents order."""
+        if not self.core.state_dim:
+            return super().state()  # NotImplementedError: this env has no state observation
+        self._check_started("state()")
+        with limited_threads(self.core.torch_threads):
+            state = self.core._state_obs()[0].detach()
+        return state.to(device="cpu", dtype=torch.float32).reshape(-1).numpy()
 
+    def render(self):
+        """In "rgb_array" mode uint8 [H, W, 3]: every agent's last view (upscaled) and the overview
+        side by side. In "human" mode that frame is shown in a window and None is returned.
         Returns None (with a warning) when the env was built with render_mode=None."""
         if self.render_mode is None:
             gymnasium.logger.warn("You are calling render() without a render_mode; pass "
                                   "render_mode='rgb_array' to make_parallel_env.")
             return None
-        if self._pixels is None:
-            raise RuntimeError("call reset() before render()")
-        overview = self.core.render_overview()[0].cpu().numpy()
-        views = self._pixels if self._pixels.shape[-1] == 3 else self._pixels.repeat(3, axis=-1)  # gray
-        return tile_views(list(views), overview)
+        self._check_started("render()")
+        if self.render_mode == "human":
+            if self._window.available():  # on a headless machine: one warning, nothing rendered
+                self._window.show(self._frame())
+            return None
+        return self._frame()
 
     def close(self):
+        if self._window is not None:
+            self._window.close()
         self.core.close()
 
     def __repr__(self):
         return f"MarlRenderParallelEnv({self.core!r}, render_mode={self.render_mode!r})"
 
     # ------------------------------------------------------------------ internals
+    def _check_started(self, call: str):
+        if self.core.closed:
+            raise RuntimeError("this environment is closed; create a new one")
+        if not self._started:
+            raise RuntimeError(f"call reset() before {call}")
+
     def _check_options(self, options):
         if options is None:
             return
@@ -278,8 +327,8 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         unknown = sorted(map(repr, set(options) - KNOWN_OPTIONS))
         if unknown and self.unknown_options == "raise":
             raise ValueError(f"unknown reset option(s) {', '.join(unknown)} in options; known options: "
-                             f"{sorted(KNOWN_OPTIONS)}. Build the env with unknown_options='ignore' to ignore "
-                             f"them (pettingzoo.test.parallel_api_test passes options={{'options': 1}})")
+                             f"{sorted(KNOWN_OPTIONS)} (this env was built with unknown_options='raise'; "
+                             f"the default 'ignore' ignores them)")
 
     def _actions_tensor(self, actions) -> torch.Tensor:
         """Checks the actions dict and returns the core's [1, A(, d)] action tensor."""
@@ -295,7 +344,8 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
                     continue
                 raise AgentKeyError(f"actions has an action for agent {agent!r}, which has left the episode "
                                     f"(terminated or truncated); give actions only for env.agents = {self.agents} "
-                                    f"(or build the env with departed_actions='ignore')")
+                                    f"(this env was built with departed_actions='raise'; the default 'ignore' "
+                                    f"ignores them)")
             raise AgentKeyError(f"actions has an action for unknown agent {agent!r}; "
                                 f"possible_agents: {self.possible_agents}")
         missing = [a for a in self.agents if a not in actions]
@@ -303,26 +353,32 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
             raise AgentKeyError(f"actions is missing an action for agent(s) {missing}; every agent in "
                                 f"env.agents = {self.agents} must act")
         core = self.core
+        # Agents that left keep the value 0, which the core ignores (it must still be valid).
         if core.continuous:
-            batch = torch.zeros(1, core.num_agents, core.action_dim, dtype=torch.float32)
-            for agent in self.agents:
-                batch[0, self._index[agent]] = torch.from_numpy(_continuous_action(agent, actions[agent],
-                                                                                   core.action_dim))
+            rows = np.zeros((core.num_agents, core.action_dim), np.float32)
+            convert = _continuous_action
         else:
-            batch = torch.zeros(1, core.num_agents, dtype=torch.int64)
-            for agent in self.agents:
-                batch[0, self._index[agent]] = _discrete_action(agent, actions[agent], core.num_actions)
-        return batch
+            rows = np.zeros(core.num_agents, np.int64)
+            convert = _discrete_action
+        for agent in self.agents:
+            rows[self._index[agent]] = convert(agent, actions[agent], self.action_spaces[agent])
+        return torch.from_numpy(rows)[None]
 
     def _observations(self, obs: dict, agents) -> dict:
-        arrays = {key: obs[key][0].cpu().numpy() for key in self._obs_keys}  # [A, ...]
+        arrays = {key: obs[key][0].cpu().numpy() for key in self._obs_keys}  # [A, ...], fresh memory every call
         if "action_mask" in arrays:
             arrays["action_mask"] = arrays["action_mask"].astype(np.int8)
-        self._pixels = arrays["pixels"]
+        if self.render_mode is not None:  # render() keeps its own copy: writing into an observation changes nothing
+            self._views = arrays["pixels"].copy()
         if not self._dict_obs:
             pixels = arrays["pixels"]
             return {agent: pixels[self._index[agent]] for agent in agents}
         return {agent: {key: value[self._index[agent]] for key, value in arrays.items()} for agent in agents}
+
+    def _frame(self) -> np.ndarray:
+        overview = self.core.render_overview()[0].cpu().numpy()
+        views = self._views if self._views.shape[-1] == 3 else self._views.repeat(3, axis=-1)  # gray
+        return tile_views(list(views), overview)
 
 
 def _world_info(info: dict, num_agents: int) -> dict:
@@ -360,15 +416,17 @@ def _per_agent(value, index):
 
 
 def _tensor_to_numpy(agent, action: torch.Tensor, want: str) -> np.ndarray:
-    """A tensor action as numpy, or ActionTypeError naming the agent (meta, sparse, bfloat16...)."""
+    """A tensor action as numpy, or ActionTypeError naming the agent (meta, sparse, complex...)."""
     if action.device.type == "meta" or action.layout != torch.strided or action.is_complex():
         raise ActionTypeError(f"actions[{agent!r}] must be {want}, got {describe(action)}")
-    if action.dtype not in (torch.float16, torch.float32, torch.float64) and action.is_floating_point():
-        action = action.float()  # bfloat16 / float8 have no numpy twin
+    if action.is_floating_point() and action.dtype not in (torch.float16, torch.float32, torch.float64):
+        action = action.float()  # bfloat16 / float8 have no numpy twin; float32 holds their values exactly
     return action.detach().cpu().numpy()
 
 
-def _discrete_action(agent, action, n: int) -> int:
+def _discrete_action(agent, action, space: spaces.Discrete) -> int:
+    """An integer action (Python, numpy or torch; 0-d or shape (1,)) that `space` contains."""
+    n = int(space.n)
     want = f"an int in [0, {n}) (Discrete({n}))"
     value = action
     if isinstance(value, torch.Tensor):
@@ -377,35 +435,40 @@ def _discrete_action(agent, action, n: int) -> int:
         value = value.reshape(())[()]
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         raise ActionTypeError(f"actions[{agent!r}] must be {want}, got {describe(action)}")
-    if not 0 <= int(value) < n:
-        raise ValueError(f"actions[{agent!r}] must be {want}, got {int(value)}")
-    return int(value)
+    value = int(value)  # exact for every integer dtype, so Discrete.contains sees the value as given
+    if not space.contains(value):
+        raise ValueError(f"actions[{agent!r}] must be {want}, got {value}")
+    return value
 
 
-def _continuous_action(agent, action, d: int) -> np.ndarray:
+def _continuous_action(agent, action, space: spaces.Box) -> np.ndarray:
+    """A float action of `space`'s shape within its bounds, checked in the action's own precision
+    and only then converted to float32 (float64 1.00000001 is out of range, not rounded to 1.0).
+
+    gymnasium's ``Box.contains`` is not used here: it refuses float64 arrays outright (they
+    cannot be cast to float32 safely), and users' numpy actions are often float64."""
+    d = space.shape[0]
     want = f"a float array of shape ({d},) in [-1, 1] (Box(-1, 1, ({d},), float32))"
     if isinstance(action, torch.Tensor):
         array = _tensor_to_numpy(agent, action, want)
-    elif isinstance(action, (np.ndarray, list, tuple, float, int, np.number)) and \
-            not isinstance(action, (bool, np.bool_)):
+    elif isinstance(action, (np.ndarray, np.floating, float, list, tuple)):
         try:
             array = np.asarray(action)
         except (TypeError, ValueError):
             raise ActionTypeError(f"actions[{agent!r}] must be {want}, got {describe(action)}") from None
     else:
         raise ActionTypeError(f"actions[{agent!r}] must be {want}, got {describe(action)}")
-    if array.dtype.kind not in "fiu":
+    if array.dtype.kind != "f":  # integers are refused, as the core refuses them, not converted
         raise ActionTypeError(f"actions[{agent!r}] must be {want}, got {describe(action)}")
     if array.shape == () and d == 1:
         array = array.reshape(1)
     if array.shape != (d,):
         raise ValueError(f"actions[{agent!r}] must be {want}, got shape {array.shape}")
-    array = array.astype(np.float32)
     if not np.isfinite(array).all():
         raise ValueError(f"actions[{agent!r}] must be {want}, got non-finite values {array.tolist()}")
-    if (np.abs(array) > 1).any():
+    if (array < space.low).any() or (array > space.high).any():
         raise ValueError(f"actions[{agent!r}] must be {want}, got {array.tolist()} (clip them first)")
-    return array
+    return array.astype(np.float32)
 
 
 def tile_views(views: list, overview: np.ndarray | None = None) -> np.ndarray:

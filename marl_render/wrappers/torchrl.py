@@ -10,11 +10,25 @@ Layout (batch_size [W], W = num_worlds; a group of N agents):
     (group, "depth")        float32 [W, N, H, Wpx]     Bounded(0, far)       depth=True
     (group, "state")        float32 [W, N, state_dim]  Unbounded             state_obs=True
     (group, "action_mask")  bool    [W, N, n]          Categorical(2, bool)  discrete envs
+    (group, "done" | "terminated" | "truncated")  bool [W, N, 1]  per-agent flags (observations)
+    ("info", name)          [W] of the env's info_keys dtype   episode statistics (observations)
     (group, "action")       int64   [W, N]             Categorical(n)        discrete
                             float32 [W, N, d]          Bounded(-1, 1)        continuous=True
     (group, "reward")       float32 [W, N, 1]
-    (group, "done" | "terminated" | "truncated")  bool [W, N, 1]
-    "done" | "terminated" | "truncated"           bool [W, 1]
+    "done" | "terminated" | "truncated"           bool [W, 1]   the done spec (one level)
+
+The pixels are at ``(group, "pixels")``, not at the root ``"pixels"`` that TorchRL's image
+transforms read by default: name the group key in their ``in_keys``. Frame stacking::
+
+    from torchrl.envs import CatFrames, Compose, GrayScale, Resize, ToTensorImage, TransformedEnv
+    key = ("agents", "pixels")
+    env = TransformedEnv(make_torchrl_env("spread", num_worlds=64, resolution=84), Compose(
+        ToTensorImage(in_keys=[key]),         # uint8 [W, N, H, W, 3] -> float [W, N, 3, H, W] in [0, 1]
+        GrayScale(in_keys=[key]),             # [W, N, 1, H, W]
+        CatFrames(N=4, dim=-3, in_keys=[key]),  # [W, N, 4, H, W]; restarts at each world's reset
+    ))
+
+``Resize`` (which needs torchvision) is rarely needed: ask for the resolution you want.
 
 Per agent: ``terminated`` is True once the agent left the episode (``alive`` False in the
 core, e.g. caught prey) and stays True until its world is reset; ``truncated`` is True for
@@ -23,16 +37,26 @@ truncated``. Per world (root): ``done`` = every agent is done, ``terminated`` = 
 terminated, ``truncated`` = done and not terminated. Agents that left keep appearing in
 every tensor (reward 0; their actions are ignored but must be valid values).
 
+Worlds are the unit of reset, so only the root flags form the done spec and the env has a
+single reset key, the root ``"_reset"`` bool [W, 1]: TorchRL transforms that need one reset
+key (``CatFrames``, ``RewardSum``, ``StepCounter``, ``TensorDictPrimer``) work with their
+defaults. The per-agent flags are observations with the same names, so losses can still
+read ``("next", group, "terminated")`` per agent.
+
+Episode statistics: the env's ``info_keys`` (spread: collisions, coverage; forage:
+collected, team_score; tag: caught, prey_left; push: goal) are copied from the core's step
+info to the root ``"info"`` entry, one value per world. They describe the step just taken;
+after a reset (no step yet) they read 0. BenchMARL logs them as ``collection/info/<name>``.
+
 Group maps (``group_map=``): "team" (default: one group per team, ``env.groups`` of the
 core), "one_group" (one group "agents" with every agent), "per_agent" (one group per
 agent), a ``torchrl.envs.utils.MarlGroupMapType`` or an explicit ``{group: [agent names]}``
 (every agent exactly once, in any order within a group).
 
 Resets: the core is built with ``autoreset=False``; TorchRL decides when to reset.
-``_reset`` reads the root ``"_reset"`` [W, 1] (it prevails, as in TorchRL) or, if absent,
-the per-group ``(group, "_reset")`` [W, N, 1] entries; a world is reset when any of its
-entries is True (worlds are the unit of reset: a per-agent reset resets that agent's whole
-world). Worlds not reset are left untouched (bit-identical state, the same pixels).
+``_reset`` reads the root ``"_reset"``, which must be a bool tensor [W, 1] (anything else
+raises before anything changes); a world is reset where it is True. Worlds not reset are
+left untouched (bit-identical state, the same pixels).
 
 Seeding: ``env.set_seed(s)`` re-seeds the core's generator at the next reset (full or
 partial), so ``set_seed(s); reset()`` is reproducible. Device: the core's device (CPU by
@@ -42,6 +66,9 @@ The discrete action spec carries the current action mask (``Categorical.update_m
 after every reset / step, so ``env.rand_action()`` samples only valid actions. Inside a
 ``torchrl.envs.ParallelEnv`` only the workers' specs see it (the parent's spec stays
 unmasked); use the (group, "action_mask") observation there.
+
+Works with the pinned torchrl (constraints.txt) and with the torchrl that BenchMARL pins
+(constraints-benchmarl.txt, ``make test-benchmarl``).
 """
 from __future__ import annotations
 
@@ -57,7 +84,8 @@ from torchrl.envs.utils import MarlGroupMapType, check_marl_grouping
 from marl_render.validation import describe
 
 GROUP_MAPS = ("team", "one_group", "per_agent")
-_RESERVED = ("done", "terminated", "truncated", "_reset", "reward", "action")
+_DONE_KEYS = ("done", "terminated", "truncated")
+_RESERVED = (*_DONE_KEYS, "_reset", "reward", "action", "info")
 
 
 def make_torchrl_env(name: str, num_worlds: int = 1, group_map="team", **kwargs) -> "MarlRenderTorchRLEnv":
@@ -158,7 +186,7 @@ class MarlRenderTorchRLEnv(EnvBase):
         core, W, dev = self.core, self.core.num_worlds, self.device
         H, Wpx = core.resolution
         obs_spec, act_spec, rew_spec, done_spec = (Composite(shape=(W,), device=dev) for _ in range(4))
-        for key in ("done", "terminated", "truncated"):
+        for key in _DONE_KEYS:
             done_spec[key] = Categorical(2, shape=(W, 1), dtype=torch.bool, device=dev)
         for group, names in self.group_map.items():
             N = len(names)
@@ -169,6 +197,8 @@ class MarlRenderTorchRLEnv(EnvBase):
                 obs["state"] = Unbounded(shape=(W, N, core.state_dim), dtype=torch.float32, device=dev)
             if not core.continuous:
                 obs["action_mask"] = Categorical(2, shape=(W, N, core.num_actions), dtype=torch.bool, device=dev)
+            for key in _DONE_KEYS:
+                obs[key] = Categorical(2, shape=(W, N, 1), dtype=torch.bool, device=dev)
             obs_spec[group] = Composite(obs, shape=(W, N), device=dev)
             if core.continuous:
                 action = Bounded(-1.0, 1.0, shape=(W, N, core.action_dim), dtype=torch.float32, device=dev)
@@ -177,8 +207,9 @@ class MarlRenderTorchRLEnv(EnvBase):
             act_spec[group] = Composite(action=action, shape=(W, N), device=dev)
             rew_spec[group] = Composite(reward=Unbounded(shape=(W, N, 1), dtype=torch.float32, device=dev),
                                         shape=(W, N), device=dev)
-            done_spec[group] = Composite({key: Categorical(2, shape=(W, N, 1), dtype=torch.bool, device=dev)
-                                          for key in ("done", "terminated", "truncated")}, shape=(W, N), device=dev)
+        if core.info_keys:
+            obs_spec["info"] = Composite({name: Unbounded(shape=(W,), dtype=dtype, device=dev)
+                                          for name, dtype in core.info_keys.items()}, shape=(W,), device=dev)
         self.observation_spec = obs_spec
         self.action_spec = act_spec
         self.reward_spec = rew_spec
@@ -200,14 +231,12 @@ class MarlRenderTorchRLEnv(EnvBase):
             obs = core.reset(seed=seed)
             self._started = True
         else:
-            if "_reset" not in tensordict.keys() and not tensordict.is_locked:
-                # Only per-group masks were given: whole worlds are reset, so tell TorchRL at the
-                # root (it prevails over the group masks when the reset data are merged).
-                tensordict.set("_reset", mask[:, None].clone())
             obs = core.reset_worlds(mask, seed=seed)
         terminated = ~core.alive
         truncated = core.alive & (core.step_count >= core.max_steps)[:, None]
-        return self._output(obs, None, terminated, truncated)
+        info = {name: torch.zeros(core.num_worlds, dtype=dtype, device=self.device)
+                for name, dtype in core.info_keys.items()}
+        return self._output(obs, None, terminated, truncated, info)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         core = self.core
@@ -224,8 +253,8 @@ class MarlRenderTorchRLEnv(EnvBase):
                 actions = action  # the core checks dtype, shape, range and NaN
                 break
             actions[:, idx] = self._check_group_action(group, action).to(actions.dtype)
-        obs, reward, terminated, truncated, _info = core.step(actions)
-        return self._output(obs, reward, terminated, truncated)
+        obs, reward, terminated, truncated, info = core.step(actions)
+        return self._output(obs, reward, terminated, truncated, info)
 
     # ------------------------------------------------------------------ helpers
     def _check_group_action(self, group, action) -> torch.Tensor:
@@ -243,22 +272,27 @@ class MarlRenderTorchRLEnv(EnvBase):
         return action
 
     def _reset_mask(self, tensordict) -> torch.Tensor | None:
-        """[W] bool of the worlds to reset, or None for a full reset."""
+        """[W] bool of the worlds to reset, or None for a full reset. Raises on a malformed
+        "_reset" before anything changes."""
         if tensordict is None:
             return None
         W = self.core.num_worlds
-        root = tensordict.get("_reset", None)
-        if root is not None:
-            return root.reshape(W, -1).any(-1).to(self.device)
-        mask, found = torch.zeros(W, dtype=torch.bool, device=self.device), False
-        for group in self.group_map:
-            value = tensordict.get((group, "_reset"), None)
-            if value is not None:
-                mask |= value.reshape(W, -1).any(-1).to(self.device)
-                found = True
-        return mask if found else None
+        nested = [group for group in self.group_map if (group, "_reset") in tensordict.keys(True)]
+        if nested:
+            raise ValueError(f"(group, '_reset') entries are not reset keys of this env (got them for {nested}): "
+                             f"worlds are the unit of reset; set the root '_reset', a bool tensor of shape "
+                             f"[{W}, 1] (worlds, 1)")
+        reset = tensordict.get("_reset", None)
+        if reset is None:
+            return None
+        want = f"'_reset' must be a bool tensor of shape [{W}, 1] (worlds, 1), True where a world is reset"
+        if not isinstance(reset, torch.Tensor) or reset.dtype != torch.bool:
+            raise TypeError(f"{want}, got {describe(reset)}")
+        if tuple(reset.shape) != (W, 1):
+            raise ValueError(f"{want}, got {describe(reset)}")
+        return reset[:, 0].to(self.device)
 
-    def _output(self, obs, reward, terminated, truncated) -> TensorDict:
+    def _output(self, obs, reward, terminated, truncated, info) -> TensorDict:
         W = self.core.num_worlds
         done = terminated | truncated
         source = {"done": done.all(1, keepdim=True), "terminated": terminated.all(1, keepdim=True)}
@@ -279,6 +313,9 @@ class MarlRenderTorchRLEnv(EnvBase):
                 spec = self.full_action_spec[group, "action"]
                 spec.update_mask(entries["action_mask"].clone())
             source[group] = TensorDict(entries, batch_size=(W, N), device=self.device)
+        if self.core.info_keys:
+            source["info"] = TensorDict({name: info[name] for name in self.core.info_keys}, batch_size=(W,),
+                                        device=self.device)
         return TensorDict(source, batch_size=(W,), device=self.device)
 
     # ------------------------------------------------------------------ extras

@@ -1,0 +1,264 @@
+"""Write the environment reference, docs/envs.md, and its pictures, from the environments themselves.
+
+    python examples/make_env_docs.py [--out docs] [--seed S]
+
+For every env in ``list_envs()`` it builds the env with its defaults and reads what the page
+shows from the objects: observation keys, shapes and dtypes (from a reset), actions, agent
+names and teams, defaults, physics terms and settings, the keys, shapes and dtypes of the
+step info (from a step), the PettingZoo spaces and the TorchRL specs; the rules are the
+env module's own docstring. The picture of each env (OUT/envs/NAME.png) is every agent's
+view of one world after a seeded reset (PICTURE_SEEDS, or --seed), labelled, beside the
+overview camera.
+
+Only the one-line summaries of reward and episode end, the meaning of the continuous action
+dimensions and of the info keys are written here by hand (the code has no names for them);
+an env or info key without one stops the script with an error naming this file.
+
+tests/test_examples.py runs this script and fails when docs/envs.md differs from its output.
+"""
+import argparse
+import inspect
+import math
+import os
+import sys
+
+import torch
+from PIL import Image, ImageFont
+
+from marl_render.envs import BatchedEnv, env_class, list_envs, make_env, make_parallel_env, make_torchrl_env
+from record_video import frame_image  # examples/record_video.py: labelled views beside the overview
+
+WORLDS = 2  # worlds of the envs built here; shapes print it as "W"
+PICTURE_SEEDS = {"tag": 3}  # reset seeds of the pictures (default 0): tag's 0 shows the predators only walls
+PICTURE_HEIGHT = 256  # views are enlarged (nearest neighbour, at least 2x) to a column at least this high
+
+SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
+    "cartpole": ("dm_control's balance reward in [0, 1] per step: upright x centred x small control "
+                 "x small velocity",
+                 "never terminates; truncated at max_steps"),
+    "spread": ("shared by all agents: -(sum over landmarks of the distance to the closest agent) "
+               "- collision_penalty x (agent pairs touching)",
+               "never terminates; truncated at max_steps"),
+    "tag": ("predators: +catch_reward (10) each per prey caught by any predator; a caught prey: "
+            "-catch_reward; optional distance shaping",
+            "a caught prey terminates (leaves the episode); every agent terminates when all prey are "
+            "caught; truncated at max_steps"),
+    "forage": ("per agent: +item_reward (1) per item it collects",
+               "never terminates; truncated at max_steps"),
+    "push": ("+goal_reward (1) to every agent of the scoring team, -goal_reward to the other team; "
+             "optional zero-sum shaping by the ball's progress",
+             "a goal terminates every agent (one goal per episode); truncated at max_steps"),
+}
+EGOCENTRIC_DIMS = ("thrust along the body's heading (+ forward)", "turn rate (+ left)")
+CONTINUOUS_DIMS = {  # env -> meaning of each continuous action dimension, all in [-1, 1]
+    "cartpole": ("motor control: force on the cart, x 10 N (gear 10)",),
+    "spread": EGOCENTRIC_DIMS, "tag": EGOCENTRIC_DIMS, "forage": EGOCENTRIC_DIMS, "push": EGOCENTRIC_DIMS,
+}
+INFO = {  # step info key -> meaning
+    "step_count": "steps of the episode just stepped",
+    "done_worlds": "every agent of the world terminated or truncated",
+    "collisions": "agent pairs touching (gap < 0.02 m) after the step",
+    "coverage": "sum over landmarks of the distance to the closest agent (m)",
+    "caught": "prey caught in this step",
+    "prey_left": "live prey after the step",
+    "collected": "items collected in this step",
+    "team_score": "the team's total reward of the episode so far (sum over agents and steps)",
+    "goal": "+1: team_a scored in this step, -1: team_b scored, 0: no goal",
+}
+CONDITION = {"pixels": "always", "depth": "`depth=True`", "state": "`state_obs=True`",
+             "action_mask": "discrete actions (the default)"}
+
+
+def missing(what: str, name: str) -> KeyError:
+    return KeyError(f"no {what} for {name!r}: add one to {what} in examples/make_env_docs.py")
+
+
+def shape(tensor_shape) -> str:
+    """"[W, 3, 64, 64, 3]": a shape whose first dimension is the worlds'."""
+    return "[" + ", ".join(["W", *map(str, tensor_shape[1:])]) + "]"
+
+
+def dtype(value) -> str:
+    return str(value).replace("torch.", "")
+
+
+def table(header, rows) -> list:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+
+
+def own_kwargs(cls) -> str:
+    """The env's own keyword arguments with their defaults (beyond BatchedEnv's common ones)."""
+    common = inspect.signature(BatchedEnv.__init__).parameters
+    parameters = inspect.signature(cls.__init__).parameters.values()
+    own = [f"`{p.name}={p.default!r}`" for p in parameters if p.kind == p.KEYWORD_ONLY and p.name not in common]
+    return ", ".join(own) or "none"
+
+
+def physics_text(env) -> str:
+    if env.physics is None:
+        return "none of envs/physics.py's planar terms; its own dynamics (see the rules)"
+    p = env.physics
+    return (f"terms {', '.join(sorted(env.physics_terms))}; dt {p.dt:g} s per step in {p.substeps} substeps, "
+            f"{p.integrator}, restitution {p.restitution:g}, drag {p.drag:.3g} /s, speed limit {p.max_speed:g} m/s")
+
+
+def docstring_parts(cls) -> tuple:
+    """(title, rules) of the env's module docstring: its first line, and the rest."""
+    doc = inspect.getdoc(sys.modules[cls.__module__]) or ""
+    title, _, rules = doc.partition("\n")
+    return title.strip(), rules.strip()
+
+
+def observations(name: str):
+    """Rows of the observation table and the step info table, from a reset and one step."""
+    with make_env(name, num_worlds=WORLDS, state_obs=True, depth=True, seed=0) as env:
+        obs = env.reset()
+        obs_rows = [(f"`{key}`", shape(value.shape), dtype(value.dtype), CONDITION[key]) for key, value in obs.items()]
+        info = env.step(env.random_actions(torch.Generator().manual_seed(0)))[-1]
+    info_rows = []
+    for key, value in info.items():
+        if key not in INFO:
+            raise missing("INFO", key)
+        info_rows.append((f"`{key}`", shape(value.shape), dtype(value.dtype), INFO[key]))
+    return obs_rows, info_rows
+
+
+def actions(env, name: str) -> list:
+    lines = [f"Discrete (the default): `int64 {shape((WORLDS, env.num_agents))}`, values in "
+             f"[0, {env.num_actions}).", ""]
+    lines += table(("action", "meaning"), [(i, f"`{m}`") for i, m in enumerate(env.action_meanings)])
+    with make_env(name, num_worlds=WORLDS, continuous=True) as continuous:
+        dims = CONTINUOUS_DIMS.get(name)
+        if dims is None or len(dims) != continuous.action_dim:
+            raise missing("CONTINUOUS_DIMS", name)
+        dims_shape = shape((WORLDS, env.num_agents, continuous.action_dim))
+        lines += ["", f"Continuous (`continuous=True`): `float32 {dims_shape}`, each in [-1, 1].", ""]
+        lines += table(("dimension", "meaning"), list(enumerate(dims)))
+    return lines
+
+
+def front_ends(name: str) -> list:
+    parallel = make_parallel_env(name)
+    agent = parallel.possible_agents[0]
+    lines = [f"PettingZoo, `make_parallel_env({name!r})` (one world): `observation_space(agent)` = "
+             f"`{parallel.observation_space(agent)}`, `action_space(agent)` = `{parallel.action_space(agent)}` "
+             f"for every agent (`action_mask=True`, `state_obs=True` or `depth=True` make the observation a `Dict`).",
+             ""]
+    parallel.close()
+    env = make_torchrl_env(name, num_worlds=WORLDS)
+    rows = []
+    for spec in (env.observation_spec, env.full_action_spec, env.full_reward_spec):
+        rows += [(f"`{key}`", shape(spec[key].shape), dtype(spec[key].dtype)) for key in spec.keys(True, True)]
+    done = ", ".join(f"`{key}`" for key in env.full_done_spec.keys(True, True))
+    lines += [f"TorchRL, `make_torchrl_env({name!r}, num_worlds=W)` (batch `[W]`, one group per team):", ""]
+    lines += table(("key", "shape", "dtype"), rows)
+    lines += ["", f"and the bool done keys {done} (`[W, 1]`, per world: worlds are the unit of reset, so the "
+                  f"one reset key is `_reset`; the per-agent flags are the group entries above)."]
+    env.close()
+    return lines
+
+
+def picture(env, seed: int, path: str) -> None:
+    """Every agent's view of world 0 after a reset with `seed`, labelled, beside the overview."""
+    obs = env.reset(seed=seed)
+    scale = picture_scale(env)
+    font = ImageFont.load_default(size=max(9, env.resolution[0] * scale // 10))
+    image = frame_image(obs["pixels"][0], env.render_overview()[0], env.agent_names, scale, font)
+    Image.fromarray(image).save(path, optimize=True)
+
+
+def picture_scale(env) -> int:
+    return max(2, -(-PICTURE_HEIGHT // (env.num_agents * env.resolution[0])))
+
+
+def env_section(name: str, seed: int | None, picture_dir: str | None) -> list:
+    cls = env_class(name)
+    seed = PICTURE_SEEDS.get(name, 0) if seed is None else seed
+    if name not in SUMMARY:
+        raise missing("SUMMARY", name)
+    reward, episode = SUMMARY[name]
+    title, rules = docstring_parts(cls)
+    obs_rows, info_rows = observations(name)
+    with make_env(name, num_worlds=WORLDS) as env:
+        low, high = env.agent_range
+        H, W = env.resolution
+        oh, ow = env.overview_resolution
+        lines = [f"## {name}", "", title, ""]
+        if picture_dir is not None:
+            picture(env, seed, os.path.join(picture_dir, f"{name}.png"))
+        lines += [f"![{name}: every agent's view of one world, and the overview](envs/{name}.png)", "",
+                  f"*Every agent's view (left, {H}x{W} shown at {picture_scale(env)}x) of one world after "
+                  f"`reset(seed={seed})`, and the overview camera (right, `render_overview()`).*", ""]
+        teams = "; ".join(f"`{team}`: {', '.join(agents)}" for team, agents in env.groups.items())
+        facts = [
+            ("class", f"`{cls.__module__}.{cls.__name__}`"),
+            ("agents (default)", f"{env.num_agents} ({f'`num_agents` {low} to {high}' if high > low else 'fixed'})"),
+            ("teams (groups)", teams),
+            ("max_steps", env.max_steps),
+            ("resolution", f"{H}x{W} per agent; overview {oh}x{ow}"),
+            ("camera", f"field of view {math.degrees(env.fov_y):g} degrees (vertical), near {env.near:g} m, "
+                       f"far {env.far:g} m"),
+            ("physics", physics_text(env)),
+            ("own keyword arguments", own_kwargs(cls)),
+            ("reward", reward),
+            ("episode end", episode),
+        ]
+        lines += table(("", ""), [(f"**{k}**", v) for k, v in facts])
+        lines += ["", "### Observations", "", "`obs = env.reset()` / `env.step(actions)[0]` of the batched core "
+                  f"(`make_env({name!r}, num_worlds=W)`), shapes at the defaults:", ""]
+        lines += table(("key", "shape", "dtype", "present"), obs_rows)
+        lines += ["", "### Actions", ""] + actions(env, name)
+    lines += ["", "### Step info", "", "`info = env.step(actions)[4]`, episode statistics included:", ""]
+    lines += table(("key", "shape", "dtype", "meaning"), info_rows)
+    lines += ["", "### Front ends", ""] + front_ends(name)
+    lines += ["", f"### Rules (the docstring of `envs/{name}.py`)", "", rules, ""]
+    return lines
+
+
+def page(seed: int | None, picture_dir: str | None) -> str:
+    names = list_envs()
+    lines = ["# Environments", "",
+             "<!-- Generated by examples/make_env_docs.py from the environments; edit that script or the "
+             "env modules, then run `python examples/make_env_docs.py`. -->", "",
+             "Every env is a `BatchedEnv` (envs/core.py) of W worlds x A agents: `make_env(name, num_worlds=W, "
+             "...)` for the batched core, `make_parallel_env(name)` for PettingZoo (one world), "
+             "`make_torchrl_env(name, num_worlds=W)` for TorchRL. Common keyword arguments: `num_worlds`, "
+             "`num_agents`, `resolution` (int or (H, W)), `max_steps`, `continuous`, `state_obs`, `depth`, "
+             "`device`, `seed`, `autoreset`. Agents that leave an episode (caught prey) stay in every tensor: "
+             "reward 0, reported terminated, actions ignored (they must still be valid, e.g. 0), until their "
+             "world is reset. `truncated` is True for the agents still in the episode when the world reaches "
+             "`max_steps`.", ""]
+    rows = []
+    for name in names:
+        if name not in SUMMARY:
+            raise missing("SUMMARY", name)
+        cls = env_class(name)
+        rows.append((f"[`{name}`](#{name})", cls.default_num_agents, cls.default_max_steps, *SUMMARY[name]))
+    lines += table(("env", "agents", "max_steps", "reward", "episode end"), rows) + [""]
+    for name in names:
+        lines += env_section(name, seed, picture_dir)
+    return "\n".join(lines)
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default="docs", help="folder for envs.md and envs/NAME.png (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=None, help="reset seed of every picture (default: "
+                                                                 f"{PICTURE_SEEDS}, else 0)")
+    return parser.parse_args(argv)
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    picture_dir = os.path.join(args.out, "envs")
+    os.makedirs(picture_dir, exist_ok=True)
+    text = page(args.seed, picture_dir)
+    path = os.path.join(args.out, "envs.md")
+    with open(path, "w") as f:
+        f.write(text)
+    print(f"wrote {path} and {len(list_envs())} pictures in {picture_dir}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,241 @@
+"""The examples as users run them: every script's --help, the cheap ones end to end with tiny
+settings (files checked: they exist and decode to the right size), and the pieces of
+record_video.py, train_mappo.py and make_env_docs.py that their results rest on."""
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image, ImageFont
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+SCRIPTS = sorted(p.name for p in EXAMPLES.glob("*.py"))
+OPTIONS = {  # beyond --help and --out, which every example takes
+    "demo.py": ["--worlds", "--agents", "--resolution", "--bench-worlds", "--steps"],
+    "custom_scene.py": ["--worlds", "--resolution"],
+    "random_pettingzoo.py": ["--env", "--episodes", "--steps", "--resolution", "--seed"],
+    "random_torchrl.py": ["--env", "--worlds", "--steps", "--max-steps", "--resolution", "--seed"],
+    "record_video.py": ["--env", "--steps", "--resolution", "--scale", "--seed"],
+    "train_mappo.py": ["--minutes", "--worlds", "--agents", "--resolution", "--max-steps", "--seed"],
+    "distributed_collect.py": ["--env", "--workers", "--worlds", "--resolution", "--steps-per-batch", "--batches"],
+    "make_env_docs.py": ["--seed"],
+    "jax_policy_gradient.py": ["--worlds", "--resolution", "--steps", "--horizon", "--seed"],
+}
+
+
+def run(script: str, *args, cwd: Path, timeout: float = 120) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    result = subprocess.run([sys.executable, str(EXAMPLES / script), *map(str, args)], cwd=cwd, env=env,
+                            capture_output=True, text=True, timeout=timeout)
+    assert result.returncode == 0, f"{script} {args}: rc {result.returncode}\n{result.stdout}\n{result.stderr[-3000:]}"
+    return result
+
+
+def load(script: str) -> types.ModuleType:
+    """An example as a module (its main() does not run)."""
+    spec = importlib.util.spec_from_file_location(script[:-3], EXAMPLES / script)
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(EXAMPLES))  # make_env_docs imports record_video, as it does when run
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(EXAMPLES))
+    return module
+
+
+def png(path: Path) -> np.ndarray:
+    assert path.is_file(), f"{path} was not written"
+    with Image.open(path) as image:
+        assert image.format == "PNG"
+        return np.asarray(image.convert("RGB"))
+
+
+# Runs `python SCRIPT --help` for every script in one subprocess (torch and torchrl are imported
+# once, not once per script): {script: [exit code or the error, stdout]}.
+HELP_DRIVER = """
+import contextlib, io, json, os, runpy, sys
+results = {}
+for path in sys.argv[1:]:
+    out = io.StringIO()
+    sys.argv = [path, "--help"]
+    sys.path.insert(0, os.path.dirname(path))
+    try:
+        with contextlib.redirect_stdout(out):
+            runpy.run_path(path, run_name="__main__")
+        code = "ran without exiting: --help ignored"
+    except SystemExit as exc:
+        code = exc.code
+    except Exception as exc:
+        code = f"{type(exc).__name__}: {exc}"
+    results[os.path.basename(path)] = [code, out.getvalue()]
+print(json.dumps(results))
+"""
+
+
+@pytest.fixture(scope="module")
+def help_texts(tmp_path_factory):
+    cwd = tmp_path_factory.mktemp("help")
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    result = subprocess.run([sys.executable, "-c", HELP_DRIVER, *(str(EXAMPLES / s) for s in SCRIPTS)], cwd=cwd,
+                            env=env, capture_output=True, text=True, timeout=180)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert list(cwd.iterdir()) == []  # --help writes nothing
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_help_lists_the_options(script, help_texts):
+    code, out = help_texts[script]
+    assert code == 0, f"{script} --help: {code}"
+    assert out.startswith("usage: ")
+    for option in ["--out", *OPTIONS.get(script, [])]:
+        assert f"{option} " in out or f"{option}\n" in out, f"{script} --help does not list {option}:\n{out}"
+
+
+def test_demo_writes_the_grid_of_views(tmp_path):
+    out = run("demo.py", "--out", tmp_path / "o", "--worlds", 2, "--agents", 3, "--resolution", 32,
+              "--bench-worlds", 4, "--steps", 2, cwd=tmp_path).stdout
+    grid = png(tmp_path / "o" / "demo.png")
+    assert grid.shape == (2 * 34 * 2, 3 * 34 * 2, 3)  # worlds x agents tiles of 32 px + 2 px gaps, shown at 2x
+    assert grid[:64, :64].std() > 0  # the first view has content
+    assert "throughput:" in out and "views/s" in out
+    assert not (tmp_path / "out").exists()  # --out is honoured, nothing goes to ./out
+
+
+def test_custom_scene_writes_a_row_per_world(tmp_path):
+    run("custom_scene.py", "--out", tmp_path / "o", "--worlds", 3, "--resolution", 24, 40, cwd=tmp_path)
+    grid = png(tmp_path / "o" / "custom_scene.png")
+    assert grid.shape == (3 * 24, 2 * 40, 3)
+    left, right = grid[:24, :40], grid[:24, 40:]
+    assert (np.abs(left[..., 0].astype(int) - left[..., 2]) > 0).any() and not np.array_equal(left, right)
+
+
+def test_random_pettingzoo_writes_the_render(tmp_path):
+    from marl_render.wrappers.pettingzoo import make_parallel_env
+
+    out = run("random_pettingzoo.py", "--env", "tag", "--episodes", 1, "--steps", 3, "--resolution", 16,
+              "--out", tmp_path, cwd=tmp_path).stdout
+    assert "episode 0: 3 steps so far" in out
+    env = make_parallel_env("tag", resolution=16, max_steps=3, render_mode="rgb_array")
+    env.reset(seed=0)
+    expected = env.render().shape
+    env.close()
+    assert png(tmp_path / "random_pettingzoo.png").shape == expected
+
+
+def test_random_torchrl_writes_the_overviews(tmp_path):
+    out = run("random_torchrl.py", "--env", "spread", "--worlds", 3, "--steps", 3, "--max-steps", 2,
+              "--resolution", 16, "--out", tmp_path, cwd=tmp_path).stdout
+    assert "agents: pixels (3, 3, 3, 16, 16, 3) torch.uint8" in out
+    assert "3 episodes finished" in out  # every world ends its episode at step 2
+    assert png(tmp_path / "random_torchrl.png").shape == (128, 3 * 128, 3)
+
+
+def test_record_video_writes_a_gif_of_labelled_tiles(tmp_path):
+    gif = tmp_path / "v" / "tag.gif"
+    run("record_video.py", "--env", "tag", "--steps", 3, "--resolution", 16, "--scale", 2, "--out", gif, cwd=tmp_path)
+    with Image.open(gif) as image:
+        assert image.format == "GIF" and image.n_frames == 4  # the reset and 3 steps
+        assert image.size == (32 + 128, 4 * 32)  # 4 views of 16 px at 2x in a column, the overview as high
+
+
+def test_record_video_rejects_an_unknown_format():
+    record_video = load("record_video.py")
+    with pytest.raises(SystemExit) as exc:
+        record_video.parse_args(["--out", "episode.avi"])
+    assert exc.value.code == 2
+
+
+def test_frame_image_labels_every_tile():
+    record_video = load("record_video.py")
+    font = ImageFont.load_default(size=10)
+    views = torch.zeros(2, 16, 16, 3, dtype=torch.uint8)
+    overview = torch.zeros(8, 8, 3, dtype=torch.uint8)
+    image = record_video.frame_image(views, overview, ["agent_0", "prey_1 (left)"], 2, font)
+    assert image.shape == (64, 32 + 64, 3) and image.dtype == np.uint8
+    white = (image > 200).all(-1)
+    tiles = {"agent_0": (slice(0, 32), slice(0, 32)), "prey_1": (slice(32, 64), slice(0, 32)),
+             "overview": (slice(0, 64), slice(32, 96))}
+    for name, (rows, cols) in tiles.items():
+        tile = white[rows, cols]
+        assert tile[:14].any(), f"no label on the {name} tile"
+        assert not tile[16:].any(), f"the {name} label spills below the tile's top"
+    assert not np.array_equal(white[:14, :32], white[32:46, :32])  # the two agents' labels differ
+    assert (image[0, 5] == 25).all() and (image[31, 5] == 25).all()  # tile outlines
+    assert (image[20, 16] == 0).all()  # the view itself is untouched away from its label
+
+
+def test_agent_labels_mark_agents_that_left():
+    record_video = load("record_video.py")
+    env = types.SimpleNamespace(agent_names=["predator_0", "prey_0"], alive=torch.tensor([[True, False], [True, True]]))
+    assert record_video.agent_labels(env) == ["predator_0", "prey_0 (left)"]
+
+
+def test_completed_episodes_sums_the_rewards_of_each_episode():
+    from tensordict import TensorDict
+
+    train_mappo = load("train_mappo.py")
+    reward = torch.zeros(2, 5, 2, 1)  # [worlds, steps, agents, 1]
+    reward[0, :, 0], reward[0, :, 1] = 1.0, 3.0  # world 0: mean over agents 2 per step
+    reward[1] = 1.0
+    done = torch.zeros(2, 5, 1, dtype=torch.bool)
+    done[0, 1] = done[0, 4] = True  # world 0 ends an episode at steps 1 and 4; world 1 never
+    batch = TensorDict({"next": {"agents": {"reward": reward}, "done": done}}, batch_size=(2, 5))
+    ended, running = train_mappo.completed_episodes(batch, torch.tensor([10.0, 0.0]))
+    assert ended.tolist() == [10.0 + 2 * 2, 3 * 2]  # the first episode began in an earlier batch
+    assert running.tolist() == [0.0, 5.0]
+
+
+def test_evaluate_returns_the_episode_sum_per_agent_over_the_worlds_given():
+    from marl_render.envs import make_env, make_torchrl_env
+
+    train_mappo = load("train_mappo.py")
+    worlds, steps, seed = 3, 4, 5
+
+    def noop(td):
+        td.set(("agents", "action"), torch.zeros(worlds, 3, dtype=torch.long))
+        return td
+
+    env = make_torchrl_env("spread", num_worlds=worlds, resolution=8, max_steps=steps)
+    mean_return, episodes = train_mappo.evaluate(env, noop, seed, random=False)
+    env.close()
+    core = make_env("spread", num_worlds=worlds, resolution=8, max_steps=steps)
+    core.reset(seed=seed)
+    total = sum(core.step(torch.zeros(worlds, 3, dtype=torch.long))[1] for _ in range(steps))  # [worlds, agents]
+    core.close()
+    assert episodes == worlds
+    assert mean_return == pytest.approx(float(total.mean()), rel=1e-5)
+
+
+def test_train_mappo_reports_episode_returns_of_the_worlds_given(tmp_path):
+    out_dir = tmp_path / "mappo"
+    out = run("train_mappo.py", "--minutes", 0, "--worlds", 3, "--resolution", 16, "--max-steps", 4, "--rollout", 6,
+              "--epochs", 1, "--out", out_dir, cwd=tmp_path).stdout
+    result = json.loads((out_dir / "result.json").read_text())
+    assert result["eval_episodes"] == 3 and result["episode_steps"] == 4  # --worlds episodes, not a fixed 32
+    assert "(3 episodes)" in out
+    for key in ("random_return", "untrained_return", "trained_return"):
+        assert -100 < result[key] < 0  # spread's reward is negative; 4 steps of at most a few metres each
+    assert result["curve"][0][3] is not None  # 6 steps of 4-step episodes: every world ended one
+    assert png(out_dir / "curve.png").shape[0] > 100
+
+
+def test_env_docs_are_up_to_date(tmp_path):
+    from marl_render.envs import list_envs
+
+    run("make_env_docs.py", "--out", tmp_path, cwd=tmp_path)
+    written = (tmp_path / "envs.md").read_text()
+    committed = (ROOT / "docs" / "envs.md").read_text()
+    assert written == committed, "docs/envs.md is out of date: run python examples/make_env_docs.py"
+    for name in list_envs():
+        assert f"](envs/{name}.png)" in written and f"\n## {name}\n" in written
+        picture = png(tmp_path / "envs" / f"{name}.png")
+        assert picture.shape[0] >= 256 and picture.std() > 10
+        assert png(ROOT / "docs" / "envs" / f"{name}.png").shape == picture.shape
