@@ -8,7 +8,9 @@ only its world: state tensors, a reset, a step, a scene and the instance poses.
 Data contract (W worlds, A agents, H x Wpx pixels)::
 
     obs = env.reset(seed=0)          # dict of tensors, all [W, A, ...]
-      "pixels"       uint8   [W, A, H, Wpx, 3]   always
+      "pixels"       uint8   [W, A, H, Wpx, C]   always; C = 3, or 1 with grayscale=True (BT.601
+                                                  luma drawn by the renderer, a third of the
+                                                  bytes read back)
       "depth"        float32 [W, A, H, Wpx]      depth=True (metres along the view axis;
                                                   background = the camera's far plane)
       "state"        float32 [W, A, state_dim]   state_obs=True
@@ -133,9 +135,10 @@ class BatchedEnv(abc.ABC):
     ``_state_obs`` (and optionally ``_init_cameras``, ``_action_mask``, ``_overview_camera``).
 
     Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
-    (H, W)), max_steps, continuous, state_obs, depth, device, seed, autoreset, and
-    torch_threads (default 1, at most 1024): torch intra-op threads used *inside* env calls
-    (the caller's setting is restored on return; None leaves it alone). See marl_render/threads.py.
+    (H, W)), max_steps, continuous, state_obs, depth, device, seed, autoreset, grayscale
+    (one-channel pixels, `pixel_channels`), and torch_threads (default 1, at most 1024):
+    torch intra-op threads used *inside* env calls (the caller's setting is restored on
+    return; None leaves it alone). See marl_render/threads.py.
 
     Attributes: name, num_worlds (W), num_agents (A), agent_names, groups (team ->
     agent names, in agent-index order), resolution (H, W), continuous, num_actions
@@ -167,7 +170,7 @@ class BatchedEnv(abc.ABC):
     def __init__(self, *, num_worlds: int = 1, num_agents: int | None = None, resolution=None,
                  max_steps: int | None = None, continuous: bool = False, state_obs: bool = False,
                  depth: bool = False, device="cpu", seed: int | None = None, autoreset: bool = False,
-                 torch_threads: int | None = 1):
+                 torch_threads: int | None = 1, grayscale: bool = False):
         self._closed = True  # until fully built: close() and __del__ then do nothing
         self.num_worlds = positive_int("num_worlds", num_worlds)
         low, high = self.agent_range
@@ -187,6 +190,8 @@ class BatchedEnv(abc.ABC):
         self.continuous = _flag("continuous", continuous)
         self.state_obs = _flag("state_obs", state_obs)
         self.depth = _flag("depth", depth)
+        self.grayscale = _flag("grayscale", grayscale)
+        self.pixel_channels = 1 if self.grayscale else 3
         self.autoreset = _flag("autoreset", autoreset)
         self.device = _device(device)
         self.torch_threads = None if torch_threads is None else thread_count("torch_threads", torch_threads)
@@ -522,7 +527,7 @@ class BatchedEnv(abc.ABC):
         return scene
 
     def _make_renderer(self, scene: mr.Scene, overview: bool) -> mr.BatchRenderer:
-        renderer = mr.BatchRenderer(scene)
+        renderer = mr.BatchRenderer(scene, color="gray" if self.grayscale and not overview else "rgb")
         try:
             self._init_cameras(renderer, overview)
         except BaseException:

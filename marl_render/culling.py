@@ -20,19 +20,20 @@ def frustum_planes(view_projection: torch.Tensor) -> torch.Tensor:
     return planes / planes[..., :3].norm(dim=-1, keepdim=True).clamp_min(1e-30)
 
 
-def visible_pairs(planes: torch.Tensor, centers: torch.Tensor, radii: torch.Tensor,
-                  candidate: torch.Tensor) -> torch.Tensor:
-    """Flat indices view * C + instance of the visible pairs, sorted by view.
+def inside_frustum(planes: torch.Tensor, centers: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
+    """bool [W, A, K]: whether the bounding sphere of instance k of world w meets view (w, a).
 
-    planes [W, A, 6, 4], centers [W, C, 3] (relative to the world origin), radii [W, C],
-    candidate [W, A, C] bool (active and not the viewing agent's own body).
+    planes [W, A, 6, 4], centers [W, K, 3] (relative to the world origin), radii [W, K].
     """
     planes = planes.to(torch.float32)  # coordinates are relative to the world origin: small
-    centers = centers.to(torch.float32)
-    # [W, A, 6, 1, 3] x [W, 1, 1, C, 3]: tiny operands, where an einsum/bmm costs more in dispatch.
-    distance = (planes[:, :, :, None, :3] * centers[:, None, None]).sum(-1) + planes[..., 3:4]
-    inside = (distance >= -radii[:, None, None, :].to(torch.float32)).all(dim=2)
-    return (inside & candidate).flatten().nonzero().squeeze(1).to(torch.int32)
+    # [W, A, 6, 1, 3] x [W, 1, 1, K, 3]: tiny operands, where an einsum/bmm costs more in dispatch.
+    distance = (planes[:, :, :, None, :3] * centers.to(torch.float32)[:, None, None]).sum(-1) + planes[..., 3:4]
+    return (distance >= -radii[:, None, None, :].to(torch.float32)).all(dim=2)
+
+
+def pair_list(mask: torch.Tensor) -> torch.Tensor:
+    """int32 flat indices view * K + instance of the True entries of mask [W, A, K], sorted by view."""
+    return mask.flatten().nonzero().squeeze(1).to(torch.int32)
 
 
 def mesh_radius(mesh) -> float:

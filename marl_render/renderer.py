@@ -3,10 +3,13 @@
 Per step:
 1. pack the groups that changed into their buffer textures (one row per world
    instance, read by all A views of that world);
-2. pack one view-projection per view (cameras free or mounted on instances);
-3. one draw per mesh group with instance count = views x capacity; the vertex shader
-   places view v in its tile and clips it to that tile;
-4. one readback of the tiled framebuffer, one strided copy into the batch tensor.
+2. pack one view-projection per view when a camera moved (cameras free or mounted on
+   instances), and list the visible (view, instance) pairs when anything moved;
+3. one draw per mesh group and framebuffer with instance count = visible pairs; the
+   vertex shader places view v in its tile (one column of tiles per framebuffer) and
+   clips it to that tile;
+4. once every framebuffer is drawn, one GL read per framebuffer straight into the
+   batch tensor (marl_render/readback.py).
 """
 from __future__ import annotations
 
@@ -18,27 +21,37 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import backend, shaders
+from . import backend, readback, shaders
 from .images import texture_pixels
 from .meshes import MeshData, to_panda_geom
-from .triangle_corners import to_panda_geom_with_corners
+from .provoking import shared_corner_mesh
 from .scene import Scene, StaticGroup
-from .culling import frustum_planes, mesh_radius, visible_pairs
-from .threads import caller_threads, one_thread
-from .tiling import TileLayout, copy_tiles, framebuffer_tiles, plan_layout
-from .transforms import normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_multiply, quat_rotate, view_matrix, look_at_quat
+from .triangle_corners import to_panda_geom_with_corners
+from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
+from .threads import one_thread
+from .tiling import TileLayout, column_layout
+from .transforms import look_at_quat, normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_to_matrix
 from .validation import FLOAT_DTYPES, as_tensor, check_finite, check_host, check_range, check_shape, describe, positive_int
 
 # Worlds are re-centred when a camera strays this far from its world's origin, so that
 # float32 positions relative to the origin stay precise (see the static-group shader).
 RECENTRE_DISTANCE = 1024.0
 
+# Camera frame (x right, y forward, z up) -> GL eye frame (x right, y up, looking down -z).
+_CAMERA_TO_GL = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+
+# Frustum culling of a group is paused for CULL_RECHECK frames when its last test kept more
+# than CULL_KEEPS of the candidate pairs: drawing those few hidden pairs costs less than
+# testing every frame (cart-pole: everything is always in view).
+CULL_KEEPS = 0.9
+CULL_RECHECK = 32
+
 
 @dataclass
 class Frame:
-    """One render: rgb [W, A, H, W, 3] uint8 (or [W, A, 3, H, W]), depth [W, A, H, W] float32
-    metres along the view axis (inf where nothing was drawn), segmentation [W, A, H, W] int32
-    (0 = background). Tensors are owned by the caller."""
+    """One render: rgb [W, A, H, W, C] uint8 (or [W, A, C, H, W]; C = 3, or 1 for color="gray"),
+    depth [W, A, H, W] float32 metres along the view axis (inf where nothing was drawn),
+    segmentation [W, A, H, W] int32 (0 = background). Tensors are owned by the caller."""
 
     rgb: torch.Tensor
     depth: torch.Tensor | None = None
@@ -61,29 +74,47 @@ def _writable(texture, dtype) -> torch.Tensor:
 
 @dataclass
 class _DrawGroup:
-    """GL side of one group: its node, instance data, visible-pair list and bounds."""
+    """GL side of one group: its nodes (one per framebuffer), instance data, visible pairs, bounds."""
 
-    node: object
+    node: object  # the node drawn in the first framebuffer (the others are copies of it)
     count: int  # instances per world (static: in total)
     static: bool
     instances: object  # float32 buffer texture
     pairs: object  # int32 buffer texture: visible view * count + instance
     radius: float  # bounding sphere of the mesh at unit scale
     pass_ranges: list | None = None  # [(first pair, pair count)] per pass
-    pair_offset: object = None  # PTA_int shader input, updated in place per pass
+    pass_nodes: list | None = None  # [(NodePath, PTA_int pair offset, instance count drawn)] per pass
+    frustum_pause: int = 0  # frames left without frustum tests (see CULL_KEEPS)
+    frustum_culled: bool = False  # whether the current pair list came from a frustum test
+    static_bounds: tuple | None = None  # (centres, radii) of a static group for the current origins
+
+
+@dataclass
+class _Pass:
+    """One framebuffer: a column of up to layout.rows views, its scene root and render textures."""
+
+    views: range
+    buffer: object  # Panda3D GraphicsBuffer
+    root: object  # NodePath holding this pass's copy of every group node
+    color: object  # Texture rendered into (RGBA8)
+    aux: dict  # name -> Texture of the depth / segmentation outputs
+    texture_ids: dict | None = None  # GL names of the textures, known after the first frame
 
 
 class BatchRenderer:
     """Renders scene.num_worlds x scene.agents_per_world views per call of render()."""
 
     READBACKS = ("zero_copy", "copy")
+    COLORS = {"rgb": 3, "gray": 1}  # color -> channels of Frame.rgb
 
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
                  egl_device_index: int | None = None, readback: str = "zero_copy", supersample: int = 1,
-                 multisamples: int = 0):
-        """readback: "zero_copy" (default) reads the tiles straight out of Panda3D's RAM
-        image; "copy" first copies the whole image into a bytes object (the usual way,
-        kept only so that benchmarks can show what the zero-copy path saves).
+                 multisamples: int = 0, color: str = "rgb"):
+        """readback: "zero_copy" (default) reads each framebuffer straight into the output
+        tensor; "copy" reads it into a buffer first and copies that into the output (the
+        usual way, kept only so that benchmarks can show what the direct read saves).
+        color="gray": one channel, ITU-R BT.601 luma computed in the fragment shader, so
+        a third of the bytes is read back (and channels_first costs no copy).
         supersample=k renders every view at k x the resolution and box-filters it down
         (anti-aliasing; depth and segmentation take the sample nearest each pixel centre).
         multisamples=n asks the GL for n-sample MSAA (colour only)."""
@@ -91,8 +122,11 @@ class BatchRenderer:
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
         if readback not in self.READBACKS:
             raise ValueError(f"readback must be one of {list(self.READBACKS)}, got {readback!r}")
+        if not isinstance(color, str) or color not in self.COLORS:
+            raise ValueError(f"color must be one of {list(self.COLORS)}, got {color!r}")
+        self.color, self.channels = color, self.COLORS[color]
         self.supersample = positive_int("supersample", supersample)
-        self._supersamples = self._accumulator = None  # reused buffers of the box filter
+        self._staging = self._accumulator = None  # reused buffers of reads that need a copy afterwards
         if isinstance(multisamples, bool) or not isinstance(multisamples, int) or multisamples < 0:
             raise ValueError(f"multisamples must be an int >= 0, got {multisamples!r}")
         if multisamples and {"depth", "segmentation"} & set(scene.effects):
@@ -112,16 +146,16 @@ class BatchRenderer:
             raise ValueError(f"max_framebuffer_size must be an int in [1, {gl_max}], got {max_framebuffer_size!r}")
         height, width = scene.resolution
         k = self.supersample
-        self.layout: TileLayout = plan_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
+        self.layout: TileLayout = column_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
         self.effects = frozenset(scene.effects)
         self._init_state()
-        self.buffer = self.root = None
+        self._passes: list[_Pass] = []
         self._groups = {}
         try:
-            # Panda3D opens the framebuffer right away; until it is inactive, any frame
+            # Panda3D opens each framebuffer right away; until it is inactive, any frame
             # drawn by another thread would draw it too.
             with self._context.current():
-                self._build_target()
+                self._build_passes()
                 self._build_groups()
         except BaseException:
             self.close()  # free whatever GL objects were made before the failure
@@ -144,8 +178,8 @@ class BatchRenderer:
         if mount is not None:
             tilt = None
             if mount.pitch:
-                tilt = quat_from_yaw_pitch_roll(torch.tensor(0.0, dtype=torch.float64),
-                                                torch.tensor(mount.pitch, dtype=torch.float64))
+                tilt = quat_to_matrix(quat_from_yaw_pitch_roll(torch.tensor(0.0, dtype=torch.float64),
+                                                               torch.tensor(mount.pitch, dtype=torch.float64)))
             self._mount_constants = (torch.tensor(mount.instance), torch.tensor(mount.offset, dtype=torch.float64), tilt)
         self._state = {}
         for name, group in s.groups.items():
@@ -161,79 +195,87 @@ class BatchRenderer:
             if mount is not None and mount.group == name and mount.hide_owner:
                 state["owner"][:, list(mount.instance)] = torch.arange(A)
             self._state[name] = state
-        self._dirty = set(s.groups)
+        self._dirty = set(s.groups)  # groups whose instance data changed since the last frame
+        self._mask_dirty = set(s.groups)  # groups whose active / owner masks changed
+        self._cameras_dirty = True  # free cameras or their lenses changed
+        self._projection = None  # (lens [W, A, 4, 3], shift [W, A, 4]) float64, made again when a lens changes
+        self._origin_moved = True  # world origins not yet written to the views texture
+        self._candidate_cache = {}  # group -> ([W, A, C] bool candidate pairs, their count)
 
     # ------------------------------------------------------------------ GL objects
-    def _build_target(self):
-        from panda3d.core import (Camera, ColorBlendAttrib, CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib,
-                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, LVecBase2f, LVecBase2i,
-                                  NodePath, OmniBoundingVolume, Texture, TransparencyAttrib, WindowProperties)
+    def _build_passes(self):
+        """One framebuffer per column of views, each with its own scene root and camera."""
+        from panda3d.core import LVecBase2f
 
-        ctx = self._context
-        width, height = self.layout.framebuffer_size
-        aux = [e for e in ("depth", "segmentation") if e in self.effects]
+        self.views_texture = _buffer_texture("views", self.scene.num_views * shaders.VIEW_TEXELS)
+        lighting, fog = self.scene.lighting, self.scene.fog
+        direction = np.asarray(lighting.direction, dtype=float)
+        self._shared_inputs = {
+            "views": self.views_texture, "agents": _int(self.scene.agents_per_world),
+            "light_direction": _vec3(direction / np.linalg.norm(direction)), "light_color": _vec3(lighting.color),
+            "ambient_color": _vec3(lighting.ambient), "fog_color": _vec3(fog.color),
+            "fog_density": float(fog.density),
+            "tile_size": LVecBase2f(self.layout.tile_width, self.layout.tile_height)}
+        for index in range(self.layout.num_passes):
+            self._passes.append(self._make_pass(self.layout.pass_views(index)))
+
+    def _make_pass(self, views: range) -> _Pass:
+        from panda3d.core import (Camera, ColorBlendAttrib, CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib,
+                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, NodePath,
+                                  OmniBoundingVolume, Texture, TransparencyAttrib, WindowProperties)
+
+        ctx, layout = self._context, self.layout
+        width, height = layout.tile_width, layout.tile_height * len(views)
+        aux_names = [e for e in ("depth", "segmentation") if e in self.effects]
         props = FrameBufferProperties()
-        # No alpha: a 3-byte readback makes the tile copy a run of whole rows, which is
-        # several times cheaper than dropping every fourth byte afterwards. Panda3D reads
-        # aux targets with the colour target's channel count, so those need alpha.
-        self._color_channels = 4 if aux else 3
-        props.set_rgba_bits(8, 8, 8, 8 if aux else 0)
+        props.set_rgba_bits(8, 8, 8, 8)
         props.set_depth_bits(24)
-        props.set_aux_rgba(len(aux))
+        props.set_aux_rgba(len(aux_names))
         props.set_multisamples(self.multisamples)
         # One name for all buffers: Panda3D keeps a statistics collector per buffer name
         # for the life of the process (a unique name per renderer leaked about 3 KB each).
-        self.buffer = ctx.engine.make_output(
+        buffer = ctx.engine.make_output(
             ctx.pipe, "marl_render", 0, props, WindowProperties.size(width, height),
             GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
-        if self.buffer is None:
+        if buffer is None:
             raise backend.GLUnavailableError(
-                f"could not create a {width}x{height} offscreen framebuffer with {len(aux)} aux targets; "
+                f"could not create a {width}x{height} offscreen framebuffer with {len(aux_names)} aux targets; "
                 "lower resolution / num views or max_framebuffer_size")
-        self.color_texture = Texture("color")
-        self.buffer.add_render_texture(self.color_texture, GraphicsOutput.RTM_copy_ram, GraphicsOutput.RTP_color)
-        self.aux_textures = {}
-        for index, name in enumerate(aux):
+        # Render into textures that stay in GL; readback.py reads them once all passes are drawn.
+        color = Texture("color")
+        buffer.add_render_texture(color, GraphicsOutput.RTM_bind_or_copy, GraphicsOutput.RTP_color)
+        aux = {}
+        for index, name in enumerate(aux_names):
             texture = Texture(name)
-            texture.setup_2d_texture(width, height, Texture.T_unsigned_byte, Texture.F_rgba8)
             plane = GraphicsOutput.RTP_aux_rgba_0 + index
-            self.buffer.add_render_texture(texture, GraphicsOutput.RTM_copy_ram, plane)
-            # Clear values in BGRA byte order: depth +inf (0x7f800000), segment 0.
-            clear = (128 / 255, 0.0, 0.0, 127 / 255) if name == "depth" else (0.0, 0.0, 0.0, 0.0)
-            self.buffer.set_clear_active(plane, True)
-            self.buffer.set_clear_value(plane, clear)
-            self.aux_textures[name] = texture
+            buffer.add_render_texture(texture, GraphicsOutput.RTM_bind_or_copy, plane)
+            # Clear values as RGBA bytes of the little-endian value: depth +inf (0x7f800000), segment 0.
+            clear = (0.0, 0.0, 128 / 255, 127 / 255) if name == "depth" else (0.0, 0.0, 0.0, 0.0)
+            buffer.set_clear_active(plane, True)
+            buffer.set_clear_value(plane, clear)
+            aux[name] = texture
         ctx.drop_render_texture_events()
-        r, g, b = self.scene.background[:3]
-        self.buffer.set_clear_color((b, g, r, 1.0))  # swizzled like the shader output
-        self.buffer.set_active(False)
+        background = np.asarray(self.scene.background[:3], dtype=float)
+        if self.color == "gray":  # the shader's luma of the background
+            background = np.full(3, float(np.dot(background, shaders.GRAY_WEIGHTS)))
+        buffer.set_clear_color(tuple(background) + (1.0,))
+        buffer.set_active(False)
 
-        self.root = NodePath("marl_render_root")
+        root = NodePath(f"marl_render_pass_{views.start}")
         camera = Camera("tiles")
         camera.set_cull_bounds(OmniBoundingVolume())
-        self.display_region = self.buffer.make_display_region()
-        self.display_region.set_camera(self.root.attach_new_node(camera))
+        buffer.make_display_region().set_camera(root.attach_new_node(camera))
         # The per-view vertical flip reverses winding: cull the other side.
-        self.root.set_attrib(CullFaceAttrib.make(CullFaceAttrib.M_cull_counter_clockwise))
-        self.root.set_attrib(DepthTestAttrib.make(DepthTestAttrib.M_less))
-        self.root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
-        self.root.set_transparency(TransparencyAttrib.M_none)
-        self.root.set_attrib(ColorBlendAttrib.make_off())
-
-        self.views_texture = _buffer_texture("views", self.scene.num_views * shaders.VIEW_TEXELS)
-        self.root.set_shader_input("views", self.views_texture)
-        self.root.set_shader_input("agents", _int(self.scene.agents_per_world))
-        self.root.set_shader_input("grid", LVecBase2i(self.layout.columns, self.layout.rows))
-        self.root.set_shader_input("tile_size", LVecBase2f(self.layout.tile_width, self.layout.tile_height))
-        self._view_offset = _int(0)  # updated in place per pass (a new PTA would make a new render state)
-        self.root.set_shader_input("view_offset", self._view_offset)
-        lighting, fog = self.scene.lighting, self.scene.fog
-        direction = np.asarray(lighting.direction, dtype=float)
-        self.root.set_shader_input("light_direction", _vec3(direction / np.linalg.norm(direction)))
-        self.root.set_shader_input("light_color", _vec3(lighting.color))
-        self.root.set_shader_input("ambient_color", _vec3(lighting.ambient))
-        self.root.set_shader_input("fog_color", _vec3(fog.color))
-        self.root.set_shader_input("fog_density", float(fog.density))
+        root.set_attrib(CullFaceAttrib.make(CullFaceAttrib.M_cull_counter_clockwise))
+        root.set_attrib(DepthTestAttrib.make(DepthTestAttrib.M_less))
+        root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
+        root.set_transparency(TransparencyAttrib.M_none)
+        root.set_attrib(ColorBlendAttrib.make_off())
+        for name, value in self._shared_inputs.items():
+            root.set_shader_input(name, value)
+        root.set_shader_input("tiles", _int(len(views)))
+        root.set_shader_input("view_offset", _int(views.start))
+        return _Pass(views, buffer, root, color, aux)
 
     def _build_groups(self):
         from panda3d.core import NodePath, OmniBoundingVolume
@@ -242,20 +284,27 @@ class BatchRenderer:
         groups = [(g, True) for g in self.scene.static.values()] + [(g, False) for g in self.scene.groups.values()]
         for order, (group, static) in enumerate(groups):
             mesh = group.mesh
+            textured = group.texture is not None
             procedural = isinstance(mesh, MeshData)
-            if procedural:  # the depth output needs each triangle's corners at its provoking vertex
-                node = NodePath((to_panda_geom_with_corners if "depth" in self.effects else to_panda_geom)(mesh))
-            else:
+            if not procedural:
                 node = mesh.copy_to(NodePath())
-            node.reparent_to(self.root)
+            elif "depth" in self.effects:
+                # The depth output needs each triangle's corners at a provoking vertex of its
+                # own (triangle_corners.py), which rules out shared corners.
+                node = NodePath(to_panda_geom_with_corners(mesh))
+            elif mesh.flat and not (textured and "texture" in self.effects):
+                # Untextured flat meshes are drawn from their shared corners (8 vertices a box, not 24).
+                node = NodePath(to_panda_geom(shared_corner_mesh(mesh)))
+            else:
+                node = NodePath(to_panda_geom(mesh))
             # A fixed draw order: Panda3D would otherwise sort by render state (memory
             # addresses), and surfaces that touch exactly would tie differently per run.
             node.set_bin("fixed", order)
             node.node().set_bounds(OmniBoundingVolume())
             node.node().set_final(True)
-            textured = group.texture is not None
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
-                                          flat=procedural and mesh.flat, corners=procedural)
+                                          flat=procedural and mesh.flat, corners=procedural,
+                                          gray=self.color == "gray")
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(_panda_texture(group.texture, group.name), 1)
@@ -269,8 +318,16 @@ class BatchRenderer:
             node.set_shader_input("pairs", draw.pairs)
             node.set_shader_input("capacity", _int(count))
             node.set_shader_input("segment_base", _int(group.segment_base))
-            draw.pair_offset = _int(0)
-            node.set_shader_input("pair_offset", draw.pair_offset)
+            # One copy of the node per framebuffer (they share the geometry), each with its
+            # own pair offset and instance count.
+            draw.pass_nodes = []
+            for index, render_pass in enumerate(self._passes):
+                if index == 0:
+                    node.reparent_to(render_pass.root)
+                copy = node if index == 0 else node.copy_to(render_pass.root)
+                offset = _int(0)  # updated in place (a new PTA would make a new render state)
+                copy.set_shader_input("pair_offset", offset)
+                draw.pass_nodes.append([copy, offset, None])
             self._groups[group.name] = draw
             if static:
                 self._pack_static(group, draw)
@@ -334,6 +391,8 @@ class BatchRenderer:
             state[key].copy_(value)
         if staged:
             self._dirty.add(group)
+        if "active" in staged or "owner" in staged:
+            self._mask_dirty.add(group)
 
     @one_thread
     def set_cameras(self, *, position=None, rotation=None, look_at=None, fov_y=None, near=None, far=None) -> None:
@@ -373,12 +432,17 @@ class BatchRenderer:
         for key, value in staged.items():
             target = {"position": self.camera_position, "rotation": self.camera_rotation}.get(key)
             (target if target is not None else getattr(self, key)).copy_(value)
+        if staged:
+            self._cameras_dirty = True
+        if {"fov_y", "near", "far"} & staged.keys():
+            self._projection = None
 
     # ------------------------------------------------------------------ rendering
     @one_thread
     def render(self) -> Frame:
         """Draw all views; returns tensors the caller owns. Any thread may call it (one at a
-        time per renderer): the GL context is made current in the calling thread."""
+        time per renderer): the GL context is made current in the calling thread, for the
+        frame and the GL reads that follow it."""
         self._check_open()
         backend.context()  # raises in a forked child
         with self._context.current():
@@ -387,33 +451,37 @@ class BatchRenderer:
             return self._draw_and_read()
 
     def _prepare(self) -> list[str]:
-        """The torch stages of a frame: camera poses, view and instance packing, culling.
+        """The torch stages of a frame, each only when its inputs changed: camera poses and
+        view packing (cameras moved), instance packing (groups updated), culling (either).
         Returns the groups whose instance data was packed (to be uploaded)."""
         start = time.perf_counter()
-        position, rotation = self._camera_poses()
-        self._recentre(position)
-        view_projection = self._pack_views(position, rotation)
+        mount = self.scene.camera_mount
+        cameras_moved = self._cameras_dirty or (mount is not None and mount.group in self._dirty)
+        if cameras_moved:
+            position, rotation = self._camera_frames()
+            self._recentre(position)
+            self._planes = frustum_planes(self._pack_views(position, rotation))
+            self._cameras_dirty = False
         packed_groups = list(self._dirty)
         for name in packed_groups:
             self._pack_group(name)
         self._dirty.clear()
         packed = time.perf_counter()
-        self._cull(frustum_planes(view_projection))
+        self._cull(set(packed_groups), cameras_moved)
+        self._mask_dirty.clear()
         self.last_timings = {"pack": packed - start, "cull": time.perf_counter() - packed}
         return packed_groups
 
-    def _camera_poses(self):
+    def _camera_frames(self):
+        """Camera positions [W, A, 3] and camera-to-world rotations [W, A, 3, 3], float64."""
         mount = self.scene.camera_mount
         if mount is None:
-            return self.camera_position, self.camera_rotation
+            return self.camera_position, quat_to_matrix(self.camera_rotation.to(torch.float64))
         state = self._state[mount.group]
         index, offset, tilt = self._mount_constants
-        body_position = state["position"][:, index]
-        body_rotation = state["rotation"][:, index].to(torch.float64)
-        position = body_position + quat_rotate(body_rotation, offset.expand_as(body_position))
-        if tilt is not None:
-            body_rotation = quat_multiply(body_rotation, tilt.expand_as(body_rotation))
-        return position, body_rotation
+        body = quat_to_matrix(state["rotation"][:, index].to(torch.float64))
+        position = state["position"][:, index] + body @ offset
+        return position, body if tilt is None else body @ tilt
 
     def _recentre(self, camera_position: torch.Tensor):
         distance = (camera_position - self.world_origin[:, None]).norm(dim=-1).amax(dim=1)
@@ -421,22 +489,32 @@ class BatchRenderer:
         if bool(far_worlds.any()):
             self.world_origin[far_worlds] = camera_position[far_worlds].mean(dim=1)
             self._dirty.update(self.scene.groups)
+            self._origin_moved = True
+            for draw in self._groups.values():
+                draw.static_bounds = None
 
     def _pack_views(self, position: torch.Tensor, rotation: torch.Tensor):
-        height, width = self.scene.resolution
-        relative = position - self.world_origin[:, None]
-        view = view_matrix(relative, rotation.to(torch.float64))
-        projection = perspective(self.fov_y, width / height, self.near, self.far)
-        view_projection = projection @ view
+        """View-projections [W, A, 4, 4] of cameras at `position` with camera-to-world
+        `rotation` [W, A, 3, 3], written to the views texture (and origins / lenses when changed)."""
         memory = _writable(self.views_texture, np.float32).view(-1, shaders.VIEW_TEXELS, 4)
+        if self._projection is None or self._origin_moved:  # lenses or world origins changed
+            height, width = self.scene.resolution
+            projection = perspective(self.fov_y, width / height, self.near, self.far)
+            # The camera frame (x right, y forward, z up) to GL's eye frame folded into the lens.
+            self._projection = (projection[..., :3] @ _CAMERA_TO_GL, projection[..., 3])
+            origin_hi = self.world_origin.to(torch.float32)
+            origin_lo = (self.world_origin - origin_hi.to(torch.float64)).to(torch.float32)
+            A = self.scene.agents_per_world
+            memory[:, 4, :3] = origin_hi.repeat_interleave(A, dim=0)
+            memory[:, 5, :3] = origin_lo.repeat_interleave(A, dim=0)
+            memory[:, 4, 3] = self.near.reshape(-1)
+            memory[:, 5, 3] = self.far.reshape(-1)
+            self._origin_moved = False
+        lens, lens_shift = self._projection
+        linear = lens @ rotation.transpose(-1, -2)  # [W, A, 4, 3]: world directions to clip space
+        shift = lens_shift - (linear @ (position - self.world_origin[:, None])[..., None])[..., 0]
+        view_projection = torch.cat((linear, shift[..., None]), -1)
         memory[:, :4] = view_projection.reshape(-1, 4, 4).transpose(1, 2)  # texel j = column j
-        origin_hi = self.world_origin.to(torch.float32)
-        origin_lo = (self.world_origin - origin_hi.to(torch.float64)).to(torch.float32)
-        A = self.scene.agents_per_world
-        memory[:, 4, :3] = origin_hi.repeat_interleave(A, dim=0)
-        memory[:, 5, :3] = origin_lo.repeat_interleave(A, dim=0)
-        memory[:, 4, 3] = self.near.reshape(-1)
-        memory[:, 5, 3] = self.far.reshape(-1)
         return view_projection
 
     def _pack_group(self, name: str):
@@ -450,60 +528,123 @@ class BatchRenderer:
         memory[:, :, 2, 3] = state["owner"]
         memory[:, :, 3] = state["color"]
 
-    def _cull(self, planes: torch.Tensor):
-        """List each group's visible (view, instance) pairs and split them into passes."""
-        W, A = self.scene.num_worlds, self.scene.agents_per_world
-        pass_starts = torch.tensor([self.layout.pass_views(p).start for p in range(self.layout.num_passes)]
-                                   + [self.scene.num_views], dtype=torch.int64)
-        agent = torch.arange(A)[None, :, None]
+    def _cull(self, moved: set, cameras_moved: bool):
+        """Bring each group's list of drawn (view, instance) pairs up to date.
+
+        A group whose instances and cameras did not move keeps its list. Frustum tests of
+        all groups that need one run as one batched test; a group whose last test showed
+        nothing worth culling draws its candidate pairs (active, not the viewer's own body)
+        for CULL_RECHECK frames instead."""
+        tested, candidates_only = [], []
         for name, draw in self._groups.items():
-            if draw.static:
-                group = self.scene.static[name]
-                centers = group.position[None] - self.world_origin[:, None]
-                radii = (draw.radius * group.scale.abs().amax(-1)).expand(W, -1)
-                candidate = torch.ones(W, A, draw.count, dtype=torch.bool)
+            mask_changed = name in self._mask_dirty
+            if not (cameras_moved or name in moved or mask_changed):
+                continue
+            if draw.frustum_pause == 0:
+                tested.append(name)
             else:
-                state = self._state[name]
-                centers = state["position"] - self.world_origin[:, None]
-                radii = draw.radius * state["scale"].abs().amax(-1)
-                candidate = state["active"][:, None, :] & (state["owner"][:, None, :] != agent)
-            pairs = visible_pairs(planes, centers, radii, candidate)
-            if len(pairs):
-                _writable(draw.pairs, np.int32)[: len(pairs)] = pairs
-            bounds = torch.searchsorted(pairs // draw.count, pass_starts.to(torch.int32)).tolist() if len(pairs) else [0] * len(pass_starts)
-            draw.pass_ranges = [(bounds[p], bounds[p + 1] - bounds[p]) for p in range(self.layout.num_passes)]
+                draw.frustum_pause -= 1
+                if mask_changed or draw.frustum_culled:
+                    candidates_only.append(name)
+        for name in candidates_only:
+            candidate, _ = self._candidates(name)
+            self._store_pairs(self._groups[name], pair_list(candidate) if candidate is not None else None, False)
+        if not tested:
+            return
+        centers, radii = zip(*(self._bounds(name) for name in tested))
+        inside = inside_frustum(self._planes, torch.cat(centers, 1), torch.cat(radii, 1))
+        first = 0
+        for name, count in zip(tested, (c.shape[1] for c in centers)):
+            draw, visible = self._groups[name], inside[:, :, first:first + count]
+            first += count
+            candidate, possible = self._candidates(name)
+            pairs = pair_list(visible if candidate is None else visible & candidate)
+            if len(pairs) > CULL_KEEPS * possible:
+                draw.frustum_pause = CULL_RECHECK
+            self._store_pairs(draw, pairs, True)
+
+    def _bounds(self, name: str):
+        """Bounding-sphere centres [W, K, 3] (relative to the world origin) and radii [W, K] of a
+        group (scales are >= 0); those of static groups are kept until the world origins move."""
+        draw, W = self._groups[name], self.scene.num_worlds
+        if draw.static:
+            if draw.static_bounds is None:
+                group = self.scene.static[name]
+                draw.static_bounds = (group.position[None] - self.world_origin[:, None],
+                                      (draw.radius * group.scale.amax(-1)).expand(W, -1))
+            return draw.static_bounds
+        state = self._state[name]
+        return state["position"] - self.world_origin[:, None], state["scale"].amax(-1) * draw.radius
+
+    def _candidates(self, name: str):
+        """([W, A, C] bool, count): the instance is active and not the viewing agent's own body
+        ((None, all pairs) for static groups); kept until the group's masks change."""
+        draw = self._groups[name]
+        if draw.static:
+            return None, self.scene.num_views * draw.count
+        if name in self._mask_dirty or name not in self._candidate_cache:
+            state = self._state[name]
+            agent = torch.arange(self.scene.agents_per_world)[None, :, None]
+            candidate = state["active"][:, None, :] & (state["owner"][:, None, :] != agent)
+            self._candidate_cache[name] = (candidate, int(candidate.sum()))
+        return self._candidate_cache[name]
+
+    def _store_pairs(self, draw: _DrawGroup, pairs: torch.Tensor | None, culled: bool):
+        """Upload a group's drawn pairs (None: every pair of a static group) and split them per pass."""
+        total = self.scene.num_views * draw.count
+        if pairs is None:
+            pairs = torch.arange(total, dtype=torch.int32)
+        if len(pairs):
+            _writable(draw.pairs, np.int32)[: len(pairs)] = pairs
+        draw.frustum_culled = culled
+        if self.layout.num_passes == 1:
+            draw.pass_ranges = [(0, len(pairs))]
+            return
+        starts = torch.tensor([render_pass.views.start * draw.count for render_pass in self._passes] + [total],
+                              dtype=torch.int32)
+        bounds = torch.searchsorted(pairs, starts).tolist()
+        draw.pass_ranges = [(bounds[p], bounds[p + 1] - bounds[p]) for p in range(self.layout.num_passes)]
 
     def _draw_and_read(self) -> Frame:
         s = self.scene
         W, A = s.num_worlds, s.agents_per_world
         height, width = s.resolution
-        rgb_shape = (W * A, 3, height, width) if self.channels_first else (W * A, height, width, 3)
+        C = self.channels
+        rgb_shape = (W * A, C, height, width) if self.channels_first else (W * A, height, width, C)
         rgb = torch.empty(rgb_shape, dtype=torch.uint8)
         depth = torch.empty(W * A, height, width, dtype=torch.float32) if "depth" in self.effects else None
         segmentation = torch.empty(W * A, height, width, dtype=torch.int32) if "segmentation" in self.effects else None
-        engine = self._context.engine
-        for index in range(self.layout.num_passes):
-            views = self.layout.pass_views(index)
-            self._view_offset[0] = views.start
+        started = time.perf_counter()
+        for index, render_pass in enumerate(self._passes):
             for draw in self._groups.values():
                 first, count = draw.pass_ranges[index]
-                if count == 0:  # Panda3D would draw an instance count of 0 once
-                    draw.node.hide()
+                entry = draw.pass_nodes[index]
+                node, offset, drawn = entry
+                offset[0] = first
+                if count == drawn:
                     continue
-                draw.node.show()
-                draw.pair_offset[0] = first
-                draw.node.set_instance_count(count)
-            started = time.perf_counter()
-            self.buffer.set_active(True)
-            try:
-                engine.render_frame()
-            finally:
-                self.buffer.set_active(False)
-            drawn = time.perf_counter()
-            self._check_shaders()
-            self._read_pass(views, rgb, depth, segmentation)
-            self.last_timings["gl"] += drawn - started
-            self.last_timings["copy"] += time.perf_counter() - drawn
+                if count == 0:  # Panda3D would draw an instance count of 0 once
+                    node.hide()
+                else:
+                    if not drawn:
+                        node.show()
+                    node.set_instance_count(count)
+                entry[2] = count
+        # Every pass is drawn in one frame before any is read: llvmpipe rasterises one
+        # framebuffer on its threads while the next one is being drawn.
+        for render_pass in self._passes:
+            render_pass.buffer.set_active(True)
+        try:
+            self._context.engine.render_frame()
+        finally:
+            for render_pass in self._passes:
+                render_pass.buffer.set_active(False)
+        self._check_shaders()
+        copy_seconds = 0.0
+        for render_pass in self._passes:
+            copy_seconds += self._read_pass(render_pass, rgb, depth, segmentation)
+        self.last_timings["gl"] = time.perf_counter() - started - copy_seconds
+        self.last_timings["copy"] = copy_seconds
         rgb = rgb.view((W, A) + rgb_shape[1:])
         return Frame(rgb, None if depth is None else depth.view(W, A, height, width),
                      None if segmentation is None else segmentation.view(W, A, height, width))
@@ -511,47 +652,71 @@ class BatchRenderer:
     def _check_shaders(self):
         """A variant that failed to compile draws nothing: raise with the GL log instead."""
         log = self._context.drain_log()
-        failed = [name for name, draw in self._groups.items() if draw.node.get_shader().get_error_flag()]
+        failed = [name for name, draw in self._groups.items()
+                  if any(node.get_shader().get_error_flag() for node, _, _ in draw.pass_nodes)]
         if failed:
             text = "\n".join(log or self._context.recent_log[-20:])
             raise backend.ShaderCompileError(f"the shader of group(s) {failed} failed to compile or link:\n{text}")
 
-    def _read_pass(self, views: range, rgb, depth, segmentation):
-        image = self.color_texture.get_ram_image()
-        if image is None or len(image) == 0:
-            log = "\n".join(self._context.recent_log[-20:])
-            raise RuntimeError(f"the GL driver returned no framebuffer image (render failed). GL log:\n{log}")
-        if self.readback == "copy":
-            image = bytes(image)
-        tiles = framebuffer_tiles(image, np.uint8, self._color_channels, self.layout)[..., :3]
-        k = self.supersample
-        destination = rgb[views.start:views.stop]
-        if self.channels_first:  # write through a channels-last view of the output
-            destination = destination.permute(0, 2, 3, 1)
-        with caller_threads():  # one large copy while the rasteriser's threads are idle
-            if k > 1:
-                self._box_filter(tiles, destination)
-            else:
-                copy_tiles(tiles, destination)
-        for name, out, dtype in (("depth", depth, np.float32), ("segmentation", segmentation, np.int32)):
-            if out is not None:
-                aux = framebuffer_tiles(self.aux_textures[name].get_ram_image(), dtype, 1, self.layout)
-                if k > 1:  # the sample nearest each output pixel's centre
-                    aux = aux[:, :, k // 2::k, k // 2::k]
-                copy_tiles(aux, out[views.start:views.stop])
-
-    def _box_filter(self, tiles: torch.Tensor, destination: torch.Tensor) -> None:
-        """[rows, cols, kH, kW, 3] uint8 tiles -> destination [n, H, W, 3], each pixel the
-        rounded mean of its k x k samples, through buffers made once per renderer."""
-        k, count = self.supersample, destination.shape[0]
+    def _read_pass(self, render_pass: _Pass, rgb, depth, segmentation) -> float:
+        """Read one framebuffer's textures into the outputs; returns the seconds spent on
+        copies after the GL reads (none for plain channels-last colour and k = 1)."""
+        if render_pass.texture_ids is None:
+            gsg = self._context.gsg
+            render_pass.texture_ids = {name: readback.texture_id(texture, gsg) for name, texture in
+                                       [("color", render_pass.color), *render_pass.aux.items()]}
+        views, k = render_pass.views, self.supersample
         height, width = self.scene.resolution
-        if self._supersamples is None:
-            per_pass = min(self.layout.views_per_pass, self.scene.num_views)
-            self._supersamples = torch.empty((per_pass, height * k, width * k, 3), dtype=torch.uint8)
-            self._accumulator = torch.empty((per_pass, height, width, 3), dtype=torch.int32)
-        samples, total = self._supersamples[:count], self._accumulator[:count]
-        copy_tiles(tiles, samples)
-        torch.sum(samples.view(count, height, k, width, k, 3), dim=(2, 4), dtype=torch.int32, out=total)
+        rows, columns = len(views) * height * k, width * k
+        ids = render_pass.texture_ids
+        destination = rgb[views.start:views.stop]
+        C = self.channels
+        copy_seconds = 0.0
+        # One channel is laid out alike channels first or last: read straight into it too.
+        if k == 1 and (C == 1 or not self.channels_first) and self.readback == "zero_copy":
+            readback.read_texture(ids["color"], columns, rows, C, destination)
+        else:
+            staging = self._staging_buffer(rows * columns * C)
+            readback.read_texture(ids["color"], columns, rows, C, staging)
+            started = time.perf_counter()
+            samples = staging.view(len(views), height * k, width * k, C)
+            if self.channels_first:  # write through a channels-last view of the output
+                destination = destination.permute(0, 2, 3, 1)
+            if k > 1:
+                self._box_filter(samples, destination)
+            else:
+                destination.copy_(samples)
+            copy_seconds += time.perf_counter() - started
+        for name, out in (("depth", depth), ("segmentation", segmentation)):
+            if out is None:
+                continue
+            target = out[views.start:views.stop]
+            if k == 1:
+                readback.read_texture(ids[name], columns, rows, 4, target)
+                continue
+            staging = self._staging_buffer(rows * columns * 4)
+            readback.read_texture(ids[name], columns, rows, 4, staging)
+            started = time.perf_counter()
+            samples = staging.view(out.dtype).view(len(views), height * k, width * k)
+            target.copy_(samples[:, k // 2::k, k // 2::k])  # the sample nearest each output pixel's centre
+            copy_seconds += time.perf_counter() - started
+        return copy_seconds
+
+    def _staging_buffer(self, size: int) -> torch.Tensor:
+        """Reused bytes for reads that need a copy afterwards (channels-first, supersampling, "copy")."""
+        if self._staging is None or self._staging.numel() < size:
+            self._staging = torch.empty(size, dtype=torch.uint8)
+        return self._staging[:size]
+
+    def _box_filter(self, samples: torch.Tensor, destination: torch.Tensor) -> None:
+        """samples [n, kH, kW, C] uint8 -> destination [n, H, W, C], each pixel the rounded
+        mean of its k x k samples (through an accumulator made once per renderer)."""
+        k, count, C = self.supersample, destination.shape[0], self.channels
+        height, width = self.scene.resolution
+        if self._accumulator is None:
+            self._accumulator = torch.empty((self.layout.views_per_pass, height, width, C), dtype=torch.int32)
+        total = self._accumulator[:count]
+        torch.sum(samples.view(count, height, k, width, k, C), dim=(2, 4), dtype=torch.int32, out=total)
         destination.copy_(total.add_((k * k) // 2).div_(k * k, rounding_mode="floor"))
 
     # ------------------------------------------------------------------ helpers / lifecycle
@@ -582,6 +747,12 @@ class BatchRenderer:
     def num_views(self) -> int:
         return self.scene.num_views
 
+    @property
+    def granted_multisamples(self) -> int:
+        """MSAA samples the GL gave the framebuffers (it may give fewer than asked)."""
+        self._check_open()
+        return min(p.buffer.get_fb_properties().get_multisamples() for p in self._passes)
+
     def instance_state(self, group: str) -> dict:
         """Copies of a group's current per-instance tensors."""
         self._check_group(group)
@@ -592,17 +763,18 @@ class BatchRenderer:
         if self._closed:
             return
         self._closed = True
-        if self.buffer is not None:
-            if self._context.pid == os.getpid():  # a forked child must not touch its parent's GL objects
-                with self._context.current():  # Panda3D deletes the framebuffer right away
-                    self.buffer.clear_render_textures()
-                    self._context.engine.remove_window(self.buffer)
-                    self._context.drop_render_texture_events()
-            self.buffer = None
-        if self.root is not None:
-            self.root.remove_node()
-        textures = [getattr(self, name, None) for name in ("color_texture", "views_texture")]
-        textures += list(getattr(self, "aux_textures", {}).values())
+        textures = [getattr(self, "views_texture", None)]
+        passes = getattr(self, "_passes", [])
+        if passes and self._context.pid == os.getpid():  # a forked child must not touch its parent's GL objects
+            with self._context.current():  # Panda3D deletes the framebuffers right away
+                for render_pass in passes:
+                    render_pass.buffer.clear_render_textures()
+                    self._context.engine.remove_window(render_pass.buffer)
+                self._context.drop_render_texture_events()
+        for render_pass in passes:
+            render_pass.root.remove_node()
+            textures += [render_pass.color, *render_pass.aux.values()]
+        self._passes = []
         textures += [t for g in self._groups.values() for t in (g.instances, g.pairs)]
         for texture in textures:
             if texture is not None:

@@ -16,6 +16,9 @@ INSTANCE_TEXELS = 4
 STATIC_INSTANCE_TEXELS = 5
 VIEW_TEXELS = 6
 
+# ITU-R BT.601 luma weights of the gray colour output (as torchvision's rgb_to_grayscale).
+GRAY_WEIGHTS = (0.299, 0.587, 0.114)
+
 # Effects a scene may declare, and the define each one turns on.
 EFFECT_DEFINES = {
     "lighting": "EFFECT_LIGHTING",
@@ -34,18 +37,22 @@ def source(name: str) -> str:
 
 
 def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False,
-                corners: bool = False) -> tuple[str, ...]:
+                corners: bool = False, gray: bool = False) -> tuple[str, ...]:
     """The sorted #define lines of one variant (texture only for groups that have one).
 
     Lighting runs per vertex for meshes whose faces each have one normal (flat), where
     it is exact, and per fragment otherwise. Depth needs each triangle's plane: from the
     corners that procedural meshes carry (`corners`, see triangle_corners.py), else from
-    a geometry shader (model files)."""
+    a geometry shader (model files). gray: the colour output is its luma (GRAY_WEIGHTS).
+    The colour is a flat varying in every variant, so a flat mesh may also be drawn from
+    its welded corners (provoking.py) with the same defines."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
     if "lighting" in effects:
         defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
     if "depth" in effects:
         defines.add("DEPTH_PLANE_FROM_CORNERS" if corners else "DEPTH_PLANE_FROM_GEOMETRY")
+    if gray:
+        defines.add("OUTPUT_GRAY")
     if "texture" in effects and textured:
         defines.add("EFFECT_TEXTURE")
     defines.add(f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}")

@@ -1,5 +1,5 @@
-// Colour, then only the declared effects. Outputs are written in B, G, R, A order
-// because Panda3D reads the framebuffer back as BGRA: memory then holds R, G, B, A.
+// Colour, then only the declared effects. The renderer reads the render textures back
+// with GL itself, in R, G, B(, A) order.
 #ifdef DEPTH_PLANE_FROM_GEOMETRY
 // The geometry shader batch.geom sits between the stages; its outputs are named g_*.
 #define v_color g_color
@@ -55,9 +55,10 @@ layout(location = DEPTH_LOCATION) out vec4 out_depth;
 layout(location = SEGMENTATION_LOCATION) out vec4 out_segment;
 #endif
 
-// A 32-bit value as four exact 8-bit channels, in the framebuffer's BGRA order.
+// A 32-bit value as four exact 8-bit channels, least significant byte in red: read back
+// as RGBA bytes, memory then holds the value's little-endian bytes.
 vec4 bytes_of(uint bits) {
-    return unpackUnorm4x8(bits).zyxw;
+    return unpackUnorm4x8(bits);
 }
 
 void main() {
@@ -72,7 +73,12 @@ void main() {
 #ifdef EFFECT_FOG
     color = mix(fog_color, color, exp(-fog_density * v_depth));
 #endif
-    out_color = vec4(clamp(color, 0.0, 1.0).bgr, 1.0);
+#ifdef OUTPUT_GRAY
+    // ITU-R BT.601 luma (shaders.GRAY_WEIGHTS); read back as the red channel only.
+    out_color = vec4(vec3(dot(clamp(color, 0.0, 1.0), vec3(0.299, 0.587, 0.114))), 1.0);
+#else
+    out_color = vec4(clamp(color, 0.0, 1.0), 1.0);
+#endif
 #ifdef LOG_DEPTH
     // Logarithmic depth: equal relative precision from near to far.
     gl_FragDepth = log2(max(v_depth, v_near_far.x) / v_near_far.x) / log2(v_near_far.y / v_near_far.x);

@@ -38,11 +38,10 @@ void main() {
                         max(v_clip[0].z, max(v_clip[1].z, v_clip[2].z)));
     for (int i = 0; i < 3; ++i) {
         gl_Position = gl_in[i].gl_Position;
-        // The vertex shader's clip distances, which a geometry shader must write again.
-        gl_ClipDistance[0] = v_clip[i].z + v_clip[i].x;
-        gl_ClipDistance[1] = v_clip[i].z - v_clip[i].x;
-        gl_ClipDistance[2] = v_clip[i].z + v_clip[i].y;
-        gl_ClipDistance[3] = v_clip[i].z - v_clip[i].y;
+        // The vertex shader's clip distances, which a geometry shader must write again
+        // (tiles span the framebuffer's width, so only the top and bottom: see batch.vert).
+        gl_ClipDistance[0] = v_clip[i].z + v_clip[i].y;
+        gl_ClipDistance[1] = v_clip[i].z - v_clip[i].y;
         g_color = v_color[i];
 #ifdef LIGHT_PER_FRAGMENT
         g_normal = v_normal[i];

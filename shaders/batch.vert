@@ -16,12 +16,14 @@ uniform int pair_offset;          // first pair of this pass
 uniform int capacity;             // instances per world in this group
 uniform int agents;               // views per world
 uniform int view_offset;          // first view drawn by this pass
-uniform ivec2 grid;               // tiles per pass (columns, rows)
+uniform int tiles;                // tiles per pass, stacked in one column
 uniform int segment_base;         // segmentation id of this group's instance 0
 
-// One colour per triangle: an instance's colour, lit per vertex only on flat meshes, whose
-// three vertices share a normal. Flat, because interpolating a constant is not exact and
-// its rounding would depend on where the tile sits.
+// One colour per triangle, taken from its provoking (last) vertex: an instance's colour,
+// lit per vertex only on flat meshes, whose triangles have one normal each (at the
+// provoking vertex when the mesh is drawn from its shared corners, provoking.py). Flat,
+// because interpolating a constant is not exact and its rounding would depend on where
+// the tile sits.
 flat out vec4 v_color;
 #ifdef LIGHT_PER_FRAGMENT
 out vec3 v_normal;
@@ -50,7 +52,7 @@ flat out vec4 depth_tile;     // tile origin (pixels), smallest and largest w of
 #else
 // For the geometry shader (batch.geom), which has the whole triangle (model files).
 out vec3 v_clip;              // (x, y, w) before the move into the tile
-flat out vec2 v_tile_origin;  // pixel of the tile's lower-left corner
+flat out vec2 v_tile_origin;  // pixel of the tile's lower-left corner (window coordinates)
 #endif
 #endif
 #ifdef OUTPUT_SEGMENTATION
@@ -94,19 +96,14 @@ void main() {
     vec4 clip = view_projection * vec4(world_position, 1.0);
 
     // Clip against this view's own frustum before moving it into its tile, so nothing
-    // spills into a neighbour.
-    gl_ClipDistance[0] = clip.w + clip.x;
-    gl_ClipDistance[1] = clip.w - clip.x;
-    gl_ClipDistance[2] = clip.w + clip.y;
-    gl_ClipDistance[3] = clip.w - clip.y;
+    // spills into a neighbour. Tiles span the framebuffer's width (one column), so the
+    // viewport clips x; only the top and bottom need planes.
+    gl_ClipDistance[0] = clip.w + clip.y;
+    gl_ClipDistance[1] = clip.w - clip.y;
 
-    // Tiles are stored top row first in memory (glReadPixels reads bottom-up), so each
-    // view is flipped vertically; the renderer flips the cull mode to match.
-    int tile_x = pass_view % grid.x;
-    int tile_y = pass_view / grid.x;
-    vec2 flipped = vec2(clip.x, -clip.y);
-    vec2 tile_shift = vec2(2 * tile_x + 1 - grid.x, 2 * tile_y + 1 - grid.y);
-    gl_Position = vec4((flipped + clip.w * tile_shift) / vec2(grid), clip.z, clip.w);
+    // Tiles are stored top row first in memory (GL reads back bottom-up), so each view is
+    // flipped vertically; the renderer flips the cull mode to match.
+    gl_Position = vec4(clip.x, (float(2 * pass_view + 1 - tiles) * clip.w - clip.y) / float(tiles), clip.z, clip.w);
 
 #ifdef EFFECT_LIGHTING
     // Normals scale inversely (inverse transpose); a zero scale flattens the mesh, and
@@ -128,16 +125,18 @@ void main() {
     v_depth = clip.w;
 #endif
 #ifdef OUTPUT_DEPTH
+    // Tile t of the column covers window rows [t * H, (t + 1) * H) from the bottom.
+    vec2 tile_origin = vec2(0.0, float(pass_view)) * tile_size;
 #ifdef DEPTH_PLANE_FROM_CORNERS
     vec3 q0 = (view_projection * vec4(relative + rotate(rotation, corner_a * scale.xyz), 1.0)).xyw;
     vec3 q1 = (view_projection * vec4(relative + rotate(rotation, corner_b * scale.xyz), 1.0)).xyw;
     vec3 q2 = clip.xyw;
     vec3 plane_normal = cross(q1 - q0, q2 - q0);
     depth_plane = vec4(plane_normal, dot(plane_normal, q0));
-    depth_tile = vec4(vec2(tile_x, tile_y) * tile_size, min(q0.z, min(q1.z, q2.z)), max(q0.z, max(q1.z, q2.z)));
+    depth_tile = vec4(tile_origin, min(q0.z, min(q1.z, q2.z)), max(q0.z, max(q1.z, q2.z)));
 #else
     v_clip = clip.xyw;
-    v_tile_origin = vec2(tile_x, tile_y) * tile_size;
+    v_tile_origin = tile_origin;
 #endif
 #endif
 #ifdef LOG_DEPTH

@@ -50,13 +50,13 @@ def test_renderer_close_frees_gl_objects_and_is_final():
     renderer = mr.BatchRenderer(scene)
     renderer.render()
     assert windows() == baseline + 1
-    textures = [renderer.color_texture, renderer.views_texture, *renderer.aux_textures.values()]
+    textures = [renderer.views_texture] + [t for p in renderer._passes for t in (p.color, *p.aux.values())]
     textures += [t for g in renderer._groups.values() for t in (g.instances, g.pairs)]
-    root = renderer.root
+    roots = [p.root for p in renderer._passes]
     renderer.close()
     renderer.close()  # idempotent
     assert windows() == baseline, "the framebuffer was not removed from the engine"
-    assert renderer.buffer is None and root.is_empty()
+    assert renderer._passes == [] and all(root.is_empty() for root in roots)
     assert not any(t.has_ram_image() for t in textures), "a texture kept its host copy"
     for call in (renderer.render, lambda: renderer.update("boxes", active=torch.ones(2, 2, dtype=torch.bool)),
                  lambda: renderer.set_cameras(fov_y=1.0)):

@@ -196,7 +196,7 @@ def render_point(state: SpreadState, cfg: dict, *, resolution: int, effects, aa:
         return None, None, _REFUSED_SAMPLES[multisamples]
     with renderer:
         if multisamples:
-            got = renderer.buffer.get_fb_properties().get_multisamples()
+            got = renderer.granted_multisamples
             if got != multisamples:
                 _REFUSED_SAMPLES[multisamples] = f"the GL gave {got} samples instead of {multisamples}"
                 return None, None, _REFUSED_SAMPLES[multisamples]

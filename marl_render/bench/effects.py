@@ -3,11 +3,15 @@
 Effects: the arena scene rendered with no effect, then with each effect alone, then all
 of them; views/s and the cost relative to no effect.
 
+Observation formats (lighting on): RGB channels last (as shipped), RGB channels first (a
+transposing copy after the read), and gray (luma drawn by the shader, one channel read
+straight into the batch in either layout).
+
 Ablation, cumulative, on the same scene and poses:
   1. one camera per view     one offscreen buffer and readback per view (plain Panda3D)
   2. tiled display regions    one buffer, a display region per view (plain Panda3D)
-  3. one instanced pass       BatchRenderer, whole framebuffer copied to bytes first
-  4. zero-copy readback       BatchRenderer as shipped
+  3. one instanced pass       BatchRenderer, each framebuffer read into a buffer, then copied
+  4. direct readback          BatchRenderer as shipped (GL reads into the batch)
   5. several processes        step 4 in --processes spawned processes, worlds split
 Writes effects.md, effects.json and effects.png into --out.
 """
@@ -22,6 +26,7 @@ from tabulate import tabulate
 
 from .common import RandomMotion, apply, arena_scene, machine, progress, pyplot, time_per_call, write_report
 
+OUTPUTS = [("rgb", {}), ("rgb, channels first", {"channels_first": True}), ("gray", {"color": "gray"})]
 EFFECT_SETS = [(), ("lighting",), ("texture",), ("fog",), ("depth",), ("segmentation",), ("log_depth",),
                ("lighting", "texture", "fog", "depth", "segmentation")]
 
@@ -100,7 +105,7 @@ def run(args) -> dict:
     from marl_render.bench.naive import NaiveRenderer
 
     result = {"benchmark": "effects", "worlds": args.worlds, "agents": args.agents, "resolution": args.resolution,
-              "views": args.worlds * args.agents, "machine": machine(), "effects": [], "ablation": []}
+              "views": args.worlds * args.agents, "machine": machine(), "effects": [], "outputs": [], "ablation": []}
     base = None
     for effects in EFFECT_SETS:
         label = "+".join(effects) or "none"
@@ -113,11 +118,21 @@ def run(args) -> dict:
                                   "cost_vs_none": base / rate - 1.0})
 
     scene = _scene(args, ("lighting",))
+    for label, options in OUTPUTS:
+        progress(f"output: {label}")
+        with mr.BatchRenderer(scene, **options) as renderer:
+            rate = _views_per_s(renderer, scene, args.steps)
+            channels = renderer.channels
+        result["outputs"].append({"output": label, "views_per_s": rate, "ms_per_frame": scene.num_views / rate * 1e3,
+                                  "bytes_per_view": args.resolution ** 2 * channels})
+    rgb_rate = result["outputs"][0]["views_per_s"]
+    for row in result["outputs"]:
+        row["speedup_vs_rgb"] = row["views_per_s"] / rgb_rate
     steps = [
         ("one camera per view", lambda: NaiveRenderer(scene, tiled=False), max(3, args.steps // 4)),
         ("tiled display regions", lambda: NaiveRenderer(scene), max(3, args.steps // 4)),
         ("one instanced pass", lambda: mr.BatchRenderer(scene, readback="copy"), args.steps),
-        ("zero-copy readback", lambda: mr.BatchRenderer(scene), args.steps),
+        ("direct readback", lambda: mr.BatchRenderer(scene), args.steps),
     ]
     for label, make, count in steps:
         progress(f"ablation: {label}")
@@ -140,12 +155,16 @@ def _write(out: str, result: dict) -> None:
                         for r in result["effects"]],
                        ["effects", "views/s", "ms/frame", "cost vs none"], tablefmt="pipe",
                        floatfmt=["", ",.0f", ".1f", "+.0%"])
+    outputs = tabulate([[r["output"], f"{r['bytes_per_view']:,}", r["views_per_s"], r["ms_per_frame"],
+                         f"{r['speedup_vs_rgb']:.2f}x"] for r in result["outputs"]],
+                       ["observation", "bytes per view", "views/s", "ms/frame", "vs rgb"], tablefmt="pipe",
+                       floatfmt=["", "", ",.0f", ".1f", ""], colalign=["left", "right", "right", "right", "right"])
     ablation = tabulate([[r["step"], r["views_per_s"], f"{r['speedup_vs_first']:.1f}x"] for r in result["ablation"]],
                         ["ablation step (cumulative)", "views/s", "speed-up"], tablefmt="pipe",
                         floatfmt=["", ",.0f", ""], colalign=["left", "right", "right"])
     write_report(out, "effects", result, [f"Views of {result['resolution']}x{result['resolution']}, {result['views']} "
                                           f"per frame ({result['machine']['gl_renderer']}).", "", effects, "",
-                                          ablation])
+                                          outputs, "", ablation])
     plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.2))
     names = [r["effects"].replace("+", "+\n") if len(r["effects"]) > 12 else r["effects"] for r in result["effects"]]

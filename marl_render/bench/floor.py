@@ -1,12 +1,17 @@
-"""Environment throughput as a fraction of a raw OpenGL floor, in the same run.
+"""Environment throughput as a fraction of an independent raw-GL floor, in the same process.
 
-For each environment: the env is reset and stepped with random actions (physics +
-pose upload + render + readback, everything a training loop pays). The floor renders
-the same scene — geometry, shaders, tile layout, resolution, the env's current
-instance data and cameras — through marl_render.rawgl (moderngl on EGL, no Panda3D,
-no physics, no Python per object): clear + draw + one readback per frame. Reported:
-env-steps/s, floor frames/s (a frame = one step of every world) and their ratio.
-Runs alternate in blocks so that both see the same machine load.
+The floor (marl_render/bench/floor_gl.py) is a minimal moderngl harness that shares no
+code with the renderer: it draws the env's scene in the env's current state (bodies,
+cameras, colours, lighting) with its own shaders, layout and readback, into a
+preallocated batch. Per world size, the env (random actions, autoreset: physics +
+render + readback, everything a training loop pays) and the floor (pack + upload +
+draw + readback, no physics) run in alternating timed blocks, several rounds, and the
+medians are compared: ratio = env-steps/s / floor frames/s (a frame = one step of every
+world). The floor runs twice, without and with frustum culling, and the faster of the
+two is the floor (culling pays in the arena scenes, not in cart-pole). Each env row
+also carries the renderer's median stage times per step (pack,
+cull, gl, copy; `update`: validating and storing the new poses) and the env's own
+code outside the renderer (`env`), the fixed cost that dominates at small batches.
 """
 from __future__ import annotations
 
@@ -16,67 +21,131 @@ import time
 import torch
 
 from ..threads import single_threaded
-from .common import machine, progress
+from .common import machine, progress, write_report
+
+STAGES = ("update", "pack", "cull", "gl", "copy")  # update: BatchRenderer.update calls; the rest: last_timings
 
 
 def add_arguments(parser):
-    parser.add_argument("--env", nargs="+", default=["spread", "cartpole"])
-    parser.add_argument("--worlds", type=int, default=256)
+    parser.add_argument("--env", nargs="+", default=["cartpole", "spread:4"],
+                        help="environments as NAME or NAME:AGENTS, or 'all' (every registered env, default agents)")
+    parser.add_argument("--worlds", type=int, nargs="+", default=[16, 64, 256, 1024])
     parser.add_argument("--resolution", type=int, default=64)
-    parser.add_argument("--steps", type=int, default=20, help="steps per timed block")
-    parser.add_argument("--repeats", type=int, default=3, help="alternating blocks per side")
+    parser.add_argument("--rounds", type=int, default=5, help="alternating env/floor blocks per size")
+    parser.add_argument("--block-seconds", type=float, default=0.4, help="about how long one timed block runs")
+    parser.add_argument("--out", default=None, help="also write DIR/floor.json")
 
 
-def _floor_renderer(env):
-    """A raw-GL renderer of the env's scene holding the env's current instances and cameras."""
-    from marl_render.rawgl import RawGLRenderer
-
-    source = env.renderer
-    floor = RawGLRenderer(source.scene)
-    for name in source.scene.groups:
-        floor.update(name, **source.instance_state(name))
-    if source.scene.camera_mount is None:
-        floor.set_cameras(position=source.camera_position, rotation=source.camera_rotation)
-    floor.set_cameras(fov_y=source.fov_y, near=source.near, far=source.far)
-    return floor
+def _timed_block(function, count: int) -> tuple[float, float]:
+    """(wall, CPU) seconds per call; CPU time counts every thread of the process (the
+    rasteriser's too) and is less disturbed by other processes than wall time."""
+    start, cpu = time.perf_counter(), time.process_time()
+    for _ in range(count):
+        function()
+    return (time.perf_counter() - start) / count, (time.process_time() - cpu) / count
 
 
-def measure(name: str, worlds: int, resolution: int, steps: int, repeats: int) -> dict:
+def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds: int, block_seconds: float) -> dict:
     from marl_render.envs import make_env
 
-    env = make_env(name, num_worlds=worlds, resolution=resolution, seed=0, autoreset=True)
+    from .floor_gl import from_env
+
+    kwargs = dict(num_worlds=worlds, resolution=resolution, seed=0, autoreset=True)
+    if agents is not None:
+        kwargs["num_agents"] = agents
+    env = make_env(name, **kwargs)
+    floors = {}
     generator = torch.Generator().manual_seed(0)
+    stages = {key: [] for key in STAGES + ("env",)}
+
+    updating = [0.0]
+    update = env.renderer.update
+
+    def timed_update(*args, **kwargs):  # instrumentation of this benchmark only
+        start = time.perf_counter()
+        try:
+            return update(*args, **kwargs)
+        finally:
+            updating[0] += time.perf_counter() - start
+
+    env.renderer.update = timed_update
+
+    def env_step():
+        updating[0] = 0.0
+        start = time.perf_counter()
+        env.step(env.random_actions(generator))
+        total = time.perf_counter() - start
+        timings = dict(env.renderer.last_timings, update=updating[0])
+        for key in STAGES:
+            stages[key].append(timings.get(key, 0.0))
+        stages["env"].append(total - sum(timings.get(key, 0.0) for key in STAGES))
+
     try:
         env.reset(seed=0)
         for _ in range(3):
-            env.step(env.random_actions(generator))
-        floor = _floor_renderer(env)
-        for _ in range(3):
-            floor.render()
-        env_times, floor_times = [], []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            for _ in range(steps):
-                env.step(env.random_actions(generator))
-            env_times.append((time.perf_counter() - start) / steps)
-            start = time.perf_counter()
-            with single_threaded():  # as the project's renderer does
-                for _ in range(steps):
-                    floor.render()
-            floor_times.append((time.perf_counter() - start) / steps)
-        floor.close()
+            env_step()
+        for cull in (False, True):
+            floors[cull] = from_env(env, cull=cull)
+            with single_threaded():
+                for _ in range(3):
+                    floors[cull].render()
+        probe, _ = _timed_block(env_step, 3)
+        count = max(3, min(200, round(block_seconds / probe)))
+        for values in stages.values():
+            values.clear()
+        env_times, floor_times = [], {cull: [] for cull in floors}
+        for _ in range(rounds):
+            env_times.append(_timed_block(env_step, count))
+            for cull, floor in floors.items():
+                with single_threaded():  # as the env runs its own torch work
+                    floor_times[cull].append(_timed_block(floor.render, count))
     finally:
+        for floor in floors.values():
+            floor.close()
         env.close()
-    env_seconds, floor_seconds = statistics.median(env_times), statistics.median(floor_times)
+    env_seconds, env_cpu = (statistics.median(t[i] for t in env_times) for i in (0, 1))
+    floor_by_cull = {cull: statistics.median(t[0] for t in times) for cull, times in floor_times.items()}
+    cull = min(floor_by_cull, key=floor_by_cull.get)
+    floor_seconds = floor_by_cull[cull]
+    floor_cpu = statistics.median(t[1] for t in floor_times[cull])
     return {"env": name, "worlds": worlds, "agents": env.num_agents, "resolution": resolution,
-            "env_steps_per_s": worlds / env_seconds, "agent_frames_per_s": worlds * env.num_agents / env_seconds,
-            "floor_frames_per_s": worlds / floor_seconds, "ms_per_step": env_seconds * 1e3,
-            "floor_ms_per_frame": floor_seconds * 1e3, "ratio_to_floor": floor_seconds / env_seconds}
+            "steps_per_block": count, "rounds": rounds,
+            "env_steps_per_s": worlds / env_seconds, "floor_frames_per_s": worlds / floor_seconds,
+            "ratio": floor_seconds / env_seconds, "env_ms_per_step": 1e3 * env_seconds,
+            "floor_ms_per_frame": 1e3 * floor_seconds, "floor_culls": cull,
+            "floor_ms_without_culling": 1e3 * floor_by_cull[False], "floor_ms_with_culling": 1e3 * floor_by_cull[True],
+            "cpu_ratio": floor_cpu / env_cpu, "env_cpu_ms_per_step": 1e3 * env_cpu,
+            "floor_cpu_ms_per_frame": 1e3 * floor_cpu,
+            "best_ratio": min(t[0] for t in floor_times[cull]) / min(t[0] for t in env_times),
+            "stages_ms": {key: 1e3 * statistics.median(values) for key, values in stages.items()}}
 
 
 def run(args) -> dict:
+    from marl_render.envs import list_envs
+
+    specs = list_envs() if args.env == ["all"] else args.env
     rows = []
-    for name in args.env:
-        progress(f"floor: {name}, {args.worlds} worlds at {args.resolution}px")
-        rows.append(measure(name, args.worlds, args.resolution, args.steps, args.repeats))
-    return {"benchmark": "floor", "machine": machine(), "results": rows}
+    for worlds in args.worlds:
+        for spec in specs:
+            name, _, agents = spec.partition(":")
+            progress(f"floor: {spec}, {worlds} worlds at {args.resolution}px")
+            rows.append(measure(name, worlds, int(agents) if agents else None, args.resolution, args.rounds,
+                                args.block_seconds))
+    result = {"benchmark": "floor", "machine": machine(), "results": rows}
+    if args.out:
+        write_report(args.out, "floor", result, markdown(rows))
+    return result
+
+
+def markdown(rows: list[dict]) -> list[str]:
+    """The ratio table and the per-step stage table of a run."""
+    lines = ["| env | agents | worlds | env-steps/s | floor frames/s | ratio | ratio of best blocks | CPU-time ratio |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines += [f"| {r['env']} | {r['agents']} | {r['worlds']} | {r['env_steps_per_s']:,.0f} | "
+              f"{r['floor_frames_per_s']:,.0f} | **{r['ratio']:.2f}** | {r['best_ratio']:.2f} | {r['cpu_ratio']:.2f} |"
+              for r in rows]
+    lines += ["", "| env | agents | worlds | ms/step | " + " | ".join(STAGES + ("env",)) + " |",
+              "|---|---:|---:|---:|" + "---:|" * (len(STAGES) + 1)]
+    lines += [f"| {r['env']} | {r['agents']} | {r['worlds']} | {r['env_ms_per_step']:.2f} | "
+              + " | ".join(f"{r['stages_ms'][k]:.2f}" for k in STAGES + ("env",)) + " |" for r in rows]
+    return lines

@@ -3,7 +3,8 @@
 Two sweeps on the arena scene (floor + 10 instances per world, 4 agents per world):
 views 16..4096 at --resolution, and resolutions 32..512 at --fixed-views. Stages are the
 renderer's own timings: pack (poses, view matrices, instance buffers), cull, gl
-(draw + readback inside Panda3D) and copy (tiles into the batch tensor).
+(Panda3D's frame + the GL reads into the batch) and copy (copies after the reads: only
+for channels-first, supersampling or the "copy" readback, so 0 here).
 
 Memory per view: the resident memory (RSS, after garbage collection and malloc_trim) held
 while a renderer and its last frame are alive, above the reading just before the renderer

@@ -14,7 +14,7 @@ and (through ``parallel_to_aec``) ``render_test``.
 
 Spaces (the same for every agent):
 
-* observation: ``Box(0, 255, (H, W, 3), uint8)`` when the core yields only pixels (the
+* observation: ``Box(0, 255, (H, W, 3), uint8)`` (1 channel with ``grayscale=True``) when the core yields only pixels (the
   default). With ``depth=True``, ``state_obs=True`` or ``action_mask=True`` it is a
   ``Dict`` with "pixels", "depth" (``Box(0, far, (H, W), float32)``: metres, clamped at the
   camera's far plane), "state" (``Box(-inf, inf, (state_dim,), float32)``) and
@@ -198,11 +198,12 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
 
         H, W = env.resolution
         keys, far, state_dim, num_actions = self._obs_keys, float(env.far), env.state_dim, env.num_actions
+        channels = env.pixel_channels
 
         def make_obs_space():
             if not self._dict_obs:
-                return spaces.Box(0, 255, (H, W, 3), np.uint8)
-            parts = {"pixels": spaces.Box(0, 255, (H, W, 3), np.uint8)}
+                return spaces.Box(0, 255, (H, W, channels), np.uint8)
+            parts = {"pixels": spaces.Box(0, 255, (H, W, channels), np.uint8)}
             if "depth" in keys:
                 parts["depth"] = spaces.Box(0.0, far, (H, W), np.float32)
             if "state" in keys:
@@ -374,7 +375,8 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
 
     def _frame(self) -> np.ndarray:
         overview = self.core.render_overview()[0].cpu().numpy()
-        return tile_views(list(self._views), overview)
+        views = self._views if self._views.shape[-1] == 3 else self._views.repeat(3, axis=-1)  # gray
+        return tile_views(list(views), overview)
 
 
 def _world_info(info: dict, num_agents: int) -> dict:

@@ -6,7 +6,7 @@
 
 Layout (batch_size [W], W = num_worlds; a group of N agents):
 
-    (group, "pixels")       uint8   [W, N, H, Wpx, 3]  Bounded(0, 255)
+    (group, "pixels")       uint8   [W, N, H, Wpx, C]  Bounded(0, 255); C = 3, or 1 with grayscale=True
     (group, "depth")        float32 [W, N, H, Wpx]     Bounded(0, far)       depth=True
     (group, "state")        float32 [W, N, state_dim]  Unbounded             state_obs=True
     (group, "action_mask")  bool    [W, N, n]          Categorical(2, bool)  discrete envs
@@ -190,7 +190,7 @@ class MarlRenderTorchRLEnv(EnvBase):
             done_spec[key] = Categorical(2, shape=(W, 1), dtype=torch.bool, device=dev)
         for group, names in self.group_map.items():
             N = len(names)
-            obs = {"pixels": Bounded(0, 255, shape=(W, N, H, Wpx, 3), dtype=torch.uint8, device=dev)}
+            obs = {"pixels": Bounded(0, 255, shape=(W, N, H, Wpx, core.pixel_channels), dtype=torch.uint8, device=dev)}
             if core.depth:
                 obs["depth"] = Bounded(0.0, float(core.far), shape=(W, N, H, Wpx), dtype=torch.float32, device=dev)
             if core.state_obs:

@@ -1,0 +1,104 @@
+"""Reading Panda3D's render textures straight into torch memory with one GL call each.
+
+Panda3D's own readback (RTM_copy_ram) reads a framebuffer into a RAM image Panda3D owns,
+right after drawing it; the batch then needs one more full copy, and llvmpipe cannot
+rasterise one framebuffer while the next is being drawn. The renderer instead renders
+into textures (RTM_bind_or_copy) and, once every pass is drawn, reads each texture with
+`glGetTextureSubImage` into the caller's tensor: the driver converts RGBA to the
+requested components itself (measured: several times cheaper than dropping alpha in
+torch) and the bytes land where the batch wants them.
+
+The calls must run inside `backend._Context.current()` (the renderer reads within the
+same block as its frame), which makes the shared context current in the calling thread;
+they touch no binding Panda3D tracks (direct state access) and restore the pack
+alignment they change.
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+
+import torch
+
+from .backend import GLUnavailableError, INSTALL_HINT
+
+GL_RED, GL_RGB, GL_RGBA = 0x1903, 0x1907, 0x1908
+GL_UNSIGNED_BYTE = 0x1401
+GL_PACK_ALIGNMENT = 0x0D05
+GL_PIXEL_PACK_BUFFER = 0x88EB
+GL_PIXEL_PACK_BUFFER_BINDING = 0x88ED
+FORMATS = {1: GL_RED, 3: GL_RGB, 4: GL_RGBA}
+
+_functions = None
+
+
+def _gl():
+    """GL entry points through eglGetProcAddress (they dispatch to the current context)."""
+    global _functions
+    if _functions is None:
+        name = ctypes.util.find_library("EGL")
+        if name is None:
+            raise GLUnavailableError("libEGL not found: the renderer reads its textures through EGL. " + INSTALL_HINT)
+        egl = ctypes.CDLL(name)
+        egl.eglGetProcAddress.restype = ctypes.c_void_p
+        egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+        uint, sint, ptr = ctypes.c_uint, ctypes.c_int, ctypes.c_void_p
+        signatures = {
+            "glGetTextureSubImage": (None, [uint, sint, sint, sint, sint, sint, sint, sint, uint, uint, sint, ptr]),
+            "glGetIntegerv": (None, [uint, ctypes.POINTER(sint)]),
+            "glPixelStorei": (None, [uint, sint]),
+            "glBindBuffer": (None, [uint, uint]),
+            "glGetError": (uint, []),
+        }
+        functions = {}
+        for function, (restype, argtypes) in signatures.items():
+            address = egl.eglGetProcAddress(function.encode())
+            if not address:
+                raise GLUnavailableError(f"the GL driver has no {function} (OpenGL 4.5 is needed). " + INSTALL_HINT)
+            functions[function] = ctypes.CFUNCTYPE(restype, *argtypes)(address)
+        _functions = functions
+    return _functions
+
+
+def texture_id(texture, gsg) -> int:
+    """The GL name of a Panda3D texture that `gsg` has created (rendered into at least once)."""
+    context = texture.prepare_now(0, gsg.get_prepared_objects(), gsg)
+    name = context.get_native_id() if context is not None else 0
+    if not name:
+        raise RuntimeError(f"texture {texture.get_name()!r} has no GL object yet; render a frame first")
+    return int(name)
+
+
+def _get_integer(functions, name: int) -> int:
+    value = ctypes.c_int()
+    functions["glGetIntegerv"](name, ctypes.byref(value))
+    return value.value
+
+
+def read_texture(name: int, width: int, height: int, components: int, destination: torch.Tensor) -> None:
+    """Rows [0, height) of texture `name`, bottom-up as GL stores them, as 8-bit
+    `components` (1: red, 3: RGB, 4: RGBA) per pixel into `destination`, a contiguous CPU
+    tensor of exactly width * height * components bytes."""
+    size = width * height * components
+    if not destination.is_contiguous() or destination.numel() * destination.element_size() != size:
+        raise ValueError(f"destination must be a contiguous tensor of {size} bytes, got shape "
+                         f"{tuple(destination.shape)} of {destination.dtype}")
+    functions = _gl()
+    while functions["glGetError"]():  # errors of earlier calls are not ours to report
+        pass
+    alignment = _get_integer(functions, GL_PACK_ALIGNMENT)
+    pack_buffer = _get_integer(functions, GL_PIXEL_PACK_BUFFER_BINDING)
+    if pack_buffer:
+        functions["glBindBuffer"](GL_PIXEL_PACK_BUFFER, 0)
+    functions["glPixelStorei"](GL_PACK_ALIGNMENT, 1)
+    try:
+        functions["glGetTextureSubImage"](name, 0, 0, 0, 0, width, height, 1, FORMATS[components], GL_UNSIGNED_BYTE,
+                                          size, destination.data_ptr())
+        error = functions["glGetError"]()
+    finally:
+        functions["glPixelStorei"](GL_PACK_ALIGNMENT, alignment)
+        if pack_buffer:
+            functions["glBindBuffer"](GL_PIXEL_PACK_BUFFER, pack_buffer)
+    if error:
+        raise RuntimeError(f"reading back GL texture {name} ({width}x{height}, {components} components) failed "
+                           f"with GL error 0x{error:04x}")
