@@ -21,6 +21,7 @@ from . import backend, shaders
 from .images import texture_pixels
 from .meshes import MeshData, to_panda_geom
 from .scene import Scene, StaticGroup
+from .shadows import ShadowPass
 from .culling import frustum_planes, mesh_radius, visible_pairs
 from .threads import caller_threads, one_thread
 from .tiling import TileLayout, copy_tiles, framebuffer_tiles, plan_layout
@@ -113,11 +114,14 @@ class BatchRenderer:
         self.layout: TileLayout = plan_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
         self.effects = frozenset(scene.effects)
         self._init_state()
-        self.buffer = self.root = None
+        self.buffer = self.root = self.shadow_pass = None
         self._groups = {}
         try:
             self._build_target()
             self._build_groups()
+            if "shadows" in self.effects:
+                self.shadow_pass = ShadowPass(self._context, scene, self._groups, gl_max)
+                self.shadow_pass.bind(self.root)
         except BaseException:
             self.close()  # free whatever GL objects were made before the failure
             raise
@@ -242,7 +246,8 @@ class BatchRenderer:
             node.node().set_final(True)
             textured = group.texture is not None
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
-                                          flat=isinstance(mesh, MeshData) and mesh.flat)
+                                          flat=isinstance(mesh, MeshData) and mesh.flat,
+                                          shadow_pcf=self.scene.shadows.pcf)
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(_panda_texture(group.texture, group.name), 1)
@@ -384,6 +389,8 @@ class BatchRenderer:
         self._dirty.clear()
         packed = time.perf_counter()
         self._cull(frustum_planes(view_projection))
+        if self.shadow_pass is not None:
+            self.shadow_pass.prepare(self.world_origin, self._state, changed=bool(packed_groups))
         self.last_timings = {"pack": packed - start, "cull": time.perf_counter() - packed}
         return packed_groups
 
@@ -480,10 +487,14 @@ class BatchRenderer:
                 draw.node.set_instance_count(count)
             started = time.perf_counter()
             self.buffer.set_active(True)
+            if self.shadow_pass is not None:
+                self.shadow_pass.set_active(index == 0)  # drawn first (its buffer sorts first)
             try:
                 engine.render_frame()
             finally:
                 self.buffer.set_active(False)
+                if self.shadow_pass is not None:
+                    self.shadow_pass.set_active(False)
             drawn = time.perf_counter()
             self._check_shaders()
             self._read_pass(views, rgb, depth, segmentation)
@@ -497,6 +508,7 @@ class BatchRenderer:
         """A variant that failed to compile draws nothing: raise with the GL log instead."""
         log = self._context.drain_log()
         failed = [name for name, draw in self._groups.items() if draw.node.get_shader().get_error_flag()]
+        failed += self.shadow_pass.failed_groups() if self.shadow_pass is not None else []
         if failed:
             text = "\n".join(log or self._context.recent_log[-20:])
             raise backend.ShaderCompileError(f"the shader of group(s) {failed} failed to compile or link:\n{text}")
@@ -577,6 +589,8 @@ class BatchRenderer:
         if self._closed:
             return
         self._closed = True
+        if self.shadow_pass is not None:
+            self.shadow_pass.close()
         if self.buffer is not None:
             self.buffer.clear_render_textures()
             self._context.engine.remove_window(self.buffer)

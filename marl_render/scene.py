@@ -53,6 +53,29 @@ class Fog:
         object.__setattr__(self, "density", positive_float("fog.density", self.density, allow_zero=True))
 
 
+@dataclass(frozen=True)
+class Shadows:
+    """Shadow maps of the directional light (Scene.lighting.direction), drawn where the
+    scene declares the "shadows" effect.
+
+    resolution: texels per side of each world's shadow map. pcf: soften edges by
+    percentage-closer filtering (4 depth compares, bilinearly weighted); off, every pixel
+    is fully lit or fully shadowed. bounds: ((x0, y0, z0), (x1, y1, z1)), the world-frame
+    box that receives shadows (casters above it, towards the light, cast too); None fits
+    it to the static geometry. Outside the box everything is lit.
+    """
+
+    resolution: int = 512
+    pcf: bool = True
+    bounds: tuple | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "resolution", positive_int("shadows.resolution", self.resolution))
+        object.__setattr__(self, "pcf", boolean("shadows.pcf", self.pcf))
+        if self.bounds is not None:
+            object.__setattr__(self, "bounds", _box("shadows.bounds", self.bounds))
+
+
 @dataclass
 class StaticGroup:
     name: str
@@ -98,6 +121,7 @@ class Scene:
     background: tuple = (0.55, 0.65, 0.75)
     lighting: Lighting = field(default_factory=Lighting)
     fog: Fog = field(default_factory=Fog)
+    shadows: Shadows = field(default_factory=Shadows)
     fov_y: float = math.radians(70.0)
     near: float = 0.05
     far: float = 100.0
@@ -118,9 +142,12 @@ class Scene:
         if not 0 < self.fov_y < math.pi:
             raise ValueError(f"fov_y must be in (0, pi) radians, got {self.fov_y}")
         self.background = _color("background", self.background, sizes=(3, 4))
-        for name, kind in (("lighting", Lighting), ("fog", Fog)):
+        for name, kind in (("lighting", Lighting), ("fog", Fog), ("shadows", Shadows)):
             if not isinstance(getattr(self, name), kind):
                 raise TypeError(f"{name} must be a marl_render.{kind.__name__}, got {describe(getattr(self, name))}")
+        if "shadows" in self.effects and "lighting" not in self.effects:
+            raise ValueError(f"effects: 'shadows' darkens the directional light, so it needs 'lighting' too, "
+                             f"got {list(self.effects)}")
 
     @property
     def num_views(self) -> int:
@@ -286,6 +313,21 @@ def _numbers(name: str, value, sizes: tuple) -> tuple:
         raise ValueError(f"{name} must be {' or '.join(map(str, sizes))} numbers, got {describe(value)}")
     check_finite(name, vector)
     return tuple(float(v) for v in vector.tolist())
+
+
+def _box(name: str, value) -> tuple:
+    """An axis-aligned box ((x0, y0, z0), (x1, y1, z1)) of finite numbers with min <= max."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, (tuple, list, np.ndarray, torch.Tensor)):
+        raise TypeError(f"{name} must be ((x0, y0, z0), (x1, y1, z1)), got {describe(value)}")
+    box = as_tensor(name, value)
+    check_host(name, box)
+    if box.shape != (2, 3):
+        raise ValueError(f"{name} must be ((x0, y0, z0), (x1, y1, z1)), shape [2, 3], got shape {list(box.shape)}")
+    check_finite(name, box)
+    low, high = box.to(torch.float64).tolist()
+    if any(a > b for a, b in zip(low, high)):
+        raise ValueError(f"{name} must have min <= max on every axis, got min {low} and max {high}")
+    return tuple(low), tuple(high)
 
 
 def _color(name: str, value, *, sizes: tuple = (3,), high: float | None = 1.0) -> tuple:

@@ -37,6 +37,14 @@ flat out vec2 v_near_far;
 #ifdef OUTPUT_SEGMENTATION
 flat out int v_segment;
 #endif
+#ifdef EFFECT_SHADOWS
+uniform samplerBuffer lights;  // per world: the light's view-projection (texels 0-3), as views
+out vec3 v_light;              // the vertex in the light's clip space (orthographic: w = 1)
+flat out int v_world;          // whose shadow map to read
+#endif
+#if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
+out vec3 v_direct;             // the directional light's share of the colour, dimmed per fragment
+#endif
 
 vec3 rotate(vec4 q, vec3 v) {
     vec3 t = 2.0 * cross(q.yzw, v);
@@ -97,10 +105,21 @@ void main() {
 #ifdef LIGHT_PER_FRAGMENT
     v_normal = normal;
 #endif
-#ifdef LIGHT_PER_VERTEX
+#if defined(LIGHT_PER_VERTEX) && defined(EFFECT_SHADOWS)
+    // Shadows vary within a face: keep the direct light apart for the fragment stage.
+    v_direct = v_color.rgb * light_color * max(dot(normal, -light_direction), 0.0);
+    v_color.rgb *= ambient_color;
+#elif defined(LIGHT_PER_VERTEX)
     // A flat-shaded mesh has one normal per face, so lighting its vertices is exact and
     // spares every pixel the work (a quarter of a frame on a CPU rasteriser).
     v_color.rgb *= ambient_color + light_color * max(dot(normal, -light_direction), 0.0);
+#endif
+#ifdef EFFECT_SHADOWS
+    int lrow = world * VIEW_TEXELS;
+    mat4 light_projection = mat4(texelFetch(lights, lrow), texelFetch(lights, lrow + 1),
+                                 texelFetch(lights, lrow + 2), texelFetch(lights, lrow + 3));
+    v_light = (light_projection * vec4(world_position, 1.0)).xyz;
+    v_world = world;
 #endif
 #ifdef EFFECT_TEXTURE
     v_uv = p3d_MultiTexCoord0;
