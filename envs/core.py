@@ -60,6 +60,15 @@ def _flag(name: str, value) -> bool:
     return bool(value)
 
 
+def _shadows(value, bounds) -> mr.Shadows | None:
+    """None (no shadows) or the Shadows settings of the scene."""
+    if isinstance(value, mr.Shadows):
+        return value
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"shadows must be a bool or a marl_render.Shadows, got {describe(value)}")
+    return mr.Shadows(bounds=bounds) if value else None
+
+
 def _seed(name: str, value) -> int | None:
     if value is None:
         return None
@@ -95,7 +104,8 @@ class BatchedEnv(abc.ABC):
     ``_action_mask``, ``_overview_camera``).
 
     Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
-    (H, W)), max_steps, continuous, state_obs, depth, device, seed, autoreset, and
+    (H, W)), max_steps, continuous, state_obs, depth, shadows (False, True or a
+    marl_render.Shadows; True: Shadows(bounds=shadow_bounds)), device, seed, autoreset, and
     torch_threads (default 1): torch intra-op threads used *inside* env calls (the
     caller's setting is restored on return; None leaves it alone). See marl_render/threads.py.
 
@@ -123,10 +133,11 @@ class BatchedEnv(abc.ABC):
     arena_half_extent: tuple = (1.5, 1.5)  # used by the default overview camera
     overview_resolution: tuple = (128, 128)
     overview_fov_y: float = math.radians(60.0)
+    shadow_bounds = None  # the box shadows=True covers; None: fitted to the static geometry
 
     def __init__(self, *, num_worlds: int = 1, num_agents: int | None = None, resolution=None,
                  max_steps: int | None = None, continuous: bool = False, state_obs: bool = False,
-                 depth: bool = False, device="cpu", seed: int | None = None, autoreset: bool = False,
+                 depth: bool = False, shadows=False, device="cpu", seed: int | None = None, autoreset: bool = False,
                  torch_threads: int | None = 1):
         self._closed = True  # until fully built: close() and __del__ then do nothing
         self.num_worlds = positive_int("num_worlds", num_worlds)
@@ -148,6 +159,7 @@ class BatchedEnv(abc.ABC):
         self.continuous = _flag("continuous", continuous)
         self.state_obs = _flag("state_obs", state_obs)
         self.depth = _flag("depth", depth)
+        self.shadows = _shadows(shadows, self.shadow_bounds)
         self.autoreset = _flag("autoreset", autoreset)
         self.device = _device(device)
         if torch_threads is not None:
@@ -177,6 +189,7 @@ class BatchedEnv(abc.ABC):
         self._needs_reset = True
         self._overview = None
         effects = ("lighting", "depth") if self.depth else ("lighting",)
+        effects += ("shadows",) if self.shadows else ()
         with limited_threads(self.torch_threads):
             self.renderer = self._make_renderer(overview=False, resolution=self.resolution, effects=effects)
         self._closed = False
@@ -339,7 +352,8 @@ class BatchedEnv(abc.ABC):
             self._overview.close()
             self._overview = None
         if self._overview is None:
-            self._overview = self._make_renderer(overview=True, resolution=resolution, effects=("lighting",))
+            effects = ("lighting", "shadows") if self.shadows else ("lighting",)
+            self._overview = self._make_renderer(overview=True, resolution=resolution, effects=effects)
         with limited_threads(self.torch_threads):
             self._sync(self._overview, full=True)
             return self._overview.render().rgb[:, 0].to(self.device)
@@ -418,7 +432,8 @@ class BatchedEnv(abc.ABC):
     def _make_renderer(self, overview: bool, resolution, effects) -> mr.BatchRenderer:
         scene = mr.Scene(num_worlds=self.num_worlds, agents_per_world=1 if overview else self.num_agents,
                          resolution=resolution, effects=effects, background=self.background,
-                         fov_y=self.overview_fov_y if overview else self.fov_y, near=self.near, far=self.far)
+                         fov_y=self.overview_fov_y if overview else self.fov_y, near=self.near, far=self.far,
+                         shadows=self.shadows or mr.Shadows())
         self._build_scene(scene, overview)
         renderer = mr.BatchRenderer(scene)
         try:

@@ -33,6 +33,11 @@ class EgocentricEnv(BatchedEnv):
     near = 0.05
     far = 20.0
 
+    @property
+    def shadow_bounds(self):
+        """shadows=True covers the arena and its walls, not the floor's far margin."""
+        return scenery.arena_shadow_bounds(self.arena_half_extent)
+
 
 def declare_actions(env) -> None:
     """Set the env's action_dim or num_actions / action_meanings, and its action table."""

@@ -65,7 +65,7 @@ class Shadows:
     it to the static geometry. Outside the box everything is lit.
     """
 
-    resolution: int = 512
+    resolution: int = 256
     pcf: bool = True
     bounds: tuple | None = None
 
@@ -121,10 +121,10 @@ class Scene:
     background: tuple = (0.55, 0.65, 0.75)
     lighting: Lighting = field(default_factory=Lighting)
     fog: Fog = field(default_factory=Fog)
-    shadows: Shadows = field(default_factory=Shadows)
     fov_y: float = math.radians(70.0)
     near: float = 0.05
     far: float = 100.0
+    shadows: Shadows = field(default_factory=Shadows)  # settings of the "shadows" effect
     static: dict = field(default_factory=dict, init=False)
     groups: dict = field(default_factory=dict, init=False)
     camera_mount: CameraMount | None = field(default=None, init=False)

@@ -14,9 +14,14 @@ buffer sorts before the main one, so Panda3D draws it first within the same
 render_frame, and the main pass reads it (#ifdef EFFECT_SHADOWS in shaders/batch.frag).
 It is redrawn only in frames where an instance group or a world origin changed.
 
-Only the faces turned away from the light are drawn into the map. A lit face then lies
-strictly in front of the stored depth and never shadows itself, so closed meshes need
-almost no depth bias; single-sided meshes (the "plane") cast no shadow.
+Only the faces turned away from the light are drawn into the map: a lit face then lies
+in front of the stored depth by its mesh's thickness and never shadows itself. The
+fragment shader compares each texel with the receiver's own depth at that texel (the
+receiver's plane, from screen derivatives), so sloped receivers need no slope bias, and an
+outline is off by at most the texel grid. Single-sided meshes (the "plane") cast no shadow.
+
+Cost: the pass clears and rasterises num_worlds x resolution^2 depth texels per frame in
+which anything moved; the main pass adds one (PCF: four) texel reads per fragment.
 """
 from __future__ import annotations
 

@@ -26,7 +26,7 @@ flat in int v_segment;
 #endif
 #ifdef EFFECT_SHADOWS
 in vec3 v_light;                 // the fragment in the light's clip space
-flat in int v_world;
+flat in ivec2 v_shadow_tile;
 uniform sampler2D shadow_atlas;  // depth seen from the light, one square tile per world
 uniform ivec2 shadow_tiles;      // (tiles per atlas row, texels per tile side)
 uniform float shadow_bias;       // depth units: how close a receiver may be to a stored face
@@ -81,7 +81,7 @@ float light_visibility() {
     if (any(lessThan(p, vec3(0.0))) || any(greaterThan(p, vec3(1.0)))) {
         return 1.0;
     }
-    s.tile = ivec2(v_world % shadow_tiles.x, v_world / shadow_tiles.x) * size;
+    s.tile = v_shadow_tile;
     // The map holds the faces turned away from the light. A receiver level with one
     // touches it (the floor under a box): in shadow. Smooth normals light faces a little
     // past the silhouette, so there a receiver level with its own back face stays lit.

@@ -39,8 +39,9 @@ flat out int v_segment;
 #endif
 #ifdef EFFECT_SHADOWS
 uniform samplerBuffer lights;  // per world: the light's view-projection (texels 0-3), as views
+uniform ivec2 shadow_tiles;    // (tiles per atlas row, texels per tile side)
 out vec3 v_light;              // the vertex in the light's clip space (orthographic: w = 1)
-flat out int v_world;          // whose shadow map to read
+flat out ivec2 v_shadow_tile;  // first texel of this world's tile in the atlas
 #endif
 #if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
 out vec3 v_direct;             // the directional light's share of the colour, dimmed per fragment
@@ -119,7 +120,7 @@ void main() {
     mat4 light_projection = mat4(texelFetch(lights, lrow), texelFetch(lights, lrow + 1),
                                  texelFetch(lights, lrow + 2), texelFetch(lights, lrow + 3));
     v_light = (light_projection * vec4(world_position, 1.0)).xyz;
-    v_world = world;
+    v_shadow_tile = ivec2(world % shadow_tiles.x, world / shadow_tiles.x) * shadow_tiles.y;
 #endif
 #ifdef EFFECT_TEXTURE
     v_uv = p3d_MultiTexCoord0;

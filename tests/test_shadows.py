@@ -298,3 +298,38 @@ def test_default_bounds_fit_the_static_geometry():
     half_diagonal = math.sqrt(0.5)  # the second box turned 45 degrees about Z
     np.testing.assert_allclose(low, (-3.0, -2.0, -0.1), atol=1e-6)
     np.testing.assert_allclose(high, (max(3.0, 2.0 + half_diagonal), 2.0, 1.0), atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- environments
+def test_an_env_switches_shadows_on_and_they_only_darken():
+    from marl_render.envs import make_env, scenery
+
+    images = {}
+    for shadows in (False, True):
+        env = make_env("spread", num_worlds=2, resolution=48, seed=5, shadows=shadows)
+        try:
+            obs = env.reset(seed=5)
+            images[shadows] = (obs["pixels"], env.render_overview(resolution=64))
+            assert ("shadows" in env.renderer.scene.effects) == shadows
+            assert ("shadows" in env._overview.scene.effects) == shadows
+            if shadows:
+                assert env.renderer.scene.shadows.bounds == scenery.arena_shadow_bounds(env.arena_half_extent)
+        finally:
+            env.close()
+    for plain, shaded in zip(images[False], images[True]):
+        assert plain.shape == shaded.shape
+        assert (shaded <= plain).all(), "a shadow only removes the directional light"
+        assert (shaded < plain).any(-1).float().mean() > 0.01, "part of the images is in shadow"
+
+
+def test_env_shadows_argument_is_checked():
+    from marl_render.envs import make_env
+
+    with pytest.raises(TypeError, match=r"shadows must be a bool or a marl_render.Shadows, got 'yes'"):
+        make_env("spread", shadows="yes")
+    settings = mr.Shadows(resolution=32, pcf=False, bounds=BOUNDS)
+    env = make_env("spread", num_worlds=1, resolution=16, shadows=settings)
+    try:
+        assert env.renderer.scene.shadows is settings
+    finally:
+        env.close()

@@ -16,6 +16,8 @@ resolution and effects.
              each with a few anti-aliasing modes.
   precision  the scene moved 1e5..1e7 m from the origin, positions passed as float64 vs
              first cast to float32; error against the same scene at the origin.
+  shadows    lighting + shadows with shadow maps of 32..1024 texels per world, PCF off
+             and on, and lighting alone; error against a 2048-texel map with PCF.
 Physics (float64 state, one torch thread; cost = time of the rollout itself):
   spread_physics    spread's step (walls, collisions, drag) with 1..16 substeps and both
                     planar integrators; error = RMS position error after a fixed horizon
@@ -54,10 +56,12 @@ FULL = dict(worlds=8, resolutions=[32, 48, 64, 96, 128, 256], image_aa=["none", 
             "ss8x8"], effects_resolution=64, effects_aa=["none", "ss2x2", "msaa4"], precision_resolution=64,
             offsets=[1e5, 1e6, 1e7], substeps=[1, 2, 4, 8, 16], reference_substeps=64, physics_worlds=256,
             spread_horizon=20, cartpole_horizon=100, energy_horizon=1000, rounds=5, min_time=0.5, min_frames=3,
-            max_frames=30, physics_rounds=5, energy_rounds=3, env_steps=5)
+            max_frames=30, physics_rounds=5, energy_rounds=3, env_steps=5, shadow_maps=[64, 128, 256, 512, 1024],
+            shadow_reference=2048)
 QUICK = dict(FULL, worlds=1, resolutions=[32, 48], effects_resolution=32, effects_aa=["none", "ss2x2"],
              precision_resolution=32, offsets=[1e5, 1e7], physics_worlds=16, spread_horizon=5, cartpole_horizon=20,
-             energy_horizon=100, rounds=1, min_time=0.0, min_frames=1, max_frames=1, physics_rounds=1, energy_rounds=1)
+             energy_horizon=100, rounds=1, min_time=0.0, min_frames=1, max_frames=1, physics_rounds=1, energy_rounds=1,
+             shadow_maps=[32, 64], shadow_reference=256)
 
 # Thresholds the recommendations are phrased against (the answers come from the data).
 SPREAD_TARGETS_M = (1e-2, 1e-3)
@@ -638,6 +642,63 @@ def recommendations(result: dict) -> list:
     return out
 
 
+def shadow_sweep(state: SpreadState, cfg: dict, max_framebuffer: int) -> dict:
+    """Shadow-map resolution against error and time, on the spread scene with the shadows
+    env's bounds (the arena). Every frame moves the bodies, so the atlas is redrawn each
+    time; cost = the fastest of cfg["rounds"] passes over the settings."""
+    import marl_render as mr
+    from marl_render.envs import scenery
+    from marl_render.envs.spread import Spread
+
+    bounds = scenery.arena_shadow_bounds(Spread.arena_half_extent)
+    resolution = cfg["effects_resolution"]
+    settings = [(None, False)] + [(m, pcf) for m in cfg["shadow_maps"] for pcf in (False, True)]
+    reference_setting = (cfg["shadow_reference"], True)
+
+    def render(setting, timed):
+        shadow_map, pcf = setting
+        scene = state.scene_copy(resolution, ("lighting",) if shadow_map is None else ("lighting", "shadows"))
+        if shadow_map is not None:
+            scene.shadows = mr.Shadows(resolution=shadow_map, pcf=pcf, bounds=bounds)
+        with mr.BatchRenderer(scene, max_framebuffer_size=max_framebuffer) as renderer:
+            for name, kwargs in state.updates().items():
+                renderer.update(name, **kwargs)
+            image = renderer.render().rgb.clone()
+            if not timed:
+                return image, None
+            poses = state.updates(poses_only=True)
+
+            def frame():
+                for name, kwargs in poses.items():
+                    renderer.update(name, **kwargs)
+                renderer.render()
+
+            return image, _median_time(frame, cfg["min_time"], cfg["min_frames"], cfg["max_frames"]) / scene.num_views
+
+    started = time.perf_counter()
+    reference, _ = render(reference_setting, timed=False)
+    points = []
+    for round_index in range(cfg["rounds"]):
+        for index, setting in enumerate(settings):
+            image, seconds = render(setting, timed=True)
+            if round_index == 0:
+                shadow_map, pcf = setting
+                error = image_error(image, reference)
+                points.append({"label": "no shadows" if shadow_map is None else f"{shadow_map} px{' PCF' if pcf else ''}",
+                               "shadow_map": shadow_map, "pcf": pcf, "error": error["mae"], **error,
+                               "cost_rounds_s": [seconds]})
+            else:
+                points[index]["cost_rounds_s"].append(seconds)
+    for p in points:
+        p["cost_s"] = min(p["cost_rounds_s"])
+        p["views_per_s"] = 1 / p["cost_s"]
+        p["cost_vs_no_shadows"] = p["cost_s"] / points[0]["cost_s"] - 1
+    return {"what": f"spread scene at {resolution}px, lighting + shadows over the arena {bounds}; error vs a "
+                    f"{cfg['shadow_reference']}-texel map with PCF (no anti-aliasing)",
+            "cost": "seconds per view", "error": "mean absolute error (0-255)",
+            "seconds": time.perf_counter() - started, "points": points, "skipped": []}
+
+
 # ============================================================================ run / write
 def run(args) -> dict:
     cfg = dict(QUICK if args.quick else FULL)
@@ -654,6 +715,7 @@ def run(args) -> dict:
         sweeps.images()
         sweeps.effects()
         sweeps.precision()
+        sweeps.result["shadows"] = shadow_sweep(state, cfg, args.max_framebuffer)
         sweeps.spread_physics()
         sweeps.cartpole()
         sweeps.bar.close()
@@ -713,6 +775,16 @@ def _write(out: str, result: dict) -> None:
         lines.append(f"| {p['offset_m']:.0e} | {p['positions']} | {p['float32_spacing_m']:g} | "
                      f"{p['views_per_s']:,.0f} | {p['mae']:.3f} | {_num(p['psnr_db'])} | {p['max_abs']:.0f} | "
                      f"{p['pixels_changed']:.2%} |")
+    if "shadows" in s:
+        lines += ["", "## Shadows: shadow-map resolution", "", s["shadows"]["what"] + ".", "",
+                  "| shadow map (per world) | PCF | views/s | µs/view | time vs no shadows | MAE | PSNR dB | px changed |",
+                  "|---:|---|---:|---:|---:|---:|---:|---:|"]
+        for p in s["shadows"]["points"]:
+            size = "none" if p["shadow_map"] is None else f"{p['shadow_map']}x{p['shadow_map']}"
+            pcf = "" if p["shadow_map"] is None else "on" if p["pcf"] else "off"
+            lines.append(f"| {size} | {pcf} | {p['views_per_s']:,.0f} | {p['cost_s'] * 1e6:,.1f} | "
+                         f"{p['cost_vs_no_shadows']:+.0%} | {p['mae']:.3f} | {_num(p['psnr_db'])} | "
+                         f"{p['pixels_changed']:.1%} |")
     sp = s["spread_physics"]
     lines += ["", "## Spread physics: substeps x integrator", "", sp["what"] + ".", "",
               "| integrator | substeps | world-steps/s | µs/world-step | pos RMS (m) | pos max (m) | vel RMS (m/s) "

@@ -3,6 +3,9 @@
 Effects: the arena scene rendered with no effect, then with each effect alone, then all
 of them; views/s and the cost relative to no effect.
 
+Shadows: lighting + shadows at each --shadow-resolutions map size (PCF on and off), the
+atlas redrawn every frame (every box moves); cost relative to lighting alone.
+
 Ablation, cumulative, on the same scene and poses:
   1. one camera per view     one offscreen buffer and readback per view (plain Panda3D)
   2. tiled display regions    one buffer, a display region per view (plain Panda3D)
@@ -31,6 +34,8 @@ def add_arguments(parser):
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--processes", type=int, default=2)
+    parser.add_argument("--shadow-resolutions", type=int, nargs="*", default=[128, 256, 512, 1024],
+                        help="shadow-map texels per side (per world) to measure; none: skip shadows")
     parser.add_argument("--out", default="out/effects")
 
 
@@ -54,6 +59,28 @@ def _views_per_s(renderer, scene, steps):
         renderer.render()
 
     return scene.num_views / time_per_call(frame, steps)
+
+
+def _shadow_costs(args) -> list:
+    """Views/s with shadows per map resolution and PCF setting, each against lighting alone
+    measured right before it (the machine may be shared: neighbours in time compare best)."""
+    import marl_render as mr
+
+    rows = []
+    for resolution in args.shadow_resolutions:
+        for pcf in (False, True):
+            progress(f"shadows: {resolution}px pcf={pcf}")
+            plain = _scene(args, ("lighting",))
+            with mr.BatchRenderer(plain) as renderer:
+                base = _views_per_s(renderer, plain, args.steps)
+            scene = _scene(args, ("lighting", "shadows"))
+            scene.shadows = mr.Shadows(resolution=resolution, pcf=pcf)
+            with mr.BatchRenderer(scene) as renderer:
+                rate = _views_per_s(renderer, scene, args.steps)
+            rows.append({"resolution": resolution, "pcf": pcf, "atlas_texels": scene.num_worlds * resolution ** 2,
+                         "views_per_s": rate, "ms_per_frame": scene.num_views / rate * 1e3,
+                         "lighting_views_per_s": base, "cost_vs_lighting": base / rate - 1.0})
+    return rows
 
 
 def _worker(arguments):
@@ -110,6 +137,8 @@ def run(args) -> dict:
         result["effects"].append({"effects": label, "views_per_s": rate, "ms_per_frame": scene.num_views / rate * 1e3,
                                   "cost_vs_none": base / rate - 1.0})
 
+    result["shadows"] = _shadow_costs(args)
+
     scene = _scene(args, ("lighting",))
     steps = [
         ("one camera per view", lambda: NaiveRenderer(scene, tiled=False), max(3, args.steps // 4)),
@@ -139,6 +168,13 @@ def _write(out: str, result: dict) -> None:
              "|---|---:|---:|---:|"]
     lines += [f"| {r['effects']} | {r['views_per_s']:,.0f} | {r['ms_per_frame']:.1f} | {r['cost_vs_none']:+.0%} |"
               for r in result["effects"]]
+    if result.get("shadows"):
+        lines += ["", f"Shadows: one {result['worlds']}-world atlas pass per frame, the fragment shader reads it.", "",
+                  "| shadow map (per world) | PCF | views/s | ms/frame | lighting alone, views/s | cost vs lighting |",
+                  "|---:|---|---:|---:|---:|---:|"]
+        lines += [f"| {r['resolution']}x{r['resolution']} | {'on' if r['pcf'] else 'off'} | {r['views_per_s']:,.0f} | "
+                  f"{r['ms_per_frame']:.1f} | {r['lighting_views_per_s']:,.0f} | {r['cost_vs_lighting']:+.0%} |"
+                  for r in result["shadows"]]
     lines += ["", "| ablation step (cumulative) | views/s | speed-up |", "|---|---:|---:|"]
     lines += [f"| {r['step']} | {r['views_per_s']:,.0f} | {r['speedup_vs_first']:.1f}x |" for r in result["ablation"]]
     write_report(out, "effects", result, lines)
