@@ -117,11 +117,6 @@ class ShadowPass:
     groups: the renderer's draw groups by name (node, count, static, instances, radius)."""
 
     def __init__(self, context, scene: Scene, groups: dict, max_size: int):
-        from panda3d.core import (ColorWriteAttrib, CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib,
-                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, LVecBase2i, NodePath,
-                                  OmniBoundingVolume, SamplerState, Texture, WindowProperties, Camera)
-        from .renderer import _buffer_texture, _int
-
         settings = scene.shadows
         self.scene, self.groups, self._context = scene, groups, context
         self.layout = atlas_layout(scene.num_worlds, settings.resolution, max_size)
@@ -131,6 +126,18 @@ class ShadowPass:
         self.buffer = self.root = None
         self.casters, self.pairs, self.pair_offsets = {}, {}, {}
         self.pending = True  # the atlas must be drawn in the next frame
+        self.lights = self.atlas = None
+        try:
+            self._build(context, groups)
+        except BaseException:
+            self.close()  # free whatever GL objects were made before the failure
+            raise
+
+    def _build(self, context, groups: dict) -> None:
+        from panda3d.core import (Camera, ColorWriteAttrib, CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib,
+                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, LVecBase2i, NodePath,
+                                  OmniBoundingVolume, SamplerState, Texture, WindowProperties)
+        from .renderer import _buffer_texture, _int
 
         width, height = self.layout.framebuffer_size
         props = FrameBufferProperties()
@@ -161,7 +168,7 @@ class ShadowPass:
         self.root.set_attrib(DepthTestAttrib.make(DepthTestAttrib.M_less))
         self.root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
         self.root.set_attrib(ColorWriteAttrib.make(ColorWriteAttrib.C_off))
-        W = scene.num_worlds
+        W = self.scene.num_worlds
         self.lights = _buffer_texture("lights", W * shaders.VIEW_TEXELS)
         self.root.set_shader_input("views", self.lights)
         self.root.set_shader_input("agents", _int(1))
@@ -191,6 +198,8 @@ class ShadowPass:
         """Light matrices and culled casters for the next frame, when anything moved.
 
         world_origin [W, 3] float64; states: the renderer's per-group tensors by name."""
+        from .renderer import _writable
+
         if not (changed or self.pending):
             return
         self._pack_lights(world_origin)
@@ -212,8 +221,6 @@ class ShadowPass:
             if len(pairs) == 0:  # Panda3D would draw an instance count of 0 once
                 caster.hide()
                 continue
-            from .renderer import _writable
-
             _writable(self.pairs[name], np.int32)[: len(pairs)] = pairs
             caster.show()
             caster.set_instance_count(len(pairs))
@@ -252,7 +259,7 @@ class ShadowPass:
         if self.root is not None:
             self.root.remove_node()
             self.root = None
-        for texture in [getattr(self, "atlas", None), getattr(self, "lights", None), *self.pairs.values()]:
+        for texture in [self.atlas, self.lights, *self.pairs.values()]:
             if texture is not None:
                 texture.release_all()
                 texture.clear_ram_image()

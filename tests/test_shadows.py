@@ -333,3 +333,21 @@ def test_env_shadows_argument_is_checked():
         assert env.renderer.scene.shadows is settings
     finally:
         env.close()
+
+
+def test_shadows_far_from_the_origin_still_match_the_analytic_projection():
+    """The scene 1e6 m away: each world's origin is recentred and its light box with it."""
+    shift = torch.tensor([1e6, -2e6, 0.0], dtype=F64)
+    low, high = (tuple((torch.tensor(b, dtype=F64) + shift).tolist()) for b in BOUNDS)
+    scene = mr.Scene(num_worlds=3, agents_per_world=len(EYES), resolution=(H, W),
+                     effects=("lighting", "shadows", "segmentation"), lighting=LIGHT, fov_y=FOV,
+                     shadows=mr.Shadows(resolution=1024, pcf=False, bounds=(low, high)))
+    scene.add_static("floor", "plane", position=shift, scale=[12.0, 12.0, 1.0], color=[FLOOR_COLOR] * 3)
+    scene.add_group("box", "box", capacity=1)
+    with mr.BatchRenderer(scene) as renderer:
+        place_boxes(renderer, [((x + float(shift[0]), y + float(shift[1])), size, yaw) for (x, y), size, yaw in BOXES])
+        eyes = torch.tensor(EYES, dtype=F64) + shift
+        renderer.set_cameras(position=eyes.expand(3, -1, -1), look_at=shift.expand(3, len(EYES), 3))
+        frame = renderer.render()
+        assert bool((renderer.world_origin != 0).all(dim=1).any())
+    check_views(frame, scene, BOXES)  # the analytic shadow is the same relative to the shift
