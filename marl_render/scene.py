@@ -58,15 +58,17 @@ class Shadows:
     """Shadow maps of the directional light (Scene.lighting.direction), drawn where the
     scene declares the "shadows" effect.
 
-    resolution: texels per side of each world's shadow map. pcf: soften edges by
-    percentage-closer filtering (4 depth compares, bilinearly weighted); off, every pixel
-    is fully lit or fully shadowed. bounds: ((x0, y0, z0), (x1, y1, z1)), the world-frame
-    box that receives shadows (casters above it, towards the light, cast too); None fits
-    it to the static geometry. Outside the box everything is lit.
+    resolution: texels per side of each world's shadow map (2-4x the views' resolution
+    over the bounds is plenty; larger maps cost more to draw and to read). pcf: soften
+    edges by percentage-closer filtering (4 depth compares, bilinearly weighted; about a
+    third more shading time); off, every pixel is fully lit or fully shadowed. bounds:
+    ((x0, y0, z0), (x1, y1, z1)), the world-frame box that receives shadows (casters above
+    it, towards the light, cast too); None fits it to the static geometry. Outside the box
+    everything is lit.
     """
 
     resolution: int = 256
-    pcf: bool = True
+    pcf: bool = False
     bounds: tuple | None = None
 
     def __post_init__(self):

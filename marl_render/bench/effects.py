@@ -4,7 +4,8 @@ Effects: the arena scene rendered with no effect, then with each effect alone, t
 of them; views/s and the cost relative to no effect.
 
 Shadows: lighting + shadows at each --shadow-resolutions map size (PCF on and off), the
-atlas redrawn every frame (every box moves); cost relative to lighting alone.
+atlas redrawn every frame (every box moves); wall and CPU time relative to lighting
+alone, the two alternated.
 
 Ablation, cumulative, on the same scene and poses:
   1. one camera per view     one offscreen buffer and readback per view (plain Panda3D)
@@ -61,9 +62,11 @@ def _views_per_s(renderer, scene, steps):
     return scene.num_views / time_per_call(frame, steps)
 
 
-def _shadow_costs(args) -> list:
-    """Views/s with shadows per map resolution and PCF setting, each against lighting alone
-    measured right before it (the machine may be shared: neighbours in time compare best)."""
+def _shadow_costs(args, rounds: int = 3) -> list:
+    """Per map resolution and PCF setting: lighting + shadows against lighting alone, timed
+    in alternation (`rounds` times each, the fastest kept) so that load from elsewhere on a
+    shared machine falls on both. CPU time (all threads of the process, llvmpipe's
+    included) is reported too: it varies far less with such load than wall time."""
     import marl_render as mr
 
     rows = []
@@ -71,16 +74,33 @@ def _shadow_costs(args) -> list:
         for pcf in (False, True):
             progress(f"shadows: {resolution}px pcf={pcf}")
             plain = _scene(args, ("lighting",))
-            with mr.BatchRenderer(plain) as renderer:
-                base = _views_per_s(renderer, plain, args.steps)
             scene = _scene(args, ("lighting", "shadows"))
             scene.shadows = mr.Shadows(resolution=resolution, pcf=pcf)
-            with mr.BatchRenderer(scene) as renderer:
-                rate = _views_per_s(renderer, scene, args.steps)
+            with mr.BatchRenderer(plain) as base, mr.BatchRenderer(scene) as shaded:
+                timings = {"base": [], "shadows": []}
+                for _ in range(rounds):
+                    timings["base"].append(_seconds_per_frame(base, plain, args.steps))
+                    timings["shadows"].append(_seconds_per_frame(shaded, scene, args.steps))
+            (base_wall, base_cpu), (wall, cpu) = (min(timings[k]) for k in ("base", "shadows"))
             rows.append({"resolution": resolution, "pcf": pcf, "atlas_texels": scene.num_worlds * resolution ** 2,
-                         "views_per_s": rate, "ms_per_frame": scene.num_views / rate * 1e3,
-                         "lighting_views_per_s": base, "cost_vs_lighting": base / rate - 1.0})
+                         "views_per_s": scene.num_views / wall, "ms_per_frame": wall * 1e3,
+                         "lighting_views_per_s": scene.num_views / base_wall, "cost_vs_lighting": wall / base_wall - 1,
+                         "cpu_ms_per_frame": cpu * 1e3, "lighting_cpu_ms_per_frame": base_cpu * 1e3,
+                         "cpu_cost_vs_lighting": cpu / base_cpu - 1})
     return rows
+
+
+def _seconds_per_frame(renderer, scene, steps) -> tuple:
+    """(wall, process CPU) seconds per frame of random motion, after 3 warm-up frames."""
+    motion = RandomMotion(scene, seed=0)
+    for _ in range(3):
+        apply(renderer, motion.next())
+        renderer.render()
+    wall, cpu = time.perf_counter(), time.process_time()
+    for _ in range(steps):
+        apply(renderer, motion.next())
+        renderer.render()
+    return (time.perf_counter() - wall) / steps, (time.process_time() - cpu) / steps
 
 
 def _worker(arguments):
@@ -170,11 +190,11 @@ def _write(out: str, result: dict) -> None:
               for r in result["effects"]]
     if result.get("shadows"):
         lines += ["", f"Shadows: one {result['worlds']}-world atlas pass per frame, the fragment shader reads it.", "",
-                  "| shadow map (per world) | PCF | views/s | ms/frame | lighting alone, views/s | cost vs lighting |",
-                  "|---:|---|---:|---:|---:|---:|"]
+                  "| shadow map (per world) | PCF | views/s | ms/frame | vs lighting alone | CPU ms/frame | "
+                  "CPU vs lighting alone |", "|---:|---|---:|---:|---:|---:|---:|"]
         lines += [f"| {r['resolution']}x{r['resolution']} | {'on' if r['pcf'] else 'off'} | {r['views_per_s']:,.0f} | "
-                  f"{r['ms_per_frame']:.1f} | {r['lighting_views_per_s']:,.0f} | {r['cost_vs_lighting']:+.0%} |"
-                  for r in result["shadows"]]
+                  f"{r['ms_per_frame']:.1f} | {r['cost_vs_lighting']:+.0%} | {r['cpu_ms_per_frame']:.1f} | "
+                  f"{r['cpu_cost_vs_lighting']:+.0%} |" for r in result["shadows"]]
     lines += ["", "| ablation step (cumulative) | views/s | speed-up |", "|---|---:|---:|"]
     lines += [f"| {r['step']} | {r['views_per_s']:,.0f} | {r['speedup_vs_first']:.1f}x |" for r in result["ablation"]]
     write_report(out, "effects", result, lines)
