@@ -64,6 +64,11 @@ class ArenaEnv(BatchedEnv):
     thrust = egomotion.THRUST  # N at full forward action (a scenario may set one per agent, [A])
     team_colors = scenery.TEAM_COLORS
 
+    @property
+    def shadow_bounds(self):
+        """shadows=True covers the arena and its walls, not the floor's far margin."""
+        return scenery.arena_shadow_bounds(self.arena_half_extent)
+
     def setup_arena(self, teams: dict, *, state_dim: int, radius, max_speed: float, substeps: int = 2,
                     bodies: tuple = ()) -> None:
         """Declare who plays and how bodies move (first thing in a scenario's _setup).

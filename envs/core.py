@@ -84,6 +84,15 @@ def _flag(name: str, value) -> bool:
     return bool(value)
 
 
+def _shadows(value, bounds) -> mr.Shadows | None:
+    """None (no shadows) or the Shadows settings of the scene."""
+    if isinstance(value, mr.Shadows):
+        return value
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"shadows must be a bool or a marl_render.Shadows, got {describe(value)}")
+    return mr.Shadows(bounds=bounds) if value else None
+
+
 def _seed(name: str, value) -> int | None:
     if value is None:
         return None
@@ -135,10 +144,11 @@ class BatchedEnv(abc.ABC):
     ``_state_obs`` (and optionally ``_init_cameras``, ``_action_mask``, ``_overview_camera``).
 
     Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
-    (H, W)), max_steps, continuous, state_obs, depth, device, seed, autoreset, grayscale
-    (one-channel pixels, `pixel_channels`), and torch_threads (default 1, at most 1024):
-    torch intra-op threads used *inside* env calls (the caller's setting is restored on
-    return; None leaves it alone). See marl_render/threads.py.
+    (H, W)), max_steps, continuous, state_obs, depth, shadows (False, True or a
+    marl_render.Shadows; True: Shadows(bounds=shadow_bounds)), device, seed, autoreset,
+    grayscale (one-channel pixels, `pixel_channels`), and torch_threads (default 1, at most
+    1024): torch intra-op threads used *inside* env calls (the caller's setting is restored
+    on return; None leaves it alone). See marl_render/threads.py.
 
     Attributes: name, num_worlds (W), num_agents (A), agent_names, groups (team ->
     agent names, in agent-index order), resolution (H, W), continuous, num_actions
@@ -166,11 +176,12 @@ class BatchedEnv(abc.ABC):
     arena_half_extent: tuple = (1.5, 1.5)  # used by the default overview camera
     overview_resolution: tuple = (128, 128)
     overview_fov_y: float = math.radians(60.0)
+    shadow_bounds = None  # the box shadows=True covers; None: fitted to the static geometry
 
     def __init__(self, *, num_worlds: int = 1, num_agents: int | None = None, resolution=None,
                  max_steps: int | None = None, continuous: bool = False, state_obs: bool = False,
-                 depth: bool = False, device="cpu", seed: int | None = None, autoreset: bool = False,
-                 torch_threads: int | None = 1, grayscale: bool = False):
+                 depth: bool = False, shadows=False, device="cpu", seed: int | None = None,
+                 autoreset: bool = False, torch_threads: int | None = 1, grayscale: bool = False):
         self._closed = True  # until fully built: close() and __del__ then do nothing
         self.num_worlds = positive_int("num_worlds", num_worlds)
         low, high = self.agent_range
@@ -190,6 +201,7 @@ class BatchedEnv(abc.ABC):
         self.continuous = _flag("continuous", continuous)
         self.state_obs = _flag("state_obs", state_obs)
         self.depth = _flag("depth", depth)
+        self.shadows = _shadows(shadows, self.shadow_bounds)
         self.grayscale = _flag("grayscale", grayscale)
         self.pixel_channels = 1 if self.grayscale else 3
         self.autoreset = _flag("autoreset", autoreset)
@@ -199,6 +211,7 @@ class BatchedEnv(abc.ABC):
         self.seed = int(torch.Generator().seed() % 2 ** 63) if seed is None else seed
         self.generator = torch.Generator().manual_seed(self.seed)
         effects = ("lighting", "depth") if self.depth else ("lighting",)
+        effects += ("shadows",) if self.shadows else ()
         # Views and pixels alone, before _setup allocates the state; the whole scene below.
         self._check_memory(mr.Scene(num_worlds=self.num_worlds, agents_per_world=self.num_agents,
                                     resolution=self.resolution, effects=effects))
@@ -390,7 +403,8 @@ class BatchedEnv(abc.ABC):
         self._check_started()
         resolution = resolution_hw(self.overview_resolution if resolution is None else resolution)
         if self._overview is None or self._overview.scene.resolution != resolution:
-            scene = self._make_scene(overview=True, resolution=resolution, effects=("lighting",))
+            effects = ("lighting", "shadows") if self.shadows else ("lighting",)
+            scene = self._make_scene(overview=True, resolution=resolution, effects=effects)
             replaced = 0 if self._overview is None else memory.renderer_bytes(self._overview.scene)
             memory.check_fits(memory.renderer_bytes(scene) - replaced,
                               f"render_overview(resolution={resolution}) with num_worlds={self.num_worlds}",
@@ -522,7 +536,8 @@ class BatchedEnv(abc.ABC):
     def _make_scene(self, overview: bool, resolution, effects) -> mr.Scene:
         scene = mr.Scene(num_worlds=self.num_worlds, agents_per_world=1 if overview else self.num_agents,
                          resolution=resolution, effects=effects, background=self.background,
-                         fov_y=self.overview_fov_y if overview else self.fov_y, near=self.near, far=self.far)
+                         fov_y=self.overview_fov_y if overview else self.fov_y, near=self.near, far=self.far,
+                         shadows=self.shadows or mr.Shadows())
         self._build_scene(scene, overview)
         return scene
 

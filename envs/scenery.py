@@ -78,6 +78,13 @@ def add_arena(scene: mr.Scene, half_extent=(1.5, 1.5), *, wall_height: float = 0
     scene.add_static(name, "box", position=position, scale=scale, color=[list(floor_color)] + [list(wall_color)] * 4)
 
 
+def arena_shadow_bounds(half_extent=(1.5, 1.5), *, margin: float = 0.6, height: float = 1.0) -> tuple:
+    """((x0, y0, z0), (x1, y1, z1)) for mr.Shadows(bounds=...): the arena, its walls and
+    `margin` metres around them (where the walls' shadows fall under a light from above)."""
+    hx, hy = (float(v) for v in half_extent)
+    return (-hx - margin, -hy - margin, -0.1), (hx + margin, hy + margin, height)
+
+
 def agent_mesh(radius: float = 0.15, height: float = 0.5) -> mr.MeshData:
     """Low-poly upright capsule (8 segments): agents are drawn in every other agent's view."""
     return mr.capsule(radius, height, segments=8, rings=2)

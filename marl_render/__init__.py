@@ -1,13 +1,13 @@
 """marl-render: batched egocentric rendering for multi-agent RL from pixels."""
 from .meshes import MeshData, box, capsule, cone, cylinder, load_model, plane, sphere
 from .renderer import BatchRenderer, Frame
-from .scene import CameraMount, Fog, Lighting, Scene
+from .scene import CameraMount, Fog, Lighting, Scene, Shadows
 from .transforms import look_at_quat, quat_from_yaw_pitch_roll, yaw_pitch_roll_from_quat
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "BatchRenderer", "Frame", "Scene", "Lighting", "Fog", "CameraMount", "MeshData",
+    "BatchRenderer", "Frame", "Scene", "Lighting", "Fog", "Shadows", "CameraMount", "MeshData",
     "box", "capsule", "cone", "cylinder", "plane", "sphere", "load_model",
     "look_at_quat", "quat_from_yaw_pitch_roll", "yaw_pitch_roll_from_quat",
 ]

@@ -26,6 +26,7 @@ from .images import texture_pixels
 from .meshes import MeshData, to_panda_geom
 from .provoking import shared_corner_mesh
 from .scene import Scene, StaticGroup
+from .shadows import ShadowPass
 from .triangle_corners import to_panda_geom_with_corners
 from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
 from .threads import one_thread
@@ -151,12 +152,17 @@ class BatchRenderer:
         self._init_state()
         self._passes: list[_Pass] = []
         self._groups = {}
+        self.shadow_pass = None
         try:
             # Panda3D opens each framebuffer right away; until it is inactive, any frame
             # drawn by another thread would draw it too.
             with self._context.current():
                 self._build_passes()
                 self._build_groups()
+                if "shadows" in self.effects:
+                    self.shadow_pass = ShadowPass(self._context, scene, self._groups, gl_max)
+                    for render_pass in self._passes:
+                        self.shadow_pass.bind(render_pass.root)
         except BaseException:
             self.close()  # free whatever GL objects were made before the failure
             raise
@@ -304,7 +310,7 @@ class BatchRenderer:
             node.node().set_final(True)
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
                                           flat=procedural and mesh.flat, corners=procedural,
-                                          gray=self.color == "gray")
+                                          gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf)
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(_panda_texture(group.texture, group.name), 1)
@@ -469,6 +475,8 @@ class BatchRenderer:
         packed = time.perf_counter()
         self._cull(set(packed_groups), cameras_moved)
         self._mask_dirty.clear()
+        if self.shadow_pass is not None:  # the atlas depends on the instances, not on the cameras
+            self.shadow_pass.prepare(self.world_origin, self._state, changed=bool(packed_groups))
         self.last_timings = {"pack": packed - start, "cull": time.perf_counter() - packed}
         return packed_groups
 
@@ -631,14 +639,21 @@ class BatchRenderer:
                     node.set_instance_count(count)
                 entry[2] = count
         # Every pass is drawn in one frame before any is read: llvmpipe rasterises one
-        # framebuffer on its threads while the next one is being drawn.
+        # framebuffer on its threads while the next one is being drawn. The shadow atlas,
+        # when out of date, is drawn first in the same frame (its buffer sorts before them).
         for render_pass in self._passes:
             render_pass.buffer.set_active(True)
+        if self.shadow_pass is not None:
+            self.shadow_pass.set_active(True)
         try:
             self._context.engine.render_frame()
+            if self.shadow_pass is not None:
+                self.shadow_pass.drawn()
         finally:
             for render_pass in self._passes:
                 render_pass.buffer.set_active(False)
+            if self.shadow_pass is not None:
+                self.shadow_pass.set_active(False)
         self._check_shaders()
         copy_seconds = 0.0
         for render_pass in self._passes:
@@ -654,6 +669,7 @@ class BatchRenderer:
         log = self._context.drain_log()
         failed = [name for name, draw in self._groups.items()
                   if any(node.get_shader().get_error_flag() for node, _, _ in draw.pass_nodes)]
+        failed += self.shadow_pass.failed_groups() if self.shadow_pass is not None else []
         if failed:
             text = "\n".join(log or self._context.recent_log[-20:])
             raise backend.ShaderCompileError(f"the shader of group(s) {failed} failed to compile or link:\n{text}")
@@ -765,12 +781,17 @@ class BatchRenderer:
         self._closed = True
         textures = [getattr(self, "views_texture", None)]
         passes = getattr(self, "_passes", [])
-        if passes and self._context.pid == os.getpid():  # a forked child must not touch its parent's GL objects
+        shadow_pass = getattr(self, "shadow_pass", None)
+        if (passes or shadow_pass is not None) and self._context.pid == os.getpid():
+            # a forked child must not touch its parent's GL objects
             with self._context.current():  # Panda3D deletes the framebuffers right away
+                if shadow_pass is not None:
+                    shadow_pass.close()
                 for render_pass in passes:
                     render_pass.buffer.clear_render_textures()
                     self._context.engine.remove_window(render_pass.buffer)
                 self._context.drop_render_texture_events()
+        self.shadow_pass = None
         for render_pass in passes:
             render_pass.root.remove_node()
             textures += [render_pass.color, *render_pass.aux.values()]

@@ -65,6 +65,31 @@ class Fog:
         object.__setattr__(self, "density", positive_float("fog.density", self.density, allow_zero=True))
 
 
+@dataclass(frozen=True)
+class Shadows:
+    """Shadow maps of the directional light (Scene.lighting.direction), drawn where the
+    scene declares the "shadows" effect.
+
+    resolution: texels per side of each world's shadow map (2-4x the views' resolution
+    over the bounds is plenty; larger maps cost more to draw and to read). pcf: soften
+    edges by percentage-closer filtering (4 depth compares, bilinearly weighted; about a
+    third more shading time); off, every pixel is fully lit or fully shadowed. bounds:
+    ((x0, y0, z0), (x1, y1, z1)), the world-frame box that receives shadows (casters above
+    it, towards the light, cast too); None fits it to the static geometry. Outside the box
+    everything is lit.
+    """
+
+    resolution: int = 256
+    pcf: bool = False
+    bounds: tuple | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "resolution", positive_int("shadows.resolution", self.resolution))
+        object.__setattr__(self, "pcf", boolean("shadows.pcf", self.pcf))
+        if self.bounds is not None:
+            object.__setattr__(self, "bounds", _box("shadows.bounds", self.bounds))
+
+
 @dataclass
 class StaticGroup:
     name: str
@@ -114,6 +139,7 @@ class Scene:
     fov_y: float = math.radians(70.0)
     near: float = 0.05
     far: float = 100.0
+    shadows: Shadows = field(default_factory=Shadows)  # settings of the "shadows" effect
     static: dict = field(default_factory=dict, init=False)
     groups: dict = field(default_factory=dict, init=False)
     camera_mount: CameraMount | None = field(default=None, init=False)
@@ -131,9 +157,12 @@ class Scene:
         if not 0 < self.fov_y < math.pi:
             raise ValueError(f"fov_y must be in (0, pi) radians, got {self.fov_y}")
         self.background = _color("background", self.background, sizes=(3, 4))
-        for name, kind in (("lighting", Lighting), ("fog", Fog)):
+        for name, kind in (("lighting", Lighting), ("fog", Fog), ("shadows", Shadows)):
             if not isinstance(getattr(self, name), kind):
                 raise TypeError(f"{name} must be a marl_render.{kind.__name__}, got {describe(getattr(self, name))}")
+        if "shadows" in self.effects and "lighting" not in self.effects:
+            raise ValueError(f"effects: 'shadows' darkens the directional light, so it needs 'lighting' too, "
+                             f"got {list(self.effects)}")
 
     @property
     def num_views(self) -> int:
@@ -299,6 +328,21 @@ def _numbers(name: str, value, sizes: tuple) -> tuple:
         raise ValueError(f"{name} must be {' or '.join(map(str, sizes))} numbers, got {describe(value)}")
     check_finite(name, vector)
     return tuple(float(v) for v in vector.tolist())
+
+
+def _box(name: str, value) -> tuple:
+    """An axis-aligned box ((x0, y0, z0), (x1, y1, z1)) of finite numbers with min <= max."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, (tuple, list, np.ndarray, torch.Tensor)):
+        raise TypeError(f"{name} must be ((x0, y0, z0), (x1, y1, z1)), got {describe(value)}")
+    box = as_tensor(name, value)
+    check_host(name, box)
+    if box.shape != (2, 3):
+        raise ValueError(f"{name} must be ((x0, y0, z0), (x1, y1, z1)), shape [2, 3], got shape {list(box.shape)}")
+    check_finite(name, box)
+    low, high = box.to(torch.float64).tolist()
+    if any(a > b for a, b in zip(low, high)):
+        raise ValueError(f"{name} must have min <= max on every axis, got min {low} and max {high}")
+    return tuple(low), tuple(high)
 
 
 def _color(name: str, value, *, sizes: tuple = (3,), high: float | None = 1.0) -> tuple:

@@ -27,6 +27,7 @@ EFFECT_DEFINES = {
     "depth": "OUTPUT_DEPTH",
     "segmentation": "OUTPUT_SEGMENTATION",
     "log_depth": "LOG_DEPTH",
+    "shadows": "EFFECT_SHADOWS",
 }
 EFFECTS = tuple(EFFECT_DEFINES)
 
@@ -37,7 +38,7 @@ def source(name: str) -> str:
 
 
 def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False,
-                corners: bool = False, gray: bool = False) -> tuple[str, ...]:
+                corners: bool = False, gray: bool = False, shadow_pcf: bool = False) -> tuple[str, ...]:
     """The sorted #define lines of one variant (texture only for groups that have one).
 
     Lighting runs per vertex for meshes whose faces each have one normal (flat), where
@@ -45,12 +46,15 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
     corners that procedural meshes carry (`corners`, see triangle_corners.py), else from
     a geometry shader (model files). gray: the colour output is its luma (GRAY_WEIGHTS).
     The colour is a flat varying in every variant, so a flat mesh may also be drawn from
-    its welded corners (provoking.py) with the same defines."""
+    its welded corners (provoking.py) with the same defines. Shadows filter their edges
+    (SHADOW_PCF) only when asked."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
     if "lighting" in effects:
         defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
     if "depth" in effects:
         defines.add("DEPTH_PLANE_FROM_CORNERS" if corners else "DEPTH_PLANE_FROM_GEOMETRY")
+    if "shadows" in effects and shadow_pcf:
+        defines.add("SHADOW_PCF")
     if gray:
         defines.add("OUTPUT_GRAY")
     if "texture" in effects and textured:
@@ -84,4 +88,25 @@ def compiled(defines: tuple[str, ...]):
     shader = Shader.make(Shader.SL_GLSL, variant_source("vert", defines), variant_source("frag", defines), geometry)
     if shader is None:
         raise RuntimeError(f"shader variant {defines} failed to parse; see the GL log above")
+    return shader
+
+
+def caster_defines(*, static: bool) -> tuple[str, ...]:
+    """#defines of the shadow-map pass: positions only, no effect (see shadows.py)."""
+    defines = {f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}",
+               f"VIEW_TEXELS {VIEW_TEXELS}", "SHADOW_CASTER"}
+    if static:
+        defines.add("STATIC_GROUP")
+    return tuple(sorted(defines))
+
+
+@functools.lru_cache(maxsize=None)
+def compiled_caster(defines: tuple[str, ...]):
+    """Cached Panda3D Shader of the depth-only shadow pass: batch.vert, an empty fragment stage."""
+    from panda3d.core import Shader
+
+    fragment = GLSL_VERSION + source("shadow_caster.frag")
+    shader = Shader.make(Shader.SL_GLSL, variant_source("vert", defines), fragment)
+    if shader is None:
+        raise RuntimeError(f"shadow caster variant {defines} failed to parse; see the GL log above")
     return shader

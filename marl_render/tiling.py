@@ -6,7 +6,7 @@ drawn before any is read. Every view is flipped vertically in the vertex shader,
 the bottom-up rows GL reads back, tile t is rows [t * H, (t + 1) * H) top to bottom:
 the framebuffer's memory is exactly the [views, H, W, C] batch, and the readback lands
 in it with no rearranging copy. `plan_layout` makes a near-square grid, for the plain
-Panda3D baseline (one display region per view).
+Panda3D baseline (one display region per view) and the shadow atlas (shadows.py).
 """
 from __future__ import annotations
 

@@ -46,6 +46,16 @@ flat in vec2 v_near_far;
 #ifdef OUTPUT_SEGMENTATION
 flat in int v_segment;
 #endif
+#ifdef EFFECT_SHADOWS
+in vec3 v_light;                 // the fragment in the light's clip space
+flat in ivec2 v_shadow_tile;
+uniform sampler2D shadow_atlas;  // depth seen from the light, one square tile per world
+uniform ivec2 shadow_tiles;      // (tiles per atlas row, texels per tile side)
+uniform float shadow_bias;       // depth units: how close a receiver may be to a stored face
+#endif
+#if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
+flat in vec3 v_direct;
+#endif
 
 layout(location = 0) out vec4 out_color;
 #ifdef OUTPUT_DEPTH
@@ -61,13 +71,75 @@ vec4 bytes_of(uint bits) {
     return unpackUnorm4x8(bits);
 }
 
+#ifdef EFFECT_SHADOWS
+// Where this fragment reads its world's tile: the point in texels, the receiver's depth
+// there, and the receiver's depth slope per texel (from screen derivatives), so that each
+// texel is compared with the receiver's own depth at that texel's centre. Sloped
+// receivers then need no slope bias and no shadow moves by more than the texel grid.
+struct ShadowLookup {
+    ivec2 tile;
+    vec2 texel;
+    float depth;
+    vec2 slope;
+};
+
+float shadow_lit(ShadowLookup s, ivec2 texel) {
+    ivec2 inside = clamp(texel, ivec2(0), ivec2(shadow_tiles.y - 1));  // never a neighbour's tile
+    float receiver = s.depth + dot(s.slope, vec2(inside) + 0.5 - s.texel);
+    return receiver < texelFetch(shadow_atlas, s.tile + inside, 0).r ? 1.0 : 0.0;
+}
+
+// The fraction of the directional light that reaches this fragment. Outside the light's
+// box (Shadows.bounds) everything is lit.
+float light_visibility() {
+    vec3 p = v_light * 0.5 + 0.5;
+    int size = shadow_tiles.y;
+    ShadowLookup s;
+    s.texel = vec2(p.x, 1.0 - p.y) * float(size);  // tiles are flipped vertically, like views
+    // Derivatives before any branch: they need the whole 2x2 quad of pixels.
+    vec3 dx = dFdx(vec3(s.texel, p.z));
+    vec3 dy = dFdy(vec3(s.texel, p.z));
+    float det = dx.x * dy.y - dx.y * dy.x;
+    s.slope = abs(det) > 1e-12 ? vec2(dx.z * dy.y - dx.y * dy.z, dx.x * dy.z - dx.z * dy.x) / det : vec2(0.0);
+    if (any(lessThan(p, vec3(0.0))) || any(greaterThan(p, vec3(1.0)))) {
+        return 1.0;
+    }
+    s.tile = v_shadow_tile;
+    // The map holds the faces turned away from the light. A receiver level with one
+    // touches it (the floor under a box): in shadow. Smooth normals light faces a little
+    // past the silhouette, so there a receiver level with its own back face stays lit.
+#ifdef LIGHT_PER_VERTEX
+    s.depth = p.z + shadow_bias;
+#else
+    s.depth = p.z - shadow_bias;
+#endif
+#ifdef SHADOW_PCF
+    // Four compares around the point, weighted bilinearly: edges soft over one texel.
+    vec2 corner = s.texel - 0.5;
+    ivec2 base = ivec2(floor(corner));
+    vec2 f = corner - floor(corner);
+    float below = mix(shadow_lit(s, base), shadow_lit(s, base + ivec2(1, 0)), f.x);
+    float above = mix(shadow_lit(s, base + ivec2(0, 1)), shadow_lit(s, base + ivec2(1, 1)), f.x);
+    return mix(below, above, f.y);
+#else
+    return shadow_lit(s, ivec2(floor(s.texel)));
+#endif
+}
+#endif
+
 void main() {
     vec3 color = v_color.rgb;
+#if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
+    color += v_direct * light_visibility();
+#endif
 #ifdef EFFECT_TEXTURE
     color *= texture(p3d_Texture0, v_uv).rgb;
 #endif
 #ifdef LIGHT_PER_FRAGMENT
     float lambert = max(dot(normalize(v_normal), -light_direction), 0.0);
+#ifdef EFFECT_SHADOWS
+    lambert *= light_visibility();
+#endif
     color *= ambient_color + light_color * lambert;
 #endif
 #ifdef EFFECT_FOG

@@ -17,6 +17,9 @@ uniform int capacity;             // instances per world in this group
 uniform int agents;               // views per world
 uniform int view_offset;          // first view drawn by this pass
 uniform int tiles;                // tiles per pass, stacked in one column
+#ifdef SHADOW_CASTER
+uniform ivec2 grid;               // shadow atlas: (tiles per row, tile rows), one square tile per world
+#endif
 uniform int segment_base;         // segmentation id of this group's instance 0
 
 // One colour per triangle, taken from its provoking (last) vertex: an instance's colour,
@@ -57,6 +60,15 @@ flat out vec2 v_tile_origin;  // pixel of the tile's lower-left corner (window c
 #endif
 #ifdef OUTPUT_SEGMENTATION
 flat out int v_segment;
+#endif
+#ifdef EFFECT_SHADOWS
+uniform samplerBuffer lights;  // per world: the light's view-projection (texels 0-3), as views
+uniform ivec2 shadow_tiles;    // (tiles per atlas row, texels per tile side)
+out vec3 v_light;              // the vertex in the light's clip space (orthographic: w = 1)
+flat out ivec2 v_shadow_tile;  // first texel of this world's tile in the atlas
+#endif
+#if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
+flat out vec3 v_direct;        // the directional light's share of the (flat) colour, dimmed per fragment
 #endif
 
 vec3 rotate(vec4 q, vec3 v) {
@@ -101,9 +113,19 @@ void main() {
     gl_ClipDistance[0] = clip.w + clip.y;
     gl_ClipDistance[1] = clip.w - clip.y;
 
+#ifdef SHADOW_CASTER
+    // The shadow atlas is a near-square grid of tiles (one texture holds every world's
+    // map, shadows.py), so the sides need planes too. Flipped like the views.
+    gl_ClipDistance[2] = clip.w + clip.x;
+    gl_ClipDistance[3] = clip.w - clip.x;
+    ivec2 tile = ivec2(pass_view % grid.x, pass_view / grid.x);
+    vec2 tile_shift = vec2(2 * tile + 1 - grid);
+    gl_Position = vec4((vec2(clip.x, -clip.y) + clip.w * tile_shift) / vec2(grid), clip.z, clip.w);
+#else
     // Tiles are stored top row first in memory (GL reads back bottom-up), so each view is
     // flipped vertically; the renderer flips the cull mode to match.
     gl_Position = vec4(clip.x, (float(2 * pass_view + 1 - tiles) * clip.w - clip.y) / float(tiles), clip.z, clip.w);
+#endif
 
 #ifdef EFFECT_LIGHTING
     // Normals scale inversely (inverse transpose); a zero scale flattens the mesh, and
@@ -113,10 +135,21 @@ void main() {
 #ifdef LIGHT_PER_FRAGMENT
     v_normal = normal;
 #endif
-#ifdef LIGHT_PER_VERTEX
+#if defined(LIGHT_PER_VERTEX) && defined(EFFECT_SHADOWS)
+    // Shadows vary within a face: keep the direct light apart for the fragment stage.
+    v_direct = v_color.rgb * light_color * max(dot(normal, -light_direction), 0.0);
+    v_color.rgb *= ambient_color;
+#elif defined(LIGHT_PER_VERTEX)
     // A flat-shaded mesh has one normal per face, so lighting its vertices is exact and
     // spares every pixel the work (a quarter of a frame on a CPU rasteriser).
     v_color.rgb *= ambient_color + light_color * max(dot(normal, -light_direction), 0.0);
+#endif
+#ifdef EFFECT_SHADOWS
+    int lrow = world * VIEW_TEXELS;
+    mat4 light_projection = mat4(texelFetch(lights, lrow), texelFetch(lights, lrow + 1),
+                                 texelFetch(lights, lrow + 2), texelFetch(lights, lrow + 3));
+    v_light = (light_projection * vec4(world_position, 1.0)).xyz;
+    v_shadow_tile = ivec2(world % shadow_tiles.x, world / shadow_tiles.x) * shadow_tiles.y;
 #endif
 #ifdef EFFECT_TEXTURE
     v_uv = p3d_MultiTexCoord0;

@@ -169,3 +169,15 @@ def test_pareto_flags_and_observed_order_helpers():
     assert [p["pareto"] for p in points] == [True, True, False, False, False]
     series = [{"substeps": s, "error": 3.0 * s ** -2} for s in (1, 2, 4, 8)]
     assert accuracy_report.observed_order(series) == pytest.approx(2.0)
+
+
+def test_shadow_sweep_covers_every_map_and_finer_maps_err_less(report):
+    _, result = report
+    settings, points = result["settings"], result["sweeps"]["shadows"]["points"]
+    assert {(p["shadow_map"], p["pcf"]) for p in points} == {(None, False)} | {
+        (m, pcf) for m in settings["shadow_maps"] for pcf in (False, True)}
+    for p in points:
+        assert p["cost_s"] > 0 and p["error"] >= 0, p
+    coarse, fine = min(settings["shadow_maps"]), max(settings["shadow_maps"])
+    for pcf in (False, True):
+        assert _point(points, shadow_map=fine, pcf=pcf)["mae"] < _point(points, shadow_map=coarse, pcf=pcf)["mae"]

@@ -102,6 +102,7 @@ EFFECT_MARKERS = {
     "depth": {"frag": ["out_depth"]},
     "segmentation": {"frag": ["out_segment", "v_segment"], "vert": ["v_segment", "segment_base +"]},
     "log_depth": {"frag": ["gl_FragDepth", "v_near_far", "log2"], "vert": ["v_near_far"]},
+    "shadows": {"frag": ["shadow_atlas", "light_visibility", "v_light", "texelFetch"], "vert": ["v_light", "lights"]},
 }
 
 
@@ -196,8 +197,8 @@ def test_aux_outputs_only_on_demand():
 
 
 def test_unknown_effect_is_rejected_naming_effects():
-    with pytest.raises(ValueError, match=r"effects.*'shadows'"):
-        mr.Scene(num_worlds=1, agents_per_world=1, effects=("lighting", "shadows"))
+    with pytest.raises(ValueError, match=r"effects.*'bloom'"):
+        mr.Scene(num_worlds=1, agents_per_world=1, effects=("lighting", "bloom"))
     with pytest.raises(TypeError, match="effects"):
         mr.Scene(num_worlds=1, agents_per_world=1, effects="lighting")
 

@@ -16,6 +16,8 @@ resolution and effects.
              each with a few anti-aliasing modes.
   precision  the scene moved 1e5..1e7 m from the origin, positions passed as float64 vs
              first cast to float32; error against the same scene at the origin.
+  shadows    lighting + shadows with shadow maps of 32..1024 texels per world, PCF off
+             and on, and lighting alone; error against a 2048-texel map with PCF.
 Physics (float64 state, one torch thread; cost = time of the rollout itself):
   spread_physics    spread's step (walls, collisions, drag) with 1..16 substeps and both
                     planar integrators; error = RMS position error after a fixed horizon
@@ -55,10 +57,12 @@ FULL = dict(worlds=8, resolutions=[32, 48, 64, 96, 128, 256], image_aa=["none", 
             "ss8x8"], effects_resolution=64, effects_aa=["none", "ss2x2", "msaa4"], precision_resolution=64,
             offsets=[1e5, 1e6, 1e7], substeps=[1, 2, 4, 8, 16], reference_substeps=64, physics_worlds=256,
             spread_horizon=20, cartpole_horizon=100, energy_horizon=1000, rounds=5, min_time=0.5, min_frames=3,
-            max_frames=30, physics_rounds=5, energy_rounds=3, env_steps=5)
+            max_frames=30, physics_rounds=5, energy_rounds=3, env_steps=5, shadow_maps=[64, 128, 256, 512, 1024],
+            shadow_reference=2048)
 QUICK = dict(FULL, worlds=1, resolutions=[32, 48], effects_resolution=32, effects_aa=["none", "ss2x2"],
              precision_resolution=32, offsets=[1e5, 1e7], physics_worlds=16, spread_horizon=5, cartpole_horizon=20,
-             energy_horizon=100, rounds=1, min_time=0.0, min_frames=1, max_frames=1, physics_rounds=1, energy_rounds=1)
+             energy_horizon=100, rounds=1, min_time=0.0, min_frames=1, max_frames=1, physics_rounds=1, energy_rounds=1,
+             shadow_maps=[32, 64], shadow_reference=256)
 
 
 def add_arguments(parser):
@@ -217,6 +221,11 @@ def render_point(state: SpreadState, cfg: dict, *, resolution: int, effects, aa:
 
 
 # ============================================================================ sweeps
+def shadow_settings(cfg: dict) -> list:
+    """(shadow map texels or None for lighting alone, PCF) of the shadows sweep."""
+    return [(None, False)] + [(m, pcf) for m in cfg["shadow_maps"] for pcf in (False, True)]
+
+
 def _case(desc, ref, **render):
     """One render setting: `render` and `ref` are render_point keyword arguments."""
     render = {"effects": ("lighting",), "offset": None, "float32": False, **render}
@@ -247,6 +256,7 @@ class Sweeps:
                                           float32=dtype == "float32")
                                     for d in c["offsets"] for dtype in ("float64", "float32")]}
         total = sum(len({repr(k["ref"]) for k in cases}) + c["rounds"] * len(cases) for cases in self.cases.values())
+        total += 1 + c["rounds"] * len(shadow_settings(c))
         total += 1 + len(SPREAD_INTEGRATORS) * (1 + c["physics_rounds"] * len(c["substeps"]))
         total += 1 + (c["physics_rounds"] + c["energy_rounds"]) * len(CARTPOLE_INTEGRATORS) * len(c["substeps"])
         self.bar = tqdm(total=total, file=sys.stderr, unit="point", dynamic_ncols=True, mininterval=0.5)
@@ -341,6 +351,68 @@ class Sweeps:
                     "scene at the origin (same settings, no AA)",
             "cost": "seconds per view", "error": "mean absolute error (0-255)", "seconds": self._seconds,
             "points": points, "skipped": []}
+
+    # -------------------------------------------------------------- shadows
+    def shadows(self):
+        """Shadow-map resolution against error and time, on the spread scene with the shadows
+        env's bounds (the arena). Every frame moves the bodies, so the atlas is redrawn each
+        time; cost = the fastest of cfg["rounds"] passes over the settings."""
+        import marl_render as mr
+        from marl_render import backend
+        from marl_render.envs import scenery
+        from marl_render.envs.spread import Spread
+
+        c, state = self.cfg, self.state
+        bounds = scenery.arena_shadow_bounds(Spread.arena_half_extent)
+        resolution = c["effects_resolution"]
+        max_framebuffer = min(self.args.max_framebuffer, backend.gl_info().max_framebuffer_size)
+
+        def render(setting, timed):
+            shadow_map, pcf = setting
+            scene = state.scene_copy(resolution, ("lighting",) if shadow_map is None else ("lighting", "shadows"))
+            if shadow_map is not None:
+                scene.shadows = mr.Shadows(resolution=shadow_map, pcf=pcf, bounds=bounds)
+            with mr.BatchRenderer(scene, max_framebuffer_size=max_framebuffer) as renderer:
+                for name, kwargs in state.updates().items():
+                    renderer.update(name, **kwargs)
+                image = renderer.render().rgb.clone()
+                if not timed:
+                    return image, None
+                poses = state.updates(poses_only=True)
+
+                def frame():
+                    for name, kwargs in poses.items():
+                        renderer.update(name, **kwargs)
+                    renderer.render()
+
+                return image, _median_time(frame, c["min_time"], c["min_frames"], c["max_frames"]) / scene.num_views
+
+        started = time.perf_counter()
+        self.bar.set_description("shadows reference")
+        reference, _ = render((c["shadow_reference"], True), timed=False)
+        self.bar.update(1)
+        settings = shadow_settings(c)
+        points = []
+        for round_index in range(c["rounds"]):
+            for index, (shadow_map, pcf) in enumerate(settings):
+                label = "no shadows" if shadow_map is None else f"{shadow_map} px{' PCF' if pcf else ''}"
+                self.bar.set_description(f"shadows {label} ({round_index + 1}/{c['rounds']})")
+                image, seconds = render((shadow_map, pcf), timed=True)
+                self.bar.update(1)
+                if round_index == 0:
+                    error = image_error(image, reference)
+                    points.append({"label": label, "shadow_map": shadow_map, "pcf": pcf, "error": error["mae"],
+                                   **error, "rounds": [seconds]})
+                else:
+                    points[index]["rounds"].append(seconds)
+        points = [self._cost(p, p.pop("rounds")) for p in points]
+        for p in points:
+            p["cost_vs_no_shadows"] = p["cost_s"] / points[0]["cost_s"] - 1
+        self.result["shadows"] = {
+            "what": f"spread scene at {resolution}px, lighting + shadows over the arena {bounds}; error vs a "
+                    f"{c['shadow_reference']}-texel map with PCF (no anti-aliasing)",
+            "cost": "seconds per view", "error": "mean absolute error (0-255)",
+            "seconds": time.perf_counter() - started, "points": points, "skipped": []}
 
     # -------------------------------------------------------------- physics
     def _timed_rollouts(self, name: str, settings: list, rollout, rounds: int) -> list:
@@ -510,6 +582,7 @@ def run(args) -> dict:
         sweeps.images()
         sweeps.effects()
         sweeps.precision()
+        sweeps.shadows()
         sweeps.spread_physics()
         sweeps.cartpole()
         sweeps.bar.close()

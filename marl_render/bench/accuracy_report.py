@@ -215,6 +215,16 @@ def write(out: str, result: dict) -> None:
                       p["max_abs"], p["pixels_changed"]] for p in s["precision"]["points"]],
                     [".0e", "", "g", ",.0f", ".3f", ".2f", ".0f", ".2%"])
 
+    if "shadows" in s:
+        lines += ["", "## Shadows: shadow-map resolution", "", s["shadows"]["what"] + ".", ""]
+        lines += _table(["shadow map (per world)", "PCF", "views/s", "µs/view", "time vs no shadows", "MAE",
+                         "PSNR dB", "px changed"],
+                        [["none" if p["shadow_map"] is None else f"{p['shadow_map']}x{p['shadow_map']}",
+                          "" if p["shadow_map"] is None else "on" if p["pcf"] else "off", p["views_per_s"],
+                          p["cost_s"] * 1e6, p["cost_vs_no_shadows"], p["mae"], p["psnr_db"], p["pixels_changed"]]
+                         for p in s["shadows"]["points"]],
+                        ["", "", ",.0f", ",.1f", "+.0%", ".3f", ".2f", ".1%"])
+
     sp = s["spread_physics"]
     lines += ["", "## Spread physics: substeps x integrator", "", sp["what"] + ".", ""]
     lines += _table(["integrator", "substeps", "world-steps/s", "µs/world-step", "pos RMS (m)", "pos max (m)",

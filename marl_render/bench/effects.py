@@ -7,6 +7,10 @@ Observation formats (lighting on): RGB channels last (as shipped), RGB channels 
 transposing copy after the read), and gray (luma drawn by the shader, one channel read
 straight into the batch in either layout).
 
+Shadows: lighting + shadows at each --shadow-resolutions map size (PCF on and off), the
+atlas redrawn every frame (every box moves); wall and CPU time relative to lighting
+alone, the two alternated.
+
 Ablation, cumulative, on the same scene and poses:
   1. one camera per view     one offscreen buffer and readback per view (plain Panda3D)
   2. tiled display regions    one buffer, a display region per view (plain Panda3D)
@@ -37,6 +41,8 @@ def add_arguments(parser):
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--processes", type=int, default=2)
+    parser.add_argument("--shadow-resolutions", type=int, nargs="*", default=[128, 256, 512, 1024],
+                        help="shadow-map texels per side (per world) to measure; none: skip shadows")
     parser.add_argument("--out", default="out/effects")
 
 
@@ -60,6 +66,47 @@ def _views_per_s(renderer, scene, steps):
         renderer.render()
 
     return scene.num_views / time_per_call(frame, steps)
+
+
+def _shadow_costs(args, rounds: int = 3) -> list:
+    """Per map resolution and PCF setting: lighting + shadows against lighting alone, timed
+    in alternation (`rounds` times each, the fastest kept) so that load from elsewhere on a
+    shared machine falls on both. CPU time (all threads of the process, llvmpipe's
+    included) is reported too: it varies far less with such load than wall time."""
+    import marl_render as mr
+
+    rows = []
+    for resolution in args.shadow_resolutions:
+        for pcf in (False, True):
+            progress(f"shadows: {resolution}px pcf={pcf}")
+            plain = _scene(args, ("lighting",))
+            scene = _scene(args, ("lighting", "shadows"))
+            scene.shadows = mr.Shadows(resolution=resolution, pcf=pcf)
+            with mr.BatchRenderer(plain) as base, mr.BatchRenderer(scene) as shaded:
+                timings = {"base": [], "shadows": []}
+                for _ in range(rounds):
+                    timings["base"].append(_seconds_per_frame(base, plain, args.steps))
+                    timings["shadows"].append(_seconds_per_frame(shaded, scene, args.steps))
+            (base_wall, base_cpu), (wall, cpu) = (min(timings[k]) for k in ("base", "shadows"))
+            rows.append({"resolution": resolution, "pcf": pcf, "atlas_texels": scene.num_worlds * resolution ** 2,
+                         "views_per_s": scene.num_views / wall, "ms_per_frame": wall * 1e3,
+                         "lighting_views_per_s": scene.num_views / base_wall, "cost_vs_lighting": wall / base_wall - 1,
+                         "cpu_ms_per_frame": cpu * 1e3, "lighting_cpu_ms_per_frame": base_cpu * 1e3,
+                         "cpu_cost_vs_lighting": cpu / base_cpu - 1})
+    return rows
+
+
+def _seconds_per_frame(renderer, scene, steps) -> tuple:
+    """(wall, process CPU) seconds per frame of random motion, after 3 warm-up frames."""
+    motion = RandomMotion(scene, seed=0)
+    for _ in range(3):
+        apply(renderer, motion.next())
+        renderer.render()
+    wall, cpu = time.perf_counter(), time.process_time()
+    for _ in range(steps):
+        apply(renderer, motion.next())
+        renderer.render()
+    return (time.perf_counter() - wall) / steps, (time.process_time() - cpu) / steps
 
 
 def _worker(arguments):
@@ -117,6 +164,8 @@ def run(args) -> dict:
         result["effects"].append({"effects": label, "views_per_s": rate, "ms_per_frame": scene.num_views / rate * 1e3,
                                   "cost_vs_none": base / rate - 1.0})
 
+    result["shadows"] = _shadow_costs(args)
+
     scene = _scene(args, ("lighting",))
     for label, options in OUTPUTS:
         progress(f"output: {label}")
@@ -162,9 +211,19 @@ def _write(out: str, result: dict) -> None:
     ablation = tabulate([[r["step"], r["views_per_s"], f"{r['speedup_vs_first']:.1f}x"] for r in result["ablation"]],
                         ["ablation step (cumulative)", "views/s", "speed-up"], tablefmt="pipe",
                         floatfmt=["", ",.0f", ""], colalign=["left", "right", "right"])
-    write_report(out, "effects", result, [f"Views of {result['resolution']}x{result['resolution']}, {result['views']} "
-                                          f"per frame ({result['machine']['gl_renderer']}).", "", effects, "",
-                                          outputs, "", ablation])
+    lines = [f"Views of {result['resolution']}x{result['resolution']}, {result['views']} per frame "
+             f"({result['machine']['gl_renderer']}).", "", effects, "", outputs]
+    if result.get("shadows"):
+        shadows = tabulate([[f"{r['resolution']}x{r['resolution']}", "on" if r["pcf"] else "off", r["views_per_s"],
+                             r["ms_per_frame"], r["cost_vs_lighting"], r["cpu_ms_per_frame"],
+                             r["cpu_cost_vs_lighting"]] for r in result["shadows"]],
+                           ["shadow map (per world)", "PCF", "views/s", "ms/frame", "vs lighting alone",
+                            "CPU ms/frame", "CPU vs lighting alone"], tablefmt="pipe",
+                           floatfmt=["", "", ",.0f", ".1f", "+.0%", ".1f", "+.0%"],
+                           colalign=["right", "left", "right", "right", "right", "right", "right"])
+        lines += ["", f"Shadows: one {result['worlds']}-world atlas pass per frame, the fragment shader reads it.",
+                  "", shadows]
+    write_report(out, "effects", result, lines + ["", ablation])
     plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.2))
     names = [r["effects"].replace("+", "+\n") if len(r["effects"]) > 12 else r["effects"] for r in result["effects"]]
