@@ -225,7 +225,8 @@ def page(seed: int | None, picture_dir: str | None) -> str:
              "...)` for the batched core, `make_parallel_env(name)` for PettingZoo (one world), "
              "`make_torchrl_env(name, num_worlds=W)` for TorchRL. Common keyword arguments: `num_worlds`, "
              "`num_agents`, `resolution` (int or (height, width)), `max_steps`, `continuous`, `state_obs`, `depth`, "
-             "`device`, `seed`, `autoreset`. Agents that leave an episode (caught prey) stay in every tensor: "
+             "`shadows` (False, True: the arena's shadows, or a `marl_render.Shadows`), `device`, `seed`, "
+             "`autoreset`. Agents that leave an episode (caught prey) stay in every tensor: "
              "reward 0, reported terminated, actions ignored (they must still be valid, e.g. 0), until their "
              "world is reset. `truncated` is True for the agents still in the episode when the world reaches "
              "`max_steps`.", ""]
