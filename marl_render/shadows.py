@@ -138,9 +138,23 @@ class ShadowPass:
             raise
 
     def _build(self, context, groups: dict) -> None:
-        from panda3d.core import (Camera, ColorWriteAttrib, CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib,
-                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, LVecBase2i, NodePath,
-                                  OmniBoundingVolume, SamplerState, Texture, WindowProperties)
+        from panda3d.core import (
+            Camera,
+            ColorWriteAttrib,
+            CullFaceAttrib,
+            DepthTestAttrib,
+            DepthWriteAttrib,
+            FrameBufferProperties,
+            GraphicsOutput,
+            GraphicsPipe,
+            LVecBase2i,
+            NodePath,
+            OmniBoundingVolume,
+            SamplerState,
+            Texture,
+            WindowProperties,
+        )
+
         from .renderer import _buffer_texture, _int
 
         width, height = self.layout.framebuffer_size
