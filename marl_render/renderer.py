@@ -1,6 +1,8 @@
 """The batch renderer: every view of every world in one instanced pass per mesh group.
 
 Per step:
+Packing (steps 1-2) is packing.py's FramePacker, which holds the state and writes into
+the buffer textures' memory; this module owns the GL objects, draws and reads back.
 1. pack the groups that changed into their buffer textures (one row per world
    instance, read by all A views of that world);
 2. pack one view-projection per view when a camera moved (cameras free or mounted on
@@ -13,7 +15,6 @@ Per step:
 """
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import dataclass
@@ -22,30 +23,16 @@ import numpy as np
 import torch
 
 from . import backend, readback, shaders
-from .images import texture_pixels
 from .meshes import MeshData, to_panda_geom
+from .packing import FramePacker
+from .panda_buffers import buffer_texture, int_input, panda_texture, vec3_input, writable
 from .provoking import shared_corner_mesh
-from .scene import Scene, StaticGroup
+from .scene import Scene
 from .shadows import ShadowPass
-from .triangle_corners import to_panda_geom_with_corners
-from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
 from .threads import one_thread
 from .tiling import TileLayout, column_layout
-from .transforms import look_at_quat, normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_to_matrix
-from .validation import FLOAT_DTYPES, as_tensor, check_finite, check_host, check_range, check_shape, describe, positive_int
-
-# Worlds are re-centred when a camera strays this far from its world's origin, so that
-# float32 positions relative to the origin stay precise (see the static-group shader).
-RECENTRE_DISTANCE = 1024.0
-
-# Camera frame (x right, y forward, z up) -> GL eye frame (x right, y up, looking down -z).
-_CAMERA_TO_GL = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
-
-# Frustum culling of a group is paused for CULL_RECHECK frames when its last test kept more
-# than CULL_KEEPS of the candidate pairs: drawing those few hidden pairs costs less than
-# testing every frame (cart-pole: everything is always in view).
-CULL_KEEPS = 0.9
-CULL_RECHECK = 32
+from .triangle_corners import to_panda_geom_with_corners
+from .validation import describe, positive_int
 
 
 @dataclass
@@ -59,35 +46,34 @@ class Frame:
     segmentation: torch.Tensor | None = None
 
 
-def _buffer_texture(name: str, texels: int, integer: bool = False):
-    from panda3d.core import GeomEnums, Texture
-
-    texture = Texture(name)
-    kind, fmt = (Texture.T_int, Texture.F_r32i) if integer else (Texture.T_float, Texture.F_rgba32)
-    texture.setup_buffer_texture(max(texels, 1), kind, fmt, GeomEnums.UH_dynamic)
-    return texture
-
-
-def _writable(texture, dtype) -> torch.Tensor:
-    """Flat torch view of a texture's RAM image; marks the texture for upload."""
-    return torch.from_numpy(np.frombuffer(memoryview(texture.modify_ram_image()), dtype=dtype))
-
-
 @dataclass
 class _DrawGroup:
-    """GL side of one group: its nodes (one per framebuffer), instance data, visible pairs, bounds."""
+    """GL side of one group: its nodes (one per framebuffer), instance data and visible pairs."""
 
     node: object  # the node drawn in the first framebuffer (the others are copies of it)
     count: int  # instances per world (static: in total)
     static: bool
-    instances: object  # float32 buffer texture
+    instances: object  # float32 buffer texture (packing.py writes it)
     pairs: object  # int32 buffer texture: visible view * count + instance
-    radius: float  # bounding sphere of the mesh at unit scale
-    pass_ranges: list | None = None  # [(first pair, pair count)] per pass
+    radius: float  # bounding sphere of the mesh at unit scale (the shadow pass culls with it)
     pass_nodes: list | None = None  # [(NodePath, PTA_int pair offset, instance count drawn)] per pass
-    frustum_pause: int = 0  # frames left without frustum tests (see CULL_KEEPS)
-    frustum_culled: bool = False  # whether the current pair list came from a frustum test
-    static_bounds: tuple | None = None  # (centres, radii) of a static group for the current origins
+
+
+class _PandaTargets:
+    """The packer's destinations (packing.PackTargets): the RAM images of the buffer
+    textures, each marked for upload when the packer asks for it."""
+
+    def __init__(self, renderer: BatchRenderer):
+        self._renderer = renderer
+
+    def views(self) -> torch.Tensor:
+        return writable(self._renderer.views_texture, np.float32)
+
+    def instances(self, group: str) -> torch.Tensor:
+        return writable(self._renderer._groups[group].instances, np.float32)
+
+    def pairs(self, group: str) -> torch.Tensor:
+        return writable(self._renderer._groups[group].pairs, np.int32)
 
 
 @dataclass
@@ -149,7 +135,8 @@ class BatchRenderer:
         k = self.supersample
         self.layout: TileLayout = column_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
         self.effects = frozenset(scene.effects)
-        self._init_state()
+        self.packer = FramePacker(scene, self.layout)  # the state and its packing; this class draws it
+        self._targets = _PandaTargets(self)
         self._passes: list[_Pass] = []
         self._groups = {}
         self.shadow_pass = None
@@ -167,68 +154,66 @@ class BatchRenderer:
             self.close()  # free whatever GL objects were made before the failure
             raise
 
-    # ------------------------------------------------------------------ state
-    def _init_state(self):
-        s = self.scene
-        W, A = s.num_worlds, s.agents_per_world
-        self.world_origin = torch.zeros(W, 3, dtype=torch.float64)
-        self.camera_position = torch.zeros(W, A, 3, dtype=torch.float64)
-        self.camera_position[..., 1] = -5.0
-        self.camera_position[..., 2] = 1.0
-        self.camera_rotation = torch.zeros(W, A, 4)
-        self.camera_rotation[..., 0] = 1.0
-        self.fov_y = torch.full((W, A), float(s.fov_y), dtype=torch.float64)
-        self.near = torch.full((W, A), float(s.near), dtype=torch.float64)
-        self.far = torch.full((W, A), float(s.far), dtype=torch.float64)
-        mount = s.camera_mount
-        if mount is not None:
-            tilt = None
-            if mount.pitch:
-                tilt = quat_to_matrix(quat_from_yaw_pitch_roll(torch.tensor(0.0, dtype=torch.float64),
-                                                               torch.tensor(mount.pitch, dtype=torch.float64)))
-            self._mount_constants = (torch.tensor(mount.instance), torch.tensor(mount.offset, dtype=torch.float64), tilt)
-        self._state = {}
-        for name, group in s.groups.items():
-            C = group.capacity
-            state = {
-                "position": torch.zeros(W, C, 3, dtype=torch.float64),
-                "rotation": torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(W, C, 1),
-                "scale": torch.ones(W, C, 3),
-                "color": torch.tensor([0.8, 0.8, 0.8, 1.0]).repeat(W, C, 1),
-                "active": torch.zeros(W, C, dtype=torch.bool),
-                "owner": torch.full((W, C), -1, dtype=torch.int64),
-            }
-            if mount is not None and mount.group == name and mount.hide_owner:
-                state["owner"][:, list(mount.instance)] = torch.arange(A)
-            self._state[name] = state
-        self._dirty = set(s.groups)  # groups whose instance data changed since the last frame
-        self._mask_dirty = set(s.groups)  # groups whose active / owner masks changed
-        self._cameras_dirty = True  # free cameras or their lenses changed
-        self._projection = None  # (lens [W, A, 4, 3], shift [W, A, 4]) float64, made again when a lens changes
-        self._origin_moved = True  # world origins not yet written to the views texture
-        self._candidate_cache = {}  # group -> ([W, A, C] bool candidate pairs, their count)
+    # ------------------------------------------------------------------ state (kept by the packer)
+    @property
+    def world_origin(self) -> torch.Tensor:
+        """[W, 3] float64: each world's origin, which instance rows are relative to."""
+        return self.packer.world_origin
+
+    @property
+    def camera_position(self) -> torch.Tensor:
+        return self.packer.camera_position
+
+    @property
+    def camera_rotation(self) -> torch.Tensor:
+        return self.packer.camera_rotation
+
+    @property
+    def fov_y(self) -> torch.Tensor:
+        return self.packer.fov_y
+
+    @property
+    def near(self) -> torch.Tensor:
+        return self.packer.near
+
+    @property
+    def far(self) -> torch.Tensor:
+        return self.packer.far
 
     # ------------------------------------------------------------------ GL objects
     def _build_passes(self):
         """One framebuffer per column of views, each with its own scene root and camera."""
         from panda3d.core import LVecBase2f
 
-        self.views_texture = _buffer_texture("views", self.scene.num_views * shaders.VIEW_TEXELS)
+        self.views_texture = buffer_texture("views", self.packer.view_texels())
         lighting, fog = self.scene.lighting, self.scene.fog
         direction = np.asarray(lighting.direction, dtype=float)
         self._shared_inputs = {
-            "views": self.views_texture, "agents": _int(self.scene.agents_per_world),
-            "light_direction": _vec3(direction / np.linalg.norm(direction)), "light_color": _vec3(lighting.color),
-            "ambient_color": _vec3(lighting.ambient), "fog_color": _vec3(fog.color),
+            "views": self.views_texture, "agents": int_input(self.scene.agents_per_world),
+            "light_direction": vec3_input(direction / np.linalg.norm(direction)),
+            "light_color": vec3_input(lighting.color),
+            "ambient_color": vec3_input(lighting.ambient), "fog_color": vec3_input(fog.color),
             "fog_density": float(fog.density),
             "tile_size": LVecBase2f(self.layout.tile_width, self.layout.tile_height)}
         for index in range(self.layout.num_passes):
             self._passes.append(self._make_pass(self.layout.pass_views(index)))
 
     def _make_pass(self, views: range) -> _Pass:
-        from panda3d.core import (Camera, ColorBlendAttrib, CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib,
-                                  FrameBufferProperties, GraphicsOutput, GraphicsPipe, NodePath,
-                                  OmniBoundingVolume, Texture, TransparencyAttrib, WindowProperties)
+        from panda3d.core import (
+            Camera,
+            ColorBlendAttrib,
+            CullFaceAttrib,
+            DepthTestAttrib,
+            DepthWriteAttrib,
+            FrameBufferProperties,
+            GraphicsOutput,
+            GraphicsPipe,
+            NodePath,
+            OmniBoundingVolume,
+            Texture,
+            TransparencyAttrib,
+            WindowProperties,
+        )
 
         ctx, layout = self._context, self.layout
         width, height = layout.tile_width, layout.tile_height * len(views)
@@ -279,8 +264,8 @@ class BatchRenderer:
         root.set_attrib(ColorBlendAttrib.make_off())
         for name, value in self._shared_inputs.items():
             root.set_shader_input(name, value)
-        root.set_shader_input("tiles", _int(len(views)))
-        root.set_shader_input("view_offset", _int(views.start))
+        root.set_shader_input("tiles", int_input(len(views)))
+        root.set_shader_input("view_offset", int_input(views.start))
         return _Pass(views, buffer, root, color, aux)
 
     def _build_groups(self):
@@ -313,17 +298,16 @@ class BatchRenderer:
                                           gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf)
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
-                node.set_texture(_panda_texture(group.texture, group.name), 1)
-            count = group.count if static else group.capacity
-            rows = count if static else self.scene.num_worlds * count
-            texels = shaders.STATIC_INSTANCE_TEXELS if static else shaders.INSTANCE_TEXELS
-            draw = _DrawGroup(node, count, static, _buffer_texture(f"instances:{group.name}", rows * texels),
-                              _buffer_texture(f"pairs:{group.name}", self.scene.num_views * count, integer=True),
-                              mesh_radius(mesh))
+                node.set_texture(panda_texture(group.texture, group.name), 1)
+            packing = self.packer.groups[group.name]
+            count = packing.count
+            instances = buffer_texture(f"instances:{group.name}", self.packer.instance_texels(group.name))
+            pairs = buffer_texture(f"pairs:{group.name}", self.packer.pair_capacity(group.name), integer=True)
+            draw = _DrawGroup(node, count, static, instances, pairs, packing.radius)
             node.set_shader_input("instances", draw.instances)
             node.set_shader_input("pairs", draw.pairs)
-            node.set_shader_input("capacity", _int(count))
-            node.set_shader_input("segment_base", _int(group.segment_base))
+            node.set_shader_input("capacity", int_input(count))
+            node.set_shader_input("segment_base", int_input(group.segment_base))
             # One copy of the node per framebuffer (they share the geometry), each with its
             # own pair offset and instance count.
             draw.pass_nodes = []
@@ -331,24 +315,12 @@ class BatchRenderer:
                 if index == 0:
                     node.reparent_to(render_pass.root)
                 copy = node if index == 0 else node.copy_to(render_pass.root)
-                offset = _int(0)  # updated in place (a new PTA would make a new render state)
+                offset = int_input(0)  # updated in place (a new PTA would make a new render state)
                 copy.set_shader_input("pair_offset", offset)
                 draw.pass_nodes.append([copy, offset, None])
             self._groups[group.name] = draw
             if static:
-                self._pack_static(group, draw)
-
-    def _pack_static(self, group: StaticGroup, draw: _DrawGroup):
-        memory = _writable(draw.instances, np.float32).view(group.count, shaders.STATIC_INSTANCE_TEXELS, 4)
-        hi = group.position.to(torch.float32)
-        memory[:, 0, :3] = hi
-        memory[:, 0, 3] = 1.0
-        memory[:, 1] = group.rotation
-        memory[:, 2, :3] = group.scale
-        memory[:, 2, 3] = -1.0
-        memory[:, 3] = group.color
-        memory[:, 4, :3] = (group.position - hi.to(torch.float64)).to(torch.float32)
-        memory[:, 4, 3] = 0.0
+                self.packer.pack_static(group, self._targets.instances(group.name))
 
     # ------------------------------------------------------------------ public updates
     @one_thread
@@ -361,87 +333,16 @@ class BatchRenderer:
         owner [W,C] int agent index (-1: none). Everything is validated before anything is stored.
         """
         self._check_open()
-        self._check_group(group)
-        state = self._state[group]
-        W, C = state["active"].shape
-        staged = {}
-        if position is not None:
-            staged["position"] = self._float_arg("position", position, (W, C, 3)).to(torch.float64)
-        if rotation is not None:
-            rotation = self._float_arg("rotation", rotation, (W, C, 4))
-            staged["rotation"] = normalize_quat(rotation.to(torch.float64), name="rotation").to(torch.float32)
-        if scale is not None:
-            scale = self._float_arg("scale", scale, (W, C, 3))
-            # A mirrored instance would have its winding reversed and be culled inside out.
-            check_range("scale", scale, 0.0, None)
-            staged["scale"] = scale.to(torch.float32)
-        if color is not None:
-            color = as_tensor("color", color)
-            if color.ndim == 3 and color.shape[-1] == 3:
-                color = torch.cat((color, torch.ones_like(color[..., :1])), -1)
-            color = self._float_arg("color", color, (W, C, 4))
-            check_range("color", color, 0.0, 1.0)
-            staged["color"] = color.to(torch.float32)
-        if active is not None:
-            active = as_tensor("active", active, dtype_kind="bool")
-            self._check_device("active", active)
-            check_shape("active", active, (W, C))
-            staged["active"] = active
-        if owner is not None:
-            owner = as_tensor("owner", owner, dtype_kind="int")
-            self._check_device("owner", owner)
-            check_shape("owner", owner, (W, C))
-            check_range("owner", owner if owner.dtype.is_signed else owner.double(), -1, self.scene.agents_per_world - 1)
-            staged["owner"] = owner.to(torch.int64)
-        for key, value in staged.items():
-            state[key].copy_(value)
-        if staged:
-            self._dirty.add(group)
-        if "active" in staged or "owner" in staged:
-            self._mask_dirty.add(group)
+        self.packer.update(group, position=position, rotation=rotation, scale=scale, color=color, active=active,
+                           owner=owner)
 
     @one_thread
     def set_cameras(self, *, position=None, rotation=None, look_at=None, fov_y=None, near=None, far=None) -> None:
         """Free cameras: position [W,A,3], rotation [W,A,4] or look_at [W,A,3] targets;
         fov_y (radians), near, far: scalars or [W,A]. Mounted cameras take only fov_y/near/far."""
         self._check_open()
-        W, A = self.scene.num_worlds, self.scene.agents_per_world
-        mounted = self.scene.camera_mount is not None
-        if mounted and (position is not None or rotation is not None or look_at is not None):
-            raise ValueError("cameras are mounted on instances (scene.mount_cameras); position/rotation/look_at "
-                             "cannot be set, move the instances instead")
-        if rotation is not None and look_at is not None:
-            raise ValueError("give either rotation or look_at, not both")
-        staged = {}
-        if position is not None:
-            staged["position"] = self._float_arg("position", position, (W, A, 3)).to(torch.float64)
-        eye = staged.get("position", self.camera_position)
-        if rotation is not None:
-            rotation = self._float_arg("rotation", rotation, (W, A, 4))
-            staged["rotation"] = normalize_quat(rotation.to(torch.float64), name="rotation").to(torch.float32)
-        if look_at is not None:
-            target = self._float_arg("look_at", look_at, (W, A, 3)).to(torch.float64)
-            staged["rotation"] = look_at_quat(eye, target).to(torch.float32)
-        for name, value, low, high in (("fov_y", fov_y, 1e-6, math.pi - 1e-6), ("near", near, 1e-9, None),
-                                        ("far", far, 1e-9, None)):
-            if value is not None:
-                tensor = as_tensor(name, value).detach().to(torch.float64)
-                self._check_device(name, tensor)
-                tensor = tensor.expand(W, A) if tensor.ndim == 0 else tensor
-                check_shape(name, tensor, (W, A))
-                check_finite(name, tensor)
-                check_range(name, tensor, low, high)
-                staged[name] = tensor
-        near_new, far_new = staged.get("near", self.near), staged.get("far", self.far)
-        if bool((far_new <= near_new).any()):
-            raise ValueError("far must be greater than near for every camera")
-        for key, value in staged.items():
-            target = {"position": self.camera_position, "rotation": self.camera_rotation}.get(key)
-            (target if target is not None else getattr(self, key)).copy_(value)
-        if staged:
-            self._cameras_dirty = True
-        if {"fov_y", "near", "far"} & staged.keys():
-            self._projection = None
+        self.packer.set_cameras(position=position, rotation=rotation, look_at=look_at, fov_y=fov_y, near=near,
+                                far=far)
 
     # ------------------------------------------------------------------ rendering
     @one_thread
@@ -457,161 +358,14 @@ class BatchRenderer:
             return self._draw_and_read()
 
     def _prepare(self) -> list[str]:
-        """The torch stages of a frame, each only when its inputs changed: camera poses and
-        view packing (cameras moved), instance packing (groups updated), culling (either).
-        Returns the groups whose instance data was packed (to be uploaded)."""
-        start = time.perf_counter()
-        mount = self.scene.camera_mount
-        cameras_moved = self._cameras_dirty or (mount is not None and mount.group in self._dirty)
-        if cameras_moved:
-            position, rotation = self._camera_frames()
-            self._recentre(position)
-            self._planes = frustum_planes(self._pack_views(position, rotation))
-            self._cameras_dirty = False
-        packed_groups = list(self._dirty)
-        for name in packed_groups:
-            self._pack_group(name)
-        self._dirty.clear()
-        packed = time.perf_counter()
-        self._cull(set(packed_groups), cameras_moved)
-        self._mask_dirty.clear()
+        """Pack the frame into the buffer textures (packing.py) and bring the shadow atlas up
+        to date. Returns the groups whose instance data was packed (to be uploaded)."""
+        timings = self.packer.prepare(self._targets)
+        packed_groups = timings.pop("packed")
         if self.shadow_pass is not None:  # the atlas depends on the instances, not on the cameras
-            self.shadow_pass.prepare(self.world_origin, self._state, changed=bool(packed_groups))
-        self.last_timings = {"pack": packed - start, "cull": time.perf_counter() - packed}
+            self.shadow_pass.prepare(self.packer.world_origin, self.packer.state, changed=bool(packed_groups))
+        self.last_timings = timings
         return packed_groups
-
-    def _camera_frames(self):
-        """Camera positions [W, A, 3] and camera-to-world rotations [W, A, 3, 3], float64."""
-        mount = self.scene.camera_mount
-        if mount is None:
-            return self.camera_position, quat_to_matrix(self.camera_rotation.to(torch.float64))
-        state = self._state[mount.group]
-        index, offset, tilt = self._mount_constants
-        body = quat_to_matrix(state["rotation"][:, index].to(torch.float64))
-        position = state["position"][:, index] + body @ offset
-        return position, body if tilt is None else body @ tilt
-
-    def _recentre(self, camera_position: torch.Tensor):
-        distance = (camera_position - self.world_origin[:, None]).norm(dim=-1).amax(dim=1)
-        far_worlds = distance > RECENTRE_DISTANCE
-        if bool(far_worlds.any()):
-            self.world_origin[far_worlds] = camera_position[far_worlds].mean(dim=1)
-            self._dirty.update(self.scene.groups)
-            self._origin_moved = True
-            for draw in self._groups.values():
-                draw.static_bounds = None
-
-    def _pack_views(self, position: torch.Tensor, rotation: torch.Tensor):
-        """View-projections [W, A, 4, 4] of cameras at `position` with camera-to-world
-        `rotation` [W, A, 3, 3], written to the views texture (and origins / lenses when changed)."""
-        memory = _writable(self.views_texture, np.float32).view(-1, shaders.VIEW_TEXELS, 4)
-        if self._projection is None or self._origin_moved:  # lenses or world origins changed
-            height, width = self.scene.resolution
-            projection = perspective(self.fov_y, width / height, self.near, self.far)
-            # The camera frame (x right, y forward, z up) to GL's eye frame folded into the lens.
-            self._projection = (projection[..., :3] @ _CAMERA_TO_GL, projection[..., 3])
-            origin_hi = self.world_origin.to(torch.float32)
-            origin_lo = (self.world_origin - origin_hi.to(torch.float64)).to(torch.float32)
-            A = self.scene.agents_per_world
-            memory[:, 4, :3] = origin_hi.repeat_interleave(A, dim=0)
-            memory[:, 5, :3] = origin_lo.repeat_interleave(A, dim=0)
-            memory[:, 4, 3] = self.near.reshape(-1)
-            memory[:, 5, 3] = self.far.reshape(-1)
-            self._origin_moved = False
-        lens, lens_shift = self._projection
-        linear = lens @ rotation.transpose(-1, -2)  # [W, A, 4, 3]: world directions to clip space
-        shift = lens_shift - (linear @ (position - self.world_origin[:, None])[..., None])[..., 0]
-        view_projection = torch.cat((linear, shift[..., None]), -1)
-        memory[:, :4] = view_projection.reshape(-1, 4, 4).transpose(1, 2)  # texel j = column j
-        return view_projection
-
-    def _pack_group(self, name: str):
-        state = self._state[name]
-        W, C = state["active"].shape
-        memory = _writable(self._groups[name].instances, np.float32).view(W, C, shaders.INSTANCE_TEXELS, 4)
-        memory[:, :, 0, :3] = state["position"] - self.world_origin[:, None]
-        memory[:, :, 0, 3] = state["active"]
-        memory[:, :, 1] = state["rotation"]
-        memory[:, :, 2, :3] = state["scale"]
-        memory[:, :, 2, 3] = state["owner"]
-        memory[:, :, 3] = state["color"]
-
-    def _cull(self, moved: set, cameras_moved: bool):
-        """Bring each group's list of drawn (view, instance) pairs up to date.
-
-        A group whose instances and cameras did not move keeps its list. Frustum tests of
-        all groups that need one run as one batched test; a group whose last test showed
-        nothing worth culling draws its candidate pairs (active, not the viewer's own body)
-        for CULL_RECHECK frames instead."""
-        tested, candidates_only = [], []
-        for name, draw in self._groups.items():
-            mask_changed = name in self._mask_dirty
-            if not (cameras_moved or name in moved or mask_changed):
-                continue
-            if draw.frustum_pause == 0:
-                tested.append(name)
-            else:
-                draw.frustum_pause -= 1
-                if mask_changed or draw.frustum_culled:
-                    candidates_only.append(name)
-        for name in candidates_only:
-            candidate, _ = self._candidates(name)
-            self._store_pairs(self._groups[name], pair_list(candidate) if candidate is not None else None, False)
-        if not tested:
-            return
-        centers, radii = zip(*(self._bounds(name) for name in tested))
-        inside = inside_frustum(self._planes, torch.cat(centers, 1), torch.cat(radii, 1))
-        first = 0
-        for name, count in zip(tested, (c.shape[1] for c in centers)):
-            draw, visible = self._groups[name], inside[:, :, first:first + count]
-            first += count
-            candidate, possible = self._candidates(name)
-            pairs = pair_list(visible if candidate is None else visible & candidate)
-            if len(pairs) > CULL_KEEPS * possible:
-                draw.frustum_pause = CULL_RECHECK
-            self._store_pairs(draw, pairs, True)
-
-    def _bounds(self, name: str):
-        """Bounding-sphere centres [W, K, 3] (relative to the world origin) and radii [W, K] of a
-        group (scales are >= 0); those of static groups are kept until the world origins move."""
-        draw, W = self._groups[name], self.scene.num_worlds
-        if draw.static:
-            if draw.static_bounds is None:
-                group = self.scene.static[name]
-                draw.static_bounds = (group.position[None] - self.world_origin[:, None],
-                                      (draw.radius * group.scale.amax(-1)).expand(W, -1))
-            return draw.static_bounds
-        state = self._state[name]
-        return state["position"] - self.world_origin[:, None], state["scale"].amax(-1) * draw.radius
-
-    def _candidates(self, name: str):
-        """([W, A, C] bool, count): the instance is active and not the viewing agent's own body
-        ((None, all pairs) for static groups); kept until the group's masks change."""
-        draw = self._groups[name]
-        if draw.static:
-            return None, self.scene.num_views * draw.count
-        if name in self._mask_dirty or name not in self._candidate_cache:
-            state = self._state[name]
-            agent = torch.arange(self.scene.agents_per_world)[None, :, None]
-            candidate = state["active"][:, None, :] & (state["owner"][:, None, :] != agent)
-            self._candidate_cache[name] = (candidate, int(candidate.sum()))
-        return self._candidate_cache[name]
-
-    def _store_pairs(self, draw: _DrawGroup, pairs: torch.Tensor | None, culled: bool):
-        """Upload a group's drawn pairs (None: every pair of a static group) and split them per pass."""
-        total = self.scene.num_views * draw.count
-        if pairs is None:
-            pairs = torch.arange(total, dtype=torch.int32)
-        if len(pairs):
-            _writable(draw.pairs, np.int32)[: len(pairs)] = pairs
-        draw.frustum_culled = culled
-        if self.layout.num_passes == 1:
-            draw.pass_ranges = [(0, len(pairs))]
-            return
-        starts = torch.tensor([render_pass.views.start * draw.count for render_pass in self._passes] + [total],
-                              dtype=torch.int32)
-        bounds = torch.searchsorted(pairs, starts).tolist()
-        draw.pass_ranges = [(bounds[p], bounds[p + 1] - bounds[p]) for p in range(self.layout.num_passes)]
 
     def _draw_and_read(self) -> Frame:
         s = self.scene
@@ -623,9 +377,9 @@ class BatchRenderer:
         depth = torch.empty(W * A, height, width, dtype=torch.float32) if "depth" in self.effects else None
         segmentation = torch.empty(W * A, height, width, dtype=torch.int32) if "segmentation" in self.effects else None
         started = time.perf_counter()
-        for index, render_pass in enumerate(self._passes):
-            for draw in self._groups.values():
-                first, count = draw.pass_ranges[index]
+        for index in range(len(self._passes)):
+            for name, draw in self._groups.items():
+                first, count = self.packer.groups[name].pass_ranges[index]
                 entry = draw.pass_nodes[index]
                 node, offset, drawn = entry
                 offset[0] = first
@@ -736,25 +490,6 @@ class BatchRenderer:
         destination.copy_(total.add_((k * k) // 2).div_(k * k, rounding_mode="floor"))
 
     # ------------------------------------------------------------------ helpers / lifecycle
-    def _float_arg(self, name, value, shape):
-        tensor = as_tensor(name, value).detach()  # the renderer's state never joins an autograd graph
-        tensor = tensor if tensor.dtype in FLOAT_DTYPES else tensor.float()  # float8: no isfinite kernel
-        self._check_device(name, tensor)
-        check_shape(name, tensor, shape)
-        check_finite(name, tensor)
-        return tensor
-
-    @staticmethod
-    def _check_device(name, tensor):
-        check_host(name, tensor)
-
-    def _check_group(self, group):
-        if not isinstance(group, str):
-            raise TypeError(f"group must be the name (str) of one of this scene's instance groups {sorted(self._state)}, "
-                            f"got {describe(group)}")
-        if group not in self._state:
-            raise ValueError(f"group must be one of this scene's instance groups {sorted(self._state)}, got {group!r}")
-
     def _check_open(self):
         if self._closed:
             raise RuntimeError("this BatchRenderer is closed; create a new one")
@@ -771,8 +506,8 @@ class BatchRenderer:
 
     def instance_state(self, group: str) -> dict:
         """Copies of a group's current per-instance tensors."""
-        self._check_group(group)
-        return {k: v.clone() for k, v in self._state[group].items()}
+        self.packer.check_group(group)
+        return {k: v.clone() for k, v in self.packer.state[group].items()}
 
     def close(self) -> None:
         """Free the framebuffer and textures; safe to call twice."""
@@ -815,38 +550,3 @@ class BatchRenderer:
         except Exception:  # interpreter shutdown: Panda3D may already be gone
             pass
 
-
-def _int(value: int):
-    from panda3d.core import PTA_int
-
-    return PTA_int([int(value)])
-
-
-def _vec3(values):
-    from panda3d.core import LVecBase3f
-
-    return LVecBase3f(*(float(v) for v in values))
-
-
-def _panda_texture(texture, name):
-    """A Panda3D Texture from a Texture, or from pixels: an image path or a uint8 array [h, w, 3|4].
-
-    Image files are decoded by Pillow (images.py), never by Panda3D's own readers, which
-    end the process on some corrupt files."""
-    from panda3d.core import SamplerState, Texture
-
-    if type(texture).__name__ == "Texture":
-        return texture
-    try:
-        array = texture_pixels(texture, name="texture")
-    except (TypeError, ValueError) as error:
-        raise type(error)(f"texture of group {name!r}: {error}") from None
-    h, w, channels = array.shape
-    result = Texture(f"texture:{name}")
-    result.setup_2d_texture(w, h, Texture.T_unsigned_byte, Texture.F_rgb if channels == 3 else Texture.F_rgba)
-    # Panda3D stores images bottom-up in BGR(A) order.
-    swizzled = array[::-1, :, [2, 1, 0, 3][:channels]]
-    result.set_ram_image(np.ascontiguousarray(swizzled).tobytes())
-    result.set_minfilter(SamplerState.FT_linear_mipmap_linear)
-    result.set_magfilter(SamplerState.FT_linear)
-    return result

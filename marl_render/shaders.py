@@ -1,5 +1,8 @@
 """Shader variants: the GLSL in shaders/ with one #define per declared effect.
 
+Every variant also gets the buffer layout's #defines (layout.py: ROW_* for its instance
+rows, VIEW_* for the view rows), generated from the table the packer writes with.
+
 Code inside `#ifdef EFFECT_X` blocks is removed by the GLSL preprocessor when the scene
 does not declare X, so an undeclared effect costs nothing at draw time. One Panda3D
 Shader object is built per distinct set of defines and cached.
@@ -9,12 +12,9 @@ from __future__ import annotations
 import functools
 from importlib import resources
 
-GLSL_VERSION = "#version 410\n"
+from . import layout
 
-# Texels per instance / per view in the buffer textures; the renderer packs the same.
-INSTANCE_TEXELS = 4
-STATIC_INSTANCE_TEXELS = 5
-VIEW_TEXELS = 6
+GLSL_VERSION = "#version 410\n"
 
 # ITU-R BT.601 luma weights of the gray colour output (as torchvision's rgb_to_grayscale).
 GRAY_WEIGHTS = (0.299, 0.587, 0.114)
@@ -59,8 +59,7 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
         defines.add("OUTPUT_GRAY")
     if "texture" in effects and textured:
         defines.add("EFFECT_TEXTURE")
-    defines.add(f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}")
-    defines.add(f"VIEW_TEXELS {VIEW_TEXELS}")
+    defines.update(layout.glsl_defines(static=static))  # where the packer put each value
     if static:
         defines.add("STATIC_GROUP")
     # Aux attachments are numbered in declaration order after the colour target.
@@ -93,8 +92,7 @@ def compiled(defines: tuple[str, ...]):
 
 def caster_defines(*, static: bool) -> tuple[str, ...]:
     """#defines of the shadow-map pass: positions only, no effect (see shadows.py)."""
-    defines = {f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}",
-               f"VIEW_TEXELS {VIEW_TEXELS}", "SHADOW_CASTER"}
+    defines = {*layout.glsl_defines(static=static), "SHADOW_CASTER"}
     if static:
         defines.add("STATIC_GROUP")
     return tuple(sorted(defines))

@@ -32,9 +32,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import backend, shaders
+from . import backend, layout, shaders
 from .culling import frustum_planes, inside_frustum, pair_list
 from .meshes import MeshData
+from .panda_buffers import buffer_texture, int_input, writable
 from .scene import Scene
 from .tiling import TileLayout, plan_layout
 
@@ -155,8 +156,6 @@ class ShadowPass:
             WindowProperties,
         )
 
-        from .renderer import _buffer_texture, _int
-
         width, height = self.layout.framebuffer_size
         props = FrameBufferProperties()
         props.set_depth_bits(32)
@@ -189,20 +188,20 @@ class ShadowPass:
         self.root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
         self.root.set_attrib(ColorWriteAttrib.make(ColorWriteAttrib.C_off))
         W = self.scene.num_worlds
-        self.lights = _buffer_texture("lights", W * shaders.VIEW_TEXELS)
+        self.lights = buffer_texture("lights", W * layout.VIEW.texels)
         self.root.set_shader_input("views", self.lights)
-        self.root.set_shader_input("agents", _int(1))
+        self.root.set_shader_input("agents", int_input(1))
         self.root.set_shader_input("grid", LVecBase2i(self.layout.columns, self.layout.rows))
-        self.root.set_shader_input("view_offset", _int(0))
+        self.root.set_shader_input("view_offset", int_input(0))
         for name, draw in groups.items():
             caster = draw.node.copy_to(self.root)  # shares the Geom; the state is replaced below
             caster.set_shader(shaders.compiled_caster(shaders.caster_defines(static=draw.static)))
-            self.pairs[name] = _buffer_texture(f"shadow_pairs:{name}", W * draw.count, integer=True)
-            self.pair_offsets[name] = _int(0)
+            self.pairs[name] = buffer_texture(f"shadow_pairs:{name}", W * draw.count, integer=True)
+            self.pair_offsets[name] = int_input(0)
             caster.set_shader_input("instances", draw.instances)
             caster.set_shader_input("pairs", self.pairs[name])
             caster.set_shader_input("pair_offset", self.pair_offsets[name])
-            caster.set_shader_input("capacity", _int(draw.count))
+            caster.set_shader_input("capacity", int_input(draw.count))
             self.casters[name] = caster
 
     def bind(self, root) -> None:
@@ -218,8 +217,6 @@ class ShadowPass:
         """Light matrices and culled casters for the next frame, when anything moved.
 
         world_origin [W, 3] float64; states: the renderer's per-group tensors by name."""
-        from .renderer import _writable
-
         if not (changed or self.pending):
             return
         self._pack_lights(world_origin)
@@ -241,7 +238,7 @@ class ShadowPass:
             if len(pairs) == 0:  # Panda3D would draw an instance count of 0 once
                 caster.hide()
                 continue
-            _writable(self.pairs[name], np.int32)[: len(pairs)] = pairs
+            writable(self.pairs[name], np.int32)[: len(pairs)] = pairs
             caster.show()
             caster.set_instance_count(len(pairs))
         self.pending = True
@@ -253,14 +250,15 @@ class ShadowPass:
         return matrices
 
     def _pack_lights(self, world_origin: torch.Tensor) -> None:
-        from .renderer import _writable
-
-        memory = _writable(self.lights, np.float32).view(-1, shaders.VIEW_TEXELS, 4)
-        memory[:, :4] = self._world_matrices(world_origin).transpose(1, 2)  # texel j = column j
+        row = layout.VIEW  # one "view" per world: the light's
+        memory = writable(self.lights, np.float32).view(-1, row.texels, 4)
+        first = row.fields["projection"].texel
+        memory[:, first:first + layout.VIEW_PROJECTION_TEXELS] = self._world_matrices(world_origin).transpose(1, 2)
         origin_hi = world_origin.to(torch.float32)
-        memory[:, 4, :3] = origin_hi
-        memory[:, 5, :3] = (world_origin - origin_hi.to(torch.float64)).to(torch.float32)
-        memory[:, 4:, 3] = 0.0
+        memory[(slice(None), *row["origin_hi"])] = origin_hi
+        memory[(slice(None), *row["origin_lo"])] = (world_origin - origin_hi.to(torch.float64)).to(torch.float32)
+        memory[(slice(None), *row["near"])] = 0.0
+        memory[(slice(None), *row["far"])] = 0.0
 
     def set_active(self, on: bool) -> None:
         """Draw the atlas in the coming render_frame (only if it is out of date)."""

@@ -1,7 +1,9 @@
 // One instanced draw covers every view of every world. Instance k of the draw is the
 // k-th visible (view, instance) pair of this pass, listed by the renderer after
 // frustum culling in torch; pairs are sorted by view.
-// Effects and group kinds arrive as #defines prepended by marl_render/shaders.py.
+// Effects and group kinds arrive as #defines prepended by marl_render/shaders.py, and so
+// does the buffer layout: ROW_<FIELD> / VIEW_<FIELD> is a field's texel in its row and
+// ROW_<FIELD>_LANES its swizzle, generated from the table in marl_render/layout.py.
 in vec4 p3d_Vertex;
 in vec3 p3d_Normal;
 #ifdef EFFECT_TEXTURE
@@ -9,7 +11,7 @@ in vec2 p3d_MultiTexCoord0;
 out vec2 v_uv;
 #endif
 
-uniform samplerBuffer instances;  // INSTANCE_TEXELS texels per instance, see renderer.py
+uniform samplerBuffer instances;  // ROW_TEXELS texels per instance (rows: marl_render/layout.py)
 uniform samplerBuffer views;      // VIEW_TEXELS texels per view
 uniform isamplerBuffer pairs;     // view * capacity + instance, visible pairs only
 uniform int pair_offset;          // first pair of this pass
@@ -84,27 +86,29 @@ void main() {
     int world = view / agents;
 
 #ifdef STATIC_GROUP
-    int row = instance * INSTANCE_TEXELS;      // shared by all worlds
+    int row = instance * ROW_TEXELS;      // shared by all worlds
 #else
-    int row = (world * capacity + instance) * INSTANCE_TEXELS;
+    int row = (world * capacity + instance) * ROW_TEXELS;
 #endif
-    vec4 position = texelFetch(instances, row);      // xyz (w: active, used by culling)
-    vec4 rotation = texelFetch(instances, row + 1);  // unit quaternion (w, x, y, z)
-    vec4 scale = texelFetch(instances, row + 2);     // xyz (w: owner, used by culling)
-    v_color = texelFetch(instances, row + 3);
+    vec3 position = texelFetch(instances, row + ROW_POSITION).ROW_POSITION_LANES;
+    vec4 rotation = texelFetch(instances, row + ROW_ROTATION).ROW_ROTATION_LANES;  // unit (w, x, y, z)
+    vec3 scale = texelFetch(instances, row + ROW_SCALE).ROW_SCALE_LANES;
+    v_color = texelFetch(instances, row + ROW_COLOR).ROW_COLOR_LANES;
 
     int vrow = view * VIEW_TEXELS;
-    mat4 view_projection = mat4(texelFetch(views, vrow), texelFetch(views, vrow + 1),
-                                texelFetch(views, vrow + 2), texelFetch(views, vrow + 3));
+    int prow = vrow + VIEW_PROJECTION;  // four texels, one column each
+    mat4 view_projection = mat4(texelFetch(views, prow), texelFetch(views, prow + 1),
+                                texelFetch(views, prow + 2), texelFetch(views, prow + 3));
 #ifdef STATIC_GROUP
     // Positions relative to the world's origin in two floats each (hi + lo), so that
     // scenes far from 0 keep sub-millimetre precision.
-    vec3 relative = (position.xyz - texelFetch(views, vrow + 4).xyz)
-                  + (texelFetch(instances, row + 4).xyz - texelFetch(views, vrow + 5).xyz);
+    vec3 relative = (position - texelFetch(views, vrow + VIEW_ORIGIN_HI).VIEW_ORIGIN_HI_LANES)
+                  + (texelFetch(instances, row + ROW_POSITION_LO).ROW_POSITION_LO_LANES
+                     - texelFetch(views, vrow + VIEW_ORIGIN_LO).VIEW_ORIGIN_LO_LANES);
 #else
-    vec3 relative = position.xyz;  // already relative to the world's origin
+    vec3 relative = position;  // already relative to the world's origin
 #endif
-    vec3 world_position = relative + rotate(rotation, p3d_Vertex.xyz * scale.xyz);
+    vec3 world_position = relative + rotate(rotation, p3d_Vertex.xyz * scale);
     vec4 clip = view_projection * vec4(world_position, 1.0);
 
     // Clip against this view's own frustum before moving it into its tile, so nothing
@@ -130,7 +134,7 @@ void main() {
 #ifdef EFFECT_LIGHTING
     // Normals scale inversely (inverse transpose); a zero scale flattens the mesh, and
     // the normal then points straight out of the flat side.
-    vec3 normal = rotate(rotation, normalize(p3d_Normal / max(scale.xyz, vec3(1e-6))));
+    vec3 normal = rotate(rotation, normalize(p3d_Normal / max(scale, vec3(1e-6))));
 #endif
 #ifdef LIGHT_PER_FRAGMENT
     v_normal = normal;
@@ -145,7 +149,7 @@ void main() {
     v_color.rgb *= ambient_color + light_color * max(dot(normal, -light_direction), 0.0);
 #endif
 #ifdef EFFECT_SHADOWS
-    int lrow = world * VIEW_TEXELS;
+    int lrow = world * VIEW_TEXELS + VIEW_PROJECTION;
     mat4 light_projection = mat4(texelFetch(lights, lrow), texelFetch(lights, lrow + 1),
                                  texelFetch(lights, lrow + 2), texelFetch(lights, lrow + 3));
     v_light = (light_projection * vec4(world_position, 1.0)).xyz;
@@ -161,8 +165,8 @@ void main() {
     // Tile t of the column covers window rows [t * H, (t + 1) * H) from the bottom.
     vec2 tile_origin = vec2(0.0, float(pass_view)) * tile_size;
 #ifdef DEPTH_PLANE_FROM_CORNERS
-    vec3 q0 = (view_projection * vec4(relative + rotate(rotation, corner_a * scale.xyz), 1.0)).xyw;
-    vec3 q1 = (view_projection * vec4(relative + rotate(rotation, corner_b * scale.xyz), 1.0)).xyw;
+    vec3 q0 = (view_projection * vec4(relative + rotate(rotation, corner_a * scale), 1.0)).xyw;
+    vec3 q1 = (view_projection * vec4(relative + rotate(rotation, corner_b * scale), 1.0)).xyw;
     vec3 q2 = clip.xyw;
     vec3 plane_normal = cross(q1 - q0, q2 - q0);
     depth_plane = vec4(plane_normal, dot(plane_normal, q0));
@@ -173,7 +177,8 @@ void main() {
 #endif
 #endif
 #ifdef LOG_DEPTH
-    v_near_far = vec2(texelFetch(views, vrow + 4).w, texelFetch(views, vrow + 5).w);
+    v_near_far = vec2(texelFetch(views, vrow + VIEW_NEAR).VIEW_NEAR_LANES,
+                      texelFetch(views, vrow + VIEW_FAR).VIEW_FAR_LANES);
 #endif
 #ifdef OUTPUT_SEGMENTATION
     v_segment = segment_base + instance;

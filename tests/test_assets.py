@@ -67,7 +67,7 @@ def images(tmp_path_factory):
 CHILD = textwrap.dedent("""
     import json, sys
     import marl_render as mr
-    from marl_render.renderer import _panda_texture
+    from marl_render.panda_buffers import panda_texture
 
     def attempt(case, call):
         try:
@@ -83,7 +83,7 @@ CHILD = textwrap.dedent("""
     for path in json.loads(sys.argv[1]):
         attempt(["add_group texture", path], lambda: scene().add_group("quads", "box", capacity=1, texture=path))
         attempt(["add_static texture", path], lambda: scene().add_static("floor", "plane", [0, 0, 0], texture=path))
-        attempt(["renderer texture", path], lambda: _panda_texture(path, "quads"))
+        attempt(["renderer texture", path], lambda: panda_texture(path, "quads"))
     for path in json.loads(sys.argv[2]):
         attempt(["model", path], lambda: scene().add_group("quads", path, capacity=1))
     renderer = mr.BatchRenderer(scene())

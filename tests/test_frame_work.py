@@ -2,7 +2,7 @@
 import torch
 
 import marl_render as mr
-from marl_render.renderer import CULL_RECHECK
+from marl_render.packing import CULL_RECHECK
 
 BACKGROUND = (0.2, 0.4, 0.6)
 BACKGROUND_U8 = torch.tensor([round(c * 255) for c in BACKGROUND], dtype=torch.uint8)
@@ -76,29 +76,29 @@ def test_culling_pauses_where_it_removes_nothing_and_masks_still_apply():
         renderer.update("b", position=[[[0.0, 3.0, 0.8]]], scale=[[[0.3, 0.3, 0.3]]])
         renderer.render()
         # Everything is in view: the next frames draw the candidate pairs without frustum tests.
-        assert renderer._groups["a"].frustum_pause == CULL_RECHECK
+        assert renderer.packer.groups["a"].frustum_pause == CULL_RECHECK
         renderer.update("a", position=[[[-0.6, 3.0, 0.0], [0.6, 3.0, 0.0]]])
         image = renderer.render().rgb[0, 0]
-        assert renderer._groups["a"].frustum_pause == CULL_RECHECK - 1
+        assert renderer.packer.groups["a"].frustum_pause == CULL_RECHECK - 1
         assert torch.equal(image[16, 8], RED) and torch.equal(image[16, 23], GREEN)
         # Deactivating an instance while paused takes effect in the same frame ...
         renderer.update("a", active=[[True, False]])
         image = renderer.render().rgb[0, 0]
         assert torch.equal(image[16, 8], RED) and torch.equal(image[16, 23], BACKGROUND_U8)
-        assert renderer._groups["a"].pass_ranges == [(0, 2)]  # one pair per view
+        assert renderer.packer.groups["a"].pass_ranges == [(0, 2)]  # one pair per view
         # ... and so does an owner: agent 1's own box is hidden from agent 1 only.
         renderer.update("a", active=[[True, True]], owner=[[-1, 1]])
         frame = renderer.render().rgb[0]
         assert torch.equal(frame[0, 16, 23], GREEN) and torch.equal(frame[1, 16, 23], BACKGROUND_U8)
-        assert renderer._groups["a"].pass_ranges == [(0, 3)]
+        assert renderer.packer.groups["a"].pass_ranges == [(0, 3)]
 
 
 def test_culling_removes_what_no_view_can_see():
     with two_boxes() as renderer:
         renderer.render()
         # Box b sits behind both cameras: it is culled from both views, and culling stays on.
-        assert renderer._groups["b"].pass_ranges == [(0, 0)]
-        assert renderer._groups["b"].frustum_pause == 0
+        assert renderer.packer.groups["b"].pass_ranges == [(0, 0)]
+        assert renderer.packer.groups["b"].frustum_pause == 0
         renderer.update("b", position=[[[0.0, -3.5, 0.0]]])
         renderer.render()
-        assert renderer._groups["b"].pass_ranges == [(0, 0)]
+        assert renderer.packer.groups["b"].pass_ranges == [(0, 0)]

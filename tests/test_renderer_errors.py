@@ -229,7 +229,7 @@ def test_update_and_set_cameras_never_keep_an_autograd_graph(renderer):
     renderer.update("boxes", position=position + GOOD["position"] + 1.0, color=torch.ones(W, C, 4, requires_grad=True))
     renderer.set_cameras(fov_y=torch.full((W, A), 1.0, requires_grad=True),
                          position=torch.ones(W, A, 3, requires_grad=True))
-    tensors = [*renderer._state["boxes"].values(), renderer.camera_position, renderer.fov_y]
+    tensors = [*renderer.packer.state["boxes"].values(), renderer.camera_position, renderer.fov_y]
     assert not any(t.requires_grad for t in tensors)
     renderer.update("boxes", **{k: v for k, v in before[0].items()})
     renderer.set_cameras(fov_y=before[1], position=torch.zeros(W, A, 3) + torch.tensor([0, 0, 1.0]))
@@ -291,7 +291,7 @@ def test_texture_must_be_an_image():
         scene.add_group("boxes", "box", capacity=1, texture=np.zeros((4, 4), dtype=np.uint8))
     assert not scene.groups
     # A group made some other way is still checked when the renderer builds its texture.
-    from marl_render.renderer import _panda_texture
+    from marl_render.panda_buffers import panda_texture
 
     with pytest.raises(ValueError, match=r"texture of group 'boxes': texture must be a uint8 array"):
-        _panda_texture(np.zeros((4, 4), dtype=np.uint8), "boxes")
+        panda_texture(np.zeros((4, 4), dtype=np.uint8), "boxes")

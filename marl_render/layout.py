@@ -1,0 +1,97 @@
+"""The packed-buffer layout: where each value sits in the instance and view buffers.
+
+One table for both sides. The packer (packing.py) writes through `Field.index`, and
+the shaders read through the `#define`s that `glsl_defines()` generates from the same
+table (shaders.py prepends them to every variant), so the two cannot drift apart.
+
+Every buffer is a buffer texture of RGBA32F texels: a row of TEXELS texels per
+instance (or per view), each field one texel and some of its lanes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+LANES = "xyzw"
+
+
+@dataclass(frozen=True)
+class Field:
+    """One value of a row: texel `texel`, lanes `lanes` (a run of "xyzw", as GLSL swizzles them)."""
+
+    texel: int
+    lanes: str = "xyzw"
+
+    @property
+    def index(self) -> tuple:
+        """(texel, lanes) index into a row viewed as [..., TEXELS, 4]; one lane is an int, several a slice."""
+        first = LANES.index(self.lanes[0])
+        lanes = first if len(self.lanes) == 1 else slice(first, first + len(self.lanes))
+        return self.texel, lanes
+
+
+@dataclass(frozen=True)
+class RowLayout:
+    """The fields of one kind of row; `prefix` names its GLSL defines."""
+
+    prefix: str
+    texels: int
+    fields: dict
+
+    def __post_init__(self):
+        for name, field in self.fields.items():
+            if not 0 <= field.texel < self.texels or field.lanes not in LANES:
+                raise ValueError(f"field {name} of {self.prefix} is outside its {self.texels}-texel row: {field}")
+
+    def __getitem__(self, name: str) -> tuple:
+        return self.fields[name].index
+
+    def defines(self, prefix: str | None = None) -> tuple[str, ...]:
+        """`PREFIX_TEXELS n`, `PREFIX_NAME texel` and `PREFIX_NAME_LANES swizzle` for every
+        field (PREFIX: `prefix`, else the table's own)."""
+        prefix = prefix or self.prefix
+        lines = [f"{prefix}_TEXELS {self.texels}"]
+        for name, field in self.fields.items():
+            define = f"{prefix}_{name.upper()}"
+            lines += [f"{define} {field.texel}", f"{define}_LANES {field.lanes}"]
+        return tuple(lines)
+
+
+# One row per instance of a moving group and world: position relative to its world's origin.
+INSTANCE = RowLayout("INSTANCE", 4, {
+    "position": Field(0, "xyz"),
+    "active": Field(0, "w"),  # read by culling only
+    "rotation": Field(1),  # unit quaternion (w, x, y, z)
+    "scale": Field(2, "xyz"),
+    "owner": Field(2, "w"),  # read by culling only
+    "color": Field(3),
+})
+
+# One row per instance of a static group, shared by every world: the absolute position
+# in two float32s (hi + lo) so that scenes far from 0 keep sub-millimetre precision.
+STATIC_INSTANCE = RowLayout("STATIC", 5, {
+    "position": Field(0, "xyz"),
+    "active": Field(0, "w"),
+    "rotation": Field(1),
+    "scale": Field(2, "xyz"),
+    "owner": Field(2, "w"),
+    "color": Field(3),
+    "position_lo": Field(4, "xyz"),
+})
+
+# One row per view (and per world in the shadow pass's light buffer): the view-projection
+# by columns (texel j = column j), the world's origin as hi + lo, the view's near / far.
+VIEW = RowLayout("VIEW", 6, {
+    "projection": Field(0),  # texels 0-3
+    "origin_hi": Field(4, "xyz"),
+    "near": Field(4, "w"),
+    "origin_lo": Field(5, "xyz"),
+    "far": Field(5, "w"),
+})
+VIEW_PROJECTION_TEXELS = 4
+
+
+
+def glsl_defines(*, static: bool) -> tuple[str, ...]:
+    """The layout's #define lines (without "#define ") for a shader variant: the rows of its
+    instance buffer as ROW_* (STATIC_INSTANCE for static groups, else INSTANCE) and VIEW_*."""
+    return (STATIC_INSTANCE if static else INSTANCE).defines("ROW") + VIEW.defines()

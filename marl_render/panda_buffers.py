@@ -1,0 +1,65 @@
+"""Panda3D objects the renderer and the shadow pass share: buffer textures and their
+writable memory, shader inputs, image textures.
+
+`writable()` is how packed tensors reach the GL without a copy of their own: the packer
+(packing.py) writes into a torch view of the texture's RAM image, which Panda3D uploads
+at the next draw.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .images import texture_pixels
+
+
+def buffer_texture(name: str, texels: int, integer: bool = False):
+    """A dynamic buffer texture of `texels` RGBA32F texels (R32I when `integer`)."""
+    from panda3d.core import GeomEnums, Texture
+
+    texture = Texture(name)
+    kind, fmt = (Texture.T_int, Texture.F_r32i) if integer else (Texture.T_float, Texture.F_rgba32)
+    texture.setup_buffer_texture(max(texels, 1), kind, fmt, GeomEnums.UH_dynamic)
+    return texture
+
+
+def writable(texture, dtype) -> torch.Tensor:
+    """Flat torch view of a texture's RAM image; marks the texture for upload."""
+    return torch.from_numpy(np.frombuffer(memoryview(texture.modify_ram_image()), dtype=dtype))
+
+
+def int_input(value: int):
+    """An int shader input that can be changed in place (a new one would make a new render state)."""
+    from panda3d.core import PTA_int
+
+    return PTA_int([int(value)])
+
+
+def vec3_input(values):
+    from panda3d.core import LVecBase3f
+
+    return LVecBase3f(*(float(v) for v in values))
+
+
+def panda_texture(texture, name):
+    """A Panda3D Texture from a Texture, or from pixels: an image path or a uint8 array [h, w, 3|4].
+
+    Image files are decoded by Pillow (images.py), never by Panda3D's own readers, which
+    end the process on some corrupt files."""
+    from panda3d.core import SamplerState, Texture
+
+    if type(texture).__name__ == "Texture":
+        return texture
+    try:
+        array = texture_pixels(texture, name="texture")
+    except (TypeError, ValueError) as error:
+        raise type(error)(f"texture of group {name!r}: {error}") from None
+    h, w, channels = array.shape
+    result = Texture(f"texture:{name}")
+    result.setup_2d_texture(w, h, Texture.T_unsigned_byte, Texture.F_rgb if channels == 3 else Texture.F_rgba)
+    # Panda3D stores images bottom-up in BGR(A) order.
+    swizzled = array[::-1, :, [2, 1, 0, 3][:channels]]
+    result.set_ram_image(np.ascontiguousarray(swizzled).tobytes())
+    result.set_minfilter(SamplerState.FT_linear_mipmap_linear)
+    result.set_magfilter(SamplerState.FT_linear)
+    return result
