@@ -146,9 +146,11 @@ class BatchedEnv(abc.ABC):
     Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
     (H, W)), max_steps, continuous, state_obs, depth, shadows (False, True or a
     marl_render.Shadows; True: Shadows(bounds=shadow_bounds)), device, seed, autoreset,
-    grayscale (one-channel pixels, `pixel_channels`), and torch_threads (default 1, at most
+    grayscale (one-channel pixels, `pixel_channels`), torch_threads (default 1, at most
     1024): torch intra-op threads used *inside* env calls (the caller's setting is restored
-    on return; None leaves it alone). See marl_render/threads.py.
+    on return; None leaves torch's setting alone: see marl_render/threads.py), and context
+    (a marl_render.GLContext to render on, which closes the env's renderers when it closes;
+    None: the default context shared by the process).
 
     Attributes: name, num_worlds (W), num_agents (A), agent_names, groups (team ->
     agent names, in agent-index order), resolution (H, W), continuous, num_actions
@@ -181,7 +183,8 @@ class BatchedEnv(abc.ABC):
     def __init__(self, *, num_worlds: int = 1, num_agents: int | None = None, resolution=None,
                  max_steps: int | None = None, continuous: bool = False, state_obs: bool = False,
                  depth: bool = False, shadows=False, device="cpu", seed: int | None = None,
-                 autoreset: bool = False, torch_threads: int | None = 1, grayscale: bool = False):
+                 autoreset: bool = False, torch_threads: int | None = 1, grayscale: bool = False,
+                 context: mr.GLContext | None = None):
         self._closed = True  # until fully built: close() and __del__ then do nothing
         self.num_worlds = positive_int("num_worlds", num_worlds)
         low, high = self.agent_range
@@ -192,7 +195,11 @@ class BatchedEnv(abc.ABC):
             raise ValueError(f"num_agents must be an int in [{low}, {high}] for {self.name}, got {num_agents}")
         self.num_agents = int(num_agents)
         self.resolution = resolution_hw(self.default_resolution if resolution is None else resolution)
-        gl_limit = mr.backend.gl_info().max_framebuffer_size
+        if context is not None and not isinstance(context, mr.GLContext):
+            raise TypeError(f"context must be a marl_render.GLContext or None, got {describe(context)}")
+        self.context = mr.backend.context() if context is None else context
+        self.context.check_usable()
+        gl_limit = self.context.info().max_framebuffer_size
         if max(self.resolution) > gl_limit:
             raise ValueError(f"resolution must be at most {gl_limit} pixels per side (GL limit), got {self.resolution}")
         self.max_steps = positive_int("max_steps", self.default_max_steps if max_steps is None else max_steps)
@@ -225,7 +232,7 @@ class BatchedEnv(abc.ABC):
         self.state_dim: int = 0
         self.physics = None  # PhysicsConfig of envs that use envs/planar.py
         self.sim = None  # the simulation state, a frozen dataclass of tensors (envs/state.py)
-        mr.backend.context()  # in a forked child: ForkedContextError now, not a torch deadlock in _setup
+        self.context.check_usable()  # in a forked child: ForkedContextError now, not a torch deadlock in _setup
         self._setup()
         self._check_setup()
 
@@ -527,7 +534,7 @@ class BatchedEnv(abc.ABC):
     def _check_process(self):
         """In a process forked from the one that made this env: ForkedContextError now, before
         anything changes (the render at the end of a step would raise only after physics ran)."""
-        mr.backend.context()
+        self.context.check_usable()
 
     def _check_started(self):
         if self._needs_reset:
@@ -542,7 +549,8 @@ class BatchedEnv(abc.ABC):
         return scene
 
     def _make_renderer(self, scene: mr.Scene, overview: bool) -> mr.BatchRenderer:
-        renderer = mr.BatchRenderer(scene, color="gray" if self.grayscale and not overview else "rgb")
+        renderer = mr.BatchRenderer(scene, color="gray" if self.grayscale and not overview else "rgb",
+                                    context=self.context)
         try:
             self._init_cameras(renderer, overview)
         except BaseException:

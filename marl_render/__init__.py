@@ -1,4 +1,5 @@
 """marl-render: batched egocentric rendering for multi-agent RL from pixels."""
+from .backend import GLContext, configure
 from .meshes import MeshData, box, capsule, cone, cylinder, load_model, plane, sphere
 from .renderer import BatchRenderer, Frame
 from .scene import CameraMount, Fog, Lighting, Scene, Shadows
@@ -7,7 +8,8 @@ from .transforms import look_at_quat, quat_from_yaw_pitch_roll, yaw_pitch_roll_f
 __version__ = "0.1.0"
 
 __all__ = [
-    "BatchRenderer", "Frame", "Scene", "Lighting", "Fog", "Shadows", "CameraMount", "MeshData",
+    "BatchRenderer", "Frame", "GLContext", "configure",
+    "Scene", "Lighting", "Fog", "Shadows", "CameraMount", "MeshData",
     "box", "capsule", "cone", "cylinder", "plane", "sphere", "load_model",
     "look_at_quat", "quat_from_yaw_pitch_roll", "yaw_pitch_roll_from_quat",
 ]

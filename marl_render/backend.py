@@ -1,14 +1,25 @@
-"""Headless OpenGL through Panda3D: configuration, the shared GL context, diagnostics.
+"""Headless OpenGL through Panda3D: configuration, GL contexts, diagnostics.
 
 Panda3D's `p3headlessgl` opens an EGL context without a display: a GPU's driver when
-one is present, Mesa's llvmpipe (CPU) otherwise. All renderers of a process share one
-host context, created on first use.
+one is present, Mesa's llvmpipe (CPU) otherwise. A `GLContext` owns one host context
+and every renderer made on it, and releases them all in `close()` (or at the end of a
+`with` block). Renderers given no context share the default one, created on first use
+and kept for the life of the process.
+
+Process-wide settings (`configure()`): the first context sets LP_NUM_THREADS (llvmpipe's
+rasteriser threads) unless the user set it, and sends Panda3D's log, which carries
+shader compiler errors, to the "marl_render.gl" logger instead of stderr. Both can be
+switched off before the first context is made. Torch's thread count is left to the
+callers: the renderer runs its small tensor ops on one thread inside its calls and
+restores the caller's setting after (threads.py); the envs do the same with their
+`torch_threads` (None: torch is left alone).
 
 Threads: an EGL context can be current in only one thread at a time, and Panda3D leaves
 it current in whichever thread drew last, so a draw from another thread would fail
 (EGL_BAD_ACCESS) and silently keep the old pixels. Every piece of GL work therefore runs
-inside `_Context.current()`: under one process-wide lock, with the context made current
-in the calling thread and released (the caller's own binding restored) afterwards.
+inside `GLContext.current()`: under one process-wide lock (Panda3D's engine is one per
+process), with the context made current in the calling thread and released (the
+caller's own binding restored) afterwards.
 """
 from __future__ import annotations
 
@@ -17,6 +28,7 @@ import logging
 import numbers
 import os
 import threading
+import weakref
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -45,8 +57,47 @@ INSTALL_HINT = (
     "with its EGL vendor file (GPU)."
 )
 
-_lock = threading.Lock()
-_context = None
+_lock = threading.Lock()  # guards the default context and the settings below
+_gl_lock = threading.RLock()  # held for all GL work: Panda3D's engine is shared by every context
+_context = None  # the default context (see context())
+_open_contexts: set = set()  # contexts not yet closed (the device check, the fork guard)
+_process_device: list = []  # [egl_device_index] once the first context was made: one device per process
+_panda_log = None  # Panda3D's log when captured: a LineStream shared by every context
+
+
+@dataclass
+class Settings:
+    """Process-wide effects of marl-render, applied when the first GLContext is made.
+
+    set_lp_num_threads: set LP_NUM_THREADS (llvmpipe's rasteriser threads) to twice the
+        cores, at most 16, when the user has not set it (about 10% faster frames measured on
+        2 cores); False leaves os.environ alone.
+    capture_panda_log: send Panda3D's log (Notify) to the "marl_render.gl" logger and
+        keep its recent lines, so shader errors can carry the compiler log; False leaves
+        Panda3D's log stream as it is (on stderr), and errors then say so."""
+
+    set_lp_num_threads: bool = True
+    capture_panda_log: bool = True
+
+
+SETTINGS = Settings()
+
+
+def configure(*, set_lp_num_threads: bool | None = None, capture_panda_log: bool | None = None) -> Settings:
+    """Change the process-wide settings (see Settings); None keeps one as it is. They take
+    effect when the first GLContext is made: after that, a change raises RuntimeError."""
+    changes = {"set_lp_num_threads": set_lp_num_threads, "capture_panda_log": capture_panda_log}
+    for name, value in changes.items():
+        if value is not None and not isinstance(value, bool):
+            raise TypeError(f"{name} must be a bool or None, got {type(value).__name__} {value!r}")
+    with _lock:
+        changes = {k: v for k, v in changes.items() if v is not None and v != getattr(SETTINGS, k)}
+        if changes and _process_device:
+            raise RuntimeError(f"marl_render.configure({', '.join(f'{k}={v}' for k, v in changes.items())}) must be "
+                               "called before the first GL context is made (the first renderer or env)")
+        for name, value in changes.items():
+            setattr(SETTINGS, name, value)
+        return SETTINGS
 
 
 LOG = logging.getLogger("marl_render.gl")
@@ -108,33 +159,34 @@ class _EGLBinding:
                                "context may be current in a thread that holds it outside marl-render")
 
 
-class _Context:
-    """Panda3D engine, pipe and a 1x1 host buffer whose GSG all render targets share."""
+class GLContext:
+    """A headless GL context: Panda3D's engine, a pipe and a 1x1 host buffer whose GSG all
+    render targets of the renderers made on it share.
 
-    def __init__(self, egl_device_index: int | None):
-        from panda3d.core import (FrameBufferProperties, GraphicsEngine, GraphicsPipe,
-                                  GraphicsPipeSelection, WindowProperties, loadPrcFileData)
+    It owns those renderers: close() (or leaving a `with` block) closes each of them, then
+    the host buffer; a closed context raises RuntimeError when used. Pass it to
+    BatchRenderer(scene, context=ctx) or to an env (context=ctx); without one they share
+    the default context (context()). One process renders on one EGL device
+    (egl_device_index; None: $MARL_RENDER_EGL_DEVICE, else the default display)."""
 
-        triton_guard.install()  # before Mesa's LLVM is loaded: see triton_guard.py
-        config = _CONFIG
-        if egl_device_index is not None:
-            config += f"egl-device-index {int(egl_device_index)}\n"
-        loadPrcFileData("marl_render", config)
-        # llvmpipe splits rasterisation into bins over LP_NUM_THREADS threads (default: one
-        # per core); twice as many threads balance uneven tiles better (~10% faster frames
-        # measured on 2 cores). Only a default: a value the user set is kept.
-        os.environ.setdefault("LP_NUM_THREADS", str(min(16, 2 * (os.cpu_count() or 1))))
+    def __init__(self, egl_device_index: int | None = None):
+        from panda3d.core import FrameBufferProperties, GraphicsEngine, GraphicsPipe, WindowProperties
+
+        egl_device_index = _device_index(egl_device_index)
+        if egl_device_index is None:
+            egl_device_index = _env_device_index()
+        _check_not_forked()
+        with _lock:
+            _setup_process(egl_device_index)
         self.pid = os.getpid()
-        # Panda3D's log (shader compiler output among it) is captured so that errors can
-        # carry it; every line is forwarded to the "marl_render.gl" logger.
-        from panda3d.core import LineStream, Notify
-
-        self.log = LineStream()
-        Notify.ptr().set_ostream_ptr(self.log, False)
+        self.device_index = egl_device_index
+        self.lock = _gl_lock
+        self.closed = False
+        self.host = None
+        self._owned = weakref.WeakSet()  # renderers made on this context, closed with it
         self.recent_log: list[str] = []
         self.engine = GraphicsEngine.get_global_ptr()
-        selection = GraphicsPipeSelection.get_global_ptr()
-        self.pipe = selection.make_module_pipe("p3headlessgl")
+        self.pipe = _pipe()
         if self.pipe is None or not self.pipe.is_valid():
             raise GLUnavailableError("no EGL display could be initialised through Panda3D's p3headlessgl "
                                      "(libEGL or a GL driver is missing). " + INSTALL_HINT + self._log_tail())
@@ -150,8 +202,6 @@ class _Context:
         self.gsg = self.host.get_gsg()
         # Opening the host left its context current in this thread: remember that binding
         # and release it, so that any thread can take it through current().
-        self.device_index = egl_device_index
-        self.lock = threading.RLock()
         self._egl = _EGLBinding(ctypes.CDLL("libEGL.so.1"))  # the library p3headlessgl is linked to
         self._binding = self._egl.get()
         if self._binding[3] is None:
@@ -163,11 +213,48 @@ class _Context:
                 f"OpenGL driver {self.gsg.get_driver_renderer()!r} lacks GLSL 4.x "
                 f"(has {self.gsg.get_driver_shader_version_major()}.{self.gsg.get_driver_shader_version_minor()}). "
                 + INSTALL_HINT)
+        with _lock:
+            _open_contexts.add(self)
+
+    def __enter__(self) -> GLContext:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def check_usable(self) -> None:
+        """RuntimeError once closed; ForkedContextError in a process forked after it was made."""
+        if self.closed:
+            raise RuntimeError("this GLContext is closed; make a new one (or use the default context)")
+        if self.pid != os.getpid():
+            raise ForkedContextError(FORKED_MESSAGE)
+
+    def own(self, resource) -> None:
+        """Close `resource` (anything with close()) when this context closes."""
+        self.check_usable()
+        self._owned.add(resource)
+
+    def close(self) -> None:
+        """Close every renderer made on this context, then free the host buffer; safe to
+        call twice. In a forked child nothing of the parent's GL is touched."""
+        if self.closed:
+            return
+        for resource in list(self._owned):  # while the context can still be made current
+            resource.close()
+        self._owned.clear()
+        self.closed = True
+        with _lock:
+            _open_contexts.discard(self)
+        if self.host is not None and self.pid == os.getpid():
+            with self.lock:
+                self.engine.remove_window(self.host)
+        self.host = self.gsg = None
 
     @contextmanager
     def current(self):
         """Hold the GL lock with this context current in the calling thread; afterwards the
         thread's previous binding (usually none) is restored. Reentrant."""
+        self.check_usable()
         with self.lock:
             previous = self._egl.get()
             self._egl.set(self._binding, None)
@@ -200,10 +287,11 @@ class _Context:
         return ("\nGL log:\n" + "\n".join(lines)) if lines else ""
 
     def drain_log(self) -> list[str]:
-        """New lines of Panda3D's log since the last call (also kept in recent_log)."""
+        """New lines of Panda3D's log since the last call (also kept in recent_log); none
+        when the log is not captured (configure(capture_panda_log=False))."""
         lines = []
-        while self.log.is_text_available():
-            line = self.log.get_line()
+        while _panda_log is not None and _panda_log.is_text_available():
+            line = _panda_log.get_line()
             lines.append(line)
             LOG.warning("%s", line)
         if lines:
@@ -223,44 +311,105 @@ class _Context:
         )
 
 
+def _device_index(value) -> int | None:
+    if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Integral)):
+        raise TypeError(f"egl_device_index must be an int >= 0 or None, got {type(value).__name__} {value!r}")
+    if value is not None and value < 0:
+        raise ValueError(f"egl_device_index must be an int >= 0 or None, got {value}")
+    return None if value is None else int(value)
+
+
+def _setup_process(egl_device_index: int | None) -> None:
+    """Once per process, before the first context: Panda3D's configuration, the settings
+    of SETTINGS; afterwards, check that a new context asks for the same device."""
+    global _panda_log
+    if _process_device:
+        if egl_device_index is not None and egl_device_index != _process_device[0]:
+            in_use = "the default EGL display" if _process_device[0] is None else f"EGL device {_process_device[0]}"
+            raise ValueError(f"egl_device_index={egl_device_index} was given, but this process's GL context already "
+                             f"uses {in_use} (egl_device_index={_process_device[0]}); one process renders on one "
+                             "device: pass the same index everywhere, or use one process per device")
+        return
+    from panda3d.core import LineStream, Notify, loadPrcFileData
+
+    triton_guard.install()  # before Mesa's LLVM is loaded: see triton_guard.py
+    config = _CONFIG
+    if egl_device_index is not None:
+        config += f"egl-device-index {egl_device_index}\n"
+    loadPrcFileData("marl_render", config)
+    if SETTINGS.set_lp_num_threads:
+        # llvmpipe splits rasterisation into bins over LP_NUM_THREADS threads (default: one
+        # per core); twice as many threads balance uneven tiles better (~10% faster frames
+        # measured on 2 cores). Only a default: a value the user set is kept.
+        os.environ.setdefault("LP_NUM_THREADS", str(min(16, 2 * (os.cpu_count() or 1))))
+    if SETTINGS.capture_panda_log:
+        # Panda3D's log (shader compiler output among it) is captured so that errors can
+        # carry it; every line is forwarded to the "marl_render.gl" logger.
+        _panda_log = LineStream()
+        Notify.ptr().set_ostream_ptr(_panda_log, False)
+    _process_device.append(egl_device_index)
+
+
+def _pipe():
+    """The p3headlessgl pipe, one per process (made with the first context)."""
+    global _pipe_instance
+    if _pipe_instance is None:
+        from panda3d.core import GraphicsPipeSelection
+
+        _pipe_instance = GraphicsPipeSelection.get_global_ptr().make_module_pipe("p3headlessgl")
+    return _pipe_instance
+
+
+_pipe_instance = None
+
+FORKED_MESSAGE = (
+    "this process was forked after OpenGL was initialised in its parent; GL contexts do not "
+    "survive fork(). Start workers with the 'spawn' start method "
+    "(multiprocessing.set_start_method('spawn'), or TorchRL's ParallelEnv default).")
+
+
+def _check_not_forked() -> None:
+    if any(c.pid != os.getpid() for c in list(_open_contexts)):
+        raise ForkedContextError(FORKED_MESSAGE)
+
+
 def _forget_in_child():
     # The child shares the parent's GL handles but not its driver threads: mark them stale.
-    if _context is not None:
-        _context.pid = -1
-        _context.lock = threading.RLock()  # another thread may have held it at fork time
+    global _gl_lock
+    _gl_lock = threading.RLock()  # another thread may have held it at fork time
+    for c in list(_open_contexts):
+        c.pid = -1
+        c.lock = _gl_lock
 
 
 os.register_at_fork(after_in_child=_forget_in_child)
 
 
-def context(egl_device_index: int | None = None) -> _Context:
-    """The process-wide GL context, created on first use on EGL device `egl_device_index`
-    (None: $MARL_RENDER_EGL_DEVICE, else the default display). Once it exists, asking for
-    another device is an error: a process renders on one device."""
+def context(egl_device_index: int | None = None) -> GLContext:
+    """The default GL context, shared by every renderer and env given none: made on first
+    use on EGL device `egl_device_index` (None: $MARL_RENDER_EGL_DEVICE, else the default
+    display), and again after it was closed. A process renders on one device: asking for
+    another is a ValueError."""
     global _context
-    if egl_device_index is not None and (isinstance(egl_device_index, bool)
-                                         or not isinstance(egl_device_index, numbers.Integral)):
-        raise TypeError(f"egl_device_index must be an int >= 0 or None, got {type(egl_device_index).__name__} "
-                        f"{egl_device_index!r}")
-    if egl_device_index is not None and egl_device_index < 0:
-        raise ValueError(f"egl_device_index must be an int >= 0 or None, got {egl_device_index}")
+    egl_device_index = _device_index(egl_device_index)
+    _check_not_forked()
     with _lock:
-        if _context is not None and _context.pid != os.getpid():
-            raise ForkedContextError(
-                "this process was forked after OpenGL was initialised in its parent; GL contexts do not "
-                "survive fork(). Start workers with the 'spawn' start method "
-                "(multiprocessing.set_start_method('spawn'), or TorchRL's ParallelEnv default).")
-        if egl_device_index is not None:
-            egl_device_index = int(egl_device_index)
-        if _context is None:
-            _context = _Context(egl_device_index if egl_device_index is not None else _env_device_index())
-        elif egl_device_index is not None and egl_device_index != _context.device_index:
-            in_use = ("the default EGL display" if _context.device_index is None
-                      else f"EGL device {_context.device_index}")
-            raise ValueError(f"egl_device_index={egl_device_index} was given, but this process's GL context already "
-                             f"uses {in_use} (egl_device_index={_context.device_index}); one process renders on one "
-                             "device: pass the same index everywhere, or use one process per device")
-        return _context
+        current = _context if _context is not None and not _context.closed else None
+    if current is None:
+        current = GLContext(egl_device_index)
+        with _lock:
+            if _context is None or _context.closed:
+                _context = current
+            else:  # another thread made one meanwhile
+                current.close()
+                current = _context
+    elif egl_device_index is not None and egl_device_index != current.device_index:
+        in_use = ("the default EGL display" if current.device_index is None
+                  else f"EGL device {current.device_index}")
+        raise ValueError(f"egl_device_index={egl_device_index} was given, but this process's GL context already "
+                         f"uses {in_use} (egl_device_index={current.device_index}); one process renders on one "
+                         "device: pass the same index everywhere, or use one process per device")
+    return current
 
 
 def _env_device_index() -> int | None:

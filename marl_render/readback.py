@@ -8,7 +8,7 @@ into textures (RTM_bind_or_copy) and, once every pass is drawn, reads each textu
 requested components itself (measured: several times cheaper than dropping alpha in
 torch) and the bytes land where the batch wants them.
 
-The calls must run inside `backend._Context.current()` (the renderer reads within the
+The calls must run inside `backend.GLContext.current()` (the renderer reads within the
 same block as its frame), which makes the shared context current in the calling thread;
 they touch no binding Panda3D tracks (direct state access) and restore the pack
 alignment they change.

@@ -96,7 +96,7 @@ class BatchRenderer:
 
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
                  egl_device_index: int | None = None, readback: str = "zero_copy", supersample: int = 1,
-                 multisamples: int = 0, color: str = "rgb"):
+                 multisamples: int = 0, color: str = "rgb", context: backend.GLContext | None = None):
         """readback: "zero_copy" (default) reads each framebuffer straight into the output
         tensor; "copy" reads it into a buffer first and copies that into the output (the
         usual way, kept only so that benchmarks can show what the direct read saves).
@@ -104,7 +104,9 @@ class BatchRenderer:
         a third of the bytes is read back (and channels_first costs no copy).
         supersample=k renders every view at k x the resolution and box-filters it down
         (anti-aliasing; depth and segmentation take the sample nearest each pixel centre).
-        multisamples=n asks the GL for n-sample MSAA (colour only)."""
+        multisamples=n asks the GL for n-sample MSAA (colour only).
+        context: the GLContext to render on, which closes this renderer when it closes
+        (None: the default context, shared by every renderer given none)."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
         if readback not in self.READBACKS:
@@ -125,7 +127,15 @@ class BatchRenderer:
         self.channels_first = bool(channels_first)
         self.last_timings: dict[str, float] = {}  # seconds per stage of the last render()
         self._closed = False
-        self._context = backend.context(egl_device_index)
+        if context is None:
+            context = backend.context(egl_device_index)
+        elif not isinstance(context, backend.GLContext):
+            raise TypeError(f"context must be a marl_render.GLContext or None, got {describe(context)}")
+        elif egl_device_index is not None and egl_device_index != context.device_index:
+            raise ValueError(f"egl_device_index={egl_device_index!r} was given with a context on EGL device "
+                             f"{context.device_index}; give one or the other")
+        context.check_usable()
+        self._context = context
         gl_max = self._context.info().max_framebuffer_size
         if max_framebuffer_size is None:
             max_framebuffer_size = gl_max
@@ -144,6 +154,7 @@ class BatchRenderer:
             # Panda3D opens each framebuffer right away; until it is inactive, any frame
             # drawn by another thread would draw it too.
             with self._context.current():
+                self._context.own(self)  # closed with the context
                 self._build_passes()
                 self._build_groups()
                 if "shadows" in self.effects:
@@ -351,8 +362,7 @@ class BatchRenderer:
         time per renderer): the GL context is made current in the calling thread, for the
         frame and the GL reads that follow it."""
         self._check_open()
-        backend.context()  # raises in a forked child
-        with self._context.current():
+        with self._context.current():  # raises in a forked child
             self._prepare()
             self.last_timings.update(gl=0.0, copy=0.0)
             return self._draw_and_read()

@@ -132,8 +132,8 @@ def test_the_packer_writes_rows_pairs_and_pass_ranges_without_a_gl():
     packer = FramePacker(scene, column_layout(scene.num_views, 8, 8, 24))  # 3 views per pass: 2 passes
     targets = Targets(packer)
     position = torch.tensor([[[0.0, 3.0, 0.0], [0.0, -3.0, 0.0]], [[0.5, 3.0, 0.0], [0.0, 3.0, 0.5]]])
-    packer.update("boxes", position=position, color=torch.ones(2, 2, 3) * 0.5, active=torch.ones(2, 2, dtype=torch.bool),
-                  owner=torch.tensor([[-1, -1], [-1, 0]]))
+    packer.update("boxes", position=position, color=torch.ones(2, 2, 3) * 0.5,
+                  active=torch.ones(2, 2, dtype=torch.bool), owner=torch.tensor([[-1, -1], [-1, 0]]))
     packer.set_cameras(position=torch.zeros(2, 2, 3), rotation=torch.tensor([1.0, 0, 0, 0]).repeat(2, 2, 1))
     timings = packer.prepare(targets)
     assert timings["packed"] == ["boxes"]
