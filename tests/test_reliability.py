@@ -116,7 +116,8 @@ def _common_cases(name):
         ("continuous=1", dict(continuous=1), TypeError, r"continuous must be a bool, got 1"),
         ("state_obs='yes'", dict(state_obs="yes"), TypeError, r"state_obs must be a bool, got 'yes'"),
         ("depth=None", dict(depth=None), TypeError, r"depth must be a bool, got None"),
-        ("autoreset=0", dict(autoreset=0), TypeError, r"autoreset must be a bool, got 0"),
+        ("autoreset=0", dict(autoreset=0), TypeError, r"autoreset must be False, True .*'next_step'.*got 0"),
+        ("autoreset='next'", dict(autoreset="next"), ValueError, r"autoreset must be .*'same_step'.*got 'next'"),
         ("torch_threads=0", dict(torch_threads=0), ValueError, r"torch_threads must be an int >= 1, got 0"),
         ("torch_threads=1.5", dict(torch_threads=1.5), TypeError, r"torch_threads must be an int >= 1"),
     ]
