@@ -44,7 +44,8 @@ def _floor_renderer(env):
 def measure(name: str, worlds: int, resolution: int, steps: int, repeats: int) -> dict:
     from marl_render.envs import make_env
 
-    env = make_env(name, num_worlds=worlds, resolution=resolution, seed=0, autoreset=True)
+    # next_step: one render per step, like the floor (same_step draws twice on a step where a world ends)
+    env = make_env(name, num_worlds=worlds, resolution=resolution, seed=0, autoreset="next_step")
     generator = torch.Generator().manual_seed(0)
     try:
         env.reset(seed=0)
