@@ -24,7 +24,7 @@ def make(name="cartpole", **kw):
     return make_sb3_env(name, **kw)
 
 
-def test_ppo_cnn_policy_learns_from_pixels():
+def test_ppo_cnn_policy_trains_from_pixels():
     venv = VecMonitor(make(max_steps=16))
     model = PPO("CnnPolicy", venv, n_steps=32, batch_size=64, n_epochs=1, seed=0, device="cpu")
     assert isinstance(model.get_env(), VecTransposeImage)  # SB3 recognised the uint8 HWC images

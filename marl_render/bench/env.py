@@ -141,6 +141,7 @@ def run(args) -> dict:
     rows = []
     for name in names:
         for resolution in args.resolution:
-            progress(f"env {name}: {args.worlds} worlds at {resolution}px, {args.steps} steps through {', '.join(apis)}")
+            progress(f"env {name}: {args.worlds} worlds at {resolution}px, {args.steps} steps "
+                     f"through {', '.join(apis)}")
             rows += measure(name, args.worlds, resolution, args.steps, args.agents, args.continuous, apis)
     return {"benchmark": "env", "machine": machine(), "results": rows}

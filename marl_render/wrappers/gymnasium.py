@@ -128,7 +128,8 @@ class MarlRenderVectorEnv(VectorEnv):
         _check_flag("action_mask", action_mask)
         _check_render_mode(render_mode)
         if action_mask and env.continuous:
-            raise ValueError("action_mask=True needs a discrete env (continuous=False); continuous actions have no mask")
+            raise ValueError("action_mask=True needs a discrete env (continuous=False); "
+                             "continuous actions have no mask")
         self.core = env
         self.num_worlds, self.num_agents = env.num_worlds, env.num_agents
         self.num_envs = env.num_worlds * env.num_agents
