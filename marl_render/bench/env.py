@@ -41,23 +41,23 @@ class Stepper:
     """One front end of one environment, stepped with pre-drawn numpy actions [num_envs, ...]."""
 
     def __init__(self, api: str, name: str, kwargs: dict):
-        from marl_render.envs import make_env, make_sb3_env, make_vec_env
+        import marl_render.envs as envs  # the front ends are imported on use (sb3 is an optional extra)
 
         self.api = api
         if api == "core":
-            self.env = make_env(name, autoreset="next_step", **kwargs)
+            self.env = envs.make_env(name, autoreset="next_step", **kwargs)
             self.core = self.env
             self.env.reset(seed=0)
             shape = (self.core.num_worlds, self.core.num_agents, *((self.core.action_dim,) if self.core.continuous
                                                                    else ()))
             self.step = lambda actions: self.env.step(torch.from_numpy(actions).reshape(shape))
         elif api == "vec":
-            self.env = make_vec_env(name, **kwargs)
+            self.env = envs.make_vec_env(name, **kwargs)
             self.core = self.env.core
             self.env.reset(seed=0)
             self.step = self.env.step
         else:
-            self.env = make_sb3_env(name, **kwargs)
+            self.env = envs.make_sb3_env(name, **kwargs)
             self.core = self.env.venv.core
             self.env.seed(0)
             self.env.reset()
