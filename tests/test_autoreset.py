@@ -117,7 +117,7 @@ def test_next_step_resets_only_the_worlds_that_were_done():
     assert info["autoreset_worlds"].tolist() == [False, True, True]
     assert truncated.tolist() == [[True], [False], [False]] and reward[1:].eq(0).all() and reward[0] > 0
     assert env.step_count.tolist() == [3, 0, 0]
-    assert not torch.equal(env.qstate[0], before[0])  # world 0 stepped
+    assert not torch.equal(env.sim.qstate[0], before[0])  # world 0 stepped
     obs, reward, terminated, truncated, info = env.step(actions_for(env, 4))
     assert info["autoreset_worlds"].tolist() == [True, False, False]
     assert env.step_count.tolist() == [0, 1, 1] and reward[0].item() == 0 and (reward[1:] > 0).all()
@@ -130,10 +130,10 @@ def test_next_step_after_a_manual_reset_does_not_reset_again():
     for step in range(2):
         env.step(actions_for(env, step))
     first = env.reset_worlds(torch.ones(W, dtype=torch.bool))  # the user starts the new episode
-    state = env.qstate.clone()
+    state = env.sim.qstate.clone()
     obs, reward, *_, info = env.step(actions_for(env, 2))
     assert not info["autoreset_worlds"].any() and (reward > 0).all()
-    assert not torch.equal(env.qstate, state) and not torch.equal(obs["state"], first["state"])
+    assert not torch.equal(env.sim.qstate, state) and not torch.equal(obs["state"], first["state"])
     env.close()
 
 
