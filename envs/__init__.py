@@ -19,6 +19,8 @@ _LAZY_EXPORTS: dict = {
     "make_parallel_env": "marl_render.wrappers.pettingzoo:make_parallel_env",
     "make_torchrl_env": "marl_render.wrappers.torchrl:make_torchrl_env",
     "make_jax_env": "marl_render.wrappers.jax:make_jax_env",
+    "make_vec_env": "marl_render.wrappers.gymnasium:make_vec_env",
+    "make_sb3_env": "marl_render.wrappers.sb3:make_sb3_env",
 }
 __all__ += list(_LAZY_EXPORTS)
 

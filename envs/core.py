@@ -29,11 +29,29 @@ their actions are ignored (they must still be valid values, e.g. 0), their rewar
 and they are reported terminated until their world is reset. ``truncated`` is True for
 the agents still alive when the world's step count reaches ``max_steps``.
 
-Nothing resets inside ``step`` unless ``autoreset=True``: then the worlds that are done
-are reset at the end of ``step`` and the returned obs of those worlds are the first obs
-of their new episode; reward / terminated / truncated still describe the step that
-ended the episode, ``info["done_worlds"]`` says which worlds were reset, and the final
-obs of the old episode is not returned (there is no ``info["final_obs"]``).
+Auto-reset (the ``autoreset`` keyword) follows gymnasium 1.x's vector autoreset modes,
+per world (a world is done when every agent is terminated or truncated):
+
+* ``False`` (the default): nothing resets inside ``step``; done worlds keep stepping
+  (their agents reported terminated / truncated) until ``reset`` or ``reset_worlds``.
+* ``"next_step"`` (gymnasium's ``AutoresetMode.NEXT_STEP``, its default): the step that
+  ends an episode returns that episode's final obs. The *next* step resets those worlds
+  instead of stepping them: their actions are ignored (they must still be valid values),
+  their obs are the first obs of the new episode, reward 0, terminated and truncated
+  False, ``info["step_count"]`` 0. One render per step.
+* ``"same_step"`` (``AutoresetMode.SAME_STEP``): the step that ends an episode resets
+  those worlds at its end. The returned obs are the first obs of the new episode;
+  reward / terminated / truncated / info describe the step that ended the episode, and
+  ``info["final_obs"]`` holds the obs that step produced before the reset (a dict with
+  the same keys: the final obs of the ended episode in the done worlds, the returned obs
+  elsewhere; the very same dict contents when no world was done). Two renders on a step
+  where some world is done (the final frame and the new one), one otherwise.
+* ``True`` means ``"same_step"`` (what ``True`` always did, now with the final obs).
+
+With auto-reset on, ``info["autoreset_worlds"]`` bool [W] says which worlds were reset by
+this step (their returned obs start a new episode). In ``"next_step"`` mode the env's own
+info keys (e.g. spread's ``coverage``) of those worlds describe the discarded step of the
+ended episode, taken with all of its agents absent; ignore them there.
 
 Every call validates all of its input before it changes anything, so a rejected call
 leaves the state (bodies, counters, RNG) exactly as it was.
@@ -93,6 +111,21 @@ def _shadows(value, bounds) -> mr.Shadows | None:
     return mr.Shadows(bounds=bounds) if value else None
 
 
+AUTORESET_MODES = ("next_step", "same_step")
+
+
+def _autoreset_mode(value) -> bool | str:
+    """False, "next_step" or "same_step"; True means "same_step" (see the module docstring)."""
+    want = f"False, True (= 'same_step') or one of {list(AUTORESET_MODES)}"
+    if isinstance(value, (bool, np.bool_)):
+        return "same_step" if value else False
+    if not isinstance(value, str):
+        raise TypeError(f"autoreset must be {want}, got {describe(value)}")
+    if value not in AUTORESET_MODES:
+        raise ValueError(f"autoreset must be {want}, got {value!r}")
+    return value
+
+
 def _seed(name: str, value) -> int | None:
     if value is None:
         return None
@@ -145,7 +178,8 @@ class BatchedEnv(abc.ABC):
 
     Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
     (H, W)), max_steps, continuous, state_obs, depth, shadows (False, True or a
-    marl_render.Shadows; True: Shadows(bounds=shadow_bounds)), device, seed, autoreset,
+    marl_render.Shadows; True: Shadows(bounds=shadow_bounds)), device, seed, autoreset (False,
+    "next_step", "same_step" or True = "same_step"; see the module docstring),
     grayscale (one-channel pixels, `pixel_channels`), torch_threads (default 1, at most
     1024): torch intra-op threads used *inside* env calls (the caller's setting is restored
     on return; None leaves torch's setting alone: see marl_render/threads.py), and context
@@ -183,7 +217,7 @@ class BatchedEnv(abc.ABC):
     def __init__(self, *, num_worlds: int = 1, num_agents: int | None = None, resolution=None,
                  max_steps: int | None = None, continuous: bool = False, state_obs: bool = False,
                  depth: bool = False, shadows=False, device="cpu", seed: int | None = None,
-                 autoreset: bool = False, torch_threads: int | None = 1, grayscale: bool = False,
+                 autoreset: bool | str = False, torch_threads: int | None = 1, grayscale: bool = False,
                  context: mr.GLContext | None = None):
         self._closed = True  # until fully built: close() and __del__ then do nothing
         self.num_worlds = positive_int("num_worlds", num_worlds)
@@ -211,7 +245,7 @@ class BatchedEnv(abc.ABC):
         self.shadows = _shadows(shadows, self.shadow_bounds)
         self.grayscale = _flag("grayscale", grayscale)
         self.pixel_channels = 1 if self.grayscale else 3
-        self.autoreset = _flag("autoreset", autoreset)
+        self.autoreset = _autoreset_mode(autoreset)  # False, "next_step" or "same_step"
         self.device = _device(device)
         self.torch_threads = None if torch_threads is None else thread_count("torch_threads", torch_threads)
         seed = _seed("seed", seed)
@@ -340,20 +374,41 @@ class BatchedEnv(abc.ABC):
             return self._step(self.check_actions(actions))
 
     def _step(self, actions):
-        alive_before = self.alive
+        W = self.num_worlds
+        # next_step: the worlds whose episode ended at the previous step start a new one now;
+        # their agents sit this step out (actions ignored, reward 0) and are then reset.
+        if self.autoreset == "next_step":
+            restart = self._episode_over()
+        else:
+            restart = torch.zeros(W, dtype=torch.bool, device=self.device)
+        alive_before = self.alive & ~restart[:, None]
         reward, terminated, info = self._step_state(actions, alive_before)
         reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         self.alive = alive_before & ~terminated
-        terminated = ~self.alive
         self.step_count = self.step_count + 1
+        restarted = bool(restart.any())
+        if restarted:
+            self._reset_masked(restart)  # alive again, step_count 0: not terminated, not truncated
+        terminated = ~self.alive
         truncated = (self.step_count >= self.max_steps)[:, None] & self.alive
         done_worlds = (terminated | truncated).all(dim=1)
         info = {"step_count": self.step_count.clone(), "done_worlds": done_worlds, **info}
-        reset = False
-        if self.autoreset and bool(done_worlds.any()):
+        if self.autoreset == "next_step":
+            info["autoreset_worlds"] = restart
+        if self.autoreset != "same_step":
+            return self._observe(full=restarted), reward, terminated, truncated, info
+        # same_step: the final frame of the ended episodes, then the reset and the new frame.
+        obs = self._observe(full=False)
+        info["final_obs"] = dict(obs)
+        info["autoreset_worlds"] = done_worlds.clone()
+        if bool(done_worlds.any()):
             self._reset_masked(done_worlds)
-            reset = True
-        return self._observe(full=reset), reward, terminated, truncated, info
+            obs = self._observe(full=True)
+        return obs, reward, terminated, truncated, info
+
+    def _episode_over(self) -> torch.Tensor:
+        """bool [W]: worlds whose episode has ended (every agent terminated or truncated)."""
+        return (~self.alive).all(dim=1) | (self.step_count >= self.max_steps)
 
     def random_actions(self, generator: torch.Generator | None = None) -> torch.Tensor:
         """Uniformly random valid actions for every agent of every world (the action space's

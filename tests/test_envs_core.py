@@ -335,7 +335,11 @@ def assert_steps_equal(a: list, b: list):
         for x, y in zip(out_a, out_b):
             assert torch.equal(x, y)
         for key in info_a:
-            assert torch.equal(info_a[key], info_b[key]), key
+            if isinstance(info_a[key], dict):  # same-step autoreset: info["final_obs"]
+                assert info_a[key].keys() == info_b[key].keys(), key
+                assert all(torch.equal(info_a[key][k], info_b[key][k]) for k in info_a[key]), key
+            else:
+                assert torch.equal(info_a[key], info_b[key]), key
 
 
 @pytest.mark.parametrize("name", ENVS)

@@ -2,14 +2,28 @@
 
 `--env all` runs every registered environment. env-steps/s counts world steps
 (W per batched step); agent-frames/s counts rendered agent views.
+
+`--api` picks the front end(s) that step the environment: `core` (the batched core,
+make_env), `vec` (the gymnasium VectorEnv, make_vec_env), `sb3` (the Stable-Baselines3
+VecEnv, make_sb3_env; needs the `sb3` extra). With several, they run in the same
+process on the same pre-drawn actions, taking turns step by step (blocks of steps per
+front end were measured to favour whichever runs second), and each row gets
+`ratio_to_core` (its env-steps/s over the core's in this run). On a shared machine that
+ratio is noisy; `front_end_share` is steadier: the share of each step spent outside the
+core's own ``step`` (the front end's conversions), timed around the core's step. The core and `vec`
+auto-reset in gymnasium's next-step mode; `sb3` resets in the same step (SB3's
+convention), which renders twice on a step where a world ends.
 """
 from __future__ import annotations
 
 import time
 
+import numpy as np
 import torch
 
 from .common import machine, progress
+
+APIS = ("core", "vec", "sb3")
 
 
 def add_arguments(parser):
@@ -17,43 +31,117 @@ def add_arguments(parser):
     parser.add_argument("--worlds", type=int, default=256)
     parser.add_argument("--agents", type=int, default=None, help="agents per world (env default if omitted)")
     parser.add_argument("--resolution", type=int, nargs="+", default=[64])
-    parser.add_argument("--steps", type=int, default=30)
+    parser.add_argument("--steps", type=int, default=30, help="timed steps per front end")
     parser.add_argument("--continuous", action="store_true")
+    parser.add_argument("--api", nargs="+", choices=APIS, default=["core"],
+                        help="front end(s) to step through; several take turns in one run (default: core)")
 
 
-def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, continuous=False) -> dict:
-    from marl_render.envs import make_env
+class Stepper:
+    """One front end of one environment, stepped with pre-drawn numpy actions [num_envs, ...]."""
 
-    kwargs = {"num_worlds": worlds, "resolution": resolution, "continuous": continuous, "seed": 0, "autoreset": True}
+    def __init__(self, api: str, name: str, kwargs: dict):
+        import marl_render.envs as envs  # the front ends are imported on use (sb3 is an optional extra)
+
+        self.api = api
+        if api == "core":
+            self.env = envs.make_env(name, autoreset="next_step", **kwargs)
+            self.core = self.env
+            self.env.reset(seed=0)
+            shape = (self.core.num_worlds, self.core.num_agents, *((self.core.action_dim,) if self.core.continuous
+                                                                   else ()))
+            self.step = lambda actions: self.env.step(torch.from_numpy(actions).reshape(shape))
+        elif api == "vec":
+            self.env = envs.make_vec_env(name, **kwargs)
+            self.core = self.env.core
+            self.env.reset(seed=0)
+            self.step = self.env.step
+        else:
+            self.env = envs.make_sb3_env(name, **kwargs)
+            self.core = self.env.venv.core
+            self.env.seed(0)
+            self.env.reset()
+            self.step = self.env.step
+
+        # Time the core's own step inside the front end's: the rest is the front end's cost.
+        self.core_seconds = 0.0
+        core_step = self.core.step
+
+        def timed_core_step(actions):
+            start = time.perf_counter()
+            try:
+                return core_step(actions)
+            finally:
+                self.core_seconds += time.perf_counter() - start
+
+        self.core.step = timed_core_step
+
+    def close(self):
+        del self.core.step
+        self.env.close()
+
+
+def draw_actions(core, count: int, seed: int = 0) -> list:
+    """`count` batches of uniformly random valid actions as numpy [W * A(, action_dim)]."""
+    rng = np.random.default_rng(seed)
+    n = core.num_worlds * core.num_agents
+    if core.continuous:
+        return [rng.uniform(-1, 1, (n, core.action_dim)).astype(np.float32) for _ in range(count)]
+    return [rng.integers(0, core.num_actions, n) for _ in range(count)]
+
+
+def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, continuous=False,
+            apis=("core",)) -> list:
+    kwargs = {"num_worlds": worlds, "resolution": resolution, "continuous": continuous, "seed": 0}
     if agents is not None:
         kwargs["num_agents"] = agents
-    env = make_env(name, **kwargs)
+    steppers = []
     try:
-        generator = torch.Generator().manual_seed(0)
-        env.reset(seed=0)
-        for _ in range(3):
-            env.step(env.random_actions(generator))
-        render_seconds = 0.0
-        start = time.perf_counter()
-        for _ in range(steps):
-            env.step(env.random_actions(generator))
-            render_seconds += sum(env.renderer.last_timings.values())
-        seconds = (time.perf_counter() - start) / steps
-        return {"env": name, "worlds": worlds, "agents": env.num_agents, "resolution": resolution,
-                "ms_per_step": seconds * 1e3, "env_steps_per_s": worlds / seconds,
-                "agent_frames_per_s": worlds * env.num_agents / seconds,
-                "render_share": render_seconds / steps / seconds}
+        for api in apis:
+            steppers.append(Stepper(api, name, kwargs))
+        core = steppers[0].core
+        warmup = 3
+        actions = draw_actions(core, warmup + steps)
+        seconds = dict.fromkeys(apis, 0.0)
+        render_seconds = dict.fromkeys(apis, 0.0)
+        for a in actions[:warmup]:
+            for stepper in steppers:
+                stepper.step(a)
+        for stepper in steppers:
+            stepper.core_seconds = 0.0
+        for k, a in enumerate(actions[warmup:]):
+            turn = k % len(steppers)  # who goes first rotates, so that no front end always follows another
+            for stepper in steppers[turn:] + steppers[:turn]:
+                start = time.perf_counter()
+                stepper.step(a)
+                seconds[stepper.api] += time.perf_counter() - start
+                render_seconds[stepper.api] += sum(stepper.core.renderer.last_timings.values())
+        rows = []
+        for stepper in steppers:
+            per_step = seconds[stepper.api] / steps
+            row = {"env": name, "api": stepper.api, "worlds": worlds, "agents": core.num_agents,
+                   "resolution": resolution, "ms_per_step": per_step * 1e3, "env_steps_per_s": worlds / per_step,
+                   "agent_frames_per_s": worlds * core.num_agents / per_step,
+                   "render_share": render_seconds[stepper.api] / seconds[stepper.api],
+                   "front_end_share": 1 - stepper.core_seconds / seconds[stepper.api]}
+            if "core" in seconds:
+                row["ratio_to_core"] = seconds["core"] / seconds[stepper.api]
+            rows.append(row)
+        return rows
     finally:
-        env.close()
+        for stepper in steppers:
+            stepper.close()
 
 
 def run(args) -> dict:
     from marl_render.envs import list_envs
 
     names = list_envs() if args.env == "all" else [args.env]
+    apis = tuple(dict.fromkeys(args.api))  # in the given order, once each
     rows = []
     for name in names:
         for resolution in args.resolution:
-            progress(f"env {name}: {args.worlds} worlds at {resolution}px, {args.steps} steps")
-            rows.append(measure(name, args.worlds, resolution, args.steps, args.agents, args.continuous))
+            progress(f"env {name}: {args.worlds} worlds at {resolution}px, {args.steps} steps "
+                     f"through {', '.join(apis)}")
+            rows += measure(name, args.worlds, resolution, args.steps, args.agents, args.continuous, apis)
     return {"benchmark": "env", "machine": machine(), "results": rows}

@@ -50,7 +50,7 @@ def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds:
 
     from .floor_gl import from_env
 
-    kwargs = dict(num_worlds=worlds, resolution=resolution, seed=0, autoreset=True)
+    kwargs = dict(num_worlds=worlds, resolution=resolution, seed=0, autoreset="next_step")
     if agents is not None:
         kwargs["num_agents"] = agents
     env = make_env(name, **kwargs)

@@ -1,11 +1,14 @@
 """Front ends of the batched environment core (envs/core.py) for RL libraries.
 
-    from marl_render.wrappers import make_parallel_env, make_torchrl_env
+    from marl_render.wrappers import make_parallel_env, make_torchrl_env, make_vec_env, make_sb3_env
     env = make_parallel_env("spread", resolution=32)                # pettingzoo.ParallelEnv, one world
     env = make_torchrl_env("spread", num_worlds=64, group_map="team") # torchrl EnvBase, batch_size [64]
+    env = make_vec_env("spread", num_worlds=64)                     # gymnasium VectorEnv, 64 x 3 entries
+    env = make_sb3_env("cartpole", num_worlds=64)                   # stable-baselines3 VecEnv, 64 entries
 
-The two modules import pettingzoo / torchrl; names are resolved lazily so that importing
-``marl_render.wrappers`` imports neither until one of them is used.
+Each module imports its library (pettingzoo, torchrl, gymnasium, stable_baselines3); names
+are resolved lazily so that importing ``marl_render.wrappers`` imports none of them until
+one is used.
 """
 from __future__ import annotations
 
@@ -16,6 +19,10 @@ _LAZY_EXPORTS = {
     "make_parallel_env": "marl_render.wrappers.pettingzoo",
     "MarlRenderTorchRLEnv": "marl_render.wrappers.torchrl",
     "make_torchrl_env": "marl_render.wrappers.torchrl",
+    "MarlRenderVectorEnv": "marl_render.wrappers.gymnasium",
+    "make_vec_env": "marl_render.wrappers.gymnasium",
+    "MarlRenderSB3VecEnv": "marl_render.wrappers.sb3",
+    "make_sb3_env": "marl_render.wrappers.sb3",
 }
 
 __all__ = list(_LAZY_EXPORTS)

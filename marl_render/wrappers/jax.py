@@ -103,7 +103,8 @@ def to_torch(name: str, value):
 
 
 def _dict_to_jax(tensors: dict) -> dict:
-    return {key: to_jax(tensor) for key, tensor in tensors.items()}  # keeps the core's key order
+    """Keeps the core's key order; nested dicts (same-step autoreset's info["final_obs"]) too."""
+    return {key: _dict_to_jax(value) if isinstance(value, dict) else to_jax(value) for key, value in tensors.items()}
 
 
 class JaxEnv:

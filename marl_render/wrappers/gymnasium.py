@@ -1,0 +1,299 @@
+"""gymnasium front end: every agent of every world of one BatchedEnv as a ``gymnasium.vector.VectorEnv``.
+
+    from marl_render.envs import make_vec_env
+    envs = make_vec_env("cartpole", num_worlds=64, resolution=64)   # 64 entries, one renderer
+    obs, infos = envs.reset(seed=0)                                 # uint8 numpy [64, 64, 64, 3]
+    obs, rewards, terminations, truncations, infos = envs.step(envs.action_space.sample())
+
+One batched core steps all worlds and one renderer draws all views: a step is one core
+step, whatever the number of entries.
+
+Entries: ``num_envs = num_worlds x num_agents``; entry ``i`` is agent ``i % A`` of world
+``i // A``, the layout of supersuit's Markov vector env (``pettingzoo_env_to_vec_env_v1`` +
+``concat_vec_envs_v1``) that CleanRL's PettingZoo PPO trains with one shared policy.
+Single-agent envs (cartpole) have one entry per world.
+
+Spaces: ``single_observation_space`` is ``Box(0, 255, (H, W, 3), uint8)`` by default. With
+``depth=True``, ``state_obs=True`` or ``action_mask=True`` it is a ``Dict`` with "pixels",
+"depth", "state" and "action_mask" (``MultiBinary(num_actions)``, int8), as in the
+PettingZoo front end. ``single_action_space`` is ``Discrete(num_actions)`` or
+``Box(-1, 1, (action_dim,), float32)``. ``observation_space`` / ``action_space`` are their
+batches (``gymnasium.vector.utils.batch_space``). Observations are numpy views of the
+renderer's output, which is fresh memory each step: no copy on the CPU.
+
+Autoreset: ``autoreset_mode`` (a ``gymnasium.vector.AutoresetMode``; stored in
+``metadata["autoreset_mode"]``) selects the core's mode (envs/core.py):
+
+* ``NEXT_STEP`` (the default, as gymnasium's own vector envs): the step after an entry's
+  episode ended resets its world; its actions are ignored and it returns the first obs
+  of the new episode with reward 0, terminated and truncated False. One render per step.
+* ``SAME_STEP``: the step that ends an episode returns the first obs of the new one;
+  ``infos["final_obs"]`` (an object array, None for the other entries) and
+  ``infos["final_info"]`` hold the ended episode's last obs and info, masked by
+  ``infos["_final_obs"]`` / ``infos["_final_info"]``. A step on which a world ends renders
+  twice (the final frame and the new one).
+* ``DISABLED``: nothing resets by itself; ``reset(options={"reset_mask": mask})`` resets
+  the worlds of the entries where the bool [num_envs] mask is True.
+
+Agents that leave before their world ends (tag's caught prey): an entry's episode is its
+world's episode. From the step its agent leaves until its world's episode ends, the
+entry's observation is zeros (supersuit's "black death") and its reward 0; it reports
+terminated or truncated only when the world's episode ends (then every entry of that world
+does, with its real final frame).
+
+Infos follow gymnasium's vector layout: every key has a bool mask ``"_" + key`` of the
+entries that have it. Step infos are ``step_count`` and the env's own keys (e.g. spread's
+``coverage``; per-world values repeated for each agent of the world). Entries that were
+reset by a step (NEXT_STEP) or ended their episode on it (SAME_STEP, where the values move
+to ``final_info``) have none. ``reset`` returns an empty info dict.
+
+Seeding: ``reset(seed=int)`` re-seeds the core's generator (one generator draws for all
+worlds, so a list of per-entry seeds raises TypeError) and the env's ``np_random``.
+Unknown ``reset`` options are ignored, as gymnasium envs do.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from gymnasium import logger, spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from marl_render.validation import describe
+
+RENDER_MODES = ("rgb_array",)
+CORE_AUTORESET = {AutoresetMode.NEXT_STEP: "next_step", AutoresetMode.SAME_STEP: "same_step",
+                  AutoresetMode.DISABLED: False}
+_MODE_OF_CORE = {mode: autoreset for autoreset, mode in CORE_AUTORESET.items()}
+_NOT_STEP_INFO = ("done_worlds", "autoreset_worlds", "final_obs")  # carried by the step's own outputs
+
+
+def make_vec_env(name: str, num_worlds: int = 1, *, autoreset_mode=AutoresetMode.NEXT_STEP,
+                 action_mask: bool = False, render_mode: str | None = None, **kwargs) -> "MarlRenderVectorEnv":
+    """A gymnasium VectorEnv of the registered environment `name`: num_worlds x num_agents entries.
+
+    autoreset_mode: an AutoresetMode (or its value, e.g. "SameStep"); default NEXT_STEP.
+    action_mask: add the action mask to a Dict observation (discrete envs).
+    render_mode: None or "rgb_array" (render() then gives each entry its world's overview).
+    kwargs go to ``marl_render.envs.make_env`` (resolution, num_agents, max_steps, continuous,
+    state_obs, depth, seed, device and the env's own arguments); ``autoreset`` is set from
+    autoreset_mode and may not be passed."""
+    from marl_render.envs.registry import make_env
+
+    if "autoreset" in kwargs:
+        raise TypeError("make_vec_env() does not accept 'autoreset'; pass autoreset_mode="
+                        "gymnasium.vector.AutoresetMode.NEXT_STEP, SAME_STEP or DISABLED")
+    mode = _autoreset_mode(autoreset_mode)
+    _check_flag("action_mask", action_mask)
+    _check_render_mode(render_mode)
+    core = make_env(name, num_worlds=num_worlds, autoreset=CORE_AUTORESET[mode], **kwargs)
+    try:
+        return MarlRenderVectorEnv(core, action_mask=action_mask, render_mode=render_mode)
+    except BaseException:
+        core.close()
+        raise
+
+
+def _autoreset_mode(value) -> AutoresetMode:
+    try:
+        return AutoresetMode(value)
+    except ValueError:
+        raise ValueError(f"autoreset_mode must be a gymnasium.vector.AutoresetMode (or one of "
+                         f"{[m.value for m in AutoresetMode]}), got {describe(value)}") from None
+
+
+def _check_flag(name, value):
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a bool, got {describe(value)}")
+
+
+def _check_render_mode(render_mode):
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be None or one of {list(RENDER_MODES)}, got {render_mode!r}")
+
+
+class MarlRenderVectorEnv(VectorEnv):
+    """All worlds and agents of a ``BatchedEnv`` as one gymnasium VectorEnv; see the module
+    docstring. ``core`` is the wrapped BatchedEnv, owned (closed in ``close()``); its
+    ``autoreset`` gives the autoreset mode."""
+
+    def __init__(self, env, *, action_mask: bool = False, render_mode: str | None = None):
+        from marl_render.envs.core import BatchedEnv
+
+        if not isinstance(env, BatchedEnv):
+            raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
+                            f"got {describe(env)}")
+        if env.closed:
+            raise ValueError("env is closed")
+        _check_flag("action_mask", action_mask)
+        _check_render_mode(render_mode)
+        if action_mask and env.continuous:
+            raise ValueError("action_mask=True needs a discrete env (continuous=False); "
+                             "continuous actions have no mask")
+        self.core = env
+        self.num_worlds, self.num_agents = env.num_worlds, env.num_agents
+        self.num_envs = env.num_worlds * env.num_agents
+        self.render_mode = render_mode
+        self.metadata = {"autoreset_mode": _MODE_OF_CORE[env.autoreset], "render_modes": list(RENDER_MODES),
+                         "name": env.name}
+        self._obs_keys = tuple(k for k in env.obs_keys if k != "action_mask" or action_mask)
+        self._dict_obs = self._obs_keys != ("pixels",)
+        self.single_observation_space = self._single_observation_space()
+        self.single_action_space = (spaces.Box(-1.0, 1.0, (env.action_dim,), np.float32) if env.continuous
+                                    else spaces.Discrete(env.num_actions))
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._started = False
+
+    def _single_observation_space(self) -> spaces.Space:
+        env = self.core
+        height, width = env.resolution
+        pixels = spaces.Box(0, 255, (height, width, 3), np.uint8)
+        if not self._dict_obs:
+            return pixels
+        parts = {"pixels": pixels}
+        if "depth" in self._obs_keys:
+            parts["depth"] = spaces.Box(0.0, float(env.far), (height, width), np.float32)
+        if "state" in self._obs_keys:
+            parts["state"] = spaces.Box(-np.inf, np.inf, (env.state_dim,), np.float32)
+        if "action_mask" in self._obs_keys:
+            parts["action_mask"] = spaces.MultiBinary(env.num_actions)
+        return spaces.Dict(parts)
+
+    # ------------------------------------------------------------------ API
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """(observations, {}) of a new episode in every world, or only in the worlds of
+        ``options["reset_mask"]``; `seed` re-seeds the core's generator first."""
+        if seed is not None and (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))):
+            raise TypeError(f"seed must be None or an int (one generator draws for every world, so per-entry "
+                            f"seeds are not supported), got {describe(seed)}")
+        worlds = self._reset_mask(options)
+        obs = self.core.reset(seed=seed) if worlds is None else self.core.reset_worlds(worlds, seed=seed)
+        super().reset(seed=seed)
+        self._started = True
+        return self._observations(obs), {}
+
+    def step(self, actions):
+        """(observations, rewards, terminations, truncations, infos), one entry per (world, agent)."""
+        if self.core.closed:
+            raise RuntimeError("this environment is closed; create a new one")
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        obs, reward, terminated, truncated, info = self.core.step(self._actions(actions))
+        done_worlds = info["done_worlds"][:, None]
+        n = self.num_envs
+        terminations = (terminated & done_worlds).reshape(n).cpu().numpy()
+        truncations = (truncated & done_worlds).reshape(n).cpu().numpy()
+        return (self._observations(obs), reward.reshape(n).cpu().numpy(), terminations, truncations,
+                self._infos(info))
+
+    def render(self):
+        """A tuple with each entry's frame: the overview of its world (render_mode="rgb_array")."""
+        if self.render_mode is None:
+            logger.warn("You are calling render() without a render_mode; pass render_mode='rgb_array' to make_vec_env.")
+            return None
+        overview = self.core.render_overview().cpu().numpy()
+        return tuple(np.repeat(overview, self.num_agents, axis=0))
+
+    def close_extras(self, **kwargs):
+        self.core.close()
+
+    def __repr__(self):
+        return (f"MarlRenderVectorEnv({self.core.name}, num_envs={self.num_envs} = {self.num_worlds} worlds x "
+                f"{self.num_agents} agents, autoreset_mode={self.metadata['autoreset_mode']})")
+
+    # ------------------------------------------------------------------ internals
+    def _reset_mask(self, options) -> torch.Tensor | None:
+        """bool [W] worlds to reset from options["reset_mask"] (bool [num_envs]); None: all worlds."""
+        if options is None:
+            return None
+        if not isinstance(options, dict):
+            raise TypeError(f"options must be None or a dict, got {describe(options)}")
+        if "reset_mask" not in options:
+            return None
+        mask = options["reset_mask"]
+        want = f"a bool numpy array of shape ({self.num_envs},) (num_envs), the same for all agents of a world"
+        if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_:
+            raise TypeError(f"options['reset_mask'] must be {want}, got {describe(mask)}")
+        if mask.shape != (self.num_envs,):
+            raise ValueError(f"options['reset_mask'] must be {want}, got shape {mask.shape}")
+        per_world = mask.reshape(self.num_worlds, self.num_agents)
+        if not (per_world == per_world[:, :1]).all():
+            raise ValueError(f"options['reset_mask'] must be {want}: a world resets with all of its agents")
+        return torch.from_numpy(per_world[:, 0].copy())
+
+    def _actions(self, actions):
+        """The actions as the core's [W, A(, action_dim)] batch (the core checks dtype and values)."""
+        if not isinstance(actions, (torch.Tensor, np.ndarray)):
+            try:
+                actions = np.asarray(actions)
+            except (TypeError, ValueError):
+                raise TypeError(f"actions must be an array of shape {self.action_space.shape}, "
+                                f"got {describe(actions)}") from None
+        if tuple(actions.shape) != self.action_space.shape:
+            raise ValueError(f"actions must be an array of shape {self.action_space.shape} (num_envs = "
+                             f"{self.num_worlds} worlds x {self.num_agents} agents), got shape {tuple(actions.shape)}")
+        return actions.reshape(self.num_worlds, self.num_agents, *self.single_action_space.shape)
+
+    def _observations(self, obs: dict):
+        """numpy [num_envs, ...] per key; departed agents of running worlds see zeros."""
+        core = self.core
+        over = (~core.alive).all(dim=1) | (core.step_count >= core.max_steps)
+        departed = ~core.alive & ~over[:, None]
+        if bool(departed.any()):
+            for key in self._obs_keys:
+                if key != "action_mask":
+                    obs[key][departed] = 0
+        arrays = {key: self._entries(obs[key]) for key in self._obs_keys}
+        if "action_mask" in arrays:
+            arrays["action_mask"] = arrays["action_mask"].astype(np.int8)
+        return arrays if self._dict_obs else arrays["pixels"]
+
+    def _entries(self, value: torch.Tensor) -> np.ndarray:
+        """numpy [num_envs, ...] of a core tensor [W, A, ...] (per agent) or [W, ...] (per world)."""
+        W, A = self.num_worlds, self.num_agents
+        if value.dim() >= 2 and value.shape[1] == A:
+            value = value.reshape(W * A, *value.shape[2:])
+        elif A > 1:
+            value = value.repeat_interleave(A, dim=0)
+        return value.cpu().numpy()
+
+    def _infos(self, info: dict) -> dict:
+        mode = self.metadata["autoreset_mode"]
+        step_info = {key: self._entries(value) for key, value in info.items()
+                     if key not in _NOT_STEP_INFO and isinstance(value, torch.Tensor)}
+        if mode == AutoresetMode.DISABLED:
+            without = None
+        else:  # NEXT_STEP: worlds reset by this step; SAME_STEP: worlds whose episode ended
+            without = self._entries(info["autoreset_worlds"])
+        infos = _masked(step_info, None if without is None else ~without)
+        if mode == AutoresetMode.SAME_STEP and without.any():
+            final_obs = self._observations_of_final(info["final_obs"], without)
+            infos.update(final_obs=final_obs, _final_obs=without.copy(),
+                         final_info=_masked(step_info, without), _final_info=without.copy())
+        return infos
+
+    def _observations_of_final(self, obs: dict, ended: np.ndarray) -> np.ndarray:
+        """gymnasium's final_obs: an object array with each ended entry's last observation."""
+        arrays = {key: self._entries(obs[key]) for key in self._obs_keys}
+        if "action_mask" in arrays:
+            arrays["action_mask"] = arrays["action_mask"].astype(np.int8)
+        final = np.full(self.num_envs, None, dtype=object)
+        for i in np.flatnonzero(ended):  # one object per ended entry is gymnasium's layout
+            final[i] = {key: value[i] for key, value in arrays.items()} if self._dict_obs else arrays["pixels"][i]
+        return final
+
+
+def _masked(values: dict, mask: np.ndarray | None) -> dict:
+    """gymnasium's vector info layout: each key with its "_key" bool mask (None: all entries);
+    keys no entry has are left out."""
+    if mask is not None and not mask.any():
+        return {}
+    out = {}
+    for key, value in values.items():
+        out[key] = value
+        out["_" + key] = np.ones(len(value), dtype=bool) if mask is None else mask.copy()
+    return out
+
+
+__all__ = ["MarlRenderVectorEnv", "make_vec_env", "CORE_AUTORESET", "RENDER_MODES"]

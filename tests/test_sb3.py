@@ -1,0 +1,99 @@
+"""Stable-Baselines3 front end (marl_render/wrappers/sb3.py); skipped without the `sb3` extra."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+sb3 = pytest.importorskip("stable_baselines3")
+from stable_baselines3 import PPO  # noqa: E402
+from stable_baselines3.common.evaluation import evaluate_policy  # noqa: E402
+from stable_baselines3.common.vec_env import (VecCheckNan, VecFrameStack, VecMonitor,  # noqa: E402
+                                              VecTransposeImage)
+
+from marl_render.envs import make_env, make_sb3_env  # noqa: E402
+
+W = 4
+RES = 40  # SB3's NatureCNN needs images of at least 36 x 36
+
+
+def make(name="cartpole", **kw):
+    kw.setdefault("num_worlds", W)
+    kw.setdefault("resolution", RES)
+    kw.setdefault("seed", 0)
+    return make_sb3_env(name, **kw)
+
+
+def test_ppo_cnn_policy_trains_from_pixels():
+    venv = VecMonitor(make(max_steps=16))
+    model = PPO("CnnPolicy", venv, n_steps=32, batch_size=64, n_epochs=1, seed=0, device="cpu")
+    assert isinstance(model.get_env(), VecTransposeImage)  # SB3 recognised the uint8 HWC images
+    assert model.observation_space.shape == (3, RES, RES)
+    model.learn(total_timesteps=256)
+    assert model.num_timesteps == 256
+    assert len(model.ep_info_buffer) == 256 // 16 and {e["l"] for e in model.ep_info_buffer} == {16}
+    obs = model.get_env().reset()
+    assert obs.shape == (W, 3, RES, RES) and obs.dtype == np.uint8
+    actions, _ = model.predict(obs, deterministic=True)
+    assert actions.shape == (W,) and actions.dtype.kind == "i" and ((0 <= actions) & (actions < 5)).all()
+    mean, std = evaluate_policy(model, model.get_env(), n_eval_episodes=W)
+    assert 0 < mean <= 16 and np.isfinite(std)  # reward per step is in [0, 1]
+    venv.close()
+
+
+def test_multi_agent_ppo_shares_one_policy():
+    venv = VecMonitor(make("spread", num_worlds=2, max_steps=8))
+    assert venv.num_envs == 6
+    model = PPO("CnnPolicy", venv, n_steps=16, batch_size=48, n_epochs=1, seed=0, device="cpu")
+    model.learn(total_timesteps=96)
+    actions, _ = model.predict(model.get_env().reset())
+    assert actions.shape == (6,)
+    venv.close()
+
+
+def test_step_gives_terminal_observation_and_time_limit_flag():
+    venv = make(max_steps=2)
+    core = make_env("cartpole", num_worlds=W, resolution=RES, seed=0, max_steps=2)  # no auto-reset
+    venv.seed(3)
+    obs = venv.reset()
+    want = core.reset(seed=3)
+    assert np.array_equal(obs, want["pixels"][:, 0].numpy())
+    actions = np.arange(W) % 5
+    for step in range(2):
+        obs, rewards, dones, infos = venv.step(actions)
+        want, *_ = core.step(torch.from_numpy(actions)[:, None])
+    assert dones.all() and rewards.dtype == np.float32 and len(infos) == W
+    for i in range(W):
+        assert np.array_equal(infos[i]["terminal_observation"], want["pixels"][i, 0].numpy())
+        assert infos[i]["TimeLimit.truncated"] is True
+    first = core.reset_worlds(torch.ones(W, dtype=torch.bool))
+    assert np.array_equal(obs, first["pixels"][:, 0].numpy())  # already the new episode
+    obs, _, dones, infos = venv.step(actions)
+    assert not dones.any() and infos == [{}] * W
+    venv.close(), core.close()
+
+
+def test_sb3_vec_wrappers():
+    venv = VecCheckNan(VecTransposeImage(VecFrameStack(VecMonitor(make(max_steps=3)), n_stack=4)),
+                       raise_exception=True)
+    obs = venv.reset()
+    assert obs.shape == (W, 12, RES, RES)
+    for step in range(3):
+        obs, rewards, dones, infos = venv.step(np.zeros(W, dtype=np.int64))
+    assert dones.all() and obs.shape == (W, 12, RES, RES)
+    assert infos[0]["terminal_observation"].shape == (12, RES, RES) and infos[0]["episode"]["l"] == 3
+    venv.close()
+
+
+def test_attribute_access_and_bad_arguments():
+    venv = make()
+    assert venv.get_attr("num_worlds") == [W] * W and venv.get_attr("max_steps", [0, 1]) == [1000, 1000]
+    assert venv.env_is_wrapped(object) == [False] * W
+    assert venv.seed(5) == [5, 6, 7, 8]
+    with pytest.raises(RuntimeError, match="step_async"):
+        venv.step_wait()
+    with pytest.raises(ValueError, match=r"actions must be an array of shape \(4,\)"):
+        venv.reset(), venv.step(np.zeros(3, dtype=np.int64))
+    venv.close()
+    with pytest.raises(TypeError, match="autoreset_mode"):
+        make(autoreset_mode="NextStep")
