@@ -63,17 +63,18 @@ class _PandaTargets:
     """The packer's destinations (packing.PackTargets): the RAM images of the buffer
     textures, each marked for upload when the packer asks for it."""
 
-    def __init__(self, renderer: BatchRenderer):
-        self._renderer = renderer
+    def __init__(self, groups: dict):
+        self.groups = groups  # the renderer's draw groups by name, filled as they are built
+        self.views_texture = None
 
     def views(self) -> torch.Tensor:
-        return writable(self._renderer.views_texture, np.float32)
+        return writable(self.views_texture, np.float32)
 
     def instances(self, group: str) -> torch.Tensor:
-        return writable(self._renderer._groups[group].instances, np.float32)
+        return writable(self.groups[group].instances, np.float32)
 
     def pairs(self, group: str) -> torch.Tensor:
-        return writable(self._renderer._groups[group].pairs, np.int32)
+        return writable(self.groups[group].pairs, np.int32)
 
 
 @dataclass
@@ -146,9 +147,9 @@ class BatchRenderer:
         self.layout: TileLayout = column_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
         self.effects = frozenset(scene.effects)
         self.packer = FramePacker(scene, self.layout)  # the state and its packing; this class draws it
-        self._targets = _PandaTargets(self)
         self._passes: list[_Pass] = []
-        self._groups = {}
+        self._groups: dict[str, _DrawGroup] = {}
+        self._targets = _PandaTargets(self._groups)  # the packer writes into their textures
         self.shadow_pass = None
         try:
             # Panda3D opens each framebuffer right away; until it is inactive, any frame
@@ -196,7 +197,7 @@ class BatchRenderer:
         """One framebuffer per column of views, each with its own scene root and camera."""
         from panda3d.core import LVecBase2f
 
-        self.views_texture = buffer_texture("views", self.packer.view_texels())
+        self.views_texture = self._targets.views_texture = buffer_texture("views", self.packer.view_texels())
         lighting, fog = self.scene.lighting, self.scene.fog
         direction = np.asarray(lighting.direction, dtype=float)
         self._shared_inputs = {
@@ -282,7 +283,6 @@ class BatchRenderer:
     def _build_groups(self):
         from panda3d.core import NodePath, OmniBoundingVolume
 
-        self._groups: dict[str, _DrawGroup] = {}
         groups = [(g, True) for g in self.scene.static.values()] + [(g, False) for g in self.scene.groups.values()]
         for order, (group, static) in enumerate(groups):
             mesh = group.mesh
