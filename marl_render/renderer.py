@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import backend, readback, shaders
+from . import backend, readback, shaders, skinning
 from .images import texture_pixels
 from .meshes import MeshData, to_panda_geom
 from .provoking import shared_corner_mesh
@@ -83,6 +83,7 @@ class _DrawGroup:
     instances: object  # float32 buffer texture
     pairs: object  # int32 buffer texture: visible view * count + instance
     radius: float  # bounding sphere of the mesh at unit scale
+    texels: int = shaders.INSTANCE_TEXELS  # per instance: more for skinned groups (their joints)
     pass_ranges: list | None = None  # [(first pair, pair count)] per pass
     pass_nodes: list | None = None  # [(NodePath, PTA_int pair offset, instance count drawn)] per pass
     frustum_pause: int = 0  # frames left without frustum tests (see CULL_KEEPS)
@@ -198,6 +199,8 @@ class BatchRenderer:
                 "active": torch.zeros(W, C, dtype=torch.bool),
                 "owner": torch.full((W, C), -1, dtype=torch.int64),
             }
+            if isinstance(group.mesh, skinning.SkinnedMesh):  # the bind pose: every joint unrotated
+                state["joints"] = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(W, C, group.mesh.num_joints, 1)
             if mount is not None and mount.group == name and mount.hide_owner:
                 state["owner"][:, list(mount.instance)] = torch.arange(A)
             self._state[name] = state
@@ -291,8 +294,15 @@ class BatchRenderer:
         for order, (group, static) in enumerate(groups):
             mesh = group.mesh
             textured = group.texture is not None
-            procedural = isinstance(mesh, MeshData)
-            if not procedural:
+            # Static geometry has no joints to pose: a skinned mesh is drawn in its bind pose.
+            joints = mesh.num_joints if isinstance(mesh, skinning.SkinnedMesh) and not static else 0
+            procedural = isinstance(mesh, MeshData) and not joints
+            if joints:
+                # Skin columns beside the vertex; its depth plane comes from the geometry
+                # shader, which sees the skinned corners (a triangle's corners follow joints
+                # of their own, which the corner attributes of triangle_corners.py would not).
+                node = NodePath(skinning.panda_geom(mesh))
+            elif not procedural:
                 node = mesh.copy_to(NodePath())
             elif "depth" in self.effects:
                 # The depth output needs each triangle's corners at a provoking vertex of its
@@ -310,16 +320,18 @@ class BatchRenderer:
             node.node().set_final(True)
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
                                           flat=procedural and mesh.flat, corners=procedural,
-                                          gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf)
+                                          gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf,
+                                          joints=joints, influences=mesh.influences if joints else 4)
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(_panda_texture(group.texture, group.name), 1)
             count = group.count if static else group.capacity
             rows = count if static else self.scene.num_worlds * count
-            texels = shaders.STATIC_INSTANCE_TEXELS if static else shaders.INSTANCE_TEXELS
+            texels = (shaders.STATIC_INSTANCE_TEXELS if static
+                      else shaders.INSTANCE_TEXELS + shaders.JOINT_TEXELS * joints)
             draw = _DrawGroup(node, count, static, _buffer_texture(f"instances:{group.name}", rows * texels),
                               _buffer_texture(f"pairs:{group.name}", self.scene.num_views * count, integer=True),
-                              mesh_radius(mesh))
+                              mesh_radius(mesh), texels)
             node.set_shader_input("instances", draw.instances)
             node.set_shader_input("pairs", draw.pairs)
             node.set_shader_input("capacity", _int(count))
@@ -353,12 +365,14 @@ class BatchRenderer:
     # ------------------------------------------------------------------ public updates
     @one_thread
     def update(self, group: str, *, position=None, rotation=None, scale=None, color=None, active=None,
-               owner=None) -> None:
+               owner=None, joints=None) -> None:
         """Set per-instance data of a group for all worlds: tensors shaped [W, C, ...].
 
         position [W,C,3] (float32/64, metres), rotation [W,C,4] unit quaternions (w,x,y,z;
         normalised here), scale [W,C,3], color [W,C,4] or [W,C,3] in [0,1], active [W,C] bool,
-        owner [W,C] int agent index (-1: none). Everything is validated before anything is stored.
+        owner [W,C] int agent index (-1: none); joints [W,C,J,4] (groups of a SkinnedMesh with
+        J joints): each joint's rotation about its pivot in its parent's frame, non-zero
+        quaternions (w,x,y,z; normalised here). Everything is validated before anything is stored.
         """
         self._check_open()
         self._check_group(group)
@@ -393,6 +407,12 @@ class BatchRenderer:
             check_shape("owner", owner, (W, C))
             check_range("owner", owner if owner.dtype.is_signed else owner.double(), -1, self.scene.agents_per_world - 1)
             staged["owner"] = owner.to(torch.int64)
+        if joints is not None:
+            if "joints" not in state:
+                raise ValueError(f"joints can only be set on a group whose mesh is a SkinnedMesh; group {group!r} "
+                                 "has a rigid mesh")
+            joints = self._float_arg("joints", joints, state["joints"].shape)
+            staged["joints"] = normalize_quat(joints.to(torch.float64), name="joints").to(torch.float32)
         for key, value in staged.items():
             state[key].copy_(value)
         if staged:
@@ -528,13 +548,17 @@ class BatchRenderer:
     def _pack_group(self, name: str):
         state = self._state[name]
         W, C = state["active"].shape
-        memory = _writable(self._groups[name].instances, np.float32).view(W, C, shaders.INSTANCE_TEXELS, 4)
+        draw = self._groups[name]
+        memory = _writable(draw.instances, np.float32).view(W, C, draw.texels, 4)
         memory[:, :, 0, :3] = state["position"] - self.world_origin[:, None]
         memory[:, :, 0, 3] = state["active"]
         memory[:, :, 1] = state["rotation"]
         memory[:, :, 2, :3] = state["scale"]
         memory[:, :, 2, 3] = state["owner"]
         memory[:, :, 3] = state["color"]
+        if "joints" in state:
+            transforms = skinning.joint_transforms(self.scene.groups[name].mesh, state["joints"])
+            memory[:, :, shaders.INSTANCE_TEXELS:] = transforms.view(W, C, -1, 4)
 
     def _cull(self, moved: set, cameras_moved: bool):
         """Bring each group's list of drawn (view, instance) pairs up to date.

@@ -15,6 +15,8 @@ GLSL_VERSION = "#version 410\n"
 INSTANCE_TEXELS = 4
 STATIC_INSTANCE_TEXELS = 5
 VIEW_TEXELS = 6
+# A skinned group's instances carry one 3x4 matrix (3 texels) per joint after their own texels.
+JOINT_TEXELS = 3
 
 # ITU-R BT.601 luma weights of the gray colour output (as torchvision's rgb_to_grayscale).
 GRAY_WEIGHTS = (0.299, 0.587, 0.114)
@@ -38,16 +40,20 @@ def source(name: str) -> str:
 
 
 def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False,
-                corners: bool = False, gray: bool = False, shadow_pcf: bool = False) -> tuple[str, ...]:
+                corners: bool = False, gray: bool = False, shadow_pcf: bool = False,
+                joints: int = 0, influences: int = 4) -> tuple[str, ...]:
     """The sorted #define lines of one variant (texture only for groups that have one).
 
     Lighting runs per vertex for meshes whose faces each have one normal (flat), where
     it is exact, and per fragment otherwise. Depth needs each triangle's plane: from the
     corners that procedural meshes carry (`corners`, see triangle_corners.py), else from
-    a geometry shader (model files). gray: the colour output is its luma (GRAY_WEIGHTS).
+    a geometry shader (model files, and skinned meshes, whose corners move with their own
+    joints). gray: the colour output is its luma (GRAY_WEIGHTS).
     The colour is a flat varying in every variant, so a flat mesh may also be drawn from
     its welded corners (provoking.py) with the same defines. Shadows filter their edges
-    (SHADOW_PCF) only when asked."""
+    (SHADOW_PCF) only when asked. joints > 0: a skinned group (the SKINNING variant), whose
+    instances carry that many joint matrices and whose vertices follow up to `influences`
+    joints each (1..4; each vertex blends only that many)."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
     if "lighting" in effects:
         defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
@@ -59,10 +65,7 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
         defines.add("OUTPUT_GRAY")
     if "texture" in effects and textured:
         defines.add("EFFECT_TEXTURE")
-    defines.add(f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}")
-    defines.add(f"VIEW_TEXELS {VIEW_TEXELS}")
-    if static:
-        defines.add("STATIC_GROUP")
+    defines.update(_instance_defines(static, joints, influences))
     # Aux attachments are numbered in declaration order after the colour target.
     location = 1
     if "depth" in effects:
@@ -91,13 +94,27 @@ def compiled(defines: tuple[str, ...]):
     return shader
 
 
-def caster_defines(*, static: bool) -> tuple[str, ...]:
-    """#defines of the shadow-map pass: positions only, no effect (see shadows.py)."""
-    defines = {f"INSTANCE_TEXELS {STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS}",
-               f"VIEW_TEXELS {VIEW_TEXELS}", "SHADOW_CASTER"}
+def _instance_defines(static: bool, joints: int, influences: int) -> set[str]:
+    """The instance layout of a group: texels per instance, static or not, skinned or not."""
+    if joints and static:
+        raise ValueError("static groups cannot be skinned: their instances have no joints")
+    defines = {f"VIEW_TEXELS {VIEW_TEXELS}"}
+    if joints:
+        if not 1 <= influences <= 4:
+            raise ValueError(f"influences must be in [1, 4], got {influences}")
+        defines.update(("SKINNING", f"JOINT_TEXELS {JOINT_TEXELS}", f"FIRST_JOINT_TEXEL {INSTANCE_TEXELS}",
+                        f"SKIN_INFLUENCES {influences}"))
+    texels = STATIC_INSTANCE_TEXELS if static else INSTANCE_TEXELS + JOINT_TEXELS * joints
+    defines.add(f"INSTANCE_TEXELS {texels}")
     if static:
         defines.add("STATIC_GROUP")
-    return tuple(sorted(defines))
+    return defines
+
+
+def caster_defines(*, static: bool, joints: int = 0, influences: int = 4) -> tuple[str, ...]:
+    """#defines of the shadow-map pass: positions only, no effect (see shadows.py); a skinned
+    group's casters are skinned like its views (same joints, same influences)."""
+    return tuple(sorted(_instance_defines(static, joints, influences) | {"SHADOW_CASTER"}))
 
 
 @functools.lru_cache(maxsize=None)

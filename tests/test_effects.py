@@ -97,7 +97,7 @@ def test_test_preprocessor_itself():
 EFFECT_MARKERS = {
     "fog": {"frag": ["fog_density", "fog_color", "exp("]},
     "lighting": {"frag": ["light_direction", "light_color", "ambient_color", "v_normal"],
-                 "vert": ["v_normal", "p3d_Normal / "]},
+                 "vert": ["v_normal", "vertex_normal / "]},
     "texture": {"frag": ["p3d_Texture0", "v_uv"], "vert": ["p3d_MultiTexCoord0", "v_uv"]},
     "depth": {"frag": ["out_depth"]},
     "segmentation": {"frag": ["out_segment", "v_segment"], "vert": ["v_segment", "segment_base +"]},

@@ -94,3 +94,10 @@ def test_shared_corners_put_each_face_normal_on_the_provoking_vertex():
     assert np.allclose(normals[triangles[:, 2]], face, atol=1e-6)
     assert sorted(map(tuple, np.round(face).astype(int).tolist())) == sorted(
         map(tuple, np.round(box.normals[box.triangles[:, 0]]).astype(int).tolist()))
+
+
+def test_floor_refuses_skinned_groups():
+    scene = mr.Scene(1, 1, resolution=16, effects=())
+    scene.add_group("walkers", mr.skinned_limb(), capacity=1)
+    with pytest.raises(ValueError, match=r"FloorGL has no skinning; groups \['walkers'\]"):
+        FloorGL(scene)
