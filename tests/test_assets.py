@@ -115,7 +115,7 @@ def test_a_model_referencing_a_truncated_texture_raises_naming_both_files(images
     models = [quad_egg(tmp_path / f"uses_{ext}.egg", cut) for ext, (_, cut) in images.items()]
     outcomes = run_child([], models)
     assert len(outcomes) == len(models)
-    for model, (_, cut) in zip(models, images.values()):
+    for model, (_, cut) in zip(models, images.values(), strict=True):
         outcome = outcomes[("model", str(model))]
         assert outcome["error"] == "ValueError", outcome
         assert f"mesh: model file {str(model)!r} references the texture {str(cut)!r}, which is not a complete image" \

@@ -94,7 +94,7 @@ def test_bad_cameras_raise_and_change_nothing(renderer, kwargs, error, message):
     with pytest.raises(error, match=message):
         renderer.set_cameras(**kwargs)
     after = (renderer.camera_position, renderer.camera_rotation, renderer.fov_y, renderer.near, renderer.far)
-    assert all(torch.equal(x, y) for x, y in zip(state, after))
+    assert all(torch.equal(x, y) for x, y in zip(state, after, strict=True))
     assert torch.equal(before, renderer.render().rgb)
 
 

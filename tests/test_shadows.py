@@ -335,7 +335,7 @@ def test_an_env_switches_shadows_on_and_they_only_darken():
                 assert env.renderer.scene.shadows.bounds == scenery.arena_shadow_bounds(env.arena_half_extent)
         finally:
             env.close()
-    for plain, shaded in zip(images[False], images[True]):
+    for plain, shaded in zip(images[False], images[True], strict=True):
         assert plain.shape == shaded.shape
         assert (shaded <= plain).all(), "a shadow only removes the directional light"
         assert (shaded < plain).any(-1).float().mean() > 0.01, "part of the images is in shadow"
