@@ -420,7 +420,8 @@ def test_reset_with_a_seed_reproduces_an_episode(name):
         env.step(env.random_actions(g))
     again = episode(5)
     other = episode(6)
-    assert all(torch.equal(a, b) for a, b in zip(first, again, strict=True)), "reset(seed=5) did not reproduce the episode"
+    assert all(torch.equal(a, b) for a, b in zip(first, again, strict=True)), \
+        "reset(seed=5) did not reproduce the episode"
     assert not torch.equal(first[1], other[1]), "another seed gave the same episode"
     env.close()
 

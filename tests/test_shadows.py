@@ -311,7 +311,8 @@ def test_default_bounds_fit_the_static_geometry():
     from marl_render.shadows import static_bounds
 
     scene = mr.Scene(num_worlds=1, agents_per_world=1, effects=("lighting", "shadows"))
-    scene.add_static("floor", "box", position=[[0.0, 0.0, -0.05], [2.0, 0.0, 0.5]], scale=[[6.0, 4.0, 0.1], [1.0, 1.0, 1.0]],
+    scene.add_static("floor", "box", position=[[0.0, 0.0, -0.05], [2.0, 0.0, 0.5]],
+                     scale=[[6.0, 4.0, 0.1], [1.0, 1.0, 1.0]],
                      rotation=[[1.0, 0.0, 0.0, 0.0], [math.cos(math.pi / 8), 0.0, 0.0, math.sin(math.pi / 8)]])
     low, high = static_bounds(scene)
     half_diagonal = math.sqrt(0.5)  # the second box turned 45 degrees about Z
