@@ -7,6 +7,8 @@ import marl_render as mr
 from marl_render.bench.floor_gl import FloorGL, from_env, shared_corners
 from marl_render.envs import make_env
 
+DEFAULT_LIGHTING = mr.Scene(1, 1).lighting  # what lit() compares against: the Scene default
+
 
 def stepped_env(name, **kwargs):
     env = make_env(name, seed=0, **kwargs)
@@ -17,7 +19,7 @@ def stepped_env(name, **kwargs):
     return env, obs["pixels"]
 
 
-def lit(color, normal, lighting=mr.Scene(1, 1).lighting):
+def lit(color, normal, lighting=DEFAULT_LIGHTING):
     """8-bit colour of a surface with `normal` under the default Lambert lighting."""
     to_light = -np.asarray(lighting.direction) / np.linalg.norm(lighting.direction)
     shade = np.asarray(lighting.ambient) + np.asarray(lighting.color) * max(float(np.dot(normal, to_light)), 0.0)
