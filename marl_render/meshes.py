@@ -82,7 +82,8 @@ def box() -> MeshData:
                 uvs.append((u + 0.5, v + 0.5))
             quad = [(base, base + 1, base + 2), (base, base + 2, base + 3)]
             # Counter-clockwise seen from outside.
-            if np.dot(np.cross(positions[base + 1] - positions[base], positions[base + 2] - positions[base]), normal) < 0:
+            edges = positions[base + 1] - positions[base], positions[base + 2] - positions[base]
+            if np.dot(np.cross(*edges), normal) < 0:
                 quad = [(a, c, b) for a, b, c in quad]
             triangles.extend(quad)
     return _mesh("box", positions, normals, uvs, triangles)
@@ -159,10 +160,12 @@ def capsule(radius: float = 0.25, length: float = 1.0, segments: int = 16, rings
     profile = []
     for j in range(rings + 1):  # bottom hemisphere
         phi = -math.pi / 2 + (math.pi / 2) * j / rings
-        profile.append((radius * math.cos(phi), -half + radius * math.sin(phi), math.cos(phi), math.sin(phi), 0.5 * j / rings))
+        profile.append((radius * math.cos(phi), -half + radius * math.sin(phi), math.cos(phi), math.sin(phi),
+                        0.5 * j / rings))
     for j in range(rings + 1):  # top hemisphere
         phi = (math.pi / 2) * j / rings
-        profile.append((radius * math.cos(phi), half + radius * math.sin(phi), math.cos(phi), math.sin(phi), 0.5 + 0.5 * j / rings))
+        profile.append((radius * math.cos(phi), half + radius * math.sin(phi), math.cos(phi), math.sin(phi),
+                        0.5 + 0.5 * j / rings))
     return _lathe("capsule", profile, segments)
 
 
@@ -174,8 +177,15 @@ def to_panda_geom(mesh: MeshData, extra: dict | None = None):
 
     extra: more float32 [N, k] vertex columns by name, interleaved after the uvs (a
     shader reads column NAME as `in vecK NAME`)."""
-    from panda3d.core import (Geom, GeomNode, GeomTriangles, GeomVertexArrayFormat, GeomVertexData, GeomVertexFormat,
-                              InternalName)
+    from panda3d.core import (
+        Geom,
+        GeomNode,
+        GeomTriangles,
+        GeomVertexArrayFormat,
+        GeomVertexData,
+        GeomVertexFormat,
+        InternalName,
+    )
 
     columns = [mesh.positions, mesh.normals, mesh.uvs]
     vertex_format = GeomVertexFormat.get_v3n3t2()
@@ -322,7 +332,7 @@ def _write_model_arrays(path: str, output: str) -> None:
         return
     offsets = np.cumsum([0] + [len(part[0]) for part in parts[:-1]])
     positions, normals, uvs = (np.concatenate([part[k] for part in parts]) for k in range(3))
-    triangles = np.concatenate([part[3] + offset for part, offset in zip(parts, offsets)])
+    triangles = np.concatenate([part[3] + offset for part, offset in zip(parts, offsets, strict=True)])
     np.savez(output, positions=positions, normals=normals, uvs=uvs, triangles=triangles)
 
 
@@ -442,7 +452,7 @@ def _write_skin_arrays(path: str, output: str) -> None:
         skin_joints[skin_joints == model_joint] = 0
     offsets = np.cumsum([0] + [len(part[0]) for part in parts[:-1]])
     positions, normals, uvs = (np.concatenate([part[k] for part in parts]) for k in range(3))
-    triangles = np.concatenate([part[3] + offset for part, offset in zip(parts, offsets)])
+    triangles = np.concatenate([part[3] + offset for part, offset in zip(parts, offsets, strict=True)])
     np.savez(output, positions=positions, normals=normals, uvs=uvs, triangles=triangles,
              joint_names=np.array(names), parents=np.array(parents), pivots=np.array(pivots, dtype=np.float64),
              skin_joints=skin_joints, skin_weights=skin_weights)
