@@ -31,7 +31,8 @@ def make_scene(worlds, agents, resolution, mesh, overview=False):
     """The arena with one walker per agent; the overview has one free camera instead of mounted ones."""
     scene = mr.Scene(num_worlds=worlds, agents_per_world=1 if overview else agents, resolution=resolution,
                      effects=("lighting", "fog"), fog=mr.Fog(density=0.03))
-    scene.add_static("floor", "plane", position=[0, 0, 0], scale=[2 * ARENA + 1, 2 * ARENA + 1, 1], color=[0.45, 0.6, 0.4])
+    scene.add_static("floor", "plane", position=[0, 0, 0], scale=[2 * ARENA + 1, 2 * ARENA + 1, 1],
+                     color=[0.45, 0.6, 0.4])
     walls = [[ARENA + 0.5, 0, 0.4], [-ARENA - 0.5, 0, 0.4], [0, ARENA + 0.5, 0.4], [0, -ARENA - 0.5, 0.4]]
     sizes = [[0.2, 2 * ARENA + 1, 0.8]] * 2 + [[2 * ARENA + 1, 0.2, 0.8]] * 2
     scene.add_static("walls", "box", position=walls, scale=sizes, color=[0.65, 0.6, 0.55])
@@ -68,7 +69,8 @@ class Walk:
         speed, turn = action.unbind(-1)
         self.yaw = self.yaw + 1.5 * turn * DT
         heading = torch.stack((-torch.sin(self.yaw), torch.cos(self.yaw)), -1).to(torch.float64)  # +Y at yaw 0
-        self.position[..., :2] = (self.position[..., :2] + 1.2 * speed[..., None] * heading * DT).clamp(-ARENA + 0.3, ARENA - 0.3)
+        self.position[..., :2] = (self.position[..., :2] + 1.2 * speed[..., None] * heading * DT).clamp(
+            -ARENA + 0.3, ARENA - 0.3)
         self.phase = self.phase + 2 * math.pi * 1.6 * speed * DT  # strides per second grow with speed
 
     def joints(self):
@@ -103,7 +105,7 @@ def overview_picture(walk, colors, views, path):
         state = {key: value[:1] for key, value in walk.instance_update().items()}
         renderer.update("walkers", active=torch.ones(1, colors.shape[1], dtype=torch.bool), color=colors[:1], **state)
         overview = renderer.render().rgb[0, 0].numpy()
-    agents, h, w = views.shape[1], views.shape[2], views.shape[3]
+    agents, h = views.shape[1], views.shape[2]
     gap = np.full((h, 2, 3), 255, np.uint8)  # white lines between the agents' views
     row = np.concatenate([part for a in range(agents) for part in (gap, views[0, a].numpy())][1:], axis=1)
     row = np.asarray(Image.fromarray(row).resize((640, round(640 * h / row.shape[1])), Image.NEAREST))
@@ -136,7 +138,8 @@ def main():
     character = mr.skinned_character()
     W, A = args.worlds, args.agents
     hue = torch.arange(A) / A * 2 * math.pi
-    colors = torch.stack((0.55 + 0.4 * torch.cos(hue), 0.55 + 0.4 * torch.cos(hue - 2.1), 0.55 + 0.4 * torch.cos(hue + 2.1)), -1)
+    colors = torch.stack((0.55 + 0.4 * torch.cos(hue), 0.55 + 0.4 * torch.cos(hue - 2.1),
+                          0.55 + 0.4 * torch.cos(hue + 2.1)), -1)
     colors = colors.expand(W, A, 3)
     skinned = mr.BatchRenderer(make_scene(W, A, args.resolution, character))
     rigid = mr.BatchRenderer(make_scene(W, A, args.resolution, character.rigid()))
@@ -161,7 +164,8 @@ def main():
             for renderer, name in ((skinned, "skinned"), (rigid, "rigid")):
                 rates[name].append(views_per_s(renderer, walk, name == "skinned", block))
         skinned_rate, rigid_rate = (float(np.median(rates[k])) for k in ("skinned", "rigid"))
-        ratio = float(np.median([s / r for s, r in zip(rates["skinned"], rates["rigid"])]))  # per block pair
+        # per block pair: both renderers ran one block each in every round
+        ratio = float(np.median([s / r for s, r in zip(rates["skinned"], rates["rigid"], strict=True)]))
         print(f"throughput ({W * A} views of {args.resolution}x{args.resolution}, walk + pack + render; medians of "
               f"{len(rates['rigid'])} alternating blocks): skinned {skinned_rate:,.0f} views/s, "
               f"rigid {rigid_rate:,.0f} views/s, skinned / rigid = {ratio:.2f}")

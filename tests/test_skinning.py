@@ -143,8 +143,9 @@ def write_strip_gltf(path, skin: bool = True) -> None:
     data = b"".join(b.tobytes() for b in blobs)
     offsets = np.cumsum([0] + [b.nbytes for b in blobs])
     accessors = [{"bufferView": k, "componentType": component, "count": count, "type": kind}
-                 for k, (component, count, kind) in enumerate([(5126, 10, "VEC3"), (5123, 10, "VEC4"), (5126, 10, "VEC4"),
-                                                                (5123, len(indices), "SCALAR"), (5126, 2, "MAT4")])]
+                 for k, (component, count, kind) in enumerate([(5126, 10, "VEC3"), (5123, 10, "VEC4"),
+                                                                (5126, 10, "VEC4"), (5123, len(indices), "SCALAR"),
+                                                                (5126, 2, "MAT4")])]
     accessors[0].update(min=positions.min(0).tolist(), max=positions.max(0).tolist())
     attributes = {"POSITION": 0, **({"JOINTS_0": 1, "WEIGHTS_0": 2} if skin else {})}
     document = {
@@ -152,8 +153,10 @@ def write_strip_gltf(path, skin: bool = True) -> None:
         "nodes": [{"name": "strip", "mesh": 0, **({"skin": 0} if skin else {})}, {"name": "lower", "children": [2]},
                   {"name": "upper", "translation": [0.0, 1.0, 0.0]}],
         "meshes": [{"primitives": [{"attributes": attributes, "indices": 3}]}],
-        "buffers": [{"byteLength": len(data), "uri": "data:application/octet-stream;base64," + base64.b64encode(data).decode()}],
-        "bufferViews": [{"buffer": 0, "byteOffset": int(o), "byteLength": b.nbytes} for o, b in zip(offsets, blobs)],
+        "buffers": [{"byteLength": len(data),
+                     "uri": "data:application/octet-stream;base64," + base64.b64encode(data).decode()}],
+        "bufferViews": [{"buffer": 0, "byteOffset": int(o), "byteLength": b.nbytes}
+                        for o, b in zip(offsets[:-1], blobs, strict=True)],  # the last offset is the end of the data
         "accessors": accessors,
     }
     if skin:
@@ -167,9 +170,10 @@ STRIP_EGG = """<CoordinateSystem> { Z-up }
 <Group> strip {
   <Dart> { 1 }
   <VertexPool> strip.verts {
-""" + "".join(f"    <Vertex> {2 * r + k} {{ {x} 0 {0.5 * r} }}\n" for r in range(5) for k, x in enumerate((-0.5, 0.5))) + """  }
-""" + "".join(f"  <Polygon> {{ <VertexRef> {{ {2 * r} {2 * r + 1} {2 * r + 3} {2 * r + 2} <Ref> {{ strip.verts }} }} }}\n"
-              for r in range(4)) + """  <Joint> lower {
+""" + "".join(f"    <Vertex> {2 * r + k} {{ {x} 0 {0.5 * r} }}\n"
+              for r in range(5) for k, x in enumerate((-0.5, 0.5))) + """  }
+""" + "".join(f"  <Polygon> {{ <VertexRef> {{ {2 * r} {2 * r + 1} {2 * r + 3} {2 * r + 2} "
+              f"<Ref> {{ strip.verts }} }} }}\n" for r in range(4)) + """  <Joint> lower {
     <Transform> { <Translate> { 0 0 0 } }
     <VertexRef> { 0 1 2 3 <Ref> { strip.verts } }
     <VertexRef> { 4 5 <Scalar> membership { 0.5 } <Ref> { strip.verts } }
@@ -209,7 +213,8 @@ def test_skinned_model_files_load_their_joints_pivots_and_weights(kind, tmp_path
     pose = torch.stack((IDENTITY.double(), pitch_quat(math.pi / 2)))
     posed, _ = skinning.skin_vertices(mesh, skinning.joint_transforms(mesh, pose))
     top = torch.from_numpy(height > 1.99)
-    torch.testing.assert_close(posed[top, 1:], torch.tensor([[-1.0, 1.0]], dtype=torch.float64).expand(int(top.sum()), 2),
+    torch.testing.assert_close(posed[top, 1:],
+                               torch.tensor([[-1.0, 1.0]], dtype=torch.float64).expand(int(top.sum()), 2),
                                atol=1e-6, rtol=0)
 
 
@@ -273,7 +278,8 @@ def test_gpu_skinning_matches_cpu_reference_within_one_pixel(make_mesh, tmp_path
 
     assert all(reference[w].sum() > 400 for w in range(worlds))  # the meshes fill part of every view
     for w in range(worlds):
-        assert _within_one_pixel(skinned[w], reference[w]), f"world {w}: {(skinned[w] ^ reference[w]).sum()} pixels differ"
+        assert _within_one_pixel(skinned[w], reference[w]), (
+            f"world {w}: {(skinned[w] ^ reference[w]).sum()} pixels differ")
     for w in (1, 2):  # the poses really change the silhouette: the bind pose is no match for them
         assert not _within_one_pixel(reference[0], reference[w])
 
@@ -285,7 +291,8 @@ def test_joints_of_one_world_move_only_that_worlds_instances():
     scene.add_group("people", mesh, capacity=capacity)
     with mr.BatchRenderer(scene) as renderer:
         _look(renderer, worlds)
-        renderer.update("people", position=PLACES.repeat(worlds, 1, 1), active=torch.ones(worlds, capacity, dtype=torch.bool))
+        renderer.update("people", position=PLACES.repeat(worlds, 1, 1),
+                        active=torch.ones(worlds, capacity, dtype=torch.bool))
         before = renderer.render().rgb
         joints = IDENTITY.repeat(worlds, capacity, mesh.num_joints, 1)
         joints[1, 0, mesh.joint_index("right_shoulder")] = pitch_quat(2.0)  # raise one arm, world 1, instance 0
