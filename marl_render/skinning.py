@@ -47,14 +47,17 @@ class SkinnedMesh(MeshData):
         name, n = self.name, len(self.positions)
         joints = len(self.joint_names)
         if joints < 1 or not all(isinstance(j, str) and j for j in self.joint_names):
-            raise ValueError(f"mesh {name!r}: joint_names must be one or more non-empty names, got {self.joint_names!r}")
+            raise ValueError(f"mesh {name!r}: joint_names must be one or more non-empty names, "
+                             f"got {self.joint_names!r}")
         if len(set(self.joint_names)) != joints:
             raise ValueError(f"mesh {name!r}: joint_names must be distinct, got {list(self.joint_names)}")
-        for label, arr, shape, kinds in (("parents", self.parents, (joints,), "iu"), ("pivots", self.pivots, (joints, 3), "f"),
+        for label, arr, shape, kinds in (("parents", self.parents, (joints,), "iu"),
+                                         ("pivots", self.pivots, (joints, 3), "f"),
                                          ("skin_joints", self.skin_joints, (n, MAX_INFLUENCES), "iu"),
                                          ("skin_weights", self.skin_weights, (n, MAX_INFLUENCES), "f")):
             if not isinstance(arr, np.ndarray) or arr.dtype.kind not in kinds:
-                raise TypeError(f"mesh {name!r}: {label} must be a numpy array of {'floating' if kinds == 'f' else 'integer'}"
+                kind = "floating" if kinds == "f" else "integer"
+                raise TypeError(f"mesh {name!r}: {label} must be a numpy array of {kind}"
                                 f" dtype, got {type(arr).__name__ if not isinstance(arr, np.ndarray) else arr.dtype}")
             if arr.shape != shape:
                 raise ValueError(f"mesh {name!r}: {label} must have shape {list(shape)}, got {list(arr.shape)}")
@@ -68,7 +71,7 @@ class SkinnedMesh(MeshData):
                              f"[{self.skin_joints.min()}, {self.skin_joints.max()}]")
         if (self.skin_weights < 0).any() or not np.allclose(self.skin_weights.sum(1), 1.0, atol=1e-4):
             raise ValueError(f"mesh {name!r}: skin_weights must be >= 0 and each row must sum to 1")
-        self.levels  # raises for a cycle
+        _ = self.levels  # computing the levels raises for a cycle
 
     @property
     def num_joints(self) -> int:
@@ -143,7 +146,8 @@ def joint_transforms(mesh: SkinnedMesh, rotations: torch.Tensor) -> torch.Tensor
         parent = parents[joints]
         parent_rotation = rotation[..., parent, :, :]
         rotation[..., joints, :, :] = parent_rotation @ local[..., joints, :, :]
-        translation[..., joints, :] = (parent_rotation @ offset[..., joints, :, None])[..., 0] + translation[..., parent, :]
+        rotated_offset = (parent_rotation @ offset[..., joints, :, None])[..., 0]
+        translation[..., joints, :] = rotated_offset + translation[..., parent, :]
     return torch.cat((rotation, translation[..., None]), dim=-1)
 
 
@@ -222,7 +226,8 @@ def _tube(radius: float, length: float, rings_along: int, segments: int) -> Mesh
         profile.append((radius, radius + straight * j / rings_along, 1.0, 0.0, j / rings_along))
     for j in range(caps + 1):  # top hemisphere
         phi = (math.pi / 2) * j / caps
-        profile.append((radius * math.cos(phi), length - radius + radius * math.sin(phi), math.cos(phi), math.sin(phi), 1.0))
+        profile.append((radius * math.cos(phi), length - radius + radius * math.sin(phi), math.cos(phi), math.sin(phi),
+                        1.0))
     return _lathe("tube", profile, segments)
 
 
@@ -283,7 +288,7 @@ def _assemble(name: str, joint_names, parents, pivots, parts: list[_Part]) -> Sk
         np.concatenate([p.positions for p in parts]).astype(np.float32),
         np.concatenate([p.normals for p in parts]).astype(np.float32),
         np.concatenate([p.uvs for p in parts]).astype(np.float32),
-        np.concatenate([p.triangles + o for p, o in zip(parts, offsets)]).astype(np.int32),
+        np.concatenate([p.triangles + o for p, o in zip(parts, offsets, strict=True)]).astype(np.int32),
         joint_names=tuple(joint_names),
         parents=np.asarray(parents, np.int32),
         pivots=np.asarray(pivots, np.float32).reshape(-1, 3),
