@@ -11,7 +11,7 @@ BENCHMARL_STAMP := $(BENCHMARL_VENV)/.installed
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[bench,test,video,jax,sb3]"
+	$(VENV)/bin/pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[bench,test,video,jax,sb3,gltf]"
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -9,7 +9,6 @@ dtype and device follow the input tensors (float64 like MuJoCo, or float32).
 from __future__ import annotations
 
 import math
-from typing import Tuple
 
 import torch
 from torch import Tensor
@@ -50,20 +49,21 @@ CARTPOLE_INTEGRATORS = ("semi_implicit_euler", "velocity_verlet", "rk4")
 
 
 def cartpole_accel(theta: Tensor, xdot: Tensor, thetadot: Tensor, force: Tensor,
-                   slider_damping: float, hinge_damping: float) -> Tuple[Tensor, Tensor]:
+                   slider_damping: float, hinge_damping: float) -> tuple[Tensor, Tensor]:
     """(x_ddot, theta_ddot) of the cart-pole; theta = 0 upright, > 0 tilts to +x.
 
     Lagrangian with q = (x, theta): mass matrix
     [[M + m, m l cos], [m l cos, I + m l^2]], gravity torque m g l sin(theta),
-    centripetal term m l sin(theta) theta_dot^2 on the cart, viscous joint damping.
+    centripetal term m l sin(theta) theta_dot^2 on the cart, viscous joint damping;
+    l is pole_com (hinge to the pole's centre of mass, `com` below).
     """
     p = CARTPOLE
-    M, m, l, g = p["cart_mass"], p["pole_mass"], p["pole_com"], p["gravity"]
-    J = p["pole_inertia"] + m * l * l
+    M, m, com, g = p["cart_mass"], p["pole_mass"], p["pole_com"], p["gravity"]
+    J = p["pole_inertia"] + m * com * com
     cos, sin = torch.cos(theta), torch.sin(theta)
-    rhs_x = force - slider_damping * xdot + m * l * sin * thetadot * thetadot
-    rhs_t = m * g * l * sin - hinge_damping * thetadot
-    mlc = m * l * cos
+    rhs_x = force - slider_damping * xdot + m * com * sin * thetadot * thetadot
+    rhs_t = m * g * com * sin - hinge_damping * thetadot
+    mlc = m * com * cos
     det = (M + m) * J - mlc * mlc  # > 0 always: (M + m) J > m^2 l^2
     xdd = (J * rhs_x - mlc * rhs_t) / det
     tdd = ((M + m) * rhs_t - mlc * rhs_x) / det
@@ -128,11 +128,11 @@ def cartpole_energy(state: Tensor) -> Tensor:
     Conserved when both dampings are 0 and the action is 0.
     """
     p = CARTPOLE
-    M, m, l, g = p["cart_mass"], p["pole_mass"], p["pole_com"], p["gravity"]
-    J = p["pole_inertia"] + m * l * l
+    M, m, com, g = p["cart_mass"], p["pole_mass"], p["pole_com"], p["gravity"]
+    J = p["pole_inertia"] + m * com * com
     theta, xdot, thetadot = state[..., 1], state[..., 2], state[..., 3]
-    kinetic = 0.5 * (M + m) * xdot ** 2 + m * l * torch.cos(theta) * xdot * thetadot + 0.5 * J * thetadot ** 2
-    return kinetic + m * g * l * torch.cos(theta)
+    kinetic = 0.5 * (M + m) * xdot ** 2 + m * com * torch.cos(theta) * xdot * thetadot + 0.5 * J * thetadot ** 2
+    return kinetic + m * g * com * torch.cos(theta)
 
 
 SLIDER_LIMIT = 1.8  # m, dm_control cartpole.xml slider range
@@ -144,10 +144,10 @@ def slider_limit(q: Tensor, limit: float = SLIDER_LIMIT) -> Tensor:
     x, theta, xdot, thetadot = q.unbind(-1)
     hit = ((x > limit) & (xdot > 0)) | ((x < -limit) & (xdot < 0))
     p = CARTPOLE
-    m, l = p["pole_mass"], p["pole_com"]
-    J = p["pole_inertia"] + m * l * l
+    m, com = p["pole_mass"], p["pole_com"]
+    J = p["pole_inertia"] + m * com * com
     zero = torch.zeros_like(xdot)
-    thetadot = torch.where(hit, thetadot + m * l * torch.cos(theta) / J * xdot, thetadot)
+    thetadot = torch.where(hit, thetadot + m * com * torch.cos(theta) / J * xdot, thetadot)
     xdot = torch.where(hit, zero, xdot)
     x = x.clamp(-limit, limit)
     return torch.stack((x, theta, xdot, thetadot), -1)

@@ -551,8 +551,9 @@ class BatchedEnv(abc.ABC):
 
     def __repr__(self):
         kind = f"continuous action_dim={self.action_dim}" if self.continuous else f"num_actions={self.num_actions}"
-        return (f"{type(self).__name__}(name={self.name!r}, num_worlds={self.num_worlds}, num_agents={self.num_agents}, "
-                f"resolution={self.resolution}, {kind}, obs_keys={self.obs_keys}, max_steps={self.max_steps})")
+        return (f"{type(self).__name__}(name={self.name!r}, num_worlds={self.num_worlds}, "
+                f"num_agents={self.num_agents}, resolution={self.resolution}, {kind}, obs_keys={self.obs_keys}, "
+                f"max_steps={self.max_steps})")
 
     # ================================================================== internals
     def _counters(self) -> dict:

@@ -39,7 +39,6 @@ import math
 import torch
 
 import marl_render as mr
-
 from marl_render.validation import positive_float, positive_int
 
 from . import scenery
@@ -101,7 +100,7 @@ class Forage(ArenaEnv):
 
     def _item_spawn(self, agent_pos: torch.Tensor) -> torch.Tensor:
         """Random item positions [W, I, 2] clear of agent_pos [W, N, 2] (uses self.generator)."""
-        W, I, M = self.num_worlds, self.num_items, RESPAWN_CANDIDATES
+        W, I, M = self.num_worlds, self.num_items, RESPAWN_CANDIDATES  # noqa: E741 (I: items, the shape letter)
         candidates = ((torch.rand(W, I * M, 2, generator=self.generator) * 2 - 1) * SPAWN).to(self.device)
         clear = (torch.cdist(candidates, agent_pos) > RESPAWN_CLEARANCE).all(-1).reshape(W, I, M)
         clear[..., -1] = True  # fallback: the last candidate

@@ -56,8 +56,9 @@ dtype and device always follow the input tensors (float32 or float64).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Dict, NamedTuple, Optional, Tuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -137,7 +138,7 @@ class PhysicsConfig:
     friction: float = 0.0
     drag: float = 0.0
     gravity: float = 9.81
-    arena_half_extent: Tuple[float, float] = (1.0, 1.0)
+    arena_half_extent: tuple[float, float] = (1.0, 1.0)
     max_speed: float = 2.0
     min_body_radius: float = 0.05
     solver_iterations: int = 4
@@ -221,10 +222,10 @@ class BodyState(NamedTuple):
         cls,
         pos: Tensor,
         radius,
-        vel: Optional[Tensor] = None,
+        vel: Tensor | None = None,
         mass=1.0,
         active=True,
-    ) -> "BodyState":
+    ) -> BodyState:
         """Convenience constructor: scalars broadcast to ``[W, B]``."""
         W, B = pos.shape[:2]
         like = dict(dtype=pos.dtype, device=pos.device)
@@ -265,7 +266,7 @@ def clamp_norm(v: Tensor, max_norm) -> Tensor:
     return v * (max_norm / v.norm(dim=-1, keepdim=True)).clamp(max=1.0)
 
 
-def check_scene(state: BodyState, obstacles: Optional[Obstacles], cfg: PhysicsConfig) -> None:
+def check_scene(state: BodyState, obstacles: Obstacles | None, cfg: PhysicsConfig) -> None:
     """Setup-time sanity check (syncs with the device; call at reset, not per step).
 
     Raises ValueError if shapes disagree, if an active body is smaller than
@@ -461,7 +462,7 @@ def _walls(state, obstacles, cfg, h):
 
 
 #: Term builders by name, looked up at call time and only for declared terms.
-TERMS: Dict[str, Callable] = {
+TERMS: dict[str, Callable] = {
     "drag": _drag,
     "friction": _friction,
     "body_collisions": _body_collisions,
@@ -474,7 +475,7 @@ TERMS: Dict[str, Callable] = {
 # Stepping
 # --------------------------------------------------------------------------
 
-def step(state: BodyState, force: Tensor, obstacles: Optional[Obstacles], cfg: PhysicsConfig) -> BodyState:
+def step(state: BodyState, force: Tensor, obstacles: Obstacles | None, cfg: PhysicsConfig) -> BodyState:
     """Advance all worlds by ``cfg.dt`` in ``cfg.substeps`` substeps.
 
     ``force`` [W, B, 2] (N) is held constant over the step. ``obstacles`` may be

@@ -47,7 +47,6 @@ import math
 import torch
 
 import marl_render as mr
-
 from marl_render.validation import positive_float
 
 from . import scenery

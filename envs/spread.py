@@ -30,7 +30,6 @@ import math
 import torch
 
 import marl_render as mr
-
 from marl_render.validation import positive_float, positive_int
 
 from . import scenery

@@ -57,7 +57,6 @@ import math
 import torch
 
 import marl_render as mr
-
 from marl_render.validation import positive_float, positive_int
 
 from . import planar, scenery

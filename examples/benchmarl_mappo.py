@@ -54,7 +54,8 @@ def main():
                             model_config=CnnConfig.get_from_yaml(), critic_model_config=CnnConfig.get_from_yaml(),
                             seed=args.seed, config=config)
     experiment.run()
-    print(f"{experiment.n_iters_performed} iterations, {experiment.total_frames} frames; logs in {experiment.folder_name}")
+    print(f"{experiment.n_iters_performed} iterations, {experiment.total_frames} frames; "
+          f"logs in {experiment.folder_name}")
 
 
 if __name__ == "__main__":

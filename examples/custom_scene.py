@@ -29,8 +29,8 @@ renderer.update("robots", position=torch.tensor([[-1.5, 0, 0.7], [1.5, 0, 0.7]])
                 rotation=mr.quat_from_yaw_pitch_roll(yaw), active=torch.ones(worlds, agents, dtype=torch.bool),
                 color=torch.tensor([[0.9, 0.2, 0.2], [0.2, 0.3, 0.9]]).repeat(worlds, 1, 1))
 balls = torch.rand(worlds, 3, 3) * torch.tensor([1.0, 0.6, 0.0]) - torch.tensor([0.5, 0.3, -0.95])
-renderer.update("balls", position=balls, scale=torch.full((worlds, 3, 3), 0.2), active=torch.ones(worlds, 3, dtype=torch.bool),
-                color=torch.rand(worlds, 3, 3))
+renderer.update("balls", position=balls, scale=torch.full((worlds, 3, 3), 0.2),
+                active=torch.ones(worlds, 3, dtype=torch.bool), color=torch.rand(worlds, 3, 3))
 rgb = renderer.render().rgb  # [worlds, 2, H, W, 3] uint8
 grid = rgb.permute(0, 2, 1, 3, 4).reshape(worlds * rgb.shape[2], agents * rgb.shape[3], 3)  # worlds down, agents across
 os.makedirs(args.out, exist_ok=True)

@@ -42,7 +42,8 @@ def random_poses(renderer, scene, generator):
         position[..., 2] = 0.5
         yaw = torch.rand(W, C, generator=generator) * 2 * math.pi
         hue = torch.arange(C, dtype=torch.float32) / C
-        color = torch.stack((0.5 + 0.5 * torch.cos(2 * math.pi * hue), 0.5 + 0.5 * torch.cos(2 * math.pi * (hue - 1 / 3)),
+        color = torch.stack((0.5 + 0.5 * torch.cos(2 * math.pi * hue),
+                             0.5 + 0.5 * torch.cos(2 * math.pi * (hue - 1 / 3)),
                              0.5 + 0.5 * torch.cos(2 * math.pi * (hue - 2 / 3))), -1).expand(W, C, 3)
         renderer.update(name, position=position, rotation=mr.quat_from_yaw_pitch_roll(yaw),
                         active=torch.ones(W, C, dtype=torch.bool), color=color)
@@ -54,7 +55,8 @@ def save_grid(rgb: torch.Tensor, path: str, scale: int = 2) -> None:
     canvas = np.full((worlds * (h + 2), agents * (w + 2), 3), 255, dtype=np.uint8)
     for world in range(worlds):  # a handful of tiles for a picture, not a hot path
         for agent in range(agents):
-            canvas[world * (h + 2): world * (h + 2) + h, agent * (w + 2): agent * (w + 2) + w] = rgb[world, agent].numpy()
+            top, left = world * (h + 2), agent * (w + 2)
+            canvas[top: top + h, left: left + w] = rgb[world, agent].numpy()
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     Image.fromarray(canvas).resize((canvas.shape[1] * scale, canvas.shape[0] * scale), Image.NEAREST).save(path)
 

@@ -114,7 +114,7 @@ def act(envs, actions: np.ndarray, repeat: int):
     its final frame. Cartpole's worlds all start together and end only at max_steps, so
     they stay in step with each other."""
     total = np.zeros(envs.num_envs, dtype=np.float32)
-    for taken in range(1, repeat + 1):
+    for taken in range(1, repeat + 1):  # noqa: B007 (returned below: the steps taken)
         obs, reward, terminated, truncated, _ = envs.step(actions)
         total += reward
         if (terminated | truncated).any():
@@ -157,8 +157,9 @@ def plot(curve, levels: dict, args):
     """curve.png: training episode returns against environment steps, and horizontal levels."""
     figure, axes = plt.subplots(figsize=(6, 3.6))
     if curve:
-        axes.plot(*zip(*curve), marker="o", label="training episodes (sampled actions)")
-    for (label, level), (color, style) in zip(levels.items(), (("grey", "--"), ("orange", "-."), ("green", ":"))):
+        axes.plot(*zip(*curve, strict=True), marker="o", label="training episodes (sampled actions)")
+    styles = (("grey", "--"), ("orange", "-."), ("green", ":"))  # one per level
+    for (label, level), (color, style) in zip(levels.items(), styles, strict=True):
         axes.axhline(level, color=color, linestyle=style, label=label)
     axes.set_xlabel("environment steps (all worlds)")
     axes.set_ylabel(f"episode return ({args.max_steps} steps)")
@@ -247,7 +248,7 @@ def main():
 
         size = len(b_actions)
         minibatch = size // args.minibatches
-        for epoch in range(args.epochs):
+        for _ in range(args.epochs):
             order = torch.randperm(size)
             for start in range(0, size - minibatch + 1, minibatch):
                 index = order[start:start + minibatch]

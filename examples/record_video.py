@@ -32,7 +32,7 @@ def frame_image(pixels: torch.Tensor, overview: torch.Tensor, labels: list, scal
     image = Image.fromarray(torch.cat((column, side.permute(1, 2, 0).to(torch.uint8)), dim=1).numpy())
     width = views.shape[2]
     boxes = [(0, i * tile, width, (i + 1) * tile) for i in range(len(labels))] + [(width, 0, image.width, height)]
-    for box, label in zip(boxes, list(labels) + ["overview"]):  # a few tiles per frame
+    for box, label in zip(boxes, list(labels) + ["overview"], strict=True):  # a few tiles per frame
         part = image.crop(box)  # drawn on its own, so a long label cannot spill into the next tile
         draw = ImageDraw.Draw(part)
         draw.rectangle((0, 0, part.width - 1, part.height - 1), outline=(25, 25, 25))
@@ -44,7 +44,7 @@ def frame_image(pixels: torch.Tensor, overview: torch.Tensor, labels: list, scal
 def agent_labels(env) -> list:
     """Agent names of world 0, marked "(left)" for agents that left the episode."""
     alive = env.alive[0].tolist()
-    return [name if up else f"{name} (left)" for name, up in zip(env.agent_names, alive)]
+    return [name if up else f"{name} (left)" for name, up in zip(env.agent_names, alive, strict=True)]
 
 
 def parse_args(argv=None):
@@ -71,7 +71,7 @@ def main(argv=None):
     generator = torch.Generator().manual_seed(args.seed)
     obs = env.reset(seed=args.seed)
     frames = [frame_image(obs["pixels"][0], env.render_overview()[0], agent_labels(env), args.scale, font)]
-    for step in range(args.steps):
+    for _ in range(args.steps):
         obs, reward, terminated, truncated, info = env.step(env.random_actions(generator))
         frames.append(frame_image(obs["pixels"][0], env.render_overview()[0], agent_labels(env), args.scale, font))
         if bool((terminated | truncated).all()):

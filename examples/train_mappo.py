@@ -129,7 +129,8 @@ def main():
     state_dim = env.observation_spec[GROUP, "state"].shape[-1]
 
     actor = ProbabilisticActor(
-        TensorDictModule(PixelActor(args.resolution, actions), in_keys=[(GROUP, "pixels")], out_keys=[(GROUP, "logits")]),
+        TensorDictModule(PixelActor(args.resolution, actions), in_keys=[(GROUP, "pixels")],
+                         out_keys=[(GROUP, "logits")]),
         in_keys=[(GROUP, "logits")], out_keys=[(GROUP, "action")], distribution_class=torch.distributions.Categorical,
         return_log_prob=True, log_prob_key=(GROUP, "sample_log_prob"), spec=env.full_action_spec[GROUP, "action"])
     critic = TensorDictModule(CentralCritic(args.agents, state_dim), in_keys=[(GROUP, "state")],
@@ -153,13 +154,15 @@ def main():
     budget = args.minutes * 60
     start = time.perf_counter()
     curve = []  # (seconds, agent-frames, mean reward per agent-step, mean return of the episodes ended or None)
-    progress = tqdm(total=int(budget), unit="s", desc="training", bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt}s {postfix}")
+    progress = tqdm(total=int(budget), unit="s", desc="training",
+                    bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt}s {postfix}")
     agent_frames, running, last_return = 0, torch.zeros(args.worlds), float("nan")
     for batch in collector:
         ended, running = completed_episodes(batch, running)
         batch = batch.reshape(-1)  # [worlds * rollout] samples, each with its N agents
         with torch.no_grad():
-            loss.value_estimator(batch, params=loss.critic_network_params, target_params=loss.target_critic_network_params)
+            loss.value_estimator(batch, params=loss.critic_network_params,
+                                 target_params=loss.target_critic_network_params)
         for _ in range(args.epochs):
             for index in torch.randperm(len(batch)).split(args.minibatch):
                 terms = loss(batch[index])
@@ -208,8 +211,10 @@ def plot(curve, result, path):
     ended = [(seconds / 60, episode_return) for seconds, _, _, episode_return in curve if episode_return is not None]
     fig, ax = plt.subplots(figsize=(6, 3.6))
     ax.plot([m for m, _ in ended], [r for _, r in ended], marker=".", label="training episodes (sampled actions)")
-    ax.axhline(result["random_return"], color="gray", linestyle="--", label=f"random policy ({result['random_return']:.1f})")
-    ax.axhline(result["trained_return"], color="green", linestyle=":", label=f"trained, greedy ({result['trained_return']:.1f})")
+    ax.axhline(result["random_return"], color="gray", linestyle="--",
+               label=f"random policy ({result['random_return']:.1f})")
+    ax.axhline(result["trained_return"], color="green", linestyle=":",
+               label=f"trained, greedy ({result['trained_return']:.1f})")
     ax.set_xlabel("minutes of training (2 CPU cores)")
     ax.set_ylabel("episode return per agent")
     ax.set_title(f"MAPPO on spread from {result['resolution']}x{result['resolution']} pixels, "

@@ -37,7 +37,11 @@ def pair_list(mask: torch.Tensor) -> torch.Tensor:
 
 
 def mesh_radius(mesh) -> float:
-    """Radius of a sphere about the mesh origin that contains the whole mesh."""
+    """Radius of a sphere about the mesh origin that contains the whole mesh (in every pose,
+    for a skinned mesh)."""
+    pose_radius = getattr(mesh, "pose_radius", None)
+    if pose_radius is not None:
+        return pose_radius
     positions = getattr(mesh, "positions", None)
     if positions is not None:
         return float((positions.astype("float64") ** 2).sum(axis=1).max() ** 0.5) if len(positions) else 0.0

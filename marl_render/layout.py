@@ -66,6 +66,10 @@ INSTANCE = RowLayout("INSTANCE", 4, {
     "color": Field(3),
 })
 
+# A skinned group's rows carry one 3x4 bind-to-pose matrix (JOINT_TEXELS texels, one row of
+# the matrix each) per joint, after the INSTANCE fields.
+JOINT_TEXELS = 3
+
 # One row per instance of a static group, shared by every world: the absolute position
 # in two float32s (hi + lo) so that scenes far from 0 keep sub-millimetre precision.
 STATIC_INSTANCE = RowLayout("STATIC", 5, {
@@ -91,7 +95,18 @@ VIEW_PROJECTION_TEXELS = 4
 
 
 
-def glsl_defines(*, static: bool) -> tuple[str, ...]:
+def instance_texels(*, static: bool, joints: int = 0) -> int:
+    """Texels of one instance row: a static one, or a moving one with `joints` joint matrices."""
+    return STATIC_INSTANCE.texels if static else INSTANCE.texels + JOINT_TEXELS * joints
+
+
+def glsl_defines(*, static: bool, joints: int = 0) -> tuple[str, ...]:
     """The layout's #define lines (without "#define ") for a shader variant: the rows of its
-    instance buffer as ROW_* (STATIC_INSTANCE for static groups, else INSTANCE) and VIEW_*."""
-    return (STATIC_INSTANCE if static else INSTANCE).defines("ROW") + VIEW.defines()
+    instance buffer as ROW_* (STATIC_INSTANCE for static groups, else INSTANCE), ROW_TEXELS
+    with the joints of a skinned group (FIRST_JOINT_TEXEL, JOINT_TEXELS), and VIEW_*."""
+    table = STATIC_INSTANCE if static else INSTANCE
+    row = tuple(line for line in table.defines("ROW") if not line.startswith("ROW_TEXELS "))
+    row += (f"ROW_TEXELS {instance_texels(static=static, joints=joints)}",)
+    if joints:
+        row += (f"FIRST_JOINT_TEXEL {INSTANCE.texels}", f"JOINT_TEXELS {JOINT_TEXELS}")
+    return row + VIEW.defines()

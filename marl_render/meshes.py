@@ -82,7 +82,8 @@ def box() -> MeshData:
                 uvs.append((u + 0.5, v + 0.5))
             quad = [(base, base + 1, base + 2), (base, base + 2, base + 3)]
             # Counter-clockwise seen from outside.
-            if np.dot(np.cross(positions[base + 1] - positions[base], positions[base + 2] - positions[base]), normal) < 0:
+            edges = positions[base + 1] - positions[base], positions[base + 2] - positions[base]
+            if np.dot(np.cross(*edges), normal) < 0:
                 quad = [(a, c, b) for a, b, c in quad]
             triangles.extend(quad)
     return _mesh("box", positions, normals, uvs, triangles)
@@ -159,23 +160,44 @@ def capsule(radius: float = 0.25, length: float = 1.0, segments: int = 16, rings
     profile = []
     for j in range(rings + 1):  # bottom hemisphere
         phi = -math.pi / 2 + (math.pi / 2) * j / rings
-        profile.append((radius * math.cos(phi), -half + radius * math.sin(phi), math.cos(phi), math.sin(phi), 0.5 * j / rings))
+        profile.append((radius * math.cos(phi), -half + radius * math.sin(phi), math.cos(phi), math.sin(phi),
+                        0.5 * j / rings))
     for j in range(rings + 1):  # top hemisphere
         phi = (math.pi / 2) * j / rings
-        profile.append((radius * math.cos(phi), half + radius * math.sin(phi), math.cos(phi), math.sin(phi), 0.5 + 0.5 * j / rings))
+        profile.append((radius * math.cos(phi), half + radius * math.sin(phi), math.cos(phi), math.sin(phi),
+                        0.5 + 0.5 * j / rings))
     return _lathe("capsule", profile, segments)
 
 
 PROCEDURAL = {"box": box, "sphere": sphere, "cylinder": cylinder, "capsule": capsule, "cone": cone, "plane": plane}
 
 
-def to_panda_geom(mesh: MeshData):
-    """Build a Panda3D GeomNode (vertex format v3n3t2) from mesh arrays in one copy each."""
-    from panda3d.core import Geom, GeomNode, GeomTriangles, GeomVertexData, GeomVertexFormat
+def to_panda_geom(mesh: MeshData, extra: dict | None = None):
+    """Build a Panda3D GeomNode (vertex format v3n3t2) from mesh arrays in one copy each.
 
-    vdata = GeomVertexData(mesh.name, GeomVertexFormat.get_v3n3t2(), Geom.UH_static)
+    extra: more float32 [N, k] vertex columns by name, interleaved after the uvs (a
+    shader reads column NAME as `in vecK NAME`)."""
+    from panda3d.core import (
+        Geom,
+        GeomNode,
+        GeomTriangles,
+        GeomVertexArrayFormat,
+        GeomVertexData,
+        GeomVertexFormat,
+        InternalName,
+    )
+
+    columns = [mesh.positions, mesh.normals, mesh.uvs]
+    vertex_format = GeomVertexFormat.get_v3n3t2()
+    if extra:
+        array_format = GeomVertexArrayFormat(vertex_format.get_array(0))
+        for name, values in extra.items():
+            array_format.add_column(InternalName.make(name), values.shape[1], Geom.NT_float32, Geom.C_other)
+            columns.append(values)
+        vertex_format = GeomVertexFormat.register_format(array_format)
+    vdata = GeomVertexData(mesh.name, vertex_format, Geom.UH_static)
     vdata.unclean_set_num_rows(len(mesh.positions))
-    interleaved = np.concatenate((mesh.positions, mesh.normals, mesh.uvs), axis=1).astype(np.float32)
+    interleaved = np.concatenate(columns, axis=1).astype(np.float32)
     array = vdata.modify_array(0)
     memoryview(array).cast("B")[:] = interleaved.tobytes()
     prim = GeomTriangles(Geom.UH_static)
@@ -207,7 +229,7 @@ spec = importlib.util.spec_from_file_location("marl_render_model_child", sys.arg
 module = importlib.util.module_from_spec(spec)
 sys.modules[spec.name] = module
 spec.loader.exec_module(module)
-module._write_model_arrays(sys.argv[2], sys.argv[3])
+getattr(module, sys.argv[4])(sys.argv[2], sys.argv[3])
 """
 
 
@@ -219,6 +241,13 @@ def load_model(path, *, name: str = "mesh") -> MeshData:
     regular file, not a model, corrupt or without triangles, or that references a texture
     file that is not a complete image (textures that cannot be found are left out, as
     Panda3D does); every message names `name` and the file."""
+    path, result = _arrays_from_child(path, name, "_write_model_arrays")
+    return _mesh(os.path.basename(path), result["positions"], result["normals"], result["uvs"], result["triangles"])
+
+
+def _arrays_from_child(path, name: str, writer: str) -> tuple[str, dict]:
+    """(absolute path, arrays) that the function `writer` of this module saved after
+    parsing the model file in a child process; errors as load_model documents them."""
     import subprocess
     import sys
     import tempfile
@@ -229,7 +258,7 @@ def load_model(path, *, name: str = "mesh") -> MeshData:
     with tempfile.TemporaryDirectory(prefix="marl_render_model_") as folder:
         output = os.path.join(folder, "arrays.npz")
         try:
-            child = subprocess.run([sys.executable, "-c", _CHILD_BOOTSTRAP, __file__, path, output],
+            child = subprocess.run([sys.executable, "-c", _CHILD_BOOTSTRAP, __file__, path, output, writer],
                                    stdin=subprocess.DEVNULL, capture_output=True, timeout=MODEL_LOAD_TIMEOUT)
         except subprocess.TimeoutExpired:
             raise ValueError(f"{name}: model file {path!r} was still loading after {MODEL_LOAD_TIMEOUT:.0f} s; "
@@ -249,7 +278,7 @@ def load_model(path, *, name: str = "mesh") -> MeshData:
             reason = f"is not a model file: Panda3D has no loader for its extension {os.path.splitext(path)[1]!r}"
             log = ""  # its list of every known extension is too long for a message
         raise ValueError(f"{name}: model file {path!r} {reason}.{_messages(log)}")
-    return _mesh(os.path.basename(path), result["positions"], result["normals"], result["uvs"], result["triangles"])
+    return path, result
 
 
 def _textures_in_log(log: str) -> list[str]:
@@ -303,8 +332,130 @@ def _write_model_arrays(path: str, output: str) -> None:
         return
     offsets = np.cumsum([0] + [len(part[0]) for part in parts[:-1]])
     positions, normals, uvs = (np.concatenate([part[k] for part in parts]) for k in range(3))
-    triangles = np.concatenate([part[3] + offset for part, offset in zip(parts, offsets)])
+    triangles = np.concatenate([part[3] + offset for part, offset in zip(parts, offsets, strict=True)])
     np.savez(output, positions=positions, normals=normals, uvs=uvs, triangles=triangles)
+
+
+def _write_skin_arrays(path: str, output: str) -> None:
+    """In the child process: the triangles and the skin of a skinned model (.gltf/.glb through
+    panda3d-gltf, .egg/.bam characters through Panda3D) saved to `output` (.npz).
+
+    The joints are those the vertices follow plus the joints between them (parents before
+    children); pivots are the joints' bind-pose positions in the model's frame. Geometry
+    without skin follows an extra root joint "(model)" at the origin."""
+    from panda3d.core import GeomVertexReader, InternalName, LMatrix4f, NodePath
+
+    if path.lower().endswith((".gltf", ".glb")):
+        try:
+            import gltf
+        except ImportError:
+            np.savez(output, error="is a glTF file, and skinned glTF needs the panda3d-gltf package "
+                                   "(pip install 'marl-render[gltf]')")
+            return
+        model = NodePath(gltf.load_model(path))
+    else:
+        from panda3d.core import Filename, Loader, LoaderOptions
+
+        options = LoaderOptions(LoaderOptions.LF_no_cache | LoaderOptions.LF_report_errors)
+        node = Loader.get_global_ptr().load_sync(Filename.from_os_specific(path), options)
+        if node is None:
+            np.savez(output, error="could not be loaded by Panda3D (not a model file, or a corrupt one)")
+            return
+        model = NodePath(node)
+    parts, joints, skin_matrix = [], {}, None  # joints: pointer -> CharacterJoint
+    for geom_node in model.find_all_matches("**/+GeomNode"):
+        matrix = geom_node.get_net_transform().get_mat()
+        for geom in geom_node.node().get_geoms():
+            vertex_data = geom.get_vertex_data()
+            table = vertex_data.get_transform_blend_table()
+            influences = []  # per vertex: [(joint pointer, weight)]
+            if table is not None:
+                if skin_matrix is not None and not skin_matrix.almost_equal(matrix):
+                    np.savez(output, error="has skinned meshes under different node transforms (not supported)")
+                    return
+                skin_matrix = LMatrix4f(matrix)
+                reader = GeomVertexReader(vertex_data, InternalName.get_transform_blend())
+                blends = []
+                for index in range(table.get_num_blends()):
+                    blend = table.get_blend(index)
+                    pairs = []
+                    for k in range(blend.get_num_transforms()):
+                        transform = blend.get_transform(k)
+                        if type(transform).__name__ != "JointVertexTransform":
+                            continue  # not a joint (a character without a skeleton has user transforms)
+                        joint = transform.get_joint()
+                        joints[joint.this] = joint
+                        pairs.append((joint.this, blend.get_weight(k)))
+                    blends.append(pairs)
+                influences = [blends[reader.get_data1i()] for _ in range(vertex_data.get_num_rows())]
+            arrays = _geom_arrays(geom, matrix)
+            if len(arrays[3]):
+                parts.append((*arrays, influences))
+    if not parts:
+        np.savez(output, error="contains no triangles")
+        return
+    if not joints:
+        np.savez(output, error="has no skin (no vertex follows a joint); load it with load_model")
+        return
+    # Parents from the joints' children, then every joint below the followed ones, roots first.
+    parent = {}
+    pending = list(joints.values())
+    while pending:
+        joint = pending.pop()
+        for child in joint.get_children():
+            if type(child).__name__ == "CharacterJoint":
+                parent[child.this] = joint.this
+                if child.this not in joints:
+                    joints[child.this] = child
+                    pending.append(child)
+    order, frontier = [], [key for key in joints if key not in parent]
+    while frontier:
+        order += frontier
+        frontier = [key for key in joints if parent.get(key) in frontier]
+    index = {key: k for k, key in enumerate(order)}
+    model_joint = len(order)  # the extra root of vertices that follow no joint, if there are any
+    skin_joints, skin_weights = [], []
+    for part in parts:
+        count = len(part[0])
+        part_joints = np.full((count, 4), model_joint, np.int64)
+        part_weights = np.zeros((count, 4))
+        for row, pairs in enumerate(part[4]):
+            heaviest = sorted(pairs, key=lambda pair: -pair[1])[:4]  # at most four influences
+            for k, (key, weight) in enumerate(heaviest):
+                part_joints[row, k], part_weights[row, k] = index[key], weight
+        total = part_weights.sum(1, keepdims=True)
+        part_weights = np.divide(part_weights, total, out=np.zeros_like(part_weights), where=total > 0)
+        part_joints[total[:, 0] <= 0] = model_joint
+        part_weights[total[:, 0] <= 0, 0] = 1.0
+        skin_joints.append(part_joints)
+        skin_weights.append(part_weights)
+    skin_joints, skin_weights = np.concatenate(skin_joints), np.concatenate(skin_weights)
+    unskinned = bool(((skin_joints == model_joint) & (skin_weights > 0)).any())
+    names, seen = [], set()
+    for key in order:
+        label = joints[key].get_name() or "joint"
+        while label in seen:  # joint names must be distinct
+            label += "'"
+        seen.add(label)
+        names.append(label)
+    pivots = []
+    for key in order:
+        net = LMatrix4f()
+        joints[key].get_net_transform(net)
+        pivots.append(tuple(skin_matrix.xform_point(net.get_row3(3))))
+    parents = [index.get(parent.get(key), -1) for key in order]
+    if unskinned:
+        names.append("(model)")
+        pivots.append((0.0, 0.0, 0.0))
+        parents.append(-1)
+    else:  # unused slots (weight 0) must still name a joint
+        skin_joints[skin_joints == model_joint] = 0
+    offsets = np.cumsum([0] + [len(part[0]) for part in parts[:-1]])
+    positions, normals, uvs = (np.concatenate([part[k] for part in parts]) for k in range(3))
+    triangles = np.concatenate([part[3] + offset for part, offset in zip(parts, offsets, strict=True)])
+    np.savez(output, positions=positions, normals=normals, uvs=uvs, triangles=triangles,
+             joint_names=np.array(names), parents=np.array(parents), pivots=np.array(pivots, dtype=np.float64),
+             skin_joints=skin_joints, skin_weights=skin_weights)
 
 
 def _geom_arrays(geom, matrix):

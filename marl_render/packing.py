@@ -20,7 +20,7 @@ from typing import Protocol
 
 import torch
 
-from . import layout
+from . import layout, skinning
 from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
 from .scene import Scene, StaticGroup
 from .tiling import TileLayout
@@ -62,6 +62,7 @@ class GroupPacking:
     count: int  # instances per world (static: in total)
     static: bool
     radius: float  # bounding sphere of the mesh at unit scale
+    joints: int  # joint matrices per instance row (skinned groups; static ones are drawn in the bind pose)
     pass_ranges: list | None = None  # [(first pair, pair count)] per pass
     frustum_pause: int = 0  # frames left without frustum tests (see CULL_KEEPS)
     frustum_culled: bool = False  # whether the current pair list came from a frustum test
@@ -102,22 +103,24 @@ class FramePacker:
                 "active": torch.zeros(W, C, dtype=torch.bool),
                 "owner": torch.full((W, C), -1, dtype=torch.int64),
             }
+            if isinstance(group.mesh, skinning.SkinnedMesh):  # the bind pose: every joint unrotated
+                state["joints"] = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(W, C, group.mesh.num_joints, 1)
             if mount is not None and mount.group == name and mount.hide_owner:
                 state["owner"][:, list(mount.instance)] = torch.arange(A)
             self.state[name] = state
         # Static groups first, in declaration order: the draw order of the backend.
         self.groups: dict[str, GroupPacking] = {}
         for group in scene.static.values():
-            self.groups[group.name] = GroupPacking(group.count, True, mesh_radius(group.mesh))
+            self.groups[group.name] = GroupPacking(group.count, True, mesh_radius(group.mesh), 0)
         for group in scene.groups.values():
-            self.groups[group.name] = GroupPacking(group.capacity, False, mesh_radius(group.mesh))
+            joints = group.mesh.num_joints if isinstance(group.mesh, skinning.SkinnedMesh) else 0
+            self.groups[group.name] = GroupPacking(group.capacity, False, mesh_radius(group.mesh), joints)
         # Where each field goes, as index tuples into rows viewed as [..., texels, 4], read
         # from layout.py once (a lookup per field and frame cost ~10% of the pack stage).
         self._instance_rows = _indices(layout.INSTANCE, leading=2)
         self._static_rows = _indices(layout.STATIC_INSTANCE, leading=1)
         self._view_rows = _indices(layout.VIEW, leading=1)
-        self._texels = {"instance": layout.INSTANCE.texels, "static": layout.STATIC_INSTANCE.texels,
-                        "view": layout.VIEW.texels}
+        self._texels = {"instance": layout.INSTANCE.texels, "view": layout.VIEW.texels}
         first = layout.VIEW.fields["projection"].texel
         self._view_rows["projection"] = (slice(None), slice(first, first + layout.VIEW_PROJECTION_TEXELS))
         self.planes = None  # frustum planes [W, A, 6, 4] of the current cameras
@@ -133,7 +136,7 @@ class FramePacker:
         """Texels of the group's instance buffer."""
         packing = self.groups[group]
         rows = packing.count if packing.static else self.scene.num_worlds * packing.count
-        return rows * self._texels["static" if packing.static else "instance"]
+        return rows * layout.instance_texels(static=packing.static, joints=packing.joints)
 
     def pair_capacity(self, group: str) -> int:
         return self.scene.num_views * self.groups[group].count
@@ -143,7 +146,7 @@ class FramePacker:
 
     # ------------------------------------------------------------------ updates
     def update(self, group: str, *, position=None, rotation=None, scale=None, color=None, active=None,
-               owner=None) -> None:
+               owner=None, joints=None) -> None:
         """See BatchRenderer.update: everything is validated before anything is stored."""
         self.check_group(group)
         state = self.state[group]
@@ -178,6 +181,12 @@ class FramePacker:
             signed = owner if owner.dtype.is_signed else owner.double()
             check_range("owner", signed, -1, self.scene.agents_per_world - 1)
             staged["owner"] = owner.to(torch.int64)
+        if joints is not None:
+            if "joints" not in state:
+                raise ValueError(f"joints can only be set on a group whose mesh is a SkinnedMesh; group {group!r} "
+                                 "has a rigid mesh")
+            joints = _float_arg("joints", joints, state["joints"].shape)
+            staged["joints"] = normalize_quat(joints.to(torch.float64), name="joints").to(torch.float32)
         for key, value in staged.items():
             state[key].copy_(value)
         if staged:
@@ -236,7 +245,7 @@ class FramePacker:
     def pack_static(self, group: StaticGroup, target: torch.Tensor) -> None:
         """A static group's rows (once: they never change), its absolute positions as hi + lo."""
         row = self._static_rows
-        memory = target.view(group.count, self._texels["static"], 4)
+        memory = target.view(group.count, layout.instance_texels(static=True), 4)
         hi = group.position.to(torch.float32)
         memory[row["position"]] = hi
         memory[row["active"]] = 1.0
@@ -316,13 +325,17 @@ class FramePacker:
     def _pack_group(self, name: str, target: torch.Tensor):
         state, row = self.state[name], self._instance_rows
         W, C = state["active"].shape
-        memory = target.view(W, C, self._texels["instance"], 4)
+        joints = self.groups[name].joints
+        memory = target.view(W, C, self._texels["instance"] + layout.JOINT_TEXELS * joints, 4)
         memory[row["position"]] = state["position"] - self.world_origin[:, None]
         memory[row["active"]] = state["active"]
         memory[row["rotation"]] = state["rotation"]
         memory[row["scale"]] = state["scale"]
         memory[row["owner"]] = state["owner"]
         memory[row["color"]] = state["color"]
+        if joints:  # the bind-to-pose matrix of every joint, after the instance's own texels
+            transforms = skinning.joint_transforms(self.scene.groups[name].mesh, state["joints"])
+            memory[:, :, self._texels["instance"]:] = transforms.view(W, C, -1, 4)
 
     # ------------------------------------------------------------------ culling
     def _cull(self, moved: set, cameras_moved: bool, targets: PackTargets):

@@ -20,7 +20,7 @@ import ctypes.util
 
 import torch
 
-from .backend import GLUnavailableError, INSTALL_HINT
+from .backend import INSTALL_HINT, GLUnavailableError
 
 GL_RED, GL_RGB, GL_RGBA = 0x1903, 0x1907, 0x1908
 GL_UNSIGNED_BYTE = 0x1401

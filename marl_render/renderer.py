@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import backend, readback, shaders
+from . import backend, readback, shaders, skinning
 from .meshes import MeshData, to_panda_geom
 from .packing import FramePacker
 from .panda_buffers import buffer_texture, int_input, panda_texture, vec3_input, writable
@@ -287,8 +287,15 @@ class BatchRenderer:
         for order, (group, static) in enumerate(groups):
             mesh = group.mesh
             textured = group.texture is not None
-            procedural = isinstance(mesh, MeshData)
-            if not procedural:
+            # Static geometry has no joints to pose: a skinned mesh is drawn in its bind pose.
+            joints = mesh.num_joints if isinstance(mesh, skinning.SkinnedMesh) and not static else 0
+            procedural = isinstance(mesh, MeshData) and not joints
+            if joints:
+                # Skin columns beside the vertex; its depth plane comes from the geometry
+                # shader, which sees the skinned corners (a triangle's corners follow joints
+                # of their own, which the corner attributes of triangle_corners.py would not).
+                node = NodePath(skinning.panda_geom(mesh))
+            elif not procedural:
                 node = mesh.copy_to(NodePath())
             elif "depth" in self.effects:
                 # The depth output needs each triangle's corners at a provoking vertex of its
@@ -306,7 +313,8 @@ class BatchRenderer:
             node.node().set_final(True)
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
                                           flat=procedural and mesh.flat, corners=procedural,
-                                          gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf)
+                                          gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf,
+                                          joints=joints, influences=mesh.influences if joints else 4)
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(panda_texture(group.texture, group.name), 1)
@@ -336,16 +344,18 @@ class BatchRenderer:
     # ------------------------------------------------------------------ public updates
     @one_thread
     def update(self, group: str, *, position=None, rotation=None, scale=None, color=None, active=None,
-               owner=None) -> None:
+               owner=None, joints=None) -> None:
         """Set per-instance data of a group for all worlds: tensors shaped [W, C, ...].
 
         position [W,C,3] (float32/64, metres), rotation [W,C,4] unit quaternions (w,x,y,z;
         normalised here), scale [W,C,3], color [W,C,4] or [W,C,3] in [0,1], active [W,C] bool,
-        owner [W,C] int agent index (-1: none). Everything is validated before anything is stored.
+        owner [W,C] int agent index (-1: none); joints [W,C,J,4] (groups of a SkinnedMesh with
+        J joints): each joint's rotation about its pivot in its parent's frame, non-zero
+        quaternions (w,x,y,z; normalised here). Everything is validated before anything is stored.
         """
         self._check_open()
         self.packer.update(group, position=position, rotation=rotation, scale=scale, color=color, active=active,
-                           owner=owner)
+                           owner=owner, joints=joints)
 
     @one_thread
     def set_cameras(self, *, position=None, rotation=None, look_at=None, fov_y=None, near=None, far=None) -> None:

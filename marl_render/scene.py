@@ -31,8 +31,19 @@ import torch
 from . import meshes as mesh_lib
 from .images import texture_pixels
 from .shaders import EFFECTS
-from .validation import (as_tensor, boolean, check_finite, check_host, check_range, check_shape, describe, finite_float,
-                         positive_float, positive_int, resolution_hw)
+from .validation import (
+    as_tensor,
+    boolean,
+    check_finite,
+    check_host,
+    check_range,
+    check_shape,
+    describe,
+    finite_float,
+    positive_float,
+    positive_int,
+    resolution_hw,
+)
 
 
 @dataclass(frozen=True)
@@ -197,7 +208,8 @@ class Scene:
         for label, value in (("position", position), ("rotation", rotation), ("scale", scale), ("color", color)):
             check_finite(label, value)
         if bool((scale < 0).any()):
-            raise ValueError(f"scale must be >= 0 (mirrored instances are not supported), got minimum {scale.min().item()}")
+            raise ValueError("scale must be >= 0 (mirrored instances are not supported), "
+                             f"got minimum {scale.min().item()}")
         check_range("color", color, 0.0, 1.0)  # the same bounds as BatchRenderer.update
         rotation = _unit(rotation)
         texture = _resolve_texture(texture)
@@ -340,7 +352,7 @@ def _box(name: str, value) -> tuple:
         raise ValueError(f"{name} must be ((x0, y0, z0), (x1, y1, z1)), shape [2, 3], got shape {list(box.shape)}")
     check_finite(name, box)
     low, high = box.to(torch.float64).tolist()
-    if any(a > b for a, b in zip(low, high)):
+    if any(a > b for a, b in zip(low, high, strict=True)):
         raise ValueError(f"{name} must have min <= max on every axis, got min {low} and max {high}")
     return tuple(low), tuple(high)
 

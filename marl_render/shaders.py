@@ -32,22 +32,26 @@ EFFECT_DEFINES = {
 EFFECTS = tuple(EFFECT_DEFINES)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def source(name: str) -> str:
     return resources.files("marl_render.glsl").joinpath(name).read_text()
 
 
 def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False,
-                corners: bool = False, gray: bool = False, shadow_pcf: bool = False) -> tuple[str, ...]:
+                corners: bool = False, gray: bool = False, shadow_pcf: bool = False,
+                joints: int = 0, influences: int = 4) -> tuple[str, ...]:
     """The sorted #define lines of one variant (texture only for groups that have one).
 
     Lighting runs per vertex for meshes whose faces each have one normal (flat), where
     it is exact, and per fragment otherwise. Depth needs each triangle's plane: from the
     corners that procedural meshes carry (`corners`, see triangle_corners.py), else from
-    a geometry shader (model files). gray: the colour output is its luma (GRAY_WEIGHTS).
+    a geometry shader (model files, and skinned meshes, whose corners move with their own
+    joints). gray: the colour output is its luma (GRAY_WEIGHTS).
     The colour is a flat varying in every variant, so a flat mesh may also be drawn from
     its welded corners (provoking.py) with the same defines. Shadows filter their edges
-    (SHADOW_PCF) only when asked."""
+    (SHADOW_PCF) only when asked. joints > 0: a skinned group (the SKINNING variant), whose
+    instances carry that many joint matrices and whose vertices follow up to `influences`
+    joints each (1..4; each vertex blends only that many)."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
     if "lighting" in effects:
         defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
@@ -59,9 +63,7 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
         defines.add("OUTPUT_GRAY")
     if "texture" in effects and textured:
         defines.add("EFFECT_TEXTURE")
-    defines.update(layout.glsl_defines(static=static))  # where the packer put each value
-    if static:
-        defines.add("STATIC_GROUP")
+    defines.update(_instance_defines(static, joints, influences))
     # Aux attachments are numbered in declaration order after the colour target.
     location = 1
     if "depth" in effects:
@@ -78,7 +80,7 @@ def variant_source(stage: str, defines: tuple[str, ...]) -> str:
     return header + source(f"batch.{stage}")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def compiled(defines: tuple[str, ...]):
     """Cached Panda3D Shader for one variant (compiled by the driver on first draw)."""
     from panda3d.core import Shader
@@ -90,15 +92,28 @@ def compiled(defines: tuple[str, ...]):
     return shader
 
 
-def caster_defines(*, static: bool) -> tuple[str, ...]:
-    """#defines of the shadow-map pass: positions only, no effect (see shadows.py)."""
-    defines = {*layout.glsl_defines(static=static), "SHADOW_CASTER"}
+def _instance_defines(static: bool, joints: int, influences: int) -> set[str]:
+    """The instance layout of a group (layout.py: where the packer put each value, joints
+    included), and whether it is static or skinned."""
+    if joints and static:
+        raise ValueError("static groups cannot be skinned: their instances have no joints")
+    defines = set(layout.glsl_defines(static=static, joints=joints))
+    if joints:
+        if not 1 <= influences <= 4:
+            raise ValueError(f"influences must be in [1, 4], got {influences}")
+        defines.update(("SKINNING", f"SKIN_INFLUENCES {influences}"))
     if static:
         defines.add("STATIC_GROUP")
-    return tuple(sorted(defines))
+    return defines
 
 
-@functools.lru_cache(maxsize=None)
+def caster_defines(*, static: bool, joints: int = 0, influences: int = 4) -> tuple[str, ...]:
+    """#defines of the shadow-map pass: positions only, no effect (see shadows.py); a skinned
+    group's casters are skinned like its views (same joints, same influences)."""
+    return tuple(sorted(_instance_defines(static, joints, influences) | {"SHADOW_CASTER"}))
+
+
+@functools.cache
 def compiled_caster(defines: tuple[str, ...]):
     """Cached Panda3D Shader of the depth-only shadow pass: batch.vert, an empty fragment stage."""
     from panda3d.core import Shader

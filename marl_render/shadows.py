@@ -37,6 +37,7 @@ from .culling import frustum_planes, inside_frustum, pair_list
 from .meshes import MeshData
 from .panda_buffers import buffer_texture, int_input, writable
 from .scene import Scene
+from .skinning import SkinnedMesh
 from .tiling import TileLayout, plan_layout
 
 # Casters up to this many diagonals of the bounds box towards the light still cast into it.
@@ -195,7 +196,11 @@ class ShadowPass:
         self.root.set_shader_input("view_offset", int_input(0))
         for name, draw in groups.items():
             caster = draw.node.copy_to(self.root)  # shares the Geom; the state is replaced below
-            caster.set_shader(shaders.compiled_caster(shaders.caster_defines(static=draw.static)))
+            mesh = (self.scene.static if draw.static else self.scene.groups)[name].mesh
+            # Skinned groups cast their posed shape (static ones stay in the bind pose, as drawn).
+            joints = mesh.num_joints if isinstance(mesh, SkinnedMesh) and not draw.static else 0
+            caster.set_shader(shaders.compiled_caster(shaders.caster_defines(
+                static=draw.static, joints=joints, influences=mesh.influences if joints else 4)))
             self.pairs[name] = buffer_texture(f"shadow_pairs:{name}", W * draw.count, integer=True)
             self.pair_offsets[name] = int_input(0)
             caster.set_shader_input("instances", draw.instances)

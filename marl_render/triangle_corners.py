@@ -51,8 +51,15 @@ def with_triangle_corners(mesh: MeshData) -> dict[str, np.ndarray]:
 def to_panda_geom_with_corners(mesh: MeshData):
     """A Panda3D GeomNode of `with_triangle_corners(mesh)`; the shader reads the extra
     columns as `in vec3 corner_a, corner_b`."""
-    from panda3d.core import (Geom, GeomNode, GeomTriangles, GeomVertexArrayFormat, GeomVertexData,
-                              GeomVertexFormat, InternalName)
+    from panda3d.core import (
+        Geom,
+        GeomNode,
+        GeomTriangles,
+        GeomVertexArrayFormat,
+        GeomVertexData,
+        GeomVertexFormat,
+        InternalName,
+    )
 
     columns = with_triangle_corners(mesh)
     array_format = GeomVertexArrayFormat()

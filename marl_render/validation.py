@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 import stat
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -60,7 +60,7 @@ def as_tensor(name: str, value, *, dtype_kind: str = "float", device=None) -> to
 def check_shape(name: str, tensor: torch.Tensor, expected: Sequence[int | None]) -> None:
     """None in `expected` matches any size."""
     shape = tuple(tensor.shape)
-    ok = len(shape) == len(expected) and all(e is None or e == s for e, s in zip(expected, shape))
+    ok = len(shape) == len(expected) and all(e is None or e == s for e, s in zip(expected, shape, strict=True))
     if not ok:
         want = "[" + ", ".join("*" if e is None else str(e) for e in expected) + "]"
         raise ValueError(f"{name} must have shape {want}, got {list(shape)}")

@@ -16,6 +16,13 @@
 #ifdef OUTPUT_SEGMENTATION
 #define v_segment g_segment
 #endif
+#ifdef EFFECT_SHADOWS
+#define v_light g_light
+#define v_shadow_tile g_shadow_tile
+#endif
+#if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
+#define v_direct g_direct
+#endif
 #endif
 #ifdef OUTPUT_DEPTH
 flat in vec4 depth_plane;  // the triangle's plane n.(x, y, w) = d in its view's clip space

@@ -1,8 +1,10 @@
-// Only with the depth output, for meshes from model files (procedural meshes carry their
-// triangles' corners instead, see marl_render/triangle_corners.py): passes each triangle
-// through unchanged and adds its plane in its view's own clip space, from which the
-// fragment shader computes depth at the pixel's position inside the tile. That makes
-// depth independent of where the tile sits, so of the tile layout.
+// Only with the depth output, for meshes from model files and skinned meshes (procedural
+// meshes carry their triangles' corners instead, see marl_render/triangle_corners.py; a
+// skinned triangle's corners follow joints of their own, so only the skinned positions
+// arriving here give its plane): passes each triangle through unchanged and adds its
+// plane in its view's own clip space, from which the fragment shader computes depth at
+// the pixel's position inside the tile. That makes depth independent of where the tile
+// sits, so of the tile layout.
 layout(triangles) in;
 layout(triangle_strip, max_vertices = 3) out;
 
@@ -25,6 +27,16 @@ flat out vec2 g_near_far;
 #ifdef OUTPUT_SEGMENTATION
 flat in int v_segment[];
 flat out int g_segment;
+#endif
+#ifdef EFFECT_SHADOWS
+in vec3 v_light[];
+out vec3 g_light;
+flat in ivec2 v_shadow_tile[];
+flat out ivec2 g_shadow_tile;
+#endif
+#if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
+flat in vec3 v_direct[];
+flat out vec3 g_direct;
 #endif
 in vec3 v_clip[];              // (x, y, w) before the move into the tile
 flat in vec2 v_tile_origin[];
@@ -55,6 +67,13 @@ void main() {
 #endif
 #ifdef OUTPUT_SEGMENTATION
         g_segment = v_segment[i];
+#endif
+#ifdef EFFECT_SHADOWS
+        g_light = v_light[i];
+        g_shadow_tile = v_shadow_tile[i];
+#endif
+#if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
+        g_direct = v_direct[i];
 #endif
         depth_plane = plane;
         depth_tile = vec4(v_tile_origin[i], w_range);

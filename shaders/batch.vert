@@ -10,6 +10,10 @@ in vec3 p3d_Normal;
 in vec2 p3d_MultiTexCoord0;
 out vec2 v_uv;
 #endif
+#ifdef SKINNING
+in vec4 skin_joints;   // up to four joint indices per vertex (stored as floats), heaviest first
+in vec4 skin_weights;  // their weights, summing to 1 over the first SKIN_INFLUENCES
+#endif
 
 uniform samplerBuffer instances;  // ROW_TEXELS texels per instance (rows: marl_render/layout.py)
 uniform samplerBuffer views;      // VIEW_TEXELS texels per view
@@ -55,7 +59,7 @@ in vec3 corner_b;
 flat out vec4 depth_plane;    // n.(x, y, w) = d in the view's clip space
 flat out vec4 depth_tile;     // tile origin (pixels), smallest and largest w of the triangle
 #else
-// For the geometry shader (batch.geom), which has the whole triangle (model files).
+// For the geometry shader (batch.geom), which has the whole triangle (model files, skinned meshes).
 out vec3 v_clip;              // (x, y, w) before the move into the tile
 flat out vec2 v_tile_origin;  // pixel of the tile's lower-left corner (window coordinates)
 #endif
@@ -95,6 +99,27 @@ void main() {
     vec3 scale = texelFetch(instances, row + ROW_SCALE).ROW_SCALE_LANES;
     v_color = texelFetch(instances, row + ROW_COLOR).ROW_COLOR_LANES;
 
+    vec3 vertex = p3d_Vertex.xyz;
+#ifdef EFFECT_LIGHTING
+    vec3 vertex_normal = p3d_Normal;
+#endif
+#ifdef SKINNING
+    // Linear-blend skinning: blend the 3x4 bind-to-pose matrices of the vertex's joints
+    // (JOINT_TEXELS rows each, after the instance's own texels), then apply it once. The
+    // mesh's vertices follow at most SKIN_INFLUENCES joints: texel fetches are the cost.
+    vec4 blend0 = vec4(0.0), blend1 = vec4(0.0), blend2 = vec4(0.0);
+    for (int k = 0; k < SKIN_INFLUENCES; ++k) {
+        int joint_row = row + FIRST_JOINT_TEXEL + JOINT_TEXELS * int(skin_joints[k] + 0.5);
+        blend0 += skin_weights[k] * texelFetch(instances, joint_row);
+        blend1 += skin_weights[k] * texelFetch(instances, joint_row + 1);
+        blend2 += skin_weights[k] * texelFetch(instances, joint_row + 2);
+    }
+    vertex = vec3(dot(blend0, vec4(vertex, 1.0)), dot(blend1, vec4(vertex, 1.0)), dot(blend2, vec4(vertex, 1.0)));
+#ifdef EFFECT_LIGHTING
+    vertex_normal = vec3(dot(blend0.xyz, vertex_normal), dot(blend1.xyz, vertex_normal), dot(blend2.xyz, vertex_normal));
+#endif
+#endif
+
     int vrow = view * VIEW_TEXELS;
     int prow = vrow + VIEW_PROJECTION;  // four texels, one column each
     mat4 view_projection = mat4(texelFetch(views, prow), texelFetch(views, prow + 1),
@@ -108,7 +133,7 @@ void main() {
 #else
     vec3 relative = position;  // already relative to the world's origin
 #endif
-    vec3 world_position = relative + rotate(rotation, p3d_Vertex.xyz * scale);
+    vec3 world_position = relative + rotate(rotation, vertex * scale);
     vec4 clip = view_projection * vec4(world_position, 1.0);
 
     // Clip against this view's own frustum before moving it into its tile, so nothing
@@ -134,7 +159,7 @@ void main() {
 #ifdef EFFECT_LIGHTING
     // Normals scale inversely (inverse transpose); a zero scale flattens the mesh, and
     // the normal then points straight out of the flat side.
-    vec3 normal = rotate(rotation, normalize(p3d_Normal / max(scale, vec3(1e-6))));
+    vec3 normal = rotate(rotation, normalize(vertex_normal / max(scale, vec3(1e-6))));
 #endif
 #ifdef LIGHT_PER_FRAGMENT
     v_normal = normal;

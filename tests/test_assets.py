@@ -115,7 +115,7 @@ def test_a_model_referencing_a_truncated_texture_raises_naming_both_files(images
     models = [quad_egg(tmp_path / f"uses_{ext}.egg", cut) for ext, (_, cut) in images.items()]
     outcomes = run_child([], models)
     assert len(outcomes) == len(models)
-    for model, (_, cut) in zip(models, images.values()):
+    for model, (_, cut) in zip(models, images.values(), strict=True):
         outcome = outcomes[("model", str(model))]
         assert outcome["error"] == "ValueError", outcome
         assert f"mesh: model file {str(model)!r} references the texture {str(cut)!r}, which is not a complete image" \
@@ -182,7 +182,8 @@ def test_a_textured_model_file_renders_with_the_group_texture(images, tmp_path):
 def test_a_model_without_normals_gets_the_normals_of_its_faces(tmp_path):
     quad = mr.load_model(quad_egg(tmp_path / "plain.egg"))
     assert quad.positions.shape == (4, 3) and quad.triangles.shape == (2, 3)
-    assert np.allclose(sorted(map(tuple, quad.positions)), [(-0.5, 0, -0.5), (-0.5, 0, 0.5), (0.5, 0, -0.5), (0.5, 0, 0.5)])
+    assert np.allclose(sorted(map(tuple, quad.positions)),
+                       [(-0.5, 0, -0.5), (-0.5, 0, 0.5), (0.5, 0, -0.5), (0.5, 0, 0.5)])
     assert np.allclose(quad.normals, [0, -1, 0])  # counter-clockwise seen from -Y
 
 
@@ -217,7 +218,8 @@ def test_model_triangles_carry_every_node_transform(tmp_path):
 
 @pytest.mark.parametrize("make,error,message", [
     (lambda tmp: tmp, ValueError, r"mesh must be a regular model file, got '.*', which is a directory"),
-    (lambda tmp: "/dev/null", ValueError, r"mesh must be a regular model file, got '/dev/null', which is a character device"),
+    (lambda tmp: "/dev/null", ValueError,
+     r"mesh must be a regular model file, got '/dev/null', which is a character device"),
     (lambda tmp: tmp / "missing.egg", FileNotFoundError, r"mesh: model file '.*missing.egg' does not exist"),
     (lambda tmp: (tmp / "notes.txt", (tmp / "notes.txt").write_text("hello"))[0], ValueError,
      r"mesh: model file '.*notes.txt' is not a model file: Panda3D has no loader for its extension '.txt'"),
@@ -240,11 +242,13 @@ def test_model_paths_may_be_path_objects(tmp_path):
 
 @pytest.mark.parametrize("make,error,message", [
     (lambda tmp: tmp, ValueError, r"texture must be a regular image file, got '.*', which is a directory"),
-    (lambda tmp: "/dev/zero", ValueError, r"texture must be a regular image file, got '/dev/zero', which is a character device"),
+    (lambda tmp: "/dev/zero", ValueError,
+     r"texture must be a regular image file, got '/dev/zero', which is a character device"),
     (lambda tmp: tmp / "missing.png", FileNotFoundError, r"texture: image file '.*missing.png' does not exist"),
     (lambda tmp: (tmp / "notes.png", (tmp / "notes.png").write_text("hello"))[0], ValueError,
      r"texture: image file '.*notes.png' could not be decoded: UnidentifiedImageError"),
-    (lambda tmp: np.zeros((0, 4, 3), np.uint8), ValueError, r"texture must be a uint8 array \[h, w, 3\|4\] with h, w >= 1"),
+    (lambda tmp: np.zeros((0, 4, 3), np.uint8), ValueError,
+     r"texture must be a uint8 array \[h, w, 3\|4\] with h, w >= 1"),
     (lambda tmp: np.zeros((4, 4), np.uint8), ValueError, r"texture must be a uint8 array \[h, w, 3\|4\]"),
     (lambda tmp: np.zeros((4, 4, 3), np.float32), ValueError, r"texture must be a uint8 array .*dtype float32"),
     (lambda tmp: [[[0, 0, 0]]], TypeError, r"texture must be an image file path or a uint8 array"),
@@ -271,7 +275,8 @@ def test_mesh_data_checks_its_arrays():
     box = mr.box()
     with pytest.raises(TypeError, match=r"mesh 'm': positions must be a numpy array of floating dtype, got list"):
         mr.MeshData("m", box.positions.tolist(), box.normals, box.uvs, box.triangles)
-    with pytest.raises(TypeError, match=r"mesh 'm': triangles must be a numpy array of integer dtype, got array of dtype float32"):
+    with pytest.raises(TypeError,
+                       match=r"mesh 'm': triangles must be a numpy array of integer dtype, got array of dtype float32"):
         mr.MeshData("m", box.positions, box.normals, box.uvs, box.triangles.astype(np.float32))
     positions = box.positions.copy()
     positions[3, 1] = np.nan

@@ -19,7 +19,8 @@ def test_info_reports_a_gl_4_context():
 
 
 def test_info_command_prints_json():
-    out = subprocess.run([sys.executable, "-m", "marl_render.info", "--json"], capture_output=True, text=True, check=True)
+    out = subprocess.run([sys.executable, "-m", "marl_render.info", "--json"], capture_output=True, text=True,
+                         check=True)
     assert '"renderer"' in out.stdout and '"glsl_version"' in out.stdout
 
 
@@ -114,7 +115,8 @@ def test_copy_readback_gives_the_same_pixels():
     frames = []
     for readback in ("zero_copy", "copy"):
         with mr.BatchRenderer(scene, readback=readback) as renderer:
-            renderer.set_cameras(position=torch.tensor([0, 0, 1.0]).repeat(2, 2, 1), look_at=torch.tensor([0, 3, 0.0]).repeat(2, 2, 1))
+            renderer.set_cameras(position=torch.tensor([0, 0, 1.0]).repeat(2, 2, 1),
+                                 look_at=torch.tensor([0, 3, 0.0]).repeat(2, 2, 1))
             renderer.update("box", position=[[[0, 3, 0.5]], [[1, 3, 0.5]]], active=[[True], [True]])
             frames.append(renderer.render().rgb)
             assert set(renderer.last_timings) == {"pack", "cull", "gl", "copy"}

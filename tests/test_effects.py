@@ -52,7 +52,8 @@ def preprocess(text: str) -> str:
         expr = re.sub(r"defined\s+(\w+)", lambda m: str(m.group(1) in defined), expr)
         expr = expr.replace("||", " or ").replace("&&", " and ")
         expr = re.sub(r"!(?!=)", " not ", expr)
-        if not re.fullmatch(r"[\sA-Za-z()]*", expr) or set(re.findall(r"\w+", expr)) - {"True", "False", "and", "or", "not"}:
+        words = set(re.findall(r"\w+", expr))
+        if not re.fullmatch(r"[\sA-Za-z()]*", expr) or words - {"True", "False", "and", "or", "not"}:
             raise AssertionError(f"test preprocessor cannot evaluate #if {expression!r}")
         return bool(eval(expr))  # noqa: S307 - only True/False/and/or/not left
 
@@ -62,7 +63,8 @@ def preprocess(text: str) -> str:
         if directive:
             name, rest = directive.group(1), directive.group(2).split("//")[0].strip()
             if name in ("ifdef", "ifndef", "if"):
-                value = (rest in defined) if name == "ifdef" else (rest not in defined) if name == "ifndef" else evaluate(rest)
+                value = ((rest in defined) if name == "ifdef" else (rest not in defined) if name == "ifndef"
+                         else evaluate(rest))
                 stack.append([value, value])
                 continue
             if name == "elif":
@@ -97,7 +99,7 @@ def test_test_preprocessor_itself():
 EFFECT_MARKERS = {
     "fog": {"frag": ["fog_density", "fog_color", "exp("]},
     "lighting": {"frag": ["light_direction", "light_color", "ambient_color", "v_normal"],
-                 "vert": ["v_normal", "p3d_Normal / "]},
+                 "vert": ["v_normal", "vertex_normal / "]},
     "texture": {"frag": ["p3d_Texture0", "v_uv"], "vert": ["p3d_MultiTexCoord0", "v_uv"]},
     "depth": {"frag": ["out_depth"]},
     "segmentation": {"frag": ["out_segment", "v_segment"], "vert": ["v_segment", "segment_base +"]},
@@ -185,8 +187,9 @@ def test_renderer_compiles_variants_with_exactly_the_scenes_effects(monkeypatch)
 
 
 def test_aux_outputs_only_on_demand():
-    for effects, has_depth, has_segmentation in [((), False, False), (("depth",), True, False),
-                                                 (("segmentation",), False, True), (("depth", "segmentation"), True, True)]:
+    cases = [((), False, False), (("depth",), True, False), (("segmentation",), False, True),
+             (("depth", "segmentation"), True, True)]
+    for effects, has_depth, has_segmentation in cases:
         scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=8, effects=effects)
         scene.add_group("boxes", "box", capacity=1)
         r = mr.BatchRenderer(scene)
@@ -312,7 +315,8 @@ def test_texture_shows_the_checker_colours_only_when_declared(declared):
     scene.add_group("boxes", "box", capacity=1, texture=tex)
     r = mr.BatchRenderer(scene)
     r.set_cameras(position=torch.zeros(1, 1, 3), rotation=IDENTITY.expand(1, 1, 4))
-    r.update("boxes", position=torch.tensor([[[0.0, 2.0, 0.0]]], dtype=F64), color=torch.ones(1, 1, 3), active=ones(1, 1))
+    r.update("boxes", position=torch.tensor([[[0.0, 2.0, 0.0]]], dtype=F64), color=torch.ones(1, 1, 3),
+             active=ones(1, 1))
     rgb = r.render().rgb[0, 0].int()
     r.close()
     face = (rgb != background_rgb(scene).int()).any(-1)
@@ -323,7 +327,7 @@ def test_texture_shows_the_checker_colours_only_when_declared(declared):
     samples = [rgb[top + quarter_r, left + quarter_c], rgb[top + quarter_r, right - quarter_c],
                rgb[bottom - quarter_r, left + quarter_c], rgb[bottom - quarter_r, right - quarter_c]]
     if declared:
-        for sample, wanted in zip(samples, quadrant_colors):
+        for sample, wanted in zip(samples, quadrant_colors, strict=True):
             assert (sample - torch.tensor(wanted)).abs().max() <= 1, (sample.tolist(), wanted)
         for wanted in quadrant_colors:  # each block covers a patch of pixels, not a lone one
             assert ((rgb - torch.tensor(wanted)).abs().amax(-1) <= 1).sum() >= 9

@@ -9,8 +9,7 @@ import pytest
 import torch
 
 import marl_render as mr
-from marl_render.envs import BatchedEnv, list_envs, make_env, register
-from marl_render.envs import registry
+from marl_render.envs import BatchedEnv, list_envs, make_env, register, registry
 
 W = 3
 RES = 32
@@ -275,7 +274,7 @@ def test_actions_accept_numpy_and_lists():
         got, expected = env.step(given), twin.step(torch.tensor(np.asarray(given), dtype=torch.int64))
         for key in expected[0]:
             assert torch.equal(got[0][key], expected[0][key]), key
-        for a, b in zip(got[1:4], expected[1:4]):
+        for a, b in zip(got[1:4], expected[1:4], strict=True):
             assert torch.equal(a, b)
     env.close()
     twin.close()
@@ -296,7 +295,7 @@ def test_same_seed_is_bit_identical(name):
     first, second = runs
     for key in first[0]:
         assert torch.equal(first[0][key], second[0][key])
-    for (obs_a, rew_a), (obs_b, rew_b) in zip(first[1:], second[1:]):
+    for (obs_a, rew_a), (obs_b, rew_b) in zip(first[1:], second[1:], strict=True):
         assert torch.equal(rew_a, rew_b)
         for key in obs_a:
             assert torch.equal(obs_a[key], obs_b[key]), key
@@ -328,11 +327,11 @@ def run_steps(env, actions) -> list:
 
 def assert_steps_equal(a: list, b: list):
     assert len(a) == len(b)
-    for (obs_a, *out_a, info_a), (obs_b, *out_b, info_b) in zip(a, b):
+    for (obs_a, *out_a, info_a), (obs_b, *out_b, info_b) in zip(a, b, strict=True):
         assert obs_a.keys() == obs_b.keys() and info_a.keys() == info_b.keys()
         for key in obs_a:
             assert torch.equal(obs_a[key], obs_b[key]), key
-        for x, y in zip(out_a, out_b):
+        for x, y in zip(out_a, out_b, strict=True):
             assert torch.equal(x, y)
         for key in info_a:
             if isinstance(info_a[key], dict):  # same-step autoreset: info["final_obs"]
@@ -470,7 +469,7 @@ def test_autoreset_starts_a_new_episode(name):
     env.reset(seed=3)
     reference = make(name, max_steps=3, state_obs=True)
     reference.reset(seed=3)
-    for step in range(1, 4):
+    for _ in range(3):
         a = random_actions(env)
         obs, _, _, truncated, info = env.step(a)
         reference.step(a)

@@ -27,6 +27,7 @@ OPTIONS = {  # beyond --help and --out, which every example takes
     "distributed_collect.py": ["--env", "--workers", "--worlds", "--resolution", "--steps-per-batch", "--batches"],
     "make_env_docs.py": ["--seed"],
     "jax_policy_gradient.py": ["--worlds", "--resolution", "--steps", "--horizon", "--seed"],
+    "skinned_walkers.py": ["--worlds", "--agents", "--resolution", "--steps", "--seed"],
 }
 
 
@@ -115,6 +116,17 @@ def test_custom_scene_writes_a_row_per_world(tmp_path):
     assert grid.shape == (3 * 24, 2 * 40, 3)
     left, right = grid[:24, :40], grid[:24, 40:]
     assert (np.abs(left[..., 0].astype(int) - left[..., 2]) > 0).any() and not np.array_equal(left, right)
+
+
+def test_skinned_walkers_writes_the_overview_and_compares_with_rigid(tmp_path):
+    out = run("skinned_walkers.py", "--out", tmp_path / "o", "--worlds", 2, "--agents", 3, "--resolution", 32,
+              "--steps", 4, cwd=tmp_path).stdout
+    picture = png(tmp_path / "o" / "skinned_walkers.png")
+    row = round(640 * 32 / (3 * 32 + 2 * 2))  # the agents' views with 2 px gaps, scaled to 640 wide
+    assert picture.shape == (360 + row, 640, 3)
+    assert picture[:360].std() > 0 and picture[360:].std() > 0
+    assert "skinned / rigid = " in out and "views/s" in out
+    assert not (tmp_path / "out").exists()
 
 
 def test_random_pettingzoo_writes_the_render(tmp_path):

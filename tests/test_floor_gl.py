@@ -7,6 +7,8 @@ import marl_render as mr
 from marl_render.bench.floor_gl import FloorGL, from_env, shared_corners
 from marl_render.envs import make_env
 
+DEFAULT_LIGHTING = mr.Scene(1, 1).lighting  # what lit() compares against: the Scene default
+
 
 def stepped_env(name, **kwargs):
     env = make_env(name, seed=0, **kwargs)
@@ -17,7 +19,7 @@ def stepped_env(name, **kwargs):
     return env, obs["pixels"]
 
 
-def lit(color, normal, lighting=mr.Scene(1, 1).lighting):
+def lit(color, normal, lighting=DEFAULT_LIGHTING):
     """8-bit colour of a surface with `normal` under the default Lambert lighting."""
     to_light = -np.asarray(lighting.direction) / np.linalg.norm(lighting.direction)
     shade = np.asarray(lighting.ambient) + np.asarray(lighting.color) * max(float(np.dot(normal, to_light)), 0.0)
@@ -94,3 +96,10 @@ def test_shared_corners_put_each_face_normal_on_the_provoking_vertex():
     assert np.allclose(normals[triangles[:, 2]], face, atol=1e-6)
     assert sorted(map(tuple, np.round(face).astype(int).tolist())) == sorted(
         map(tuple, np.round(box.normals[box.triangles[:, 0]]).astype(int).tolist()))
+
+
+def test_floor_refuses_skinned_groups():
+    scene = mr.Scene(1, 1, resolution=16, effects=())
+    scene.add_group("walkers", mr.skinned_limb(), capacity=1)
+    with pytest.raises(ValueError, match=r"FloorGL has no skinning; groups \['walkers'\]"):
+        FloorGL(scene)

@@ -75,7 +75,8 @@ def test_env_stepped_from_another_thread_matches_the_main_thread():
     threaded, error = in_thread(rollout, env)
     assert error is None, repr(error)
     expected = rollout(twin)
-    assert all(torch.equal(a, b) for a, b in zip(threaded, expected)), "pixels differ from the main thread's"
+    same = all(torch.equal(a, b) for a, b in zip(threaded, expected, strict=True))
+    assert same, "pixels differ from the main thread's"
     assert not torch.equal(threaded[-1], start), "the pole should have moved in 20 steps"
     state, twin_state = env.get_state(), twin.get_state()
     assert all(torch.equal(state[k], twin_state[k]) for k in state if k != "rng")

@@ -1,6 +1,7 @@
 """The JAX front end (marl_render/wrappers/jax.py): zero-copy both ways, the step boundary,
 action checks that leave the state unchanged, ownership of returned arrays, random-policy
 rollouts, both import orders of jax and the GL context, and the policy-gradient example."""
+import itertools
 import json
 import os
 import subprocess
@@ -106,7 +107,7 @@ def test_make_jax_env_mirrors_the_core(cartpole):
         got = cartpole.step(actions)
         want = core.step(torch.tensor([[0], [2], [4]]))
         np.testing.assert_array_equal(np.asarray(got[0]["pixels"]), want[0]["pixels"].numpy())
-        for g, w in zip(got[1:4], want[1:4]):
+        for g, w in zip(got[1:4], want[1:4], strict=True):
             np.testing.assert_array_equal(np.asarray(g), w.numpy())
         assert list(got[4]) == list(want[4]) == ["step_count", "done_worlds"]
         np.testing.assert_array_equal(np.asarray(got[4]["step_count"]), [1, 1, 1])
@@ -129,7 +130,7 @@ def test_observations_and_results_reach_jax_without_a_copy(env_name, request):
     for key, array in got[0].items():
         assert pointer(array) == core_obs[key].data_ptr(), f"obs[{key!r}] was copied"
     for name, array, tensor in zip(("reward", "terminated", "truncated"), got[1:4],
-                                   (core_reward, core_terminated, core_truncated)):
+                                   (core_reward, core_terminated, core_truncated), strict=True):
         assert pointer(array) == tensor.data_ptr(), f"{name} was copied"
     for key, array in got[4].items():
         if core_info[key].element_size() <= 4:  # 64-bit entries are converted by JAX (x64 off)
@@ -160,11 +161,11 @@ def test_returned_arrays_stay_unchanged_by_later_steps(name):
         copies = [{k: np.array(v) for k, v in arrays.items()} for arrays in kept]
         for _ in range(2):
             env.step(jnp.zeros((2, env.num_agents), jnp.int32))
-        for arrays, snapshot in zip(kept, copies):
+        for arrays, snapshot in zip(kept, copies, strict=True):
             for key_name, array in arrays.items():
                 np.testing.assert_array_equal(np.asarray(array), snapshot[key_name], err_msg=key_name)
         pixels = [snapshot["pixels"] for snapshot in copies]
-        assert any(not np.array_equal(a, b) for a, b in zip(pixels, pixels[1:]))  # the check can see a change
+        assert any(not np.array_equal(a, b) for a, b in itertools.pairwise(pixels))  # the check can see a change
     finally:
         env.close()
 

@@ -289,11 +289,11 @@ def test_interleaved_environments_match_each_run_alone():
                 env.render_overview()  # a third renderer drawing in between
     for env in envs:
         env.close()
-    for (name, kw), trace, acts in zip(configs, traces, actions):
+    for (name, kw), trace, acts in zip(configs, traces, actions, strict=True):
         alone = make_env(name, num_worlds=W, resolution=RES, autoreset=True, max_steps=4, **kw)
         expected = _trace(alone, acts)
         alone.close()
-        for t, (got, want) in enumerate(zip(trace, expected)):
+        for t, (got, want) in enumerate(zip(trace, expected, strict=True)):
             for key in want:
                 assert torch.equal(got[key], want[key]), f"{name} {kw}: step {t} {key} differs when interleaved"
 
@@ -395,7 +395,7 @@ def test_same_seed_is_bit_identical_in_one_process_and_across_processes():
             if child.poll() is None:
                 child.kill()
     assert first == second, "two runs in one process differ"
-    for child, (stdout, stderr) in zip(children, outputs):
+    for child, (stdout, stderr) in zip(children, outputs, strict=True):
         assert child.returncode == 0, stderr
         assert json.loads(stdout.strip().splitlines()[-1]) == first, "a separate process gave another rollout"
     assert len(set(first.values())) == len(first)
@@ -420,7 +420,8 @@ def test_reset_with_a_seed_reproduces_an_episode(name):
         env.step(env.random_actions(g))
     again = episode(5)
     other = episode(6)
-    assert all(torch.equal(a, b) for a, b in zip(first, again)), "reset(seed=5) did not reproduce the episode"
+    assert all(torch.equal(a, b) for a, b in zip(first, again, strict=True)), \
+        "reset(seed=5) did not reproduce the episode"
     assert not torch.equal(first[1], other[1]), "another seed gave the same episode"
     env.close()
 

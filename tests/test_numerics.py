@@ -122,7 +122,8 @@ def test_per_world_origins_and_recentring_between_renders():
     eye_local = torch.tensor([0.3, 0.0, 0.8], dtype=F64)
     far = torch.tensor([1e6, -1e6, 20.0], dtype=F64)
     rotation = mr.quat_from_yaw_pitch_roll(torch.tensor([0.2, 0.9, -0.7])).expand(2, 3, 4)
-    r.update("boxes", rotation=rotation, color=torch.tensor([[1, 0.2, 0.2], [0.2, 0.2, 1], [0.9, 0.8, 0.1]]).expand(2, 3, 3),
+    r.update("boxes", rotation=rotation,
+             color=torch.tensor([[1, 0.2, 0.2], [0.2, 0.2, 1], [0.9, 0.8, 0.1]]).expand(2, 3, 3),
              active=ones(2, 3))
 
     def place(offsets):
@@ -149,7 +150,8 @@ def test_renderer_normalises_quaternions_and_rejects_zero_ones():
     r = mr.BatchRenderer(scene)
     q_box = mr.quat_from_yaw_pitch_roll(torch.tensor(0.5), torch.tensor(0.3), torch.tensor(-0.2))
     q_cam = mr.quat_from_yaw_pitch_roll(torch.tensor(0.1), torch.tensor(-0.15))
-    r.update("boxes", position=torch.tensor([[[0.2, 3.0, -0.3]]] * 2), rotation=torch.stack((q_box, -3.7 * q_box))[:, None],
+    r.update("boxes", position=torch.tensor([[[0.2, 3.0, -0.3]]] * 2),
+             rotation=torch.stack((q_box, -3.7 * q_box))[:, None],
              color=torch.tensor([0.9, 0.5, 0.1]).expand(2, 1, 3), active=ones(2, 1))
     r.set_cameras(position=torch.zeros(2, 1, 3), rotation=torch.stack((q_cam, 0.02 * q_cam))[:, None])
     rgb = r.render().rgb
@@ -369,7 +371,8 @@ def test_look_at_straight_down_renders_with_world_y_up_in_the_image():
     scene = mr.Scene(num_worlds=2, agents_per_world=1, resolution=(32, 32), effects=())
     scene.add_group("boxes", "box", capacity=3)
     r = mr.BatchRenderer(scene)
-    r.update("boxes", position=torch.tensor([[0.0, 0.0, 0.0], [0.0, 2.5, 0.0], [2.5, 0.0, 0.0]], dtype=F64).expand(2, 3, 3),
+    r.update("boxes",
+             position=torch.tensor([[0.0, 0.0, 0.0], [0.0, 2.5, 0.0], [2.5, 0.0, 0.0]], dtype=F64).expand(2, 3, 3),
              color=torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).expand(2, 3, 3), active=ones(2, 3))
     eye = torch.tensor([0.0, 0.0, 10.0], dtype=F64).expand(2, 1, 3)
     target = torch.tensor([[[0.0, 0.0, 0.0]], [[0.0, 1e-4, 0.0]]], dtype=F64)

@@ -30,7 +30,7 @@ AGENTS = 3  # spread's default
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def reset_pixels(seed: int) -> torch.Tensor:
     """("agents", "pixels") [W, A, RES, RES, 3] of the first reset of spread with `seed`, built here."""
     env = make_torchrl_env("spread", num_worlds=W, resolution=RES, seed=seed)

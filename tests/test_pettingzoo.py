@@ -14,8 +14,8 @@ from gymnasium.utils.env_checker import data_equivalence
 from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, render_test
 from pettingzoo.utils.conversions import aec_to_parallel, parallel_to_aec
 
-from marl_render.envs import list_envs, make_env
 from departing_env import Departing
+from marl_render.envs import list_envs, make_env
 from marl_render.wrappers import window
 from marl_render.wrappers.pettingzoo import ActionTypeError, MarlRenderParallelEnv, make_parallel_env
 

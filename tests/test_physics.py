@@ -255,7 +255,8 @@ def test_two_boxes_sharing_a_face_act_like_one_box():
     cfg = P.PhysicsConfig(terms={"obstacles"}, restitution=1.0, max_speed=2.0, dt=0.05, substeps=2,
                           min_body_radius=0.1, arena_half_extent=(3.0, 3.0))
     two = P.Obstacles(torch.tensor([[[0.0, -0.25], [0.0, 0.25]]], dtype=torch.float64),
-                      torch.tensor([[[0.05, 0.25], [0.05, 0.25]]], dtype=torch.float64), torch.zeros(1, 2, dtype=torch.float64))
+                      torch.tensor([[[0.05, 0.25], [0.05, 0.25]]], dtype=torch.float64),
+                      torch.zeros(1, 2, dtype=torch.float64))
     one = P.Obstacles(torch.tensor([[[0.0, 0.0]]], dtype=torch.float64),
                       torch.tensor([[[0.05, 0.5]]], dtype=torch.float64), torch.zeros(1, 1, dtype=torch.float64))
     start = P.BodyState.make(torch.tensor([[[-0.43, 0.0]]], dtype=torch.float64), 0.1,

@@ -19,7 +19,8 @@ def renderer():
     position = torch.zeros(W, C, 3)
     position[..., 1] = torch.arange(C) + 2.0
     r.update("boxes", position=position, active=torch.ones(W, C, dtype=torch.bool))
-    r.set_cameras(position=torch.zeros(W, A, 3) + torch.tensor([0, 0, 1.0]), look_at=torch.zeros(W, A, 3) + torch.tensor([0, 3, 0.0]))
+    r.set_cameras(position=torch.zeros(W, A, 3) + torch.tensor([0, 0, 1.0]),
+                  look_at=torch.zeros(W, A, 3) + torch.tensor([0, 3, 0.0]))
     yield r
     r.close()
 
@@ -35,8 +36,10 @@ GOOD = {
 
 BAD_UPDATES = [
     ("position", torch.zeros(W, C, 2), ValueError, r"position must have shape \[2, 3, 3\], got \[2, 3, 2\]"),
-    ("position", torch.zeros(W, C + 1, 3), ValueError, r"position must have shape \[2, 3, 3\], got \[2, 4, 3\]"),  # over capacity
-    ("position", torch.zeros(W, C, 3, dtype=torch.bool), TypeError, r"position must have a floating dtype, got torch.bool"),
+    ("position", torch.zeros(W, C + 1, 3), ValueError,
+     r"position must have shape \[2, 3, 3\], got \[2, 4, 3\]"),  # over capacity
+    ("position", torch.zeros(W, C, 3, dtype=torch.bool), TypeError,
+     r"position must have a floating dtype, got torch.bool"),
     ("position", torch.full((W, C, 3), float("nan")), ValueError, r"position must be finite"),
     ("position", torch.full((W, C, 3), float("inf")), ValueError, r"position must be finite"),
     ("position", torch.zeros(W, C, 3, device="meta"), ValueError, r"position must be a CPU tensor.*meta"),
@@ -53,7 +56,8 @@ BAD_UPDATES = [
 ]
 
 
-@pytest.mark.parametrize("argument,value,error,message", BAD_UPDATES, ids=[f"{a}-{i}" for i, (a, *_ ) in enumerate(BAD_UPDATES)])
+@pytest.mark.parametrize("argument,value,error,message", BAD_UPDATES,
+                         ids=[f"{a}-{i}" for i, (a, *_ ) in enumerate(BAD_UPDATES)])
 def test_bad_update_raises_and_changes_nothing(renderer, argument, value, error, message):
     before_state = renderer.instance_state("boxes")
     before_image = renderer.render().rgb
@@ -94,7 +98,7 @@ def test_bad_cameras_raise_and_change_nothing(renderer, kwargs, error, message):
     with pytest.raises(error, match=message):
         renderer.set_cameras(**kwargs)
     after = (renderer.camera_position, renderer.camera_rotation, renderer.fov_y, renderer.near, renderer.far)
-    assert all(torch.equal(x, y) for x, y in zip(state, after))
+    assert all(torch.equal(x, y) for x, y in zip(state, after, strict=True))
     assert torch.equal(before, renderer.render().rgb)
 
 
@@ -133,7 +137,8 @@ def test_bad_scene_arguments(kwargs, error, message):
 
 @pytest.mark.parametrize("make,error,message", [
     (lambda: mr.Lighting(direction=(0, 0, 0)), ValueError, r"lighting.direction must be a non-zero vector"),
-    (lambda: mr.Lighting(direction="down"), TypeError, r"lighting.direction must be a sequence of 3 numbers, got 'down'"),
+    (lambda: mr.Lighting(direction="down"), TypeError,
+     r"lighting.direction must be a sequence of 3 numbers, got 'down'"),
     (lambda: mr.Lighting(color=(1, 1)), ValueError, r"lighting.color must be 3 numbers, got \(1, 1\)"),
     (lambda: mr.Lighting(ambient=(-0.1, 0, 0)), ValueError, r"lighting.ambient must be 3 numbers >= 0"),
     (lambda: mr.Fog(density=-1.0), ValueError, r"fog.density must be a finite number >= 0, got -1.0"),
@@ -191,7 +196,8 @@ def test_camera_mount_instances_may_be_any_integer_sequence():
     ({"color": [2, 0, 0]}, ValueError, r"color must be <= 1.0, got maximum 2.0"),  # as BatchRenderer.update says
     ({"color": [[0.5, 0, 0], [0, -0.5, 0]]}, ValueError, r"color must be >= 0.0, got minimum -0.5"),
     ({"color": "red"}, TypeError, r"color must be a torch.Tensor or array-like, got str"),
-    ({"scale": torch.ones(1, 1, 3)}, ValueError, r"scale must have shape \[2, 3\|1\], \[1, 3\|1\] or \[3\|1\], got \[1, 1, 3\]"),
+    ({"scale": torch.ones(1, 1, 3)}, ValueError,
+     r"scale must have shape \[2, 3\|1\], \[1, 3\|1\] or \[3\|1\], got \[1, 1, 3\]"),
     ({"rotation": torch.ones(1, 1, 1, 4)}, ValueError, r"rotation must have shape \[2, 4\], \[1, 4\] or \[4\]"),
     ({"rotation": [0, 0, 0, 0]}, ValueError, r"rotation must be non-zero quaternions"),
     ({"position": torch.zeros(2, 3, device="meta")}, ValueError, r"position must be a CPU tensor.*meta"),
@@ -246,7 +252,8 @@ def test_bad_groups_and_meshes(tmp_path):
         scene.add_group("model", str(tmp_path / "missing.egg"), capacity=1)
     corrupt = tmp_path / "corrupt.egg"
     corrupt.write_text("<Group> { this is not an egg file")
-    with pytest.raises(ValueError, match=r"(?s)mesh: model file '.*corrupt.egg' could not be loaded by Panda3D.*syntax error"):
+    with pytest.raises(ValueError,
+                       match=r"(?s)mesh: model file '.*corrupt.egg' could not be loaded by Panda3D.*syntax error"):
         scene.add_group("model", str(corrupt), capacity=1)
     with pytest.raises(TypeError, match="mesh must be a MeshData"):
         scene.add_group("model", 42, capacity=1)

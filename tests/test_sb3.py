@@ -8,8 +8,7 @@ import torch
 sb3 = pytest.importorskip("stable_baselines3")
 from stable_baselines3 import PPO  # noqa: E402
 from stable_baselines3.common.evaluation import evaluate_policy  # noqa: E402
-from stable_baselines3.common.vec_env import (VecCheckNan, VecFrameStack, VecMonitor,  # noqa: E402
-                                              VecTransposeImage)
+from stable_baselines3.common.vec_env import VecCheckNan, VecFrameStack, VecMonitor, VecTransposeImage  # noqa: E402
 
 from marl_render.envs import make_env, make_sb3_env  # noqa: E402
 
@@ -59,7 +58,7 @@ def test_step_gives_terminal_observation_and_time_limit_flag():
     want = core.reset(seed=3)
     assert np.array_equal(obs, want["pixels"][:, 0].numpy())
     actions = np.arange(W) % 5
-    for step in range(2):
+    for _ in range(2):
         obs, rewards, dones, infos = venv.step(actions)
         want, *_ = core.step(torch.from_numpy(actions)[:, None])
     assert dones.all() and rewards.dtype == np.float32 and len(infos) == W
@@ -78,7 +77,7 @@ def test_sb3_vec_wrappers():
                        raise_exception=True)
     obs = venv.reset()
     assert obs.shape == (W, 12, RES, RES)
-    for step in range(3):
+    for _ in range(3):
         obs, rewards, dones, infos = venv.step(np.zeros(W, dtype=np.int64))
     assert dones.all() and obs.shape == (W, 12, RES, RES)
     assert infos[0]["terminal_observation"].shape == (12, RES, RES) and infos[0]["episode"]["l"] == 3

@@ -311,7 +311,8 @@ def test_default_bounds_fit_the_static_geometry():
     from marl_render.shadows import static_bounds
 
     scene = mr.Scene(num_worlds=1, agents_per_world=1, effects=("lighting", "shadows"))
-    scene.add_static("floor", "box", position=[[0.0, 0.0, -0.05], [2.0, 0.0, 0.5]], scale=[[6.0, 4.0, 0.1], [1.0, 1.0, 1.0]],
+    scene.add_static("floor", "box", position=[[0.0, 0.0, -0.05], [2.0, 0.0, 0.5]],
+                     scale=[[6.0, 4.0, 0.1], [1.0, 1.0, 1.0]],
                      rotation=[[1.0, 0.0, 0.0, 0.0], [math.cos(math.pi / 8), 0.0, 0.0, math.sin(math.pi / 8)]])
     low, high = static_bounds(scene)
     half_diagonal = math.sqrt(0.5)  # the second box turned 45 degrees about Z
@@ -335,7 +336,7 @@ def test_an_env_switches_shadows_on_and_they_only_darken():
                 assert env.renderer.scene.shadows.bounds == scenery.arena_shadow_bounds(env.arena_half_extent)
         finally:
             env.close()
-    for plain, shaded in zip(images[False], images[True]):
+    for plain, shaded in zip(images[False], images[True], strict=True):
         assert plain.shape == shaded.shape
         assert (shaded <= plain).all(), "a shadow only removes the directional light"
         assert (shaded < plain).any(-1).float().mean() > 0.01, "part of the images is in shadow"

@@ -5,8 +5,7 @@ import math
 import pytest
 import torch
 
-from marl_render.envs import list_envs, make_env
-from marl_render.envs import tag
+from marl_render.envs import list_envs, make_env, tag
 
 W, RES = 3, 32
 

@@ -7,13 +7,21 @@ import functools
 
 import pytest
 import torch
-from torchrl.envs import (CatFrames, Compose, GrayScale, ParallelEnv, RewardSum, StepCounter, ToTensorImage,
-                          TransformedEnv)
+from torchrl.envs import (
+    CatFrames,
+    Compose,
+    GrayScale,
+    ParallelEnv,
+    RewardSum,
+    StepCounter,
+    ToTensorImage,
+    TransformedEnv,
+)
 from torchrl.envs.transforms.functional import rgb_to_grayscale
 from torchrl.envs.utils import MarlGroupMapType, check_env_specs, step_mdp
 
-from marl_render.envs import list_envs
 from departing_env import Departing
+from marl_render.envs import list_envs
 from marl_render.wrappers.torchrl import MarlRenderTorchRLEnv, make_torchrl_env
 
 try:  # torchrl >= 0.11 renamed SyncDataCollector to Collector
@@ -296,7 +304,7 @@ def test_frame_stacking_chain_with_default_arguments():
     outputs = [td[key] for td in seen]
     # Expected stack per world: restarted (the first frame repeated) where its episode starts.
     stack = torch.cat([frames[0]] * 3, dim=2)
-    for t, (frame, out) in enumerate(zip(frames, outputs)):
+    for t, (frame, out) in enumerate(zip(frames, outputs, strict=True)):
         if t:
             restart = torch.tensor([count == 0 for count in steps[t]])
             rolled = torch.cat((stack[:, :, 1:], frame), dim=2)

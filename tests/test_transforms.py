@@ -194,7 +194,8 @@ def test_yaw_pitch_roll_conventions():
 @given(angles, pitches, angles)
 def test_yaw_pitch_roll_round_trip_float64(yaw, pitch, roll):
     assert round_trip_error(yaw, pitch, roll) < 1e-12
-    back = T.yaw_pitch_roll_from_quat(T.quat_from_yaw_pitch_roll(*(torch.tensor(v, dtype=F64) for v in (yaw, pitch, roll))))
+    tensors = (torch.tensor(v, dtype=F64) for v in (yaw, pitch, roll))
+    back = T.yaw_pitch_roll_from_quat(T.quat_from_yaw_pitch_roll(*tensors))
     assert -math.pi / 2 <= back[1].item() <= math.pi / 2
 
 
@@ -249,7 +250,8 @@ def test_rotation_is_continuous_through_pitch_90(dtype, tol):
 
 
 def test_yaw_pitch_roll_from_quat_accepts_unnormalised_input():
-    q = T.quat_from_yaw_pitch_roll(torch.tensor(0.4, dtype=F64), torch.tensor(-0.3, dtype=F64), torch.tensor(1.1, dtype=F64))
+    q = T.quat_from_yaw_pitch_roll(torch.tensor(0.4, dtype=F64), torch.tensor(-0.3, dtype=F64),
+                                   torch.tensor(1.1, dtype=F64))
     assert torch.allclose(T.yaw_pitch_roll_from_quat(-7.5 * q), torch.tensor([0.4, -0.3, 1.1], dtype=F64), atol=1e-12)
 
 
@@ -317,7 +319,8 @@ def test_view_and_projection_put_the_look_at_target_on_the_axis():
     view = T.view_matrix(torch.zeros(3, dtype=F64), q)
     eye_space = view @ torch.cat((target - eye, torch.ones(1, dtype=F64)))
     assert torch.allclose(eye_space[:3], torch.tensor([0.0, 0.0, -(target - eye).norm().item()], dtype=F64), atol=1e-12)
-    proj = T.perspective(torch.tensor(1.2, dtype=F64), 1.5, torch.tensor(0.05, dtype=F64), torch.tensor(100.0, dtype=F64))
+    proj = T.perspective(torch.tensor(1.2, dtype=F64), 1.5, torch.tensor(0.05, dtype=F64),
+                         torch.tensor(100.0, dtype=F64))
     clip = proj @ eye_space
     assert abs(clip[3].item() - (target - eye).norm().item()) < 1e-12  # w = distance along the view axis
     for depth, ndc in ((0.05, -1.0), (100.0, 1.0)):

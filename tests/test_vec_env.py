@@ -212,7 +212,7 @@ def test_departed_agents_see_black_until_their_world_ends():
     envs.reset(seed=0)
     zero = np.zeros(6, dtype=np.int64)
     seen = []
-    for step in range(5):
+    for _ in range(5):
         obs, reward, terminated, truncated, info = envs.step(zero)
         seen.append((obs.reshape(6, -1).any(1).tolist(), terminated.tolist(), truncated.tolist()))
     # prey_0 (entry 1) leaves at step 2, prey_1 (entry 2) at step 3: black from then on,

@@ -11,6 +11,10 @@ Shadows: lighting + shadows at each --shadow-resolutions map size (PCF on and of
 atlas redrawn every frame (every box moves); wall and CPU time relative to lighting
 alone, the two alternated.
 
+Skinning: the agents of the same scene as skinned characters (random joint poses every
+frame, linear-blend skinning in the vertex shader) against the same mesh rigid, timed in
+alternating blocks; views/s and the cost relative to rigid.
+
 Ablation, cumulative, on the same scene and poses:
   1. one camera per view     one offscreen buffer and readback per view (plain Panda3D)
   2. tiled display regions    one buffer, a display region per view (plain Panda3D)
@@ -21,11 +25,13 @@ Writes effects.md, effects.json and effects.png into --out.
 """
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import os
 import time
 
 import numpy as np
+import torch
 from tabulate import tabulate
 
 from .common import RandomMotion, apply, arena_scene, machine, progress, pyplot, time_per_call, write_report
@@ -109,6 +115,48 @@ def _seconds_per_frame(renderer, scene, steps) -> tuple:
     return (time.perf_counter() - wall) / steps, (time.process_time() - cpu) / steps
 
 
+def _skinning(args) -> dict:
+    """Skinned against rigid agents (the same character mesh), alternating blocks of frames."""
+    import marl_render as mr
+    from marl_render.threads import single_threaded
+    from marl_render.transforms import normalize_quat
+
+    character = mr.skinned_character()
+    renderers, motions = {}, {}
+    for label, mesh in (("skinned", character), ("rigid", character.rigid())):
+        scene = _scene(args, ("lighting",))
+        scene.groups["agents"].mesh = mesh
+        renderers[label], motions[label] = mr.BatchRenderer(scene), RandomMotion(scene, seed=0)
+    generator = torch.Generator().manual_seed(0)
+    shape = (args.worlds, args.agents, character.num_joints, 4)
+
+    @single_threaded()  # tiny tensors, as in the envs: the cores stay llvmpipe's, the timing steadier
+    def frame(label):
+        apply(renderers[label], motions[label].next())
+        if label == "skinned":  # a random pose per agent: the joints are packed every frame
+            joints = normalize_quat(torch.randn(shape, generator=generator) * torch.tensor([4.0, 1, 1, 1]))
+            renderers[label].update("agents", joints=joints)
+        renderers[label].render()
+
+    seconds = {label: [] for label in renderers}
+    block = max(args.steps // 4, 2)
+    try:
+        for label in renderers:
+            time_per_call(functools.partial(frame, label), 1, warmup=2)
+        for _ in range(8):  # alternating blocks, so that both see the same load on a shared machine
+            for label in renderers:
+                seconds[label].append(time_per_call(functools.partial(frame, label), block, warmup=0))
+    finally:
+        for renderer in renderers.values():
+            renderer.close()
+    views = args.worlds * args.agents
+    # Medians over the blocks: the cost is the median of each block pair's ratio.
+    cost = float(np.median([s / r - 1.0 for s, r in zip(seconds["skinned"], seconds["rigid"], strict=True)]))
+    return {"mesh": character.name, "vertices": len(character.positions), "joints": character.num_joints,
+            "influences": character.influences, "rigid_views_per_s": views / float(np.median(seconds["rigid"])),
+            "skinned_views_per_s": views / float(np.median(seconds["skinned"])), "cost_vs_rigid": cost}
+
+
 def _worker(arguments):
     """One process of the last ablation step: its share of the worlds, timed alone."""
     worlds, agents, resolution, steps, start_event = arguments
@@ -165,6 +213,8 @@ def run(args) -> dict:
                                   "cost_vs_none": base / rate - 1.0})
 
     result["shadows"] = _shadow_costs(args)
+    progress("effects: skinned agents against rigid ones")
+    result["skinning"] = _skinning(args)
 
     scene = _scene(args, ("lighting",))
     for label, options in OUTPUTS:
@@ -223,6 +273,15 @@ def _write(out: str, result: dict) -> None:
                            colalign=["right", "left", "right", "right", "right", "right", "right"])
         lines += ["", f"Shadows: one {result['worlds']}-world atlas pass per frame, the fragment shader reads it.",
                   "", shadows]
+    skin = result.get("skinning")
+    if skin:
+        skinning = tabulate([["rigid", skin["rigid_views_per_s"], ""],
+                             ["skinned", skin["skinned_views_per_s"], f"{skin['cost_vs_rigid']:+.0%}"]],
+                            ["agents", "views/s", "cost vs rigid"], tablefmt="pipe", floatfmt=["", ",.0f", ""],
+                            colalign=["left", "right", "right"])
+        lines += ["", f"Agents as a skinned character ({skin['vertices']} vertices, {skin['joints']} joints, "
+                  f"{skin['influences']} per vertex; lighting), a random pose each frame, against the same mesh "
+                  "rigid:", "", skinning]
     write_report(out, "effects", result, lines + ["", ablation])
     plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.2))

@@ -5,13 +5,14 @@
 
 `--api` picks the front end(s) that step the environment: `core` (the batched core,
 make_env), `vec` (the gymnasium VectorEnv, make_vec_env), `sb3` (the Stable-Baselines3
-VecEnv, make_sb3_env; needs the `sb3` extra). With several, they run in the same
+VecEnv, make_sb3_env; needs the `sb3` extra), `jax` (make_jax_env: JAX arrays in and out
+through DLPack; needs the `jax` extra). With several, they run in the same
 process on the same pre-drawn actions, taking turns step by step (blocks of steps per
 front end were measured to favour whichever runs second), and each row gets
 `ratio_to_core` (its env-steps/s over the core's in this run). On a shared machine that
 ratio is noisy; `front_end_share` is steadier: the share of each step spent outside the
-core's own ``step`` (the front end's conversions), timed around the core's step. The core and `vec`
-auto-reset in gymnasium's next-step mode; `sb3` resets in the same step (SB3's
+core's own ``step`` (the front end's conversions), timed around the core's step. The core, `vec`
+and `jax` auto-reset in gymnasium's next-step mode; `sb3` resets in the same step (SB3's
 convention), which renders twice on a step where a world ends.
 """
 from __future__ import annotations
@@ -23,7 +24,7 @@ import torch
 
 from .common import machine, progress
 
-APIS = ("core", "vec", "sb3")
+APIS = ("core", "vec", "sb3", "jax")
 
 
 def add_arguments(parser):
@@ -41,7 +42,7 @@ class Stepper:
     """One front end of one environment, stepped with pre-drawn numpy actions [num_envs, ...]."""
 
     def __init__(self, api: str, name: str, kwargs: dict):
-        import marl_render.envs as envs  # the front ends are imported on use (sb3 is an optional extra)
+        import marl_render.envs as envs  # the front ends are imported on use (sb3 and jax are optional extras)
 
         self.api = api
         if api == "core":
@@ -56,6 +57,15 @@ class Stepper:
             self.core = self.env.core
             self.env.reset(seed=0)
             self.step = self.env.step
+        elif api == "jax":
+            import jax.numpy as jnp
+
+            self.env = envs.make_jax_env(name, autoreset="next_step", **kwargs)
+            self.core = self.env.core
+            self.env.reset(seed=0)
+            shape = (self.core.num_worlds, self.core.num_agents, *((self.core.action_dim,) if self.core.continuous
+                                                                   else ()))
+            self.step = lambda actions: self.env.step(jnp.asarray(actions).reshape(shape))
         else:
             self.env = envs.make_sb3_env(name, **kwargs)
             self.core = self.env.venv.core

@@ -27,7 +27,8 @@ What it does per frame, each choice measured on Mesa llvmpipe (2 cores):
   vertex shader; cull=True: a torch frustum test per (view, instance) leaves them and
   everything out of view out of the draw (pays in the arena scenes, where most vertex
   work is out of sight).
-Only the `lighting` effect and `MeshData` meshes are supported.
+Only the `lighting` effect and `MeshData` meshes are supported (skinned meshes only in
+static groups, which stay in their bind pose).
 """
 from __future__ import annotations
 
@@ -39,6 +40,7 @@ import torch
 
 from ..meshes import MeshData
 from ..scene import Scene
+from ..skinning import SkinnedMesh
 
 TILES_PER_FRAMEBUFFER = 256
 FLOATS_PER_INSTANCE = 16  # position xyz, active, rotation wxyz, scale xyz, owner, colour rgba
@@ -214,6 +216,10 @@ class FloorGL:
         groups = [*scene.static.values(), *scene.groups.values()]
         if any(not isinstance(g.mesh, MeshData) for g in groups):
             raise ValueError("FloorGL draws MeshData meshes only")
+        skinned = [g.name for g in scene.groups.values() if isinstance(g.mesh, SkinnedMesh)]
+        if skinned:
+            raise ValueError(f"FloorGL has no skinning; groups {skinned} have skinned meshes (use BatchRenderer, "
+                             "or mesh.rigid() for their bind pose)")
         self.scene, self.cull = scene, bool(cull)
         self.ctx = moderngl.create_context(standalone=True, backend="egl", require=430)
         W, A = scene.num_worlds, scene.agents_per_world

@@ -69,7 +69,7 @@ _NOT_STEP_INFO = ("done_worlds", "autoreset_worlds", "final_obs")  # carried by 
 
 
 def make_vec_env(name: str, num_worlds: int = 1, *, autoreset_mode=AutoresetMode.NEXT_STEP,
-                 action_mask: bool = False, render_mode: str | None = None, **kwargs) -> "MarlRenderVectorEnv":
+                 action_mask: bool = False, render_mode: str | None = None, **kwargs) -> MarlRenderVectorEnv:
     """A gymnasium VectorEnv of the registered environment `name`: num_worlds x num_agents entries.
 
     autoreset_mode: an AutoresetMode (or its value, e.g. "SameStep"); default NEXT_STEP.

@@ -57,7 +57,7 @@ CORE_ATTRIBUTES = ("name", "num_worlds", "num_agents", "agent_names", "groups", 
                    "autoreset", "device")
 
 
-def make_jax_env(name: str, num_worlds: int = 1, **kwargs) -> "JaxEnv":
+def make_jax_env(name: str, num_worlds: int = 1, **kwargs) -> JaxEnv:
     """A JAX front end over the batched core of environment `name` with `num_worlds` worlds.
 
     kwargs go to ``marl_render.envs.make_env`` (resolution, num_agents, max_steps, continuous,

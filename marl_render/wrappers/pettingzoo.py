@@ -14,8 +14,8 @@ and (through ``parallel_to_aec``) ``render_test``.
 
 Spaces (the same for every agent):
 
-* observation: ``Box(0, 255, (H, W, 3), uint8)`` (1 channel with ``grayscale=True``) when the core yields only pixels (the
-  default). With ``depth=True``, ``state_obs=True`` or ``action_mask=True`` it is a
+* observation: ``Box(0, 255, (H, W, 3), uint8)`` (1 channel with ``grayscale=True``) when the core
+  yields only pixels (the default). With ``depth=True``, ``state_obs=True`` or ``action_mask=True`` it is a
   ``Dict`` with "pixels", "depth" (``Box(0, far, (H, W), float32)``: metres, clamped at the
   camera's far plane), "state" (``Box(-inf, inf, (state_dim,), float32)``) and
   "action_mask" (``MultiBinary(num_actions)``, int8: the dtype gymnasium's
@@ -97,7 +97,7 @@ class AgentKeyError(KeyError):
 
 def make_parallel_env(name: str, *, render_mode: str | None = None, action_mask: bool = False,
                       departed_actions: str = "ignore", unknown_options: str = "ignore",
-                      **kwargs) -> "MarlRenderParallelEnv":
+                      **kwargs) -> MarlRenderParallelEnv:
     """A PettingZoo ParallelEnv of the registered environment `name`, one world.
 
     kwargs go to ``marl_render.envs.registry.make_env`` (resolution, num_agents, max_steps,
@@ -246,7 +246,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         self._check_options(options)
         obs = self.core.reset(seed=seed)  # validates seed before changing anything
         self._started = True
-        self.agents = [a for a, alive in zip(self.possible_agents, self.core.alive[0].tolist()) if alive]
+        self.agents = [a for a, alive in zip(self.possible_agents, self.core.alive[0].tolist(), strict=True) if alive]
         observations = self._observations(obs, self.agents)
         if self.render_mode == "human":
             self.render()

@@ -31,7 +31,7 @@ from marl_render.validation import describe
 from .gymnasium import MarlRenderVectorEnv, make_vec_env
 
 
-def make_sb3_env(name: str, num_worlds: int = 1, **kwargs) -> "MarlRenderSB3VecEnv":
+def make_sb3_env(name: str, num_worlds: int = 1, **kwargs) -> MarlRenderSB3VecEnv:
     """An SB3 VecEnv of the registered environment `name` (num_worlds x num_agents entries).
 
     kwargs go to ``marl_render.envs.make_vec_env`` (resolution, num_agents, max_steps,

@@ -88,7 +88,7 @@ _DONE_KEYS = ("done", "terminated", "truncated")
 _RESERVED = (*_DONE_KEYS, "_reset", "reward", "action", "info")
 
 
-def make_torchrl_env(name: str, num_worlds: int = 1, group_map="team", **kwargs) -> "MarlRenderTorchRLEnv":
+def make_torchrl_env(name: str, num_worlds: int = 1, group_map="team", **kwargs) -> MarlRenderTorchRLEnv:
     """A TorchRL env of the registered environment `name` with `num_worlds` worlds.
 
     kwargs go to ``marl_render.envs.registry.make_env`` (resolution, num_agents, max_steps,
