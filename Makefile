@@ -18,6 +18,7 @@ demo: $(STAMP)
 	$(PY) examples/demo.py
 
 test: $(STAMP)
+	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 
 # Second matrix entry: BenchMARL, the torchrl it pins and the CPU torch, in their own venv.

@@ -21,7 +21,8 @@ def box_scene(worlds=1, agents=1, resolution=(48, 64), capacity=1, effects=(), *
 
 def cameras_at_origin(renderer, worlds, agents):
     """Every camera at the origin looking down +Y."""
-    renderer.set_cameras(position=torch.zeros(worlds, agents, 3), rotation=torch.tensor([1.0, 0, 0, 0]).repeat(worlds, agents, 1))
+    renderer.set_cameras(position=torch.zeros(worlds, agents, 3),
+                         rotation=torch.tensor([1.0, 0, 0, 0]).repeat(worlds, agents, 1))
 
 
 def is_background(image):
@@ -49,7 +50,9 @@ def test_box_projects_where_a_pinhole_camera_puts_it():
     cols = torch.arange(W) + 0.5
     rows = torch.arange(H) + 0.5
     inside = ((cols >= left + 1) & (cols <= right - 1))[None, :] & ((rows >= top + 1) & (rows <= bottom - 1))[:, None]
-    outside = ~(((cols >= left - 1) & (cols <= right + 1))[None, :] & ((rows >= top - 1) & (rows <= bottom + 1))[:, None])
+    near_columns = (cols >= left - 1) & (cols <= right + 1)
+    near_rows = (rows >= top - 1) & (rows <= bottom + 1)
+    outside = ~(near_columns[None, :] & near_rows[:, None])
     for agent in range(3):
         image = rgb[1, agent]
         red = (image == torch.tensor([255, 0, 0], dtype=torch.uint8)).all(-1)
@@ -348,7 +351,8 @@ def test_mounted_camera_follows_its_instance():
 
 
 def test_one_buffer_per_view_baseline_matches_the_tiled_one():
-    scene = mr.Scene(num_worlds=2, agents_per_world=2, resolution=(16, 24), effects=("lighting",), background=BACKGROUND)
+    scene = mr.Scene(num_worlds=2, agents_per_world=2, resolution=(16, 24), effects=("lighting",),
+                     background=BACKGROUND)
     scene.add_static("floor", "plane", position=[0, 0, 0], scale=[30, 30, 1], color=[0.3, 0.6, 0.3])
     scene.add_group("boxes", "box", capacity=3)
     instances, camera, target = random_scene_inputs(torch.Generator().manual_seed(3), 2, 2, 3)
@@ -375,7 +379,10 @@ def test_antialiasing_blends_edges_and_keeps_flat_colours(antialiasing):
             frames.append(renderer.render().rgb[0])
     aliased, smooth = frames
     assert smooth.shape == aliased.shape and smooth.dtype == torch.uint8
-    levels = lambda image: set(image[..., 0].flatten().tolist())
+
+    def levels(image):
+        return set(image[..., 0].flatten().tolist())
+
     assert levels(aliased) <= {0, 255}
     assert len(levels(smooth) - {0, 255}) >= 3, "anti-aliased edges must have intermediate values"
     assert torch.equal(smooth[:, 12, 16], aliased[:, 12, 16]), "flat interior unchanged"
