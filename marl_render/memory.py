@@ -33,16 +33,21 @@ EXTRA_TARGET_PIXEL_BYTES = 16  # each of the depth and segmentation outputs
 ENV_WORLD_BYTES = 2048
 
 
-def renderer_bytes(scene) -> int:
-    """Host bytes a BatchRenderer of `scene` holds at its peak, one render included."""
+def renderer_bytes(scene, supersample: int = 1) -> int:
+    """Host bytes a BatchRenderer of `scene` holds at its peak, one render included
+    (supersample=k draws k x k samples per pixel; a shadow atlas holds W maps of 4-byte
+    depth and Panda3D's unused 4-byte colour target)."""
     height, width = scene.resolution
     views = scene.num_views
     dynamic = sum(group.capacity for group in scene.groups.values())
     static = sum(group.count for group in scene.static.values())
     extra_targets = sum(effect in scene.effects for effect in ("depth", "segmentation"))
     per_pixel = PIXEL_BYTES + extra_targets * EXTRA_TARGET_PIXEL_BYTES
+    shadow_maps = getattr(scene, "shadows", None)
+    atlas = scene.num_worlds * shadow_maps.resolution ** 2 * 8 if "shadows" in scene.effects and shadow_maps else 0
     return (views * VIEW_BYTES + views * (dynamic + static) * PAIR_BYTES
-            + scene.num_worlds * dynamic * INSTANCE_BYTES + views * height * width * per_pixel)
+            + scene.num_worlds * dynamic * INSTANCE_BYTES + views * height * width * per_pixel * supersample ** 2
+            + atlas)
 
 
 def available_bytes() -> int:

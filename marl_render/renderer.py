@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import backend, readback, shaders, skinning
+from . import backend, memory, readback, shaders, skinning
 from .meshes import MeshData, to_panda_geom
 from .packing import FramePacker
 from .panda_buffers import buffer_texture, int_input, panda_texture, vec3_input, writable
@@ -123,6 +123,11 @@ class BatchRenderer:
             raise ValueError("multisamples cannot be combined with the depth or segmentation outputs (their "
                              "bit-packed samples would be averaged); use supersample instead")
         self.multisamples = multisamples
+        height, width = scene.resolution
+        memory.check_fits(memory.renderer_bytes(scene, self.supersample),
+                          f"a BatchRenderer of num_worlds={scene.num_worlds} x agents_per_world="
+                          f"{scene.agents_per_world} at resolution {height}x{width} (supersample={self.supersample})",
+                          "lower num_worlds, agents_per_world, resolution or supersample")
         self.scene = scene
         self.readback = readback
         self.channels_first = bool(channels_first)

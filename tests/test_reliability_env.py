@@ -19,6 +19,7 @@ import warnings
 import pytest
 import torch
 
+import marl_render as mr
 from marl_render import backend, memory, threads
 from marl_render.bench.soak import rss_mb
 from marl_render.envs import list_envs, make_env
@@ -355,3 +356,18 @@ def test_a_forked_child_is_refused_before_anything_changes(name):
         env.step(env.random_actions())  # the parent's env still works
     finally:
         env.close()
+
+
+def test_batch_renderer_refuses_a_batch_beyond_memory_before_allocating():
+    # Built directly, without an env: the renderer checks its own estimate first.
+    scene = mr.Scene(num_worlds=20_000_000, agents_per_world=1, resolution=1)
+    scene.add_group("bodies", "box", capacity=2)
+    with pytest.raises(ValueError, match=r"BatchRenderer of num_worlds=20000000 .* needs about .* GiB of host memory"):
+        mr.BatchRenderer(scene)
+    # Supersampling multiplies the pixels: a batch that fits at k=1 is refused at a huge k.
+    small = mr.Scene(num_worlds=64, agents_per_world=4, resolution=64)
+    assert memory.renderer_bytes(small, supersample=256) > 2 ** 40  # 1.4 TB: more than any test machine has
+    with pytest.raises(ValueError, match=r"supersample=256\).* needs about"):
+        mr.BatchRenderer(small, supersample=256)
+    with mr.BatchRenderer(small) as renderer:
+        assert renderer.render().rgb.shape == (64, 4, 64, 64, 3)
