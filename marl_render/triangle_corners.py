@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .meshes import MeshData
+from .meshes import MeshData, to_panda_geom
 
 
 def with_triangle_corners(mesh: MeshData) -> dict[str, np.ndarray]:
@@ -51,34 +51,6 @@ def with_triangle_corners(mesh: MeshData) -> dict[str, np.ndarray]:
 def to_panda_geom_with_corners(mesh: MeshData):
     """A Panda3D GeomNode of `with_triangle_corners(mesh)`; the shader reads the extra
     columns as `in vec3 corner_a, corner_b`."""
-    from panda3d.core import (
-        Geom,
-        GeomNode,
-        GeomTriangles,
-        GeomVertexArrayFormat,
-        GeomVertexData,
-        GeomVertexFormat,
-        InternalName,
-    )
-
     columns = with_triangle_corners(mesh)
-    array_format = GeomVertexArrayFormat()
-    layout = [("vertex", 3, Geom.C_point), ("normal", 3, Geom.C_normal), ("texcoord", 2, Geom.C_texcoord),
-              ("corner_a", 3, Geom.C_other), ("corner_b", 3, Geom.C_other)]
-    for name, width, contents in layout:
-        array_format.add_column(InternalName.make(name), width, Geom.NT_float32, contents)
-    vertex_format = GeomVertexFormat.register_format(GeomVertexFormat(array_format))
-    vdata = GeomVertexData(mesh.name, vertex_format, Geom.UH_static)
-    interleaved = np.concatenate([columns[name] for name, _, _ in layout], axis=1).astype(np.float32)
-    vdata.unclean_set_num_rows(len(interleaved))
-    memoryview(vdata.modify_array(0)).cast("B")[:] = interleaved.tobytes()
-    primitive = GeomTriangles(Geom.UH_static)
-    primitive.set_index_type(Geom.NT_uint32)
-    indices = primitive.modify_vertices()
-    indices.unclean_set_num_rows(columns["triangles"].size)
-    memoryview(indices).cast("B")[:] = columns["triangles"].tobytes()
-    geom = Geom(vdata)
-    geom.add_primitive(primitive)
-    node = GeomNode(mesh.name)
-    node.add_geom(geom)
-    return node
+    rearranged = MeshData(mesh.name, columns["vertex"], columns["normal"], columns["texcoord"], columns["triangles"])
+    return to_panda_geom(rearranged, extra={"corner_a": columns["corner_a"], "corner_b": columns["corner_b"]})
