@@ -310,20 +310,31 @@ def _check_textures(name: str, path: str, textures: list[str]) -> None:
                              f"complete image: {reason}") from None
 
 
+UNLOADABLE_MODEL = "could not be loaded by Panda3D (not a model file, or a corrupt one)"
+
+
+def _load_panda_model(path: str):
+    """In the child process: the model file as a NodePath through Panda3D's loader (no model
+    cache, errors reported), or None when Panda3D cannot load it."""
+    from panda3d.core import Filename, Loader, LoaderOptions, NodePath
+
+    options = LoaderOptions(LoaderOptions.LF_no_cache | LoaderOptions.LF_report_errors)
+    node = Loader.get_global_ptr().load_sync(Filename.from_os_specific(path), options)
+    return None if node is None else NodePath(node)
+
+
 def _write_model_arrays(path: str, output: str) -> None:
     """In the child process: load `path` with Panda3D and save its triangles to `output` (.npz).
 
     The log names every texture just before Panda3D decodes it, so that the parent can say
     which one ended the process if one does."""
-    from panda3d.core import Filename, Loader, LoaderOptions, NodePath, loadPrcFileData
+    from panda3d.core import loadPrcFileData
 
     loadPrcFileData("marl_render model child", "notify-level-gobj info")
-    options = LoaderOptions(LoaderOptions.LF_no_cache | LoaderOptions.LF_report_errors)
-    node = Loader.get_global_ptr().load_sync(Filename.from_os_specific(path), options)
-    if node is None:
-        np.savez(output, error="could not be loaded by Panda3D (not a model file, or a corrupt one)")
+    model = _load_panda_model(path)
+    if model is None:
+        np.savez(output, error=UNLOADABLE_MODEL)
         return
-    model = NodePath(node)
     parts = [_geom_arrays(geom, geom_node.get_net_transform().get_mat())
              for geom_node in model.find_all_matches("**/+GeomNode") for geom in geom_node.node().get_geoms()]
     parts = [part for part in parts if len(part[3])]
@@ -354,14 +365,10 @@ def _write_skin_arrays(path: str, output: str) -> None:
             return
         model = NodePath(gltf.load_model(path))
     else:
-        from panda3d.core import Filename, Loader, LoaderOptions
-
-        options = LoaderOptions(LoaderOptions.LF_no_cache | LoaderOptions.LF_report_errors)
-        node = Loader.get_global_ptr().load_sync(Filename.from_os_specific(path), options)
-        if node is None:
-            np.savez(output, error="could not be loaded by Panda3D (not a model file, or a corrupt one)")
+        model = _load_panda_model(path)
+        if model is None:
+            np.savez(output, error=UNLOADABLE_MODEL)
             return
-        model = NodePath(node)
     parts, joints, skin_matrix = [], {}, None  # joints: pointer -> CharacterJoint
     for geom_node in model.find_all_matches("**/+GeomNode"):
         matrix = geom_node.get_net_transform().get_mat()
