@@ -5,13 +5,21 @@
     obs = env.reset(seed=0)                      # obs["pixels"]: uint8 [W, A, H, Wpx, 3]
     obs, reward, terminated, truncated, info = env.step(actions)
 
-make_env returns the batched core (BatchedEnv, see envs/core.py). The PettingZoo and
-TorchRL front ends wrap that core.
+make_env returns the batched core (BatchedEnv, the driver: see envs/core.py); the front ends
+(PettingZoo, TorchRL, gymnasium, SB3, JAX) wrap it. A task is a Scenario (envs/scenario.py) or,
+for agents on a floor, an ArenaScenario (envs/arena.py); register_env makes one known to all
+front ends. docs/authoring.md builds one step by step.
 """
+from .arena import ArenaScenario, ArenaState, Prop, Static
 from .core import OBS_KEYS, BatchedEnv
-from .registry import env_class, list_envs, make_env, register
+from .options import EnvOptions
+from .registry import env_class, list_envs, make_env, register_env
+from .scenario import Layout, NoParams, Scenario, Step, numbered
+from .spec import ActionSpec, ArraySpec, EnvSpec
 
-__all__ = ["BatchedEnv", "OBS_KEYS", "env_class", "list_envs", "make_env", "register"]
+__all__ = ["ActionSpec", "ArenaScenario", "ArenaState", "ArraySpec", "BatchedEnv", "EnvOptions", "EnvSpec", "Layout",
+           "NoParams", "OBS_KEYS", "Prop", "Scenario", "Static", "Step", "env_class", "list_envs", "make_env",
+           "numbered", "register_env"]
 
 # The front ends (marl_render/wrappers/) are exported lazily, so that importing
 # marl_render.envs never imports pettingzoo or torchrl: public name -> "module:attribute".

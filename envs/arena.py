@@ -1,19 +1,24 @@
-"""The arena: agents on capsule bodies in a walled floor, each seeing through its own camera.
+"""The arena: agents on capsule bodies on a walled floor, each seeing through its own camera.
 
-spread, forage, tag and push are scenarios over this one arena, in the way of MPE's scenarios.
-The arena owns what they share: the teams of agents, the bodies and their planar physics
-(envs/planar.py), egocentric movement (envs/egomotion.py), the body and nose meshes with the
-mounted cameras, the instance data, and the common part of the state observation. A scenario
-file holds only its rules:
+spread, forage, tag, push and the newer tasks are scenarios over this one arena, in the way of
+MPE's and VMAS's scenarios. ``ArenaScenario`` supplies what they share: teams of agents, their
+bodies and planar physics (envs/planar.py), egocentric movement (envs/egomotion.py), the body
+and nose meshes with the mounted cameras, and the scene binding. A task declares the rest of
+its scene as data, so its file holds only rules:
 
-    _setup()             setup_arena(...), then its own constants and the zero state `sim`
-    spawn() -> state     a new episode in every world (the arena keeps it in the worlds reset)
-    rules(moved, alive)  -> (state, reward [W, A], terminated [W, A], info) once the bodies
-                         have moved (`moved`; `self.sim` still holds the state before the step)
-    _build_scene, _instances, _state_obs: the arena's, plus the scenario's own objects
+    def setup(self):                         # once
+        self.setup_arena({"agents": numbered("agent", self.num_agents)}, state_dim=..., radius=0.15,
+                         max_speed=2.0)
+    def initial_state(self): return self.at_rest(zeros [W, A, 2], zeros [W, A], landmarks=zeros [W, L, 2])
+    def spawn(self, generator): ...          # a new episode in every world, e.g. by at_rest(...)
+    def rules(self, before, moved, alive, generator):  # -> (state, reward [W, A], terminated [W, A], info)
+    def props(self):                         # what else is drawn, and which state field it follows
+        return [Prop("landmarks", disc_mesh(), count=L, position="landmarks", height=0.02, ...)]
 
-Bodies 0 .. A-1 are the agents; a scenario may add more after them (push's ball). The state
-(``sim``) is an ``ArenaState`` subclass with the scenario's own fields (envs/state.py).
+``rules`` gets the state before the step and the state once the bodies moved (``moved``: new
+pos, vel, yaw; the task's own fields unchanged). Bodies 0 .. A-1 are the agents; a task may add
+more after them (push's ball) with ``setup_arena(bodies=...)``. The state is an ``ArenaState``
+subclass with the task's own fields (envs/state.py).
 """
 from __future__ import annotations
 
@@ -27,8 +32,9 @@ from torch import Tensor
 import marl_render as mr
 
 from . import egomotion, planar, scenery
-from . import state as explicit_state
-from .core import BatchedEnv
+from .scenario import Scenario, Step, numbered
+
+__all__ = ["ArenaScenario", "ArenaState", "Prop", "Static", "numbered"]
 
 AGENT_HEIGHT = 0.5
 EYE_HEIGHT = 0.4  # the mounted camera's height above the floor (m)
@@ -40,48 +46,78 @@ NOSE_COLOR = (0.1, 0.1, 0.12)
 
 @dataclasses.dataclass(frozen=True)
 class ArenaState:
-    """The arena's part of the simulation state; a scenario subclasses it with its own fields."""
+    """The arena's part of the simulation state; a task subclasses it with its own fields."""
 
-    pos: Tensor  # [W, B, 2] body centres (m): the agents, then the scenario's other bodies
+    pos: Tensor  # [W, B, 2] body centres (m): the agents, then the task's other bodies
     vel: Tensor  # [W, B, 2] body velocities (m/s)
     active: Tensor  # [W, B] bool: bodies that move and collide (agents still in the episode)
     yaw: Tensor  # [W, A] the agents' headings (rad; 0 faces +y, as their cameras do)
 
 
-def numbered(prefix: str, count: int) -> list:
-    """Agent names prefix_0 .. prefix_{count-1}."""
-    return [f"{prefix}_{i}" for i in range(count)]
+@dataclasses.dataclass(frozen=True)
+class Prop:
+    """Objects drawn at places the state says: one instance group of `count` per world.
+
+    position, yaw and active name a field of the state (or are functions of the state):
+    position [W, count, 2] planar centres (m), yaw [W, count] (rad), active [W, count] bool (shown).
+    scale and color are (3,) for all or [count, 3] each (full sizes in m; RGB in [0, 1]).
+    moves=False: the fields change only when an episode starts, so they are sent only then."""
+
+    name: str
+    mesh: object  # a mesh name ("box", "sphere", ...) or a marl_render.MeshData
+    count: int
+    position: object
+    height: float  # z of the centres (m)
+    scale: object = (1.0, 1.0, 1.0)
+    color: object = (0.8, 0.8, 0.8)
+    yaw: object = None
+    active: object = None
+    moves: bool = True
 
 
-class ArenaEnv(BatchedEnv):
-    """Base of the arena scenarios; see the module docstring."""
+@dataclasses.dataclass(frozen=True)
+class Static:
+    """Static geometry, the same in every world: positions, scales and colours are [n, 3]."""
 
-    State = ArenaState  # the scenario's state class
+    name: str
+    mesh: object
+    position: object
+    scale: object
+    color: object
+
+
+def _read(state, source) -> Tensor:
+    return source(state) if callable(source) else getattr(state, source)
+
+
+class ArenaScenario(Scenario):
+    """Base of the arena tasks; see the module docstring."""
+
+    State = ArenaState  # the task's state class
     dt = egomotion.DT
     fov_y = math.radians(90.0)
     near = 0.05
     far = 20.0
-    thrust = egomotion.THRUST  # N at full forward action (a scenario may set one per agent, [A])
+    thrust = egomotion.THRUST  # N at full forward action (a task may set one per agent, [A])
     team_colors = scenery.TEAM_COLORS
+    shown: str | None = None  # a bool [W, A] state field: agents drawn (default: all, always)
 
-    @property
-    def shadow_bounds(self):
-        """shadows=True covers the arena and its walls, not the floor's far margin."""
-        return scenery.arena_shadow_bounds(self.arena_half_extent)
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if "shadow_bounds" not in cls.__dict__:  # shadows=True covers the arena and its walls
+            cls.shadow_bounds = scenery.arena_shadow_bounds(cls.arena_half_extent)
 
+    # ------------------------------------------------------------------ declarations
     def setup_arena(self, teams: dict, *, state_dim: int, radius, max_speed: float, substeps: int = 2,
                     bodies: tuple = ()) -> None:
-        """Declare who plays and how bodies move (first thing in a scenario's _setup).
+        """Declare who plays and how bodies move (first thing in a task's setup).
 
         teams: team -> agent names, in agent order. radius: of the agents' bodies (m), a float or
         {team: float}. bodies: (radius, mass) of each further body after the agents."""
-        self.groups = teams
-        self.agent_names = [name for names in teams.values() for name in names]
+        self.teams = teams
         self._team_of = [team for team, names in teams.items() for _ in names]
-        if self.continuous:
-            self.action_dim = 2
-        else:
-            self.num_actions, self.action_meanings = len(egomotion.DISCRETE_ACTIONS), egomotion.ACTION_MEANINGS
+        self.discrete_actions(egomotion.ACTION_MEANINGS)
+        self.continuous_actions(2)
         self.action_table = torch.tensor(egomotion.DISCRETE_ACTIONS, device=self.device)
         self.state_dim = state_dim
         W, N = self.num_worlds, self.num_agents
@@ -105,6 +141,7 @@ class ArenaEnv(BatchedEnv):
         self._nose_color = torch.tensor(NOSE_COLOR).expand(W, N, 3)
         self._owner = torch.arange(N).expand(W, N)
         self._all_agents = torch.ones(W, N, dtype=torch.bool)
+        self._props = None  # the declared props and statics, read on the first scene build
 
     def per_agent(self, values: dict) -> Tensor:
         """[A] float32 on the env's device: each agent's value of its team in {team: value}."""
@@ -112,49 +149,45 @@ class ArenaEnv(BatchedEnv):
 
     def at_rest(self, pos: Tensor, yaw: Tensor, **extra) -> ArenaState:
         """A state (of class State) with the bodies at pos [W, B, 2], still and active, the agents
-        facing yaw [W, A], and the scenario's own fields `extra`; all on the env's device."""
+        facing yaw [W, A], and the task's own fields `extra`; all on the env's device."""
         pos = pos.to(self.device)
         return self.State(pos=pos, vel=torch.zeros_like(pos), active=torch.ones_like(pos[..., 0], dtype=torch.bool),
                           yaw=yaw.to(self.device), **{name: value.to(self.device) for name, value in extra.items()})
 
-    # ------------------------------------------------------------------ rules (the scenario's)
-    @abc.abstractmethod
-    def spawn(self) -> ArenaState:
-        """A new episode in every world (sampled with self.generator), e.g. by at_rest(...)."""
+    def props(self) -> list:
+        """The task's Prop and Static declarations, drawn in this order after the agents."""
+        return []
 
+    # ------------------------------------------------------------------ rules (the task's)
     @abc.abstractmethod
-    def rules(self, moved: ArenaState, alive: Tensor):
-        """(state, reward [W, A], terminated [W, A] bool, info) of the step, given the state once the
-        bodies moved (`moved`) and who took part (alive [W, A]); self.sim is still the state before."""
+    def rules(self, before: ArenaState, moved: ArenaState, alive: Tensor, generator: torch.Generator):
+        """(state, reward [W, A], terminated [W, A] bool, info) of the step, given the state before
+        it, the state once the bodies moved, who took part (alive [W, A]) and the env's generator
+        (for anything random in the step)."""
 
-    def obstacles(self) -> planar.Obstacles | None:
-        """Static boxes of the physics (none unless the scenario has some)."""
+    def obstacles(self, state: ArenaState) -> planar.Obstacles | None:
+        """Static boxes of the physics (none unless the task has some)."""
         return None
 
     # ------------------------------------------------------------------ dynamics
-    def bodies(self, active: Tensor) -> planar.BodyState:
-        """The physics view of the current state, with `active` [W, B] bodies."""
-        s = self.sim
-        W, B = s.pos.shape[:2]
-        return planar.BodyState(s.pos, s.vel, self.radius.expand(W, B), self.mass.expand(W, B), active)
+    def bodies(self, state: ArenaState, active: Tensor) -> planar.BodyState:
+        """The physics view of `state`, with `active` [W, B] bodies."""
+        W, B = state.pos.shape[:2]
+        return planar.BodyState(state.pos, state.vel, self.radius.expand(W, B), self.mass.expand(W, B), active)
 
-    def _reset_state(self, mask):
-        self.sim = explicit_state.select_worlds(mask, self.spawn(), self.sim)
-
-    def _step_state(self, actions, alive):
+    def step(self, state, actions, alive, generator) -> Step:
         command = actions if self.continuous else self.action_table[actions]
-        yaw, force = egomotion.drive(self.sim.yaw, command, alive, self.thrust, self.physics.dt)
+        yaw, force = egomotion.drive(state.yaw, command, alive, self.thrust, self.physics.dt)
         active, extra = alive, self.radius.shape[0] - self.num_agents
         if extra:  # further bodies (push's ball) feel no force and always take part
             force = torch.cat((force, force.new_zeros(self.num_worlds, extra, 2)), 1)
             active = torch.cat((alive, alive.new_ones(self.num_worlds, extra)), 1)
-        bodies = planar.step(self.bodies(active), force, self.obstacles(), self.physics)
-        moved = dataclasses.replace(self.sim, pos=bodies.pos, vel=bodies.vel, active=bodies.active, yaw=yaw)
-        self.sim, reward, terminated, info = self.rules(moved, alive)
-        return reward, terminated, info
+        bodies = planar.step(self.bodies(state, active), force, self.obstacles(state), self.physics)
+        moved = dataclasses.replace(state, pos=bodies.pos, vel=bodies.vel, active=bodies.active, yaw=yaw)
+        return Step(*self.rules(state, moved, alive, generator))
 
-    # ------------------------------------------------------------------ scene and observations
-    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
+    # ------------------------------------------------------------------ scene binding
+    def build_scene(self, scene: mr.Scene, overview: bool) -> None:
         scenery.add_arena(scene, self.arena_half_extent)
         N = self.num_agents
         scene.add_group("agents", scenery.agent_mesh(self._mesh_radius, AGENT_HEIGHT), capacity=N)
@@ -162,10 +195,15 @@ class ArenaEnv(BatchedEnv):
         if not overview:
             scene.mount_cameras("agents", instance=range(N), offset=(0.0, 0.0, EYE_HEIGHT - AGENT_HEIGHT / 2),
                                 pitch=CAMERA_PITCH)
+        for item in self._declared():
+            if isinstance(item, Static):
+                scene.add_static(item.name, item.mesh, position=item.position, scale=item.scale, color=item.color)
+            else:
+                scene.add_group(item.name, item.mesh, capacity=item.count)
 
-    def _instances(self, full: bool) -> dict:
-        pos = self.sim.pos[:, :self.num_agents].to("cpu", torch.float32)
-        yaw = self.sim.yaw.cpu()
+    def instances(self, state, full: bool) -> dict:
+        pos = state.pos[:, :self.num_agents].to("cpu", torch.float32)
+        yaw = state.yaw.cpu()
         rotation = scenery.yaw_quat(yaw)
         nose = pos + self._nose_offset * scenery.heading(yaw)
         update = {"agents": {"position": scenery.planar_to_3d(pos, AGENT_HEIGHT / 2), "rotation": rotation},
@@ -174,18 +212,76 @@ class ArenaEnv(BatchedEnv):
             update["agents"].update(color=self._agent_color, scale=self._agent_scale, active=self._all_agents)
             update["noses"].update(color=self._nose_color, scale=self._nose_scale, active=self._all_agents,
                                    owner=self._owner)
+        if self.shown is not None:
+            update["agents"]["active"] = update["noses"]["active"] = getattr(state, self.shown).cpu()
+        for prop, constant in self._declared_props():
+            if not (full or prop.moves):
+                continue
+            kwargs = {"position": scenery.planar_to_3d(_read(state, prop.position).to("cpu", torch.float32),
+                                                       prop.height)}
+            if prop.yaw is not None:
+                kwargs["rotation"] = scenery.yaw_quat(_read(state, prop.yaw).cpu())
+            if prop.active is not None:
+                kwargs["active"] = _read(state, prop.active).cpu()
+            if full:
+                kwargs = {**constant, **kwargs}
+            update[prop.name] = kwargs
         return update
 
-    def own_obs(self) -> Tensor:
+    def _declared(self) -> list:
+        if self._props is None:
+            self._props = list(self.props())
+        return self._props
+
+    def _declared_props(self):
+        """(Prop, its constant instance data) of each declared prop, built once."""
+        if getattr(self, "_prop_data", None) is None:
+            W, data = self.num_worlds, []
+            for prop in self._declared():
+                if isinstance(prop, Prop):
+                    constant = {"scale": _per_instance(prop.scale, W, prop.count),
+                                "color": _per_instance(prop.color, W, prop.count)}
+                    if prop.active is None:
+                        constant["active"] = torch.ones(W, prop.count, dtype=torch.bool)
+                    data.append((prop, constant))
+            self._prop_data = data
+        return self._prop_data
+
+    # ------------------------------------------------------------------ observation helpers
+    def own_obs(self, state) -> Tensor:
         """[W, A, 6]: each agent's position (2), velocity (2), cos and sin of its yaw; world frame."""
-        s, N = self.sim, self.num_agents
-        return torch.cat((s.pos[:, :N], s.vel[:, :N], torch.cos(s.yaw)[..., None], torch.sin(s.yaw)[..., None]), -1)
+        N = self.num_agents
+        return torch.cat((state.pos[:, :N], state.vel[:, :N], torch.cos(state.yaw)[..., None],
+                          torch.sin(state.yaw)[..., None]), -1)
 
-    def relative(self, points: Tensor) -> Tensor:
+    def relative(self, state, points: Tensor) -> Tensor:
         """[W, A, K, 2]: points [W, K, 2] relative to each agent."""
-        return points[:, None] - self.sim.pos[:, :self.num_agents, None]
+        return points[:, None] - state.pos[:, :self.num_agents, None]
 
-    def others_obs(self) -> Tensor:
+    def others_obs(self, state) -> Tensor:
         """[W, A, A-1, 2]: the other agents' positions relative to each agent, in `others` order."""
-        pos = self.sim.pos[:, :self.num_agents]
+        pos = state.pos[:, :self.num_agents]
         return pos[:, self.others] - pos[:, :, None]
+
+    def steer_to(self, state, target: Tensor, reach: float = 0.0) -> Tensor:
+        """Heuristic helper: egocentric actions that drive each agent towards target [W, A, 2]: turn
+        until it faces the target within 0.3 rad, then forward (noop within `reach`). Discrete
+        int64 [W, A] or continuous float32 [W, A, 2], as the env's actions are."""
+        N = self.num_agents
+        delta = target - state.pos[:, :N]
+        bearing = torch.atan2(-delta[..., 0], delta[..., 1])  # yaw 0 faces +y; yaw > 0 turns left
+        error = scenery.wrap_angle(bearing - state.yaw)
+        near = delta.norm(dim=-1) <= reach
+        if self.continuous:
+            turn = (error / 0.5).clamp(-1, 1)
+            thrust = torch.where(error.abs() < 0.6, torch.ones_like(turn), torch.zeros_like(turn))
+            thrust = torch.where(near, torch.zeros_like(thrust), thrust)
+            return torch.stack((thrust, turn), -1).to(torch.float32)
+        action = torch.where(error > 0, 2, 3)  # turn left / right
+        action = torch.where(error.abs() < 0.3, 1, action)  # forward
+        return torch.where(near, 0, action).to(torch.int64)
+
+
+def _per_instance(value, num_worlds: int, count: int) -> Tensor:
+    """[W, count, 3] float32 (a view) of a (3,) or [count, 3] value."""
+    return torch.as_tensor(value, dtype=torch.float32).expand(num_worlds, count, 3)

@@ -27,10 +27,9 @@ import torch
 
 import marl_render as mr
 
-from . import state as explicit_state
 from .cartpole_dynamics import CARTPOLE, cartpole_step, slider_limit
-from .core import BatchedEnv
 from .dmc_rewards import dmc_balance_reward
+from .scenario import Scenario, Step
 
 FORCE_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)
 CART_HEIGHT = 1.0  # the cart body's z (hinge height)
@@ -44,6 +43,8 @@ POLE_COLOR = (0.6, 0.42, 0.25)
 DECORATION_COLOR = (0.3, 0.5, 0.7)
 FLOOR_COLOR = (0.15, 0.25, 0.35)
 SKY_COLOR = (0.4, 0.6, 0.8)
+# The heuristic's feedback gains on (x, theta, x_dot, theta_dot): push the cart under the pole.
+HEURISTIC_GAINS = (0.5, 8.0, 1.0, 1.5)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,7 +53,7 @@ class CartPoleState:
     last_control: torch.Tensor  # [W] float64: the motor control of the last step
 
 
-class CartPoleBalance(BatchedEnv):
+class CartPoleBalance(Scenario):
     """dm_control cartpole-balance, batched over worlds; see the module docstring."""
 
     name = "cartpole"
@@ -69,19 +70,12 @@ class CartPoleBalance(BatchedEnv):
     overview_fov_y = math.radians(45.0)
     overview_resolution = (120, 160)
 
-    def _setup(self):
+    def setup(self):
         W = self.num_worlds
-        self.agent_names = ["agent_0"]
-        self.groups = {"agents": ["agent_0"]}
-        if self.continuous:
-            self.action_dim = 1
-        else:
-            self.num_actions = len(FORCE_LEVELS)
-            self.action_meanings = tuple(f"force_{u:+g}" for u in FORCE_LEVELS)
+        self.discrete_actions(tuple(f"force_{u:+g}" for u in FORCE_LEVELS))
+        self.continuous_actions(1)
         self.state_dim = 5
         self.force_levels = torch.tensor(FORCE_LEVELS, dtype=torch.float64, device=self.device)
-        self.sim = CartPoleState(qstate=torch.zeros(W, 4, dtype=torch.float64, device=self.device),
-                                 last_control=torch.zeros(W, dtype=torch.float64, device=self.device))
         # Constant parts of the instance data: [cart, pole].
         self._scale = torch.tensor([CART_SIZE, (POLE_WIDTH, POLE_WIDTH, POLE_LENGTH)]).expand(W, 2, 3)
         self._color = torch.tensor([SELF_COLOR, POLE_COLOR]).expand(W, 2, 3)
@@ -92,7 +86,45 @@ class CartPoleBalance(BatchedEnv):
         self._rotation = torch.zeros(W, 2, 4)
         self._rotation[:, :, 0] = 1.0
 
-    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
+    def initial_state(self):
+        W = self.num_worlds
+        return CartPoleState(qstate=torch.zeros(W, 4, dtype=torch.float64, device=self.device),
+                             last_control=torch.zeros(W, dtype=torch.float64, device=self.device))
+
+    def spawn(self, generator):
+        W, g = self.num_worlds, generator
+        x = torch.rand(W, generator=g, dtype=torch.float64) * 0.2 - 0.1
+        theta = torch.rand(W, generator=g, dtype=torch.float64) * 0.068 - 0.034
+        qvel = 0.01 * torch.randn(W, 2, generator=g, dtype=torch.float64)
+        fresh = torch.cat((x[:, None], theta[:, None], qvel), 1).to(self.device)
+        return CartPoleState(qstate=fresh, last_control=torch.zeros(W, dtype=torch.float64, device=self.device))
+
+    def control(self, actions: torch.Tensor) -> torch.Tensor:
+        """Motor control [W] in [-1, 1] for validated actions."""
+        return actions[:, 0, 0].to(torch.float64) if self.continuous else self.force_levels[actions[:, 0]]
+
+    def step(self, state, actions, alive, generator):
+        u = self.control(actions)
+        q = slider_limit(cartpole_step(state.qstate, u))
+        reward = dmc_balance_reward(q, u)
+        terminated = torch.zeros(self.num_worlds, 1, dtype=torch.bool, device=self.device)
+        return Step(CartPoleState(qstate=q, last_control=u), reward[:, None], terminated, {})
+
+    def observation(self, state, alive):
+        x, theta, xdot, thetadot = state.qstate.unbind(-1)
+        return torch.stack((x, torch.cos(theta), torch.sin(theta), xdot, thetadot), -1)[:, None].to(torch.float32)
+
+    def heuristic(self, state, alive):
+        """A linear balance controller on the state (pole angle and rate, cart position and speed)."""
+        x, theta, xdot, thetadot = state.qstate.unbind(-1)
+        u = (HEURISTIC_GAINS[0] * x + HEURISTIC_GAINS[1] * theta + HEURISTIC_GAINS[2] * xdot
+             + HEURISTIC_GAINS[3] * thetadot).clamp(-1, 1)
+        if self.continuous:
+            return u[:, None, None].to(torch.float32)
+        return (u[:, None, None] - self.force_levels.to(u.dtype)).abs().argmin(-1)  # nearest force level
+
+    # ------------------------------------------------------------------ scene binding
+    def build_scene(self, scene: mr.Scene, overview: bool) -> None:
         # One static group (floor slab + two rails) and one instance group (cart + pole), all
         # boxes: the renderer culls and draws per group, so fewer groups is a faster frame.
         scene.add_static("scenery", "box",
@@ -101,34 +133,13 @@ class CartPoleBalance(BatchedEnv):
                          color=[FLOOR_COLOR, DECORATION_COLOR, DECORATION_COLOR])
         scene.add_group("cartpole", "box", capacity=2)
 
-    def _init_cameras(self, renderer: mr.BatchRenderer, overview: bool) -> None:
+    def place_cameras(self, renderer: mr.BatchRenderer, overview: bool) -> None:
         W = self.num_worlds
         renderer.set_cameras(position=torch.tensor(CAMERA_POSITION, dtype=torch.float64).expand(W, 1, 3),
                              rotation=torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(W, 1, 4))
 
-    def _reset_state(self, mask):
-        W, g = self.num_worlds, self.generator
-        x = torch.rand(W, generator=g, dtype=torch.float64) * 0.2 - 0.1
-        theta = torch.rand(W, generator=g, dtype=torch.float64) * 0.068 - 0.034
-        qvel = 0.01 * torch.randn(W, 2, generator=g, dtype=torch.float64)
-        fresh = torch.cat((x[:, None], theta[:, None], qvel), 1).to(self.device)
-        new = CartPoleState(qstate=fresh, last_control=torch.zeros_like(self.sim.last_control))
-        self.sim = explicit_state.select_worlds(mask, new, self.sim)
-
-    def control(self, actions: torch.Tensor) -> torch.Tensor:
-        """Motor control [W] in [-1, 1] for validated actions."""
-        return actions[:, 0, 0].to(torch.float64) if self.continuous else self.force_levels[actions[:, 0]]
-
-    def _step_state(self, actions, alive):
-        u = self.control(actions)
-        q = slider_limit(cartpole_step(self.sim.qstate, u))
-        self.sim = CartPoleState(qstate=q, last_control=u)
-        reward = dmc_balance_reward(q, u)
-        terminated = torch.zeros(self.num_worlds, 1, dtype=torch.bool, device=self.device)
-        return reward[:, None], terminated, {}
-
-    def _instances(self, full: bool) -> dict:
-        q = self.sim.qstate.to("cpu", torch.float32)
+    def instances(self, state, full: bool) -> dict:
+        q = state.qstate.to("cpu", torch.float32)
         x, theta = q[:, 0], q[:, 1]
         half = 0.5 * theta
         position, rotation = self._position, self._rotation
@@ -141,8 +152,3 @@ class CartPoleBalance(BatchedEnv):
         if full:
             update.update(scale=self._scale, color=self._color, active=self._active)
         return {"cartpole": update}
-
-    def _state_obs(self):
-        x, theta, xdot, thetadot = self.sim.qstate.unbind(-1)
-        state = torch.stack((x, torch.cos(theta), torch.sin(theta), xdot, thetadot), -1)
-        return state[:, None].to(torch.float32)

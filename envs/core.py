@@ -1,9 +1,13 @@
-"""The batched environment core: W worlds x A agents, stepped and rendered as one batch.
+"""The driver: W worlds x A agents of one task, stepped and rendered as one batch.
 
-Every environment of the suite subclasses ``BatchedEnv``. The core owns everything that
-is the same for all of them: argument checks, seeding, step counters, the alive mask,
-truncation, auto-reset, the renderer(s) and the observation dict. A subclass writes
-only its world: state tensors, a reset, a step, a scene and the instance poses.
+Every environment is a ``BatchedEnv`` driving a scenario (envs/scenario.py: the task's rules
+and scene binding, pure functions of an explicit state). The driver owns everything that is
+the same for all tasks: option checks (envs/options.py), seeding, step counters, the alive
+mask, truncation, auto-reset, the renderers (envs/rendering.py), the observation dict and
+the spec the front ends translate (envs/spec.py).
+
+    env = BatchedEnv(Spread, EnvOptions(num_worlds=64), Spread.Params(num_landmarks=4))
+    env = make_env("spread", num_worlds=64, num_landmarks=4)     # the same, by name
 
 Data contract (W worlds, A agents, H x Wpx pixels)::
 
@@ -78,82 +82,23 @@ the RNG state, and ``set_state(state)`` restores all of it exactly.
 """
 from __future__ import annotations
 
-import abc
 import dataclasses
-import math
 
 import numpy as np
 import torch
 
 import marl_render as mr
-from marl_render import memory
 from marl_render.threads import limited_threads, thread_count
-from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, resolution_hw
+from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int
 
-from . import scenery
+from . import options as check
+from . import spec as env_spec
 from . import state as explicit_state
+from .options import EnvOptions
+from .rendering import EnvRenderer, check_memory
+from .scenario import Layout, Scenario
 
 OBS_KEYS = ("pixels", "depth", "state", "action_mask")
-
-
-def _flag(name: str, value) -> bool:
-    if not isinstance(value, (bool, np.bool_)):
-        raise TypeError(f"{name} must be a bool, got {describe(value)}")
-    return bool(value)
-
-
-def _shadows(value, bounds) -> mr.Shadows | None:
-    """None (no shadows) or the Shadows settings of the scene."""
-    if isinstance(value, mr.Shadows):
-        return value
-    if not isinstance(value, (bool, np.bool_)):
-        raise TypeError(f"shadows must be a bool or a marl_render.Shadows, got {describe(value)}")
-    return mr.Shadows(bounds=bounds) if value else None
-
-
-AUTORESET_MODES = ("next_step", "same_step")
-
-
-def _autoreset_mode(value) -> bool | str:
-    """False, "next_step" or "same_step"; True means "same_step" (see the module docstring)."""
-    want = f"False, True (= 'same_step') or one of {list(AUTORESET_MODES)}"
-    if isinstance(value, (bool, np.bool_)):
-        return "same_step" if value else False
-    if not isinstance(value, str):
-        raise TypeError(f"autoreset must be {want}, got {describe(value)}")
-    if value not in AUTORESET_MODES:
-        raise ValueError(f"autoreset must be {want}, got {value!r}")
-    return value
-
-
-def _seed(name: str, value) -> int | None:
-    if value is None:
-        return None
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be None or an int in [0, 2**63), got {describe(value)}")
-    if not 0 <= int(value) < 2 ** 63:
-        raise ValueError(f"{name} must be None or an int in [0, 2**63), got {value}")
-    return int(value)
-
-
-def _device(value) -> torch.device:
-    if not isinstance(value, (str, torch.device)):
-        raise TypeError(f"device must be a str or torch.device (e.g. 'cpu', 'cuda:0'), got {describe(value)}")
-    try:
-        device = torch.device(value)
-    except (RuntimeError, ValueError) as exc:
-        raise ValueError(f"device must name a torch device (e.g. 'cpu', 'cuda:0'), got {value!r}") from exc
-    if device.type == "cpu":  # torch has one CPU device; tensors made on 'cpu:0' report plain 'cpu'
-        if device.index not in (None, 0):
-            raise ValueError(f"device must be 'cpu' (torch has a single CPU device) or a CUDA device, got {value!r}")
-        return torch.device("cpu")
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {value!r} was asked for but torch sees no CUDA device; use device='cpu'")
-    if device.type not in ("cpu", "cuda"):
-        raise ValueError(f"device must be a CPU or CUDA device (e.g. 'cpu', 'cuda:0'), got {value!r}")
-    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
-        raise ValueError(f"device {value!r} was asked for but torch sees {torch.cuda.device_count()} CUDA device(s)")
-    return device
 
 
 def _from_user(name: str, value):
@@ -168,166 +113,94 @@ def _from_user(name: str, value):
     return value.detach()
 
 
-class BatchedEnv(abc.ABC):
-    """Abstract base of all environments: see the module docstring for the contract.
+class BatchedEnv:
+    """The driver of a task: see the module docstring for the contract.
 
-    Subclasses set the class attributes below and implement the hooks
-    ``_setup`` (which also sets ``sim``, the simulation state: a frozen dataclass of
-    tensors), ``_build_scene``, ``_reset_state``, ``_step_state``, ``_instances``,
-    ``_state_obs`` (and optionally ``_init_cameras``, ``_action_mask``, ``_overview_camera``).
+    ``BatchedEnv(scenario, options=None, params=None)``: `scenario` is a Scenario subclass,
+    `options` an EnvOptions (the options every env takes: num_worlds, num_agents, resolution
+    (int or (H, W)), max_steps, continuous, state_obs, depth, shadows (False, True or a
+    marl_render.Shadows; True: Shadows(bounds=the task's shadow_bounds)), device, seed,
+    autoreset (False, "next_step", "same_step" or True = "same_step"), grayscale (one-channel
+    pixels), torch_threads (default 1, at most 1024: torch intra-op threads used *inside* env
+    calls, the caller's setting restored on return; None leaves torch's setting alone) and
+    context (a marl_render.GLContext to render on; None: the process's default)), `params`
+    an instance of the scenario's Params (None: its defaults).
 
-    Constructor keywords (all keyword-only): num_worlds, num_agents, resolution (int or
-    (H, W)), max_steps, continuous, state_obs, depth, shadows (False, True or a
-    marl_render.Shadows; True: Shadows(bounds=shadow_bounds)), device, seed, autoreset (False,
-    "next_step", "same_step" or True = "same_step"; see the module docstring),
-    grayscale (one-channel pixels, `pixel_channels`), torch_threads (default 1, at most
-    1024): torch intra-op threads used *inside* env calls (the caller's setting is restored
-    on return; None leaves torch's setting alone: see marl_render/threads.py), and context
-    (a marl_render.GLContext to render on, which closes the env's renderers when it closes;
-    None: the default context shared by the process).
-
-    Attributes: name, num_worlds (W), num_agents (A), agent_names, groups (team ->
-    agent names, in agent-index order), resolution (H, W), continuous, num_actions
-    (discrete, else None), action_dim (continuous, else None), action_meanings,
-    obs_keys, state_dim, max_steps, dt, device, seed, generator, renderer, physics
-    (PhysicsConfig or None), physics_terms, sim (the simulation state), alive [W, A] bool,
+    Attributes: scenario, spec (the EnvSpec every front end translates), name, num_worlds (W),
+    num_agents (A), agent_names, groups (team -> agent names, in agent-index order), resolution
+    (H, W), continuous, num_actions (discrete, else None), action_dim (continuous, else None),
+    action_meanings, obs_keys, info_keys, state_dim, max_steps, dt, far, device, seed, generator,
+    renderer, physics (PhysicsConfig or None), sim (the simulation state), alive [W, A] bool,
     step_count [W] int64.
-    Methods: reset, reset_worlds, step, check_actions, render_overview, state_observation,
-    get_state, set_state, close.
+    Methods: reset, reset_worlds, step, check_actions, episode_over, random_actions,
+    heuristic_actions, render_overview, state_observation, get_state, set_state, close.
     """
 
-    # ---- declared by each environment
-    name: str = "batched_env"
-    default_num_agents: int = 1
-    agent_range: tuple = (1, 64)  # allowed num_agents (inclusive)
-    default_max_steps: int = 100
-    default_resolution = 64
-    dt: float = 0.1  # simulated seconds per step (a front end plays episodes back at 1 / dt frames/s)
-    physics_terms: frozenset = frozenset()  # envs/planar.py terms this env computes
-    info_keys: dict = {}  # {name: dtype} of the env's own info entries, each [W], in every step's info
-    background: tuple = scenery.SKY_COLOR
-    fov_y: float = math.radians(70.0)
-    near: float = 0.05
-    far: float = 50.0
-    arena_half_extent: tuple = (1.5, 1.5)  # used by the default overview camera
-    overview_resolution: tuple = (128, 128)
-    overview_fov_y: float = math.radians(60.0)
-    shadow_bounds = None  # the box shadows=True covers; None: fitted to the static geometry
-
-    def __init__(self, *, num_worlds: int = 1, num_agents: int | None = None, resolution=None,
-                 max_steps: int | None = None, continuous: bool = False, state_obs: bool = False,
-                 depth: bool = False, shadows=False, device="cpu", seed: int | None = None,
-                 autoreset: bool | str = False, torch_threads: int | None = 1, grayscale: bool = False,
-                 context: mr.GLContext | None = None):
+    def __init__(self, scenario: type[Scenario], options: EnvOptions | None = None, params=None):
         self._closed = True  # until fully built: close() and __del__ then do nothing
-        self.num_worlds = positive_int("num_worlds", num_worlds)
-        low, high = self.agent_range
-        num_agents = self.default_num_agents if num_agents is None else num_agents
-        if isinstance(num_agents, (bool, np.bool_)) or not isinstance(num_agents, (int, np.integer)):
-            raise TypeError(f"num_agents must be an int in [{low}, {high}], got {describe(num_agents)}")
-        if not low <= num_agents <= high:
-            raise ValueError(f"num_agents must be an int in [{low}, {high}] for {self.name}, got {num_agents}")
-        self.num_agents = int(num_agents)
-        self.resolution = resolution_hw(self.default_resolution if resolution is None else resolution)
+        if not (isinstance(scenario, type) and issubclass(scenario, Scenario)):
+            raise TypeError(f"scenario must be a Scenario subclass (envs/scenario.py), got {describe(scenario)}")
+        options = EnvOptions() if options is None else options
+        if not isinstance(options, EnvOptions):
+            raise TypeError(f"options must be an EnvOptions, got {describe(options)}")
+        params = scenario.Params() if params is None else params
+        if not isinstance(params, scenario.Params):
+            raise TypeError(f"params must be a {scenario.__name__}.Params, got {describe(params)}")
+        self.num_worlds = positive_int("num_worlds", options.num_worlds)
+        self.num_agents = check.num_agents(scenario.num_agents_for(params, options.num_agents), scenario)
+        context = options.context
         if context is not None and not isinstance(context, mr.GLContext):
             raise TypeError(f"context must be a marl_render.GLContext or None, got {describe(context)}")
         self.context = mr.backend.context() if context is None else context
         self.context.check_usable()
-        gl_limit = self.context.info().max_framebuffer_size
-        if max(self.resolution) > gl_limit:
-            raise ValueError(f"resolution must be at most {gl_limit} pixels per side (GL limit), got {self.resolution}")
-        self.max_steps = positive_int("max_steps", self.default_max_steps if max_steps is None else max_steps)
-        if self.max_steps >= 2 ** 63:  # compared with the int64 step counters
-            raise ValueError(f"max_steps must be an int in [1, 2**63), got {self.max_steps}")
-        self.continuous = _flag("continuous", continuous)
-        self.state_obs = _flag("state_obs", state_obs)
-        self.depth = _flag("depth", depth)
-        self.shadows = _shadows(shadows, self.shadow_bounds)
-        self.grayscale = _flag("grayscale", grayscale)
+        self.resolution = check.resolution(options.resolution, scenario, self.context.info().max_framebuffer_size)
+        self.max_steps = check.max_steps(options.max_steps, scenario)
+        self.continuous = check.flag("continuous", options.continuous)
+        self.state_obs = check.flag("state_obs", options.state_obs)
+        self.depth = check.flag("depth", options.depth)
+        self.grayscale = check.flag("grayscale", options.grayscale)
         self.pixel_channels = 1 if self.grayscale else 3
-        self.autoreset = _autoreset_mode(autoreset)  # False, "next_step" or "same_step"
-        self.device = _device(device)
+        self.autoreset = check.autoreset_mode(options.autoreset)  # False, "next_step" or "same_step"
+        self.device = check.device(options.device)
+        torch_threads = options.torch_threads
         self.torch_threads = None if torch_threads is None else thread_count("torch_threads", torch_threads)
-        seed = _seed("seed", seed)
+        seed = check.seed("seed", options.seed)
         self.seed = int(torch.Generator().seed() % 2 ** 63) if seed is None else seed
         self.generator = torch.Generator().manual_seed(self.seed)
+        self.shadows = check.shadows(options.shadows, scenario.shadow_bounds)
         effects = ("lighting", "depth") if self.depth else ("lighting",)
         effects += ("shadows",) if self.shadows else ()
-        # Views and pixels alone, before _setup allocates the state; the whole scene below.
-        self._check_memory(mr.Scene(num_worlds=self.num_worlds, agents_per_world=self.num_agents,
-                                    resolution=self.resolution, effects=effects))
+        # Views and pixels alone, before the scenario allocates anything; the whole scene below.
+        check_memory(mr.Scene(num_worlds=self.num_worlds, agents_per_world=self.num_agents,
+                              resolution=self.resolution, effects=effects),
+                     self.num_worlds, self.num_agents, self.resolution)
+        self.context.check_usable()  # in a forked child: ForkedContextError now, not a torch deadlock below
 
-        # Filled in by _setup().
-        self.agent_names: list[str] = [f"agent_{i}" for i in range(self.num_agents)]
-        self.groups: dict[str, list[str]] = {"agents": list(self.agent_names)}
-        self.num_actions: int | None = None
-        self.action_dim: int | None = None
-        self.action_meanings: tuple | None = None  # discrete: a short name per action
-        self.state_dim: int = 0
-        self.physics = None  # PhysicsConfig of envs that use envs/planar.py
-        self.sim = None  # the simulation state, a frozen dataclass of tensors (envs/state.py)
-        self.context.check_usable()  # in a forked child: ForkedContextError now, not a torch deadlock in _setup
-        self._setup()
-        self._check_setup()
-
+        self.scenario = scenario(params, Layout(self.num_worlds, self.num_agents, self.continuous, self.device))
+        self._describe(self.scenario)
+        self.sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
+        self._check_scenario()
         self.obs_keys = tuple(k for k, on in (("pixels", True), ("depth", self.depth), ("state", self.state_obs),
                                               ("action_mask", not self.continuous)) if on)
+        self.spec = env_spec.build(self)
         W, A = self.num_worlds, self.num_agents
         self.alive = torch.ones(W, A, dtype=torch.bool, device=self.device)
         self.step_count = torch.zeros(W, dtype=torch.int64, device=self.device)
         self._needs_reset = True
-        self._overview = None
-        scene = self._make_scene(overview=False, resolution=self.resolution, effects=effects)
-        self._check_memory(scene)
         with limited_threads(self.torch_threads):
-            self.renderer = self._make_renderer(scene, overview=False)
+            self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=effects,
+                                     shadows=self.shadows, grayscale=self.grayscale, context=self.context,
+                                     device=self.device)
+        self.renderer = self.views.renderer
         self._closed = False
 
-    # ================================================================== hooks
-    @abc.abstractmethod
-    def _setup(self) -> None:
-        """Set agent_names, groups, num_actions / action_dim, state_dim, physics, and `sim`: the
-        simulation state (a frozen dataclass of tensors; its shapes are what set_state accepts)."""
-
-    @abc.abstractmethod
-    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
-        """Add static geometry and instance groups; mount cameras unless `overview`."""
-
-    def _init_cameras(self, renderer: mr.BatchRenderer, overview: bool) -> None:
-        """Place free cameras once after the renderer is built. Default: mounted agent
-        cameras (nothing to do) and the `_overview_camera()` for the overview."""
-        if overview:
-            eye, target = self._overview_camera()
-            W = self.num_worlds
-            renderer.set_cameras(position=eye.expand(W, 1, 3), look_at=target.expand(W, 1, 3))
-
-    def _overview_camera(self):
-        """(eye [3], target [3]) float64 of the overview camera (same in every world)."""
-        return scenery.top_down_camera(self.arena_half_extent, self.overview_fov_y)
-
-    @abc.abstractmethod
-    def _reset_state(self, mask: torch.Tensor) -> None:
-        """Replace `sim` by one with a new episode in the worlds where mask [W] is True, sampled
-        with self.generator; the other worlds' tensors stay bit-identical (sample for all worlds,
-        then state.select_worlds)."""
-
-    @abc.abstractmethod
-    def _step_state(self, actions: torch.Tensor, alive: torch.Tensor):
-        """Replace `sim` by the state one step later, for validated actions; agents with alive
-        False must be ignored. Returns (reward [W, A] float, terminated [W, A] bool, info dict)."""
-
-    @abc.abstractmethod
-    def _instances(self, full: bool) -> dict:
-        """{group: renderer.update kwargs} of the current state. full=False: only what can
-        change in a step (poses); full=True: everything (after a reset, for a new renderer)."""
-
-    def _state_obs(self) -> torch.Tensor:
-        """[W, A, state_dim] float32 low-dimensional observation."""
-        raise NotImplementedError(f"{type(self).__name__} has no state observation")
-
-    def _action_mask(self) -> torch.Tensor:
-        """[W, A, num_actions] bool; default: every action valid."""
-        return torch.ones(self.num_worlds, self.num_agents, self.num_actions, dtype=torch.bool, device=self.device)
+    def _describe(self, s: Scenario) -> None:
+        """Copy the scenario's description onto the driver (the names front ends read)."""
+        self.name, self.dt, self.far, self.info_keys = s.name, s.dt, s.far, dict(s.info_keys)
+        self.groups = {team: list(names) for team, names in s.teams.items()}
+        self.agent_names = s.agent_names
+        self.num_actions, self.action_meanings, self.action_dim = s.num_actions, s.action_meanings, s.action_dim
+        self.state_dim, self.physics, self.physics_terms = s.state_dim, s.physics, s.physics_terms
 
     # ================================================================== public API
     @torch.no_grad()
@@ -335,7 +208,7 @@ class BatchedEnv(abc.ABC):
         """Reset every world; `seed` (optional) re-seeds the env's generator first."""
         self._check_open()
         self._check_process()
-        seed = _seed("seed", seed)
+        seed = check.seed("seed", seed)
         if seed is not None:
             self.seed = seed
             self.generator.manual_seed(seed)
@@ -356,7 +229,7 @@ class BatchedEnv(abc.ABC):
         if tuple(mask.shape) != (self.num_worlds,):
             raise ValueError(f"mask must be a bool tensor of shape [{self.num_worlds}] (num_worlds), "
                              f"got shape {list(mask.shape)}")
-        seed = _seed("seed", seed)
+        seed = check.seed("seed", seed)
         if seed is not None:
             self.seed = seed
             self.generator.manual_seed(seed)
@@ -378,11 +251,12 @@ class BatchedEnv(abc.ABC):
         # next_step: the worlds whose episode ended at the previous step start a new one now;
         # their agents sit this step out (actions ignored, reward 0) and are then reset.
         if self.autoreset == "next_step":
-            restart = self._episode_over()
+            restart = self.episode_over()
         else:
             restart = torch.zeros(W, dtype=torch.bool, device=self.device)
         alive_before = self.alive & ~restart[:, None]
-        reward, terminated, info = self._step_state(actions, alive_before)
+        result = self.scenario.step(self.sim, actions, alive_before, self.generator)
+        self.sim, reward, terminated, info = self._checked_step(result)
         reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         self.alive = alive_before & ~terminated
         self.step_count = self.step_count + 1
@@ -406,8 +280,9 @@ class BatchedEnv(abc.ABC):
             obs = self._observe(full=True)
         return obs, reward, terminated, truncated, info
 
-    def _episode_over(self) -> torch.Tensor:
-        """bool [W]: worlds whose episode has ended (every agent terminated or truncated)."""
+    def episode_over(self) -> torch.Tensor:
+        """bool [W]: worlds whose episode has ended (every agent terminated or truncated). The
+        front ends ask this rather than work it out."""
         return (~self.alive).all(dim=1) | (self.step_count >= self.max_steps)
 
     def random_actions(self, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -463,21 +338,8 @@ class BatchedEnv(abc.ABC):
         self._check_open()
         self._check_process()
         self._check_started()
-        resolution = resolution_hw(self.overview_resolution if resolution is None else resolution)
-        if self._overview is None or self._overview.scene.resolution != resolution:
-            effects = ("lighting", "shadows") if self.shadows else ("lighting",)
-            scene = self._make_scene(overview=True, resolution=resolution, effects=effects)
-            replaced = 0 if self._overview is None else memory.renderer_bytes(self._overview.scene)
-            memory.check_fits(memory.renderer_bytes(scene) - replaced,
-                              f"render_overview(resolution={resolution}) with num_worlds={self.num_worlds}",
-                              "lower the overview's resolution")
-            if self._overview is not None:
-                self._overview.close()
-                self._overview = None
-            self._overview = self._make_renderer(scene, overview=True)
         with limited_threads(self.torch_threads):
-            self._sync(self._overview, full=True)
-            return self._overview.render().rgb[:, 0].to(self.device)
+            return self.views.overview(self.sim, resolution)
 
     def state_observation(self) -> torch.Tensor:
         """float32 [W, A, state_dim]: the low-dimensional observation of the current state (obs
@@ -485,9 +347,18 @@ class BatchedEnv(abc.ABC):
         self._check_open()
         self._check_started()
         if not self.state_dim:
-            raise NotImplementedError(f"{type(self).__name__} has no state observation")
+            raise NotImplementedError(f"{type(self.scenario).__name__} has no state observation")
         with limited_threads(self.torch_threads):
-            return self._state_obs().to(torch.float32)
+            return self.scenario.observation(self.sim, self.alive).to(torch.float32)
+
+    @torch.no_grad()
+    def heuristic_actions(self) -> torch.Tensor:
+        """The scenario's scripted policy's actions for the current state (valid actions, as
+        random_actions gives them): a reference that reads the state and beats random."""
+        self._check_open()
+        self._check_started()
+        with limited_threads(self.torch_threads):
+            return self.check_actions(self.scenario.heuristic(self.sim, self.alive))
 
     def get_state(self) -> dict:
         """Copies of the whole state as {name: tensor}: the fields of `sim` (the simulation),
@@ -521,17 +392,14 @@ class BatchedEnv(abc.ABC):
         self.generator.set_state(rng)
         self._needs_reset = False
         with limited_threads(self.torch_threads):
-            self._sync(self.renderer, full=True)  # per-episode instance data (landmarks, ...) changed too
+            self.views.sync(self.sim, full=True)  # per-episode instance data (landmarks, ...) changed too
 
     def close(self) -> None:
         """Release the renderers; safe to call twice. Any later use raises RuntimeError."""
         if self._closed:
             return
         self._closed = True
-        for renderer in (self.renderer, self._overview):
-            if renderer is not None:
-                renderer.close()
-        self._overview = None
+        self.views.close()
 
     @property
     def closed(self) -> bool:
@@ -560,32 +428,22 @@ class BatchedEnv(abc.ABC):
         """The core's part of the state (get_state / set_state)."""
         return {"step_count": self.step_count, "alive": self.alive}
 
-    def _check_setup(self):
-        A = self.num_agents
-        if not (dataclasses.is_dataclass(self.sim) and not isinstance(self.sim, type)):
-            raise RuntimeError(f"{type(self).__name__}._setup must set sim to a dataclass of tensors (envs/state.py)")
+    def _check_scenario(self):
+        """A scenario whose setup() left its declarations incomplete fails here, naming the hook."""
+        s, A, where = self.scenario, self.num_agents, f"{type(self.scenario).__name__}.setup"
         if len(self.agent_names) != A or len(set(self.agent_names)) != A:
-            raise RuntimeError(f"{type(self).__name__}._setup must give {A} distinct agent_names")
-        grouped = [n for names in self.groups.values() for n in names]
-        if sorted(grouped) != sorted(self.agent_names):
-            raise RuntimeError(f"{type(self).__name__}.groups must partition agent_names")
+            raise RuntimeError(f"{where} must give teams holding {A} distinct agent names, got {self.agent_names}")
         if self.continuous and not (isinstance(self.action_dim, int) and self.action_dim >= 1):
-            raise RuntimeError(f"{type(self).__name__}._setup must set action_dim >= 1 for continuous actions")
+            raise RuntimeError(f"{where} must declare continuous_actions(dim) with dim >= 1 for continuous=True")
         if not self.continuous and not (isinstance(self.num_actions, int) and self.num_actions >= 1):
-            raise RuntimeError(f"{type(self).__name__}._setup must set num_actions >= 1 for discrete actions")
-
-    def _check_memory(self, scene: mr.Scene) -> None:
-        """Refuse a batch whose renderer, observations and env state would not fit in this
-        machine's memory before they are allocated (torch would fail late with a raw allocator
-        error, or the OOM killer would strike). See marl_render/memory.py for what is counted."""
-        height, width = self.resolution
-        needed = memory.renderer_bytes(scene) + self.num_worlds * memory.ENV_WORLD_BYTES
-        memory.check_fits(needed, f"num_worlds={self.num_worlds} x num_agents={self.num_agents} at resolution "
-                                  f"{height}x{width}", "lower num_worlds, num_agents or resolution")
+            raise RuntimeError(f"{where} must declare discrete_actions(meanings) with at least one action")
+        if not (dataclasses.is_dataclass(self.sim) and not isinstance(self.sim, type)):
+            raise RuntimeError(f"{type(s).__name__}.initial_state must return a dataclass of tensors (envs/state.py), "
+                               f"got {describe(self.sim)}")
 
     def _check_open(self):
         if self._closed:
-            raise RuntimeError(f"this {type(self).__name__} environment is closed; create a new one")
+            raise RuntimeError(f"this {self.name} environment is closed; create a new one")
 
     def _check_process(self):
         """In a process forked from the one that made this env: ForkedContextError now, before
@@ -594,49 +452,69 @@ class BatchedEnv(abc.ABC):
 
     def _check_started(self):
         if self._needs_reset:
-            raise RuntimeError(f"call reset() before using this {type(self).__name__} environment")
+            raise RuntimeError(f"call reset() before using this {self.name} environment")
 
-    def _make_scene(self, overview: bool, resolution, effects) -> mr.Scene:
-        scene = mr.Scene(num_worlds=self.num_worlds, agents_per_world=1 if overview else self.num_agents,
-                         resolution=resolution, effects=effects, background=self.background,
-                         fov_y=self.overview_fov_y if overview else self.fov_y, near=self.near, far=self.far,
-                         shadows=self.shadows or mr.Shadows())
-        self._build_scene(scene, overview)
-        return scene
+    def _checked_step(self, result):
+        """Scenario.step's result after checking its form, so that a task's mistake is named at its
+        hook rather than deep in the renderer (shape and dtype reads only: no pass over the data)."""
+        where = f"{type(self.scenario).__name__}.step"
+        if not (isinstance(result, tuple) and len(result) == 4):
+            raise TypeError(f"{where} must return (state, reward, terminated, info), got {describe(result)}")
+        state, reward, terminated, info = result
+        self._check_state(where, state)
+        W, A = self.num_worlds, self.num_agents
+        _check_tensor(f"{where}'s reward", reward, (W, A), "float", self.device)
+        _check_tensor(f"{where}'s terminated", terminated, (W, A), "bool", self.device)
+        if not isinstance(info, dict) or set(info) != set(self.info_keys):
+            raise ValueError(f"{where}'s info must be a dict with the keys of info_keys {sorted(self.info_keys)}, "
+                             f"got {sorted(info) if isinstance(info, dict) else describe(info)}")
+        for key, dtype in self.info_keys.items():
+            _check_tensor(f"{where}'s info[{key!r}]", info[key], (W,), dtype, self.device)
+        return result
 
-    def _make_renderer(self, scene: mr.Scene, overview: bool) -> mr.BatchRenderer:
-        renderer = mr.BatchRenderer(scene, color="gray" if self.grayscale and not overview else "rgb",
-                                    context=self.context)
-        try:
-            self._init_cameras(renderer, overview)
-        except BaseException:
-            renderer.close()
-            raise
-        return renderer
+    def _check_state(self, where: str, state) -> None:
+        if type(state) is not type(self.sim):
+            raise TypeError(f"{where} must return a {type(self.sim).__name__} (the class of initial_state()), "
+                            f"got {describe(state)}")
+        for name, want in explicit_state.fields(self.sim).items():
+            _check_tensor(f"{where}'s state.{name}", getattr(state, name), tuple(want.shape), want.dtype, want.device)
 
     def _reset_masked(self, mask: torch.Tensor) -> None:
-        self._reset_state(mask)
+        fresh = self.scenario.spawn(self.generator)
+        self._check_state(f"{type(self.scenario).__name__}.spawn", fresh)
+        self.sim = explicit_state.select_worlds(mask, fresh, self.sim)
         self.step_count = torch.where(mask, torch.zeros_like(self.step_count), self.step_count)
         self.alive = self.alive | mask[:, None]
 
-    def _sync(self, renderer: mr.BatchRenderer, full: bool) -> None:
-        on_cpu = self.device.type == "cpu"
-        overview = renderer is not self.renderer
-        for group, kwargs in self._instances(full).items():
-            if overview and "owner" in kwargs:  # owners hide bodies from agent views; the overview has none
-                kwargs = {k: v for k, v in kwargs.items() if k != "owner"}
-            if not on_cpu:
-                kwargs = {k: v.cpu() for k, v in kwargs.items()}
-            renderer.update(group, **kwargs)
-
     def _observe(self, full: bool) -> dict:
-        self._sync(self.renderer, full)
-        frame = self.renderer.render()
+        self.views.sync(self.sim, full)
+        frame = self.views.render()
         obs = {"pixels": frame.rgb.to(self.device)}
         if self.depth:
             obs["depth"] = frame.depth.clamp_(max=self.far).to(self.device)
+        W, A, s = self.num_worlds, self.num_agents, type(self.scenario).__name__
         if self.state_obs:
-            obs["state"] = self._state_obs().to(torch.float32)
+            state = self.scenario.observation(self.sim, self.alive)
+            _check_tensor(f"{s}.observation", state, (W, A, self.state_dim), "float", self.device)
+            obs["state"] = state.to(torch.float32)
         if not self.continuous:
-            obs["action_mask"] = self._action_mask()
+            mask = self.scenario.action_mask(self.sim, self.alive)
+            _check_tensor(f"{s}.action_mask", mask, (W, A, self.num_actions), "bool", self.device)
+            obs["action_mask"] = mask
         return obs
+
+
+def _check_tensor(what: str, value, shape: tuple, dtype, device: torch.device) -> None:
+    """A hook's tensor has the declared shape, dtype (a torch.dtype, or "float" / "bool") and device."""
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{what} must be a torch.Tensor of shape {list(shape)}, got {describe(value)}")
+    if dtype == "float":
+        dtype_ok, want_dtype = value.is_floating_point(), "a float dtype"
+    elif dtype == "bool":
+        dtype_ok, want_dtype = value.dtype == torch.bool, "torch.bool"
+    else:
+        dtype_ok, want_dtype = value.dtype == dtype, str(dtype)
+    same_device = value.device.type == device.type and (device.index is None or value.device.index == device.index)
+    if tuple(value.shape) != shape or not dtype_ok or not same_device:
+        raise ValueError(f"{what} must have shape {list(shape)}, {want_dtype}, device {device}; got shape "
+                         f"{list(value.shape)}, {value.dtype}, device {value.device}")

@@ -42,7 +42,7 @@ import marl_render as mr
 from marl_render.validation import positive_float, positive_int
 
 from . import scenery
-from .arena import ArenaEnv, ArenaState, numbered
+from .arena import ArenaScenario, ArenaState, Prop, numbered
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.3  # items spawn in |x|, |y| <= SPAWN
@@ -57,16 +57,30 @@ RESPAWN_CANDIDATES = 8
 
 
 @dataclasses.dataclass(frozen=True)
+class ForageParams:
+    num_items: int | None = None  # 1 to 32; None: 2 x num_agents (at most 32)
+    respawn_delay: int = 10
+    item_reward: float = 1.0
+
+    def __post_init__(self):
+        if self.num_items is not None and positive_int("num_items", self.num_items) > 32:
+            raise ValueError(f"num_items must be an int in [1, 32], got {self.num_items}")
+        positive_int("respawn_delay", self.respawn_delay)
+        positive_float("item_reward", self.item_reward)
+
+
+@dataclasses.dataclass(frozen=True)
 class ForageState(ArenaState):
     items: torch.Tensor  # [W, I, 2] item centres (m), also while away
     item_timer: torch.Tensor  # [W, I] int64: steps until the item is back; 0: available
     team_score: torch.Tensor  # [W] float32: the team's reward in this episode so far
 
 
-class Forage(ArenaEnv):
+class Forage(ArenaScenario):
     """Collect respawning items; see the module docstring."""
 
     name = "forage"
+    Params = ForageParams
     State = ForageState
     default_num_agents = 3
     agent_range = (1, 12)
@@ -76,81 +90,73 @@ class Forage(ArenaEnv):
     info_keys = {"collected": torch.int64, "team_score": torch.float32}
     arena_half_extent = (ARENA, ARENA)
 
-    def __init__(self, *, num_items: int | None = None, respawn_delay: int = 10, item_reward: float = 1.0, **common):
-        """Common kwargs: see BatchedEnv. num_items (1 to 32) defaults to 2 x num_agents."""
-        if num_items is not None:
-            num_items = positive_int("num_items", num_items)
-            if num_items > 32:
-                raise ValueError(f"num_items must be an int in [1, 32], got {num_items}")
-        self.num_items = num_items
-        self.respawn_delay = positive_int("respawn_delay", respawn_delay)
-        self.item_reward = positive_float("item_reward", item_reward)
-        super().__init__(**common)
-
-    def _setup(self):
-        W, N = self.num_worlds, self.num_agents
-        I = self.num_items = min(2 * N, 32) if self.num_items is None else self.num_items  # noqa: E741
-        self.setup_arena({"agents": numbered("agent", N)}, state_dim=6 + 3 * I + 2 * (N - 1), radius=AGENT_RADIUS,
-                         max_speed=2.0)
-        self.sim = self.at_rest(torch.zeros(W, N, 2), torch.zeros(W, N), items=torch.zeros(W, I, 2),
-                                item_timer=torch.zeros(W, I, dtype=torch.int64), team_score=torch.zeros(W))
+    def setup(self):
+        N = self.num_agents
+        self.num_items = min(2 * N, 32) if self.params.num_items is None else self.params.num_items
+        self.setup_arena({"agents": numbered("agent", N)}, state_dim=6 + 3 * self.num_items + 2 * (N - 1),
+                         radius=AGENT_RADIUS, max_speed=2.0)
         self._agent_index = torch.arange(N, device=self.device)
-        self._item_color = torch.tensor(ITEM_COLOR).expand(W, I, 3)
-        self._item_scale = torch.full((W, I, 3), 2 * ITEM_RADIUS)
 
-    def _item_spawn(self, agent_pos: torch.Tensor) -> torch.Tensor:
-        """Random item positions [W, I, 2] clear of agent_pos [W, N, 2] (uses self.generator)."""
+    def initial_state(self):
+        W, N, I = self.num_worlds, self.num_agents, self.num_items  # noqa: E741 (I: items, the shape letter)
+        return self.at_rest(torch.zeros(W, N, 2), torch.zeros(W, N), items=torch.zeros(W, I, 2),
+                            item_timer=torch.zeros(W, I, dtype=torch.int64), team_score=torch.zeros(W))
+
+    def props(self):
+        return [Prop("items", mr.sphere(segments=10, rings=5), count=self.num_items, position="items",
+                     height=ITEM_HEIGHT, active=item_available, scale=(2 * ITEM_RADIUS,) * 3, color=ITEM_COLOR)]
+
+    def _item_spawn(self, agent_pos: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """Random item positions [W, I, 2] clear of agent_pos [W, N, 2]."""
         W, I, M = self.num_worlds, self.num_items, RESPAWN_CANDIDATES  # noqa: E741 (I: items, the shape letter)
-        candidates = ((torch.rand(W, I * M, 2, generator=self.generator) * 2 - 1) * SPAWN).to(self.device)
+        candidates = ((torch.rand(W, I * M, 2, generator=generator) * 2 - 1) * SPAWN).to(self.device)
         clear = (torch.cdist(candidates, agent_pos) > RESPAWN_CLEARANCE).all(-1).reshape(W, I, M)
         clear[..., -1] = True  # fallback: the last candidate
         pick = clear.to(torch.uint8).argmax(-1)  # the first clear candidate
         return candidates.reshape(W, I, M, 2).gather(2, pick[..., None, None].expand(W, I, 1, 2)).squeeze(2)
 
-    def spawn(self):
-        W, N, g = self.num_worlds, self.num_agents, self.generator
+    def spawn(self, generator):
+        W, N, g = self.num_worlds, self.num_agents, generator
         pos = scenery.cell_spawn(g, W, torch.full((N,), AGENT_RADIUS + 0.05), SPAWN_GRID, ARENA).to(self.device)
         yaw = (torch.rand(W, N, generator=g) * 2 - 1) * math.pi
-        return self.at_rest(pos, yaw, items=self._item_spawn(pos), item_timer=torch.zeros_like(self.sim.item_timer),
-                            team_score=torch.zeros_like(self.sim.team_score))
+        return self.at_rest(pos, yaw, items=self._item_spawn(pos, g),
+                            item_timer=torch.zeros(W, self.num_items, dtype=torch.int64), team_score=torch.zeros(W))
 
-    def rules(self, moved, alive):
+    def rules(self, before, moved, alive, generator):
         # Items away count down; those reaching 0 come back somewhere clear of the agents.
-        timer = (self.sim.item_timer - 1).clamp_min(0)
-        back = (self.sim.item_timer > 0) & (timer == 0)
-        items = torch.where(back[..., None], self._item_spawn(moved.pos), self.sim.items)
+        timer = (before.item_timer - 1).clamp_min(0)
+        back = (before.item_timer > 0) & (timer == 0)
+        items = torch.where(back[..., None], self._item_spawn(moved.pos, generator), before.items)
         # Collection: the closest live agent touching an available item takes it.
         dist = torch.cdist(moved.pos, items)  # [W, N, I]
         touching = (dist < REACH) & (timer == 0)[:, None, :] & alive[:, :, None]
         collected = touching.any(1)  # [W, I]
         taker = torch.where(touching, dist, torch.full_like(dist, math.inf)).argmin(1)  # [W, I]
         got = (taker[:, None, :] == self._agent_index[None, :, None]) & collected[:, None, :]  # [W, N, I]
-        reward = self.item_reward * got.sum(-1).to(torch.float32)
-        timer = torch.where(collected, torch.full_like(timer, self.respawn_delay), timer)
-        team_score = self.sim.team_score + reward.sum(-1)
+        reward = self.params.item_reward * got.sum(-1).to(torch.float32)
+        timer = torch.where(collected, torch.full_like(timer, self.params.respawn_delay), timer)
+        team_score = before.team_score + reward.sum(-1)
         state = dataclasses.replace(moved, items=items, item_timer=timer, team_score=team_score)
         info = {"collected": collected.sum(-1), "team_score": team_score.clone()}
         return state, reward, torch.zeros_like(alive), info
 
-    @property
-    def item_available(self) -> torch.Tensor:
-        """bool [W, I]: items that can be collected (and are drawn)."""
-        return self.sim.item_timer == 0
-
-    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
-        super()._build_scene(scene, overview)
-        scene.add_group("items", mr.sphere(segments=10, rings=5), capacity=self.num_items)
-
-    def _instances(self, full: bool) -> dict:
-        update = super()._instances(full)
-        update["items"] = {"position": scenery.planar_to_3d(self.sim.items.to("cpu", torch.float32), ITEM_HEIGHT),
-                           "active": self.item_available.cpu()}
-        if full:
-            update["items"].update(scale=self._item_scale, color=self._item_color)
-        return update
-
-    def _state_obs(self):
+    def observation(self, state, alive):
         W, N = self.num_worlds, self.num_agents
-        available = self.item_available[:, None, :, None].to(self.sim.pos.dtype)  # [W, 1, I, 1]
-        return torch.cat((self.own_obs(), (self.relative(self.sim.items) * available).reshape(W, N, -1),
-                          available[..., 0].expand(W, N, -1), self.others_obs().reshape(W, N, -1)), -1)
+        available = item_available(state)[:, None, :, None].to(state.pos.dtype)  # [W, 1, I, 1]
+        return torch.cat((self.own_obs(state), (self.relative(state, state.items) * available).reshape(W, N, -1),
+                          available[..., 0].expand(W, N, -1), self.others_obs(state).reshape(W, N, -1)), -1)
+
+    def heuristic(self, state, alive):
+        """Each agent drives to the nearest available item (or holds still when none is)."""
+        N = self.num_agents
+        dist = torch.cdist(state.pos[:, :N], state.items)  # [W, N, I]
+        dist = torch.where(item_available(state)[:, None, :], dist, torch.full_like(dist, math.inf))
+        nearest = dist.argmin(-1)  # [W, N]
+        target = state.items.gather(1, nearest[..., None].expand(-1, -1, 2))
+        none = torch.isinf(dist.amin(-1))[..., None]
+        return self.steer_to(state, torch.where(none, state.pos[:, :N], target))
+
+
+def item_available(state: ForageState) -> torch.Tensor:
+    """bool [W, I]: items that can be collected (and are drawn)."""
+    return state.item_timer == 0

@@ -42,6 +42,7 @@ its own camera mounted on its body.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -50,7 +51,7 @@ import marl_render as mr
 from marl_render.validation import positive_float
 
 from . import scenery
-from .arena import ArenaEnv, numbered
+from .arena import ArenaScenario, Prop, Static, numbered
 
 ARENA = (1.5, 2.0)  # half extents (m)
 GOAL_HALF_WIDTH = 0.5
@@ -69,7 +70,7 @@ POST_HEIGHT = 0.6
 TEAM_COLORS = {"team_a": scenery.TEAM_COLORS["red"], "team_b": scenery.TEAM_COLORS["blue"]}
 
 
-def add_goals(scene: mr.Scene) -> None:
+def goals() -> list:
     """Static goal areas (floor patches) and goal frames (posts + crossbar) at both ends."""
     hy = ARENA[1]
     depth = hy - GOAL_LINE
@@ -88,14 +89,25 @@ def add_goals(scene: mr.Scene) -> None:
         positions.append([0.0, side * frame_y, POST_HEIGHT - POST_SIZE / 2])
         scales.append([2 * GOAL_HALF_WIDTH + POST_SIZE, POST_SIZE, POST_SIZE])
         colors.append(color)
-    scene.add_static("goal_areas", "plane", position=area_pos, scale=area_scale, color=area_color)
-    scene.add_static("goal_frames", "box", position=positions, scale=scales, color=colors)
+    return [Static("goal_areas", "plane", position=area_pos, scale=area_scale, color=area_color),
+            Static("goal_frames", "box", position=positions, scale=scales, color=colors)]
 
 
-class Push(ArenaEnv):
+@dataclasses.dataclass(frozen=True)
+class PushParams:
+    goal_reward: float = 1.0
+    shaping: float = 0.0
+
+    def __post_init__(self):
+        positive_float("goal_reward", self.goal_reward)
+        positive_float("shaping", self.shaping, allow_zero=True)
+
+
+class Push(ArenaScenario):
     """Two teams push a ball into the other team's goal; see the module docstring."""
 
     name = "push"
+    Params = PushParams
     default_num_agents = 4
     agent_range = (2, 12)
     default_max_steps = 200
@@ -105,14 +117,8 @@ class Push(ArenaEnv):
     arena_half_extent = ARENA
     team_colors = TEAM_COLORS
 
-    def __init__(self, *, goal_reward: float = 1.0, shaping: float = 0.0, **common):
-        """Common kwargs: see BatchedEnv (num_agents must be even)."""
-        self.goal_reward = positive_float("goal_reward", goal_reward)
-        self.shaping = positive_float("shaping", shaping, allow_zero=True)
-        super().__init__(**common)
-
-    def _setup(self):
-        W, N = self.num_worlds, self.num_agents
+    def setup(self):
+        N = self.num_agents
         if N % 2:
             raise ValueError(f"num_agents must be even for push (two equal teams), got {N}")
         T = N // 2
@@ -120,24 +126,23 @@ class Push(ArenaEnv):
         self.setup_arena({"team_a": numbered("team_a", T), "team_b": numbered("team_b", T)},
                          state_dim=10 + 2 * (N - 1), radius=AGENT_RADIUS, max_speed=3.0, substeps=3,
                          bodies=((BALL_RADIUS, BALL_MASS),))
-        self.sim = self.at_rest(torch.zeros(W, N + 1, 2), torch.zeros(W, N))
         self.is_team_a = torch.arange(N, device=self.device) < T
         self.side = self.per_agent({"team_a": 1.0, "team_b": -1.0})  # +1: attacks +y (team_a), -1: attacks -y
         # Per agent: teammates then opponents, each in index order, [N, N-1].
         self.others = torch.tensor([[j for j in range(N) if j != i and (j < T) == (i < T)]
                                     + [j for j in range(N) if (j < T) != (i < T)] for i in range(N)],
                                    dtype=torch.long, device=self.device).reshape(N, N - 1)
-        self._ball_scale = torch.full((W, 1, 3), 2 * BALL_RADIUS)
-        self._ball_color = torch.tensor(BALL_COLOR).expand(W, 1, 3)
-        self._ball_active = torch.ones(W, 1, dtype=torch.bool)
 
-    @property
-    def ball(self) -> tuple:
-        """(position [W, 2], velocity [W, 2]) of the ball."""
-        return self.sim.pos[:, -1], self.sim.vel[:, -1]
+    def initial_state(self):
+        W, N = self.num_worlds, self.num_agents
+        return self.at_rest(torch.zeros(W, N + 1, 2), torch.zeros(W, N))
 
-    def spawn(self):
-        W, N, g = self.num_worlds, self.num_agents, self.generator
+    def props(self):
+        return goals() + [Prop("ball", mr.sphere(segments=10, rings=5), count=1, position=ball_position,
+                               height=BALL_RADIUS, scale=(2 * BALL_RADIUS,) * 3, color=BALL_COLOR)]
+
+    def spawn(self, generator):
+        W, N, g = self.num_worlds, self.num_agents, generator
         T = N // 2
         # Each team's agents take the T lanes across the pitch in a random order (so they never
         # overlap), with a random x inside the lane that keeps SPAWN_CLEARANCE to its borders.
@@ -150,34 +155,39 @@ class Push(ArenaEnv):
         ball = ((torch.rand(W, 1, 2, generator=g) * 2 - 1) * torch.tensor([0.3, 0.1])).to(self.device)
         return self.at_rest(torch.cat((torch.stack((x, y), -1), ball), 1), scenery.wrap_angle(yaw))
 
-    def rules(self, moved, alive):
-        ball_before, ball = self.sim.pos[:, -1], moved.pos[:, -1]
+    def rules(self, before, moved, alive, generator):
+        ball_before, ball = before.pos[:, -1], moved.pos[:, -1]
         in_mouth = ball[:, 0].abs() < GOAL_HALF_WIDTH
         goal = ((in_mouth & (ball[:, 1] > GOAL_LINE)).long() - (in_mouth & (ball[:, 1] < -GOAL_LINE)).long())  # [W]
-        reward = self.goal_reward * goal[:, None].to(torch.float32) * self.side  # [W, N]
-        if self.shaping:
-            reward = reward + self.shaping * (ball[:, 1] - ball_before[:, 1])[:, None] * self.side
+        reward = self.params.goal_reward * goal[:, None].to(torch.float32) * self.side  # [W, N]
+        if self.params.shaping:
+            reward = reward + self.params.shaping * (ball[:, 1] - ball_before[:, 1])[:, None] * self.side
         terminated = (goal != 0)[:, None].expand(-1, self.num_agents)
         return moved, reward, terminated, {"goal": goal}
 
-    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
-        super()._build_scene(scene, overview)
-        add_goals(scene)
-        scene.add_group("ball", mr.sphere(segments=10, rings=5), capacity=1)
-
-    def _instances(self, full: bool) -> dict:
-        update = super()._instances(full)
-        update["ball"] = {"position": scenery.planar_to_3d(self.sim.pos[:, -1:].to("cpu", torch.float32), BALL_RADIUS)}
-        if full:
-            update["ball"].update(scale=self._ball_scale, color=self._ball_color, active=self._ball_active)
-        return update
-
-    def _state_obs(self):
+    def observation(self, state, alive):
         s = self.side[None, :, None]  # team frame: team_b's coordinates turned by 180 degrees
-        agents, vel = self.sim.pos[:, :-1], self.sim.vel[:, :-1]
-        ball, ball_vel = self.ball
+        agents, vel = state.pos[:, :-1], state.vel[:, :-1]
+        ball, ball_vel = state.pos[:, -1], state.vel[:, -1]
         W, N = agents.shape[:2]
-        yaw = self.sim.yaw + torch.where(self.is_team_a, 0.0, math.pi)
-        others = self.others_obs() * s[..., None]  # [W, N, N-1, 2]
+        yaw = state.yaw + torch.where(self.is_team_a, 0.0, math.pi)
+        others = self.others_obs(state) * s[..., None]  # [W, N, N-1, 2]
         return torch.cat((agents * s, vel * s, torch.cos(yaw)[..., None], torch.sin(yaw)[..., None],
                           (ball[:, None] - agents) * s, ball_vel[:, None] * s, others.reshape(W, N, -1)), -1)
+
+    def heuristic(self, state, alive):
+        """Every agent goes to the point behind the ball on the line from the goal it attacks, then
+        drives through the ball towards that goal."""
+        N = self.num_agents
+        ball = state.pos[:, -1:].expand(-1, N, 2)
+        goal = torch.stack((torch.zeros_like(self.side), self.side * ARENA[1]), -1)  # [N, 2]
+        line = goal - ball
+        line = line / line.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        behind = ball - line * (BALL_RADIUS + AGENT_RADIUS + 0.1)
+        lined_up = (state.pos[:, :N] - behind).norm(dim=-1, keepdim=True) < 0.15
+        return self.steer_to(state, torch.where(lined_up, goal.expand_as(ball), behind))
+
+
+def ball_position(state) -> torch.Tensor:
+    """[W, 1, 2]: the ball is the last body."""
+    return state.pos[:, -1:]

@@ -1,20 +1,29 @@
-"""Environment registry: name -> BatchedEnv subclass (or factory).
+"""Task registry: name -> Scenario subclass, and make_env, which builds a driver for one.
 
-Built-in environments are listed as "module:Class" strings and imported on first use,
-so a heavy or broken environment module never slows down or breaks the others.
+Built-in tasks are listed as "module:Class" strings and imported on first use, so a heavy or
+broken task module never slows down or breaks the others. Users add their own:
 
-    list_envs()                        -> ["cartpole", "spread", ...]
-    make_env("spread", num_worlds=64)  -> a BatchedEnv (the batched core)
-    register("my_env", MyEnv)          -> add your own
+    register_env("my_task", MyTask)                # a Scenario subclass, or "my_module:MyTask"
+    list_envs()                                    # [..., "my_task", ...]
+    make_env("my_task", num_worlds=64, my_param=2) # a BatchedEnv (the batched core)
+
+Every front end (make_parallel_env, make_aec_env, make_torchrl_env, make_vec_env, make_sb3_env,
+make_jax_env, BenchMARL's MarlRenderTask) finds registered tasks by name. make_env also takes
+the Scenario class itself instead of a name: that is how front ends pickle a task (by module
+and class), so a worker process needs no registration of its own.
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib
-import inspect
 
 from marl_render.validation import describe
 
-# name -> "module:attribute" (imported lazily) or a class / factory returning a BatchedEnv.
+from .core import BatchedEnv
+from .options import OPTION_NAMES, EnvOptions
+from .scenario import Scenario
+
+# name -> "module:Class" (imported lazily) or a Scenario subclass.
 _REGISTRY: dict = {
     "cartpole": "marl_render.envs.cartpole:CartPoleBalance",
     "spread": "marl_render.envs.spread:Spread",
@@ -24,61 +33,59 @@ _REGISTRY: dict = {
 }
 
 
-def register(name: str, env, *, overwrite: bool = False) -> None:
-    """Register a BatchedEnv subclass, a factory (callable returning one) or a "module:attr" string."""
+def register_env(name: str, scenario, *, overwrite: bool = False) -> None:
+    """Make a task known by `name`: a Scenario subclass, or a "module:Class" string naming one."""
     if not isinstance(name, str) or not name:
         raise TypeError(f"name must be a non-empty str, got {describe(name)}")
-    if not (isinstance(env, str) and ":" in env) and not callable(env):
-        raise TypeError(f"env must be a BatchedEnv subclass, a callable or a 'module:attribute' string, "
-                        f"got {describe(env)}")
+    is_class = isinstance(scenario, type) and issubclass(scenario, Scenario)
+    if not (is_class or isinstance(scenario, str) and scenario.count(":") == 1):
+        raise TypeError(f"scenario must be a Scenario subclass (marl_render.envs.Scenario) or a 'module:Class' "
+                        f"string, got {describe(scenario)}")
     if name in _REGISTRY and not overwrite:
         raise ValueError(f"an environment named {name!r} is already registered; pass overwrite=True to replace it")
-    _REGISTRY[name] = env
+    _REGISTRY[name] = scenario
 
 
 def list_envs() -> list[str]:
-    """Names of all registered environments, sorted."""
+    """Names of all registered tasks, sorted."""
     return sorted(_REGISTRY)
 
 
-def env_class(name: str):
-    """The class (or factory) registered under `name`, importing it if needed."""
+def env_class(name) -> type[Scenario]:
+    """The Scenario subclass registered under `name` (imported if needed); a Scenario subclass
+    is returned as it is."""
+    if isinstance(name, type) and issubclass(name, Scenario):
+        return name
     if not isinstance(name, str):
-        raise TypeError(f"name must be a str (one of {list_envs()}), got {describe(name)}")
+        raise TypeError(f"name must be a str (one of {list_envs()}) or a Scenario subclass, got {describe(name)}")
     if name not in _REGISTRY:
         raise ValueError(f"unknown environment {name!r}; known environments: {list_envs()}")
     entry = _REGISTRY[name]
     if isinstance(entry, str):
         module, attribute = entry.split(":")
         entry = getattr(importlib.import_module(module), attribute)
+        if not (isinstance(entry, type) and issubclass(entry, Scenario)):
+            raise TypeError(f"environment {name!r} is registered as {_REGISTRY[name]!r}, which is not a Scenario "
+                            f"subclass but {describe(entry)}")
     return entry
 
 
-def make_env(name: str, **kwargs):
-    """The batched core of environment `name` (a BatchedEnv), built with `kwargs`.
+def split_kwargs(scenario: type[Scenario], kwargs: dict) -> tuple:
+    """(EnvOptions, scenario.Params) from make_env's keywords; unknown keywords are a TypeError
+    naming them and listing the accepted ones."""
+    param_names = {field.name for field in dataclasses.fields(scenario.Params)}
+    unknown = sorted(set(kwargs) - OPTION_NAMES - param_names)
+    if unknown:
+        raise TypeError(f"make_env({scenario.name!r}) got unknown keyword argument(s) {unknown}; "
+                        f"accepted: {sorted(OPTION_NAMES | param_names)}")
+    options = EnvOptions(**{k: v for k, v in kwargs.items() if k in OPTION_NAMES})
+    params = scenario.Params(**{k: v for k, v in kwargs.items() if k in param_names})
+    return options, params
 
-    Unknown keyword arguments raise TypeError naming them and listing the accepted ones."""
-    cls = env_class(name)
-    accepted = _accepted_kwargs(cls)
-    if accepted is not None:
-        unknown = sorted(set(kwargs) - accepted)
-        if unknown:
-            raise TypeError(f"make_env({name!r}) got unknown keyword argument(s) {unknown}; "
-                            f"accepted: {sorted(accepted)}")
-    return cls(**kwargs)
 
-
-def _accepted_kwargs(cls):
-    """Keyword names a class accepts, following **kwargs up the MRO; None if unknowable."""
-    if not inspect.isclass(cls):
-        return None
-    names = set()
-    for klass in cls.__mro__:
-        init = klass.__dict__.get("__init__")
-        if init is None:
-            continue
-        params = inspect.signature(init).parameters.values()
-        names |= {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and p.name != "self"}
-        if not any(p.kind == p.VAR_KEYWORD for p in params):
-            return names
-    return None
+def make_env(name, **kwargs) -> BatchedEnv:
+    """The batched core of task `name` (a registered name or a Scenario subclass), built with
+    `kwargs`: the driver's options (EnvOptions) and the task's own keywords (its Params)."""
+    scenario = env_class(name)
+    options, params = split_kwargs(scenario, kwargs)
+    return BatchedEnv(scenario, options, params)

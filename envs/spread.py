@@ -29,11 +29,10 @@ import math
 
 import torch
 
-import marl_render as mr
 from marl_render.validation import positive_float, positive_int
 
 from . import scenery
-from .arena import ArenaEnv, ArenaState, numbered
+from .arena import ArenaScenario, ArenaState, Prop, numbered
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.2  # agents and landmarks spawn in |x|, |y| <= SPAWN
@@ -44,14 +43,28 @@ CONTACT_TOLERANCE = 0.02  # a pair "collides" while its gap is below this (m)
 
 
 @dataclasses.dataclass(frozen=True)
+class SpreadParams:
+    num_landmarks: int | None = None  # 1 to 12; None: one per agent
+    collision_penalty: float = 1.0
+
+    def __post_init__(self):
+        if self.num_landmarks is not None:
+            positive_int("num_landmarks", self.num_landmarks)
+            if self.num_landmarks > 12:
+                raise ValueError(f"num_landmarks must be an int in [1, 12], got {self.num_landmarks}")
+        positive_float("collision_penalty", self.collision_penalty, allow_zero=True)
+
+
+@dataclasses.dataclass(frozen=True)
 class SpreadState(ArenaState):
     landmarks: torch.Tensor  # [W, L, 2] landmark centres (m)
 
 
-class Spread(ArenaEnv):
+class Spread(ArenaScenario):
     """Cooperative navigation; see the module docstring."""
 
     name = "spread"
+    Params = SpreadParams
     State = SpreadState
     default_num_agents = 3
     agent_range = (1, 12)
@@ -61,60 +74,57 @@ class Spread(ArenaEnv):
     info_keys = {"collisions": torch.int64, "coverage": torch.float32}
     arena_half_extent = (ARENA, ARENA)
 
-    def __init__(self, *, num_landmarks: int | None = None, collision_penalty: float = 1.0, **common):
-        """Common kwargs: see BatchedEnv. num_landmarks defaults to num_agents."""
-        if num_landmarks is not None:
-            num_landmarks = positive_int("num_landmarks", num_landmarks)
-            if num_landmarks > 12:
-                raise ValueError(f"num_landmarks must be an int in [1, 12], got {num_landmarks}")
-        self.num_landmarks = num_landmarks
-        self.collision_penalty = positive_float("collision_penalty", collision_penalty, allow_zero=True)
-        super().__init__(**common)
-
-    def _setup(self):
-        W, N = self.num_worlds, self.num_agents
-        L = self.num_landmarks = N if self.num_landmarks is None else self.num_landmarks
+    def setup(self):
+        N = self.num_agents
+        L = self.num_landmarks = N if self.params.num_landmarks is None else self.params.num_landmarks
         self.setup_arena({"agents": numbered("agent", N)}, state_dim=6 + 2 * L + 2 * (N - 1), radius=AGENT_RADIUS,
                          max_speed=2.0)
-        self.sim = self.at_rest(torch.zeros(W, N, 2), torch.zeros(W, N), landmarks=torch.zeros(W, L, 2))
         self._pairs = torch.triu(torch.ones(N, N, dtype=torch.bool, device=self.device), diagonal=1)
-        landmark_colors = scenery.palette(L + 1)  # index 1 (blue) is the agents' colour
-        self._landmark_color = torch.cat((landmark_colors[:1], landmark_colors[2:])).expand(W, L, 3)
-        self._landmark_scale = torch.tensor([2 * LANDMARK_RADIUS, 2 * LANDMARK_RADIUS, LANDMARK_HEIGHT]).expand(W, L, 3)
-        self._all_landmarks = torch.ones(W, L, dtype=torch.bool)
 
-    def spawn(self):
-        W, N, L, g = self.num_worlds, self.num_agents, self.num_landmarks, self.generator
+    def initial_state(self):
+        W, N, L = self.num_worlds, self.num_agents, self.num_landmarks
+        return self.at_rest(torch.zeros(W, N, 2), torch.zeros(W, N), landmarks=torch.zeros(W, L, 2))
+
+    def props(self):
+        L = self.num_landmarks
+        colors = scenery.palette(L + 1)  # index 1 (blue) is the agents' colour
+        return [Prop("landmarks", scenery.disc_mesh(), count=L, position="landmarks", height=LANDMARK_HEIGHT / 2,
+                     scale=(2 * LANDMARK_RADIUS, 2 * LANDMARK_RADIUS, LANDMARK_HEIGHT),
+                     color=torch.cat((colors[:1], colors[2:])), moves=False)]
+
+    def spawn(self, generator):
+        W, N, L, g = self.num_worlds, self.num_agents, self.num_landmarks, generator
         pos = (torch.rand(W, N, 2, generator=g) * 2 - 1) * SPAWN
         yaw = (torch.rand(W, N, generator=g) * 2 - 1) * math.pi
         landmarks = (torch.rand(W, L, 2, generator=g) * 2 - 1) * SPAWN
         return self.at_rest(pos, yaw, landmarks=landmarks)
 
-    def rules(self, moved, alive):
-        reward, collisions, coverage = self.reward(moved.pos)
+    def rules(self, before, moved, alive, generator):
+        reward, collisions, coverage = self.reward(moved.landmarks, moved.pos)
         info = {"collisions": collisions, "coverage": coverage}
         return moved, reward[:, None].expand(-1, self.num_agents), torch.zeros_like(alive), info
 
-    def reward(self, pos: torch.Tensor):
+    def reward(self, landmarks: torch.Tensor, pos: torch.Tensor):
         """Shared reward [W], colliding pairs [W] int64 and sum of landmark distances [W]."""
-        coverage = torch.cdist(self.sim.landmarks, pos).amin(dim=-1).sum(-1)  # [W, L, N] -> [W]
+        coverage = torch.cdist(landmarks, pos).amin(dim=-1).sum(-1)  # [W, L, N] -> [W]
         gap = torch.cdist(pos, pos) - 2 * AGENT_RADIUS
         collisions = ((gap < CONTACT_TOLERANCE) & self._pairs).sum((-1, -2))
-        return -coverage - self.collision_penalty * collisions, collisions, coverage
+        return -coverage - self.params.collision_penalty * collisions, collisions, coverage
 
-    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
-        super()._build_scene(scene, overview)
-        scene.add_group("landmarks", scenery.disc_mesh(), capacity=self.num_landmarks)
-
-    def _instances(self, full: bool) -> dict:
-        update = super()._instances(full)
-        if full:
-            update["landmarks"] = {"position": scenery.planar_to_3d(self.sim.landmarks.cpu(), LANDMARK_HEIGHT / 2),
-                                   "scale": self._landmark_scale, "color": self._landmark_color,
-                                   "active": self._all_landmarks}
-        return update
-
-    def _state_obs(self):
+    def observation(self, state, alive):
         W, N = self.num_worlds, self.num_agents
-        return torch.cat((self.own_obs(), self.relative(self.sim.landmarks).reshape(W, N, -1),
-                          self.others_obs().reshape(W, N, -1)), -1)
+        return torch.cat((self.own_obs(state), self.relative(state, state.landmarks).reshape(W, N, -1),
+                          self.others_obs(state).reshape(W, N, -1)), -1)
+
+    def heuristic(self, state, alive):
+        """Each agent drives to its own landmark, assigned greedily by distance in agent order."""
+        W, N, L = self.num_worlds, self.num_agents, self.num_landmarks
+        dist = torch.cdist(state.pos[:, :N], state.landmarks)  # [W, N, L]
+        target = torch.zeros(W, N, 2, device=self.device)
+        taken = torch.zeros(W, L, dtype=torch.bool, device=self.device)
+        for i in range(N):  # agents, not worlds: a fixed small loop over the task's own slots
+            free = torch.where(taken, torch.full_like(dist[:, i], math.inf), dist[:, i])
+            pick = free.argmin(-1)  # [W]
+            target[:, i] = state.landmarks[torch.arange(W), pick]
+            taken[torch.arange(W), pick] = True
+        return self.steer_to(state, target, reach=LANDMARK_RADIUS * 0.5)

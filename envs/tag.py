@@ -56,11 +56,10 @@ import math
 
 import torch
 
-import marl_render as mr
 from marl_render.validation import positive_float, positive_int
 
 from . import planar, scenery
-from .arena import ArenaEnv, ArenaState, numbered
+from .arena import ArenaScenario, ArenaState, Prop, numbered
 
 ARENA = 1.5  # half extent (m)
 OBSTACLE_HALF = 0.2  # half side of the square obstacles (m)
@@ -74,16 +73,36 @@ SPAWN_CLEARANCE = 0.05  # spawned bodies keep this much space to their spawn cel
 
 
 @dataclasses.dataclass(frozen=True)
+class TagParams:
+    num_predators: int | None = None  # team sizes: see the module docstring
+    num_prey: int | None = None
+    num_obstacles: int = 2  # 0 to 8
+    catch_reward: float = 10.0
+    shaping: float = 0.0
+
+    def __post_init__(self):
+        if self.num_predators is not None:
+            positive_int("num_predators", self.num_predators)
+        if self.num_prey is not None:
+            positive_int("num_prey", self.num_prey)
+        if positive_int("num_obstacles", self.num_obstacles, minimum=0) > 8:
+            raise ValueError(f"num_obstacles must be an int in [0, 8], got {self.num_obstacles}")
+        positive_float("catch_reward", self.catch_reward)
+        positive_float("shaping", self.shaping, allow_zero=True)
+
+
+@dataclasses.dataclass(frozen=True)
 class TagState(ArenaState):
     obstacle_center: torch.Tensor  # [W, K, 2] (m)
     obstacle_angle: torch.Tensor  # [W, K] rad
     shown: torch.Tensor  # [W, A] bool: agents drawn in the current frame (those caught in it still are)
 
 
-class Tag(ArenaEnv):
+class Tag(ArenaScenario):
     """Predators and prey; see the module docstring."""
 
     name = "tag"
+    Params = TagParams
     State = TagState
     default_num_agents = 4
     agent_range = (2, 16)
@@ -92,27 +111,17 @@ class Tag(ArenaEnv):
     physics_terms = frozenset({"walls", "body_collisions", "obstacles", "drag"})  # "obstacles" only if K > 0
     info_keys = {"caught": torch.int64, "prey_left": torch.int64}
     arena_half_extent = (ARENA, ARENA)
+    shown = "shown"  # caught prey are drawn in the frame of their catch, then no more
 
-    def __init__(self, *, num_predators: int | None = None, num_prey: int | None = None, num_obstacles: int = 2,
-                 catch_reward: float = 10.0, shaping: float = 0.0, **common):
-        """Common kwargs: see BatchedEnv. Team sizes: see the module docstring."""
-        if num_predators is not None:
-            num_predators = positive_int("num_predators", num_predators)
-        if num_prey is not None:
-            num_prey = positive_int("num_prey", num_prey)
-        if common.get("num_agents") is None and (num_predators is not None or num_prey is not None):
-            common["num_agents"] = ((3 if num_predators is None else num_predators)
-                                    + (1 if num_prey is None else num_prey))
-        self.num_predators, self.num_prey = num_predators, num_prey
-        self.num_obstacles = positive_int("num_obstacles", num_obstacles, minimum=0)
-        if self.num_obstacles > 8:
-            raise ValueError(f"num_obstacles must be an int in [0, 8], got {self.num_obstacles}")
-        self.catch_reward = positive_float("catch_reward", catch_reward)
-        self.shaping = positive_float("shaping", shaping, allow_zero=True)
-        super().__init__(**common)
+    @classmethod
+    def num_agents_for(cls, params, num_agents):
+        P, Q = params.num_predators, params.num_prey
+        if num_agents is None and (P is not None or Q is not None):
+            return (3 if P is None else P) + (1 if Q is None else Q)
+        return num_agents
 
     def _team_sizes(self, N: int) -> tuple:
-        P, Q = self.num_predators, self.num_prey
+        P, Q = self.params.num_predators, self.params.num_prey
         if P is not None and Q is not None and P + Q != N:
             raise ValueError(f"num_predators + num_prey must equal num_agents, got {P} + {Q} != {N}")
         if P is None and Q is None:
@@ -124,40 +133,49 @@ class Tag(ArenaEnv):
                              f"num_predators={P}, num_prey={Q}")
         return P, Q
 
-    def _setup(self):
-        W, N, K = self.num_worlds, self.num_agents, self.num_obstacles
+    def setup(self):
+        N, K = self.num_agents, self.params.num_obstacles
+        self.num_obstacles = K
         P, Q = self.num_predators, self.num_prey = self._team_sizes(N)
         self.physics_terms = frozenset({"walls", "body_collisions", "drag"} | ({"obstacles"} if K else set()))
         self.setup_arena({"predator": numbered("predator", P), "prey": numbered("prey", Q)},
                          state_dim=6 + 3 * (N - 1) + 2 * K, radius=RADIUS, max_speed=max(MAX_SPEED.values()))
-        self.sim = self.at_rest(torch.zeros(W, N, 2), torch.zeros(W, N), obstacle_center=torch.zeros(W, K, 2),
-                                obstacle_angle=torch.zeros(W, K), shown=torch.ones(W, N, dtype=torch.bool))
         self.thrust, self.max_speed = self.per_agent(THRUST), self.per_agent(MAX_SPEED)
         self.is_predator = torch.arange(N, device=self.device) < P  # [N]
         self.is_prey = ~self.is_predator
         self._hunt = self.is_predator[:, None] & self.is_prey[None, :]  # [N, N] pairs (predator, prey)
-        self._obstacle_half = torch.full((W, K, 2), OBSTACLE_HALF, device=self.device)
+        self._obstacle_half = torch.full((self.num_worlds, K, 2), OBSTACLE_HALF, device=self.device)
         # Spawn: obstacles (their half diagonal) then agents (radius + SPAWN_CLEARANCE), one cell each.
         self._spawn_grid = 4 if K + N <= 16 else 5
         self._spawn_margin = torch.cat((torch.full((K,), OBSTACLE_HALF * math.sqrt(2)),
                                         self.radius.cpu() + SPAWN_CLEARANCE))
-        self._obstacle_color = torch.tensor(OBSTACLE_COLOR).expand(W, K, 3)
-        self._obstacle_active = torch.ones(W, K, dtype=torch.bool)
 
-    def obstacles(self):
-        return planar.Obstacles(self.sim.obstacle_center, self._obstacle_half, self.sim.obstacle_angle)
+    def initial_state(self):
+        W, N, K = self.num_worlds, self.num_agents, self.num_obstacles
+        return self.at_rest(torch.zeros(W, N, 2), torch.zeros(W, N), obstacle_center=torch.zeros(W, K, 2),
+                            obstacle_angle=torch.zeros(W, K), shown=torch.ones(W, N, dtype=torch.bool))
 
-    def spawn(self):
+    def props(self):
+        if not self.num_obstacles:
+            return []
+        return [Prop("obstacles", "box", count=self.num_obstacles, position="obstacle_center",
+                     height=OBSTACLE_HEIGHT / 2, yaw="obstacle_angle", color=OBSTACLE_COLOR,
+                     scale=(2 * OBSTACLE_HALF, 2 * OBSTACLE_HALF, OBSTACLE_HEIGHT), moves=False)]
+
+    def obstacles(self, state):
+        return planar.Obstacles(state.obstacle_center, self._obstacle_half, state.obstacle_angle)
+
+    def spawn(self, generator):
         # Obstacles and agents each get their own random cell of the grid (see cell_spawn): nothing
         # overlaps at the start and no predator starts within a catch of a prey.
-        W, N, K, g = self.num_worlds, self.num_agents, self.num_obstacles, self.generator
+        W, N, K, g = self.num_worlds, self.num_agents, self.num_obstacles, generator
         pos = scenery.cell_spawn(g, W, self._spawn_margin, self._spawn_grid, ARENA)
         angle = (torch.rand(W, K, generator=g) * 2 - 1) * (math.pi / 4)
         yaw = (torch.rand(W, N, generator=g) * 2 - 1) * math.pi
         return self.at_rest(pos[:, K:], yaw, obstacle_center=pos[:, :K], obstacle_angle=angle,
                             shown=torch.ones(W, N, dtype=torch.bool))
 
-    def rules(self, moved, alive):
+    def rules(self, before, moved, alive, generator):
         moved = dataclasses.replace(moved, vel=planar.clamp_norm(moved.vel, self.max_speed[:, None]))
         dist = torch.cdist(moved.pos, moved.pos)  # [W, N, N]
         touch = dist < self.radius[:, None] + self.radius[None, :] + CONTACT_TOLERANCE
@@ -167,46 +185,45 @@ class Tag(ArenaEnv):
         left = alive & ~caught
         prey_left = (left & self.is_prey).sum(-1)
         zero = torch.zeros((), device=self.device)
-        reward = torch.where(self.is_predator, self.catch_reward * n_caught[:, None].to(torch.float32),
-                             torch.where(caught, -self.catch_reward, zero))
-        if self.shaping:
+        reward = torch.where(self.is_predator, self.params.catch_reward * n_caught[:, None].to(torch.float32),
+                             torch.where(caught, -self.params.catch_reward, zero))
+        if self.params.shaping:
             inf = torch.full_like(dist, math.inf)
             to_prey = torch.where(self.is_prey & left[:, None, :], dist, inf).amin(-1)  # [W, N]
             to_predator = torch.where(self.is_predator & alive[:, None, :], dist, inf).amin(-1)
             shaping = torch.where(self.is_predator, -to_prey, to_predator)
             shaping = torch.where(torch.isfinite(shaping) & left, shaping, torch.zeros_like(shaping))
-            reward = reward + self.shaping * shaping
+            reward = reward + self.params.shaping * shaping
         terminated = caught | (prey_left == 0)[:, None]
         # Caught prey stop and leave; this step's frame still shows them (shown = alive before the step).
         stopped = torch.where(caught[..., None], torch.zeros_like(moved.vel), moved.vel)
         state = dataclasses.replace(moved, vel=stopped, active=alive & ~terminated, shown=alive)
         return state, reward, terminated, {"caught": n_caught, "prey_left": prey_left}
 
-    def _action_mask(self):
-        mask = self.alive[:, :, None].expand(-1, -1, self.num_actions).clone()
+    def action_mask(self, state, alive):
+        mask = alive[:, :, None].expand(-1, -1, self.num_actions).clone()
         mask[..., 0] = True  # noop is always valid
         return mask
 
-    def _build_scene(self, scene: mr.Scene, overview: bool) -> None:
-        super()._build_scene(scene, overview)
-        if self.num_obstacles:
-            scene.add_group("obstacles", "box", capacity=self.num_obstacles)
-
-    def _instances(self, full: bool) -> dict:
-        update = super()._instances(full)
-        update["agents"]["active"] = update["noses"]["active"] = self.sim.shown.cpu()
-        if full and self.num_obstacles:
-            s = self.sim
-            height = torch.full_like(s.obstacle_angle[..., None], OBSTACLE_HEIGHT)
-            scale = torch.cat((2 * self._obstacle_half, height), -1)
-            update["obstacles"] = {"position": scenery.planar_to_3d(s.obstacle_center.cpu(), OBSTACLE_HEIGHT / 2),
-                                   "rotation": scenery.yaw_quat(s.obstacle_angle.cpu()), "scale": scale.cpu(),
-                                   "color": self._obstacle_color, "active": self._obstacle_active}
-        return update
-
-    def _state_obs(self):
+    def observation(self, state, alive):
         W, N = self.num_worlds, self.num_agents
-        others_alive = self.alive[:, self.others]  # [W, N, N-1]
-        others = self.others_obs() * others_alive[..., None]
-        return torch.cat((self.own_obs(), others.reshape(W, N, -1), others_alive.to(self.sim.pos.dtype),
-                          self.relative(self.sim.obstacle_center).reshape(W, N, -1)), -1)
+        others_alive = alive[:, self.others]  # [W, N, N-1]
+        others = self.others_obs(state) * others_alive[..., None]
+        return torch.cat((self.own_obs(state), others.reshape(W, N, -1), others_alive.to(state.pos.dtype),
+                          self.relative(state, state.obstacle_center).reshape(W, N, -1)), -1)
+
+    def heuristic(self, state, alive):
+        """Predators chase the nearest live prey; prey run to the point of the arena farthest from
+        the nearest predator (a corner pull, so they do not pin themselves to a wall)."""
+        N = self.num_agents
+        pos = state.pos[:, :N]
+        dist = torch.cdist(pos, pos)
+        inf = torch.full_like(dist, math.inf)
+        to_prey = torch.where((self.is_prey & alive[:, None, :]), dist, inf).argmin(-1)  # [W, N]
+        chase = pos.gather(1, to_prey[..., None].expand(-1, -1, 2))
+        to_predator = torch.where(self.is_predator & alive[:, None, :], dist, inf).argmin(-1)
+        threat = pos.gather(1, to_predator[..., None].expand(-1, -1, 2))
+        away = pos - threat
+        flee = (pos + away / away.norm(dim=-1, keepdim=True).clamp_min(1e-6)).clamp(-ARENA * 0.8, ARENA * 0.8)
+        target = torch.where(self.is_predator[None, :, None], chase, flee)
+        return self.steer_to(state, target)

@@ -55,11 +55,12 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from gymnasium import logger, spaces
+from gymnasium import logger
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from marl_render.validation import describe
+from marl_render.wrappers import spaces as spaces_from_spec
 
 RENDER_MODES = ("rgb_array",)
 CORE_AUTORESET = {AutoresetMode.NEXT_STEP: "next_step", AutoresetMode.SAME_STEP: "same_step",
@@ -138,27 +139,11 @@ class MarlRenderVectorEnv(VectorEnv):
                          "name": env.name}
         self._obs_keys = tuple(k for k in env.obs_keys if k != "action_mask" or action_mask)
         self._dict_obs = self._obs_keys != ("pixels",)
-        self.single_observation_space = self._single_observation_space()
-        self.single_action_space = (spaces.Box(-1.0, 1.0, (env.action_dim,), np.float32) if env.continuous
-                                    else spaces.Discrete(env.num_actions))
+        self.single_observation_space = spaces_from_spec.observation_space(env.spec, self._obs_keys)
+        self.single_action_space = spaces_from_spec.action_space(env.spec)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self._started = False
-
-    def _single_observation_space(self) -> spaces.Space:
-        env = self.core
-        height, width = env.resolution
-        pixels = spaces.Box(0, 255, (height, width, 3), np.uint8)
-        if not self._dict_obs:
-            return pixels
-        parts = {"pixels": pixels}
-        if "depth" in self._obs_keys:
-            parts["depth"] = spaces.Box(0.0, float(env.far), (height, width), np.float32)
-        if "state" in self._obs_keys:
-            parts["state"] = spaces.Box(-np.inf, np.inf, (env.state_dim,), np.float32)
-        if "action_mask" in self._obs_keys:
-            parts["action_mask"] = spaces.MultiBinary(env.num_actions)
-        return spaces.Dict(parts)
 
     # ------------------------------------------------------------------ API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -238,7 +223,7 @@ class MarlRenderVectorEnv(VectorEnv):
     def _observations(self, obs: dict):
         """numpy [num_envs, ...] per key; departed agents of running worlds see zeros."""
         core = self.core
-        over = (~core.alive).all(dim=1) | (core.step_count >= core.max_steps)
+        over = core.episode_over()
         departed = ~core.alive & ~over[:, None]
         if bool(departed.any()):
             for key in self._obs_keys:

@@ -75,6 +75,7 @@ import torch
 from gymnasium import spaces
 
 from marl_render.validation import describe
+from marl_render.wrappers import spaces as spaces_from_spec
 from marl_render.wrappers.window import Window
 
 RENDER_MODES = ("human", "rgb_array")
@@ -196,30 +197,11 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         self._obs_keys = tuple(k for k in env.obs_keys if k != "action_mask" or action_mask)
         self._dict_obs = self._obs_keys != ("pixels",)
 
-        H, W = env.resolution
-        keys, far, state_dim, num_actions = self._obs_keys, float(env.far), env.state_dim, env.num_actions
-        channels = env.pixel_channels
-
-        def make_obs_space():
-            if not self._dict_obs:
-                return spaces.Box(0, 255, (H, W, channels), np.uint8)
-            parts = {"pixels": spaces.Box(0, 255, (H, W, channels), np.uint8)}
-            if "depth" in keys:
-                parts["depth"] = spaces.Box(0.0, far, (H, W), np.float32)
-            if "state" in keys:
-                parts["state"] = spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
-            if "action_mask" in keys:
-                parts["action_mask"] = spaces.MultiBinary(num_actions)
-            return spaces.Dict(parts)
-
-        def make_action_space():
-            if env.continuous:
-                return spaces.Box(-1.0, 1.0, (env.action_dim,), np.float32)
-            return spaces.Discrete(env.num_actions)
-
         # One space object per agent (seeding one agent's space must not affect another's).
-        self.observation_spaces = {agent: make_obs_space() for agent in self.possible_agents}
-        self.action_spaces = {agent: make_action_space() for agent in self.possible_agents}
+        self.observation_spaces = {agent: spaces_from_spec.observation_space(env.spec, self._obs_keys)
+                                   for agent in self.possible_agents}
+        self.action_spaces = {agent: spaces_from_spec.action_space(env.spec) for agent in self.possible_agents}
+        state_dim = env.state_dim
         if state_dim:  # envs without a state observation keep ParallelEnv's state() (NotImplementedError)
             self.state_space = spaces.Box(-np.inf, np.inf, (len(self.possible_agents) * state_dim,), np.float32)
         self._started = False  # reset() was called

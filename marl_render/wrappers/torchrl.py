@@ -72,6 +72,7 @@ Works with the pinned torchrl (constraints.txt) and with the torchrl that BenchM
 """
 from __future__ import annotations
 
+import math
 import numbers
 from collections.abc import Mapping
 
@@ -184,32 +185,27 @@ class MarlRenderTorchRLEnv(EnvBase):
     # ------------------------------------------------------------------ specs
     def _make_specs(self):
         core, W, dev = self.core, self.core.num_worlds, self.device
-        H, Wpx = core.resolution
         obs_spec, act_spec, rew_spec, done_spec = (Composite(shape=(W,), device=dev) for _ in range(4))
         for key in _DONE_KEYS:
             done_spec[key] = Categorical(2, shape=(W, 1), dtype=torch.bool, device=dev)
+        spec = core.spec
         for group, names in self.group_map.items():
             N = len(names)
-            obs = {"pixels": Bounded(0, 255, shape=(W, N, H, Wpx, core.pixel_channels), dtype=torch.uint8, device=dev)}
-            if core.depth:
-                obs["depth"] = Bounded(0.0, float(core.far), shape=(W, N, H, Wpx), dtype=torch.float32, device=dev)
-            if core.state_obs:
-                obs["state"] = Unbounded(shape=(W, N, core.state_dim), dtype=torch.float32, device=dev)
-            if not core.continuous:
-                obs["action_mask"] = Categorical(2, shape=(W, N, core.num_actions), dtype=torch.bool, device=dev)
+            obs = {key: _tensor_spec(key, entry, (W, N), dev) for key, entry in spec.observations.items()}
             for key in _DONE_KEYS:
                 obs[key] = Categorical(2, shape=(W, N, 1), dtype=torch.bool, device=dev)
             obs_spec[group] = Composite(obs, shape=(W, N), device=dev)
-            if core.continuous:
-                action = Bounded(-1.0, 1.0, shape=(W, N, core.action_dim), dtype=torch.float32, device=dev)
+            action = spec.action
+            if action.continuous:
+                act = Bounded(action.low, action.high, shape=(W, N, *action.shape), dtype=action.dtype, device=dev)
             else:
-                action = Categorical(core.num_actions, shape=(W, N), dtype=torch.int64, device=dev)
-            act_spec[group] = Composite(action=action, shape=(W, N), device=dev)
+                act = Categorical(action.num_actions, shape=(W, N), dtype=action.dtype, device=dev)
+            act_spec[group] = Composite(action=act, shape=(W, N), device=dev)
             rew_spec[group] = Composite(reward=Unbounded(shape=(W, N, 1), dtype=torch.float32, device=dev),
                                         shape=(W, N), device=dev)
-        if core.info_keys:
+        if spec.info:
             obs_spec["info"] = Composite({name: Unbounded(shape=(W,), dtype=dtype, device=dev)
-                                          for name, dtype in core.info_keys.items()}, shape=(W,), device=dev)
+                                          for name, dtype in spec.info.items()}, shape=(W,), device=dev)
         self.observation_spec = obs_spec
         self.action_spec = act_spec
         self.reward_spec = rew_spec
@@ -233,7 +229,7 @@ class MarlRenderTorchRLEnv(EnvBase):
         else:
             obs = core.reset_worlds(mask, seed=seed)
         terminated = ~core.alive
-        truncated = core.alive & (core.step_count >= core.max_steps)[:, None]
+        truncated = core.alive & core.episode_over()[:, None]
         info = {name: torch.zeros(core.num_worlds, dtype=dtype, device=self.device)
                 for name, dtype in core.info_keys.items()}
         return self._output(obs, None, terminated, truncated, info)
@@ -336,3 +332,13 @@ class MarlRenderTorchRLEnv(EnvBase):
 
 
 __all__ = ["MarlRenderTorchRLEnv", "make_torchrl_env", "resolve_group_map", "GROUP_MAPS"]
+
+
+def _tensor_spec(key: str, entry, batch: tuple, device):
+    """The TorchRL spec of one observation entry (an ArraySpec of envs/spec.py) for a batch [W, N]."""
+    shape = (*batch, *entry.shape)
+    if key == "action_mask":
+        return Categorical(2, shape=shape, dtype=torch.bool, device=device)
+    if math.isinf(entry.low) or math.isinf(entry.high):
+        return Unbounded(shape=shape, dtype=entry.dtype, device=device)
+    return Bounded(entry.low, entry.high, shape=shape, dtype=entry.dtype, device=device)

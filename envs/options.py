@@ -1,0 +1,126 @@
+"""The driver's options, as data: ``EnvOptions`` and their checks.
+
+Every env takes the same options whatever the task (a task's own keywords are its
+``Scenario.Params``). ``make_env(name, **kwargs)`` sorts the keywords into the two:
+
+    EnvOptions(num_worlds=64, resolution=48, autoreset="next_step", seed=0)
+
+None means "the task's default" for num_agents, resolution and max_steps. The checks run when
+the driver is built (some bounds depend on the task and the GL context), each raising
+TypeError / ValueError naming the option, the expected and the given.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+import marl_render as mr
+from marl_render.validation import describe, positive_int, resolution_hw
+
+AUTORESET_MODES = ("next_step", "same_step")
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvOptions:
+    """The options every env takes; see the module docstring and BatchedEnv's."""
+
+    num_worlds: int = 1
+    num_agents: int | None = None
+    resolution: object = None  # int or (H, W)
+    max_steps: int | None = None
+    continuous: bool = False
+    state_obs: bool = False
+    depth: bool = False
+    shadows: object = False  # False, True or a marl_render.Shadows
+    device: object = "cpu"
+    seed: int | None = None
+    autoreset: object = False  # False, True (= "same_step"), "next_step" or "same_step"
+    torch_threads: int | None = 1
+    grayscale: bool = False
+    context: object = None  # a marl_render.GLContext, or None for the process's default
+
+
+OPTION_NAMES = frozenset(field.name for field in dataclasses.fields(EnvOptions))
+
+
+def flag(name: str, value) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a bool, got {describe(value)}")
+    return bool(value)
+
+
+def shadows(value, bounds) -> mr.Shadows | None:
+    """None (no shadows) or the Shadows settings of the scene."""
+    if isinstance(value, mr.Shadows):
+        return value
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"shadows must be a bool or a marl_render.Shadows, got {describe(value)}")
+    return mr.Shadows(bounds=bounds) if value else None
+
+
+def autoreset_mode(value) -> bool | str:
+    """False, "next_step" or "same_step"; True means "same_step" (see envs/core.py)."""
+    want = f"False, True (= 'same_step') or one of {list(AUTORESET_MODES)}"
+    if isinstance(value, (bool, np.bool_)):
+        return "same_step" if value else False
+    if not isinstance(value, str):
+        raise TypeError(f"autoreset must be {want}, got {describe(value)}")
+    if value not in AUTORESET_MODES:
+        raise ValueError(f"autoreset must be {want}, got {value!r}")
+    return value
+
+
+def seed(name: str, value) -> int | None:
+    if value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be None or an int in [0, 2**63), got {describe(value)}")
+    if not 0 <= int(value) < 2 ** 63:
+        raise ValueError(f"{name} must be None or an int in [0, 2**63), got {value}")
+    return int(value)
+
+
+def device(value) -> torch.device:
+    if not isinstance(value, (str, torch.device)):
+        raise TypeError(f"device must be a str or torch.device (e.g. 'cpu', 'cuda:0'), got {describe(value)}")
+    try:
+        dev = torch.device(value)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"device must name a torch device (e.g. 'cpu', 'cuda:0'), got {value!r}") from exc
+    if dev.type == "cpu":  # torch has one CPU device; tensors made on 'cpu:0' report plain 'cpu'
+        if dev.index not in (None, 0):
+            raise ValueError(f"device must be 'cpu' (torch has a single CPU device) or a CUDA device, got {value!r}")
+        return torch.device("cpu")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {value!r} was asked for but torch sees no CUDA device; use device='cpu'")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device must be a CPU or CUDA device (e.g. 'cpu', 'cuda:0'), got {value!r}")
+    if dev.type == "cuda" and (dev.index or 0) >= torch.cuda.device_count():
+        raise ValueError(f"device {value!r} was asked for but torch sees {torch.cuda.device_count()} CUDA device(s)")
+    return dev
+
+
+def num_agents(value, scenario) -> int:
+    low, high = scenario.agent_range
+    value = scenario.default_num_agents if value is None else value
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"num_agents must be an int in [{low}, {high}], got {describe(value)}")
+    if not low <= value <= high:
+        raise ValueError(f"num_agents must be an int in [{low}, {high}] for {scenario.name}, got {value}")
+    return int(value)
+
+
+def resolution(value, scenario, gl_limit: int) -> tuple:
+    hw = resolution_hw(scenario.default_resolution if value is None else value)
+    if max(hw) > gl_limit:
+        raise ValueError(f"resolution must be at most {gl_limit} pixels per side (GL limit), got {hw}")
+    return hw
+
+
+def max_steps(value, scenario) -> int:
+    steps = positive_int("max_steps", scenario.default_max_steps if value is None else value)
+    if steps >= 2 ** 63:  # compared with the int64 step counters
+        raise ValueError(f"max_steps must be an int in [1, 2**63), got {steps}")
+    return steps

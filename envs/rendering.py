@@ -1,0 +1,100 @@
+"""The renderer-facing part of the driver: a scenario's states as pixels.
+
+``EnvRenderer`` builds the agents' renderer from the scenario's scene binding (and, on first
+use, the overview renderer), hands it the instance data of a state, and reads the frames
+back. It knows nothing of episodes, counters or actions: the driver (envs/core.py) decides
+when to draw and what to return.
+"""
+from __future__ import annotations
+
+import torch
+
+import marl_render as mr
+from marl_render import memory
+from marl_render.validation import resolution_hw
+
+
+class EnvRenderer:
+    """The agents' views (one renderer, a camera per agent) and the overview (one per world)."""
+
+    def __init__(self, scenario, *, resolution: tuple, effects: tuple, shadows, grayscale: bool,
+                 context: mr.GLContext, device: torch.device):
+        self.scenario, self.resolution, self.shadows = scenario, resolution, shadows
+        self.grayscale, self.context, self.device = grayscale, context, device
+        self.overview_renderer = None
+        self.renderer = None
+        scene = self._scene(overview=False, resolution=resolution, effects=effects)
+        check_memory(scene, scenario.num_worlds, scenario.num_agents, resolution)
+        self.renderer = self._renderer(scene, overview=False)
+
+    def sync(self, state, full: bool) -> None:
+        """Hand the agents' renderer the instance data of `state` (full: everything, else poses)."""
+        self._sync(self.renderer, state, full)
+
+    def render(self) -> mr.Frame:
+        return self.renderer.render()
+
+    def overview(self, state, resolution=None) -> torch.Tensor:
+        """uint8 [W, H2, W2, 3] of `state` from the overview camera of every world; the overview
+        renderer is built on first use and rebuilt when `resolution` changes."""
+        resolution = resolution_hw(self.scenario.overview_resolution if resolution is None else resolution)
+        current = self.overview_renderer
+        if current is None or current.scene.resolution != resolution:
+            effects = ("lighting", "shadows") if self.shadows else ("lighting",)
+            scene = self._scene(overview=True, resolution=resolution, effects=effects)
+            replaced = 0 if current is None else memory.renderer_bytes(current.scene)
+            memory.check_fits(memory.renderer_bytes(scene) - replaced,
+                              f"render_overview(resolution={resolution}) with num_worlds={self.scenario.num_worlds}",
+                              "lower the overview's resolution")
+            if current is not None:
+                current.close()
+                self.overview_renderer = None
+            self.overview_renderer = self._renderer(scene, overview=True)
+        self._sync(self.overview_renderer, state, full=True)
+        return self.overview_renderer.render().rgb[:, 0].to(self.device)
+
+    def close(self) -> None:
+        for renderer in (self.renderer, self.overview_renderer):
+            if renderer is not None:
+                renderer.close()
+        self.overview_renderer = None
+
+    # ------------------------------------------------------------------ internals
+    def _scene(self, overview: bool, resolution, effects) -> mr.Scene:
+        s = self.scenario
+        scene = mr.Scene(num_worlds=s.num_worlds, agents_per_world=1 if overview else s.num_agents,
+                         resolution=resolution, effects=effects, background=s.background,
+                         fov_y=s.overview_fov_y if overview else s.fov_y, near=s.near, far=s.far,
+                         shadows=self.shadows or mr.Shadows())
+        s.build_scene(scene, overview)
+        return scene
+
+    def _renderer(self, scene: mr.Scene, overview: bool) -> mr.BatchRenderer:
+        renderer = mr.BatchRenderer(scene, color="gray" if self.grayscale and not overview else "rgb",
+                                    context=self.context)
+        try:
+            self.scenario.place_cameras(renderer, overview)
+        except BaseException:
+            renderer.close()
+            raise
+        return renderer
+
+    def _sync(self, renderer: mr.BatchRenderer, state, full: bool) -> None:
+        on_cpu = self.device.type == "cpu"
+        overview = renderer is not self.renderer
+        for group, kwargs in self.scenario.instances(state, full).items():
+            if overview and "owner" in kwargs:  # owners hide bodies from agent views; the overview has none
+                kwargs = {k: v for k, v in kwargs.items() if k != "owner"}
+            if not on_cpu:
+                kwargs = {k: v.cpu() for k, v in kwargs.items()}
+            renderer.update(group, **kwargs)
+
+
+def check_memory(scene: mr.Scene, num_worlds: int, num_agents: int, resolution) -> None:
+    """Refuse a batch whose renderer, observations and env state would not fit in this machine's
+    memory before they are allocated (torch would fail late with a raw allocator error, or the
+    OOM killer would strike). See marl_render/memory.py for what is counted."""
+    height, width = resolution
+    needed = memory.renderer_bytes(scene) + num_worlds * memory.ENV_WORLD_BYTES
+    memory.check_fits(needed, f"num_worlds={num_worlds} x num_agents={num_agents} at resolution {height}x{width}",
+                      "lower num_worlds, num_agents or resolution")

@@ -1,0 +1,186 @@
+"""The public way to write a task: a scenario (the rules) and its scene binding (the pictures).
+
+A task is a ``Scenario`` subclass. The driver (``BatchedEnv``, envs/core.py) owns everything
+else: the renderer, the random generator, the step counters, who is still in the episode,
+resets, autoreset, argument checks and the spec every front end reads. A scenario is built
+once per env and then only answers questions about states it is handed; it never keeps one:
+
+    class MyTask(Scenario):
+        name = "my_task"
+        Params = MyParams                     # a dataclass of the task's own keywords
+
+        def setup(self):                      # once: who plays, actions, constants
+            self.teams = {"agents": numbered("agent", self.num_agents)}
+            self.discrete_actions(("noop", "left", "right"))
+            self.state_dim = 4
+        def initial_state(self): ...          # a state of the right shapes (zeros will do)
+        def spawn(self, generator): ...       # a new episode in every world
+        def step(self, state, actions, alive, generator): ...  # -> (state, reward, terminated, info)
+        def observation(self, state, alive): ...     # the "state" observation [W, A, state_dim]
+        def build_scene(self, scene, overview): ...  # static geometry, groups, cameras
+        def instances(self, state, full): ...        # {group: renderer.update kwargs}
+
+States are frozen dataclasses of ``[W, ...]`` tensors (envs/state.py). ``step`` and ``spawn``
+return new ones; the driver keeps the worlds a partial reset does not touch. Tasks of agents
+moving on a floor subclass ``ArenaScenario`` (envs/arena.py) instead: it supplies bodies,
+physics, cameras and the whole scene binding from declarations, so such a file holds only
+rules. ``register_env`` (envs/registry.py) makes a task known to every front end.
+"""
+from __future__ import annotations
+
+import abc
+import dataclasses
+import math
+from typing import NamedTuple
+
+import torch
+
+from . import scenery
+
+
+@dataclasses.dataclass(frozen=True)
+class NoParams:
+    """The parameters of a task that has no keywords of its own."""
+
+
+class Layout(NamedTuple):
+    """The batch a scenario is built for (fixed for the env's lifetime)."""
+
+    num_worlds: int
+    num_agents: int
+    continuous: bool
+    device: torch.device
+
+
+class Step(NamedTuple):
+    """What ``Scenario.step`` returns."""
+
+    state: object  # the state one step later (a frozen dataclass of tensors)
+    reward: torch.Tensor  # [W, A] float
+    terminated: torch.Tensor  # [W, A] bool: agents whose episode ends with this step
+    info: dict  # {name: [W] tensor} for each of the scenario's info_keys
+
+
+def numbered(prefix: str, count: int) -> list:
+    """Agent names prefix_0 .. prefix_{count-1} (PettingZoo's naming convention)."""
+    return [f"{prefix}_{i}" for i in range(count)]
+
+
+class Scenario(abc.ABC):
+    """Base of every task; see the module docstring.
+
+    Class attributes declare the task: ``name``, ``Params`` (a dataclass of its keywords with
+    their defaults, validated in its ``__post_init__``), the default and allowed agent counts,
+    episode length, resolution, the simulated seconds per step ``dt``, the physics terms it
+    computes, its ``info_keys`` ({name: dtype}, each [W]) and its camera settings.
+
+    After ``setup()`` these instance attributes describe it: ``teams`` (team -> agent names, in
+    agent order), ``num_actions`` and ``action_meanings`` (discrete) or ``action_dim``
+    (continuous), ``state_dim`` (0: no state observation) and ``physics`` (a
+    planar.PhysicsConfig, or None).
+    """
+
+    name: str = "scenario"
+    Params: type = NoParams
+    default_num_agents: int = 1
+    agent_range: tuple = (1, 64)  # allowed num_agents (inclusive)
+    default_max_steps: int = 100
+    default_resolution = 64
+    dt: float = 0.1  # simulated seconds per step (a front end plays episodes back at 1 / dt frames/s)
+    physics_terms: frozenset = frozenset()  # envs/planar.py terms this task computes
+    info_keys: dict = {}
+    background: tuple = scenery.SKY_COLOR
+    fov_y: float = math.radians(70.0)
+    near: float = 0.05
+    far: float = 50.0
+    arena_half_extent: tuple = (1.5, 1.5)  # what the default overview camera frames
+    overview_resolution: tuple = (128, 128)
+    overview_fov_y: float = math.radians(60.0)
+    shadow_bounds = None  # the box shadows=True covers; None: fitted to the static geometry
+
+    def __init__(self, params, layout: Layout):
+        self.params = params
+        self.num_worlds, self.num_agents, self.continuous, self.device = layout
+        self.teams: dict = {"agents": numbered("agent", self.num_agents)}
+        self.num_actions: int | None = None
+        self.action_meanings: tuple | None = None
+        self.action_dim: int | None = None
+        self.state_dim: int = 0
+        self.physics = None
+        self.setup()
+
+    @classmethod
+    def num_agents_for(cls, params, num_agents: int | None) -> int | None:
+        """The agent count to build for, given the user's num_agents (None: not given). A task whose
+        own keywords imply it (tag's team sizes) overrides this; None means the default."""
+        return num_agents
+
+    # ------------------------------------------------------------------ declarations
+    def discrete_actions(self, meanings) -> None:
+        """Declare the discrete actions by their names; continuous envs ignore this."""
+        if not self.continuous:
+            self.num_actions, self.action_meanings = len(meanings), tuple(meanings)
+
+    def continuous_actions(self, dim: int) -> None:
+        """Declare a continuous action of `dim` values in [-1, 1]; discrete envs ignore this."""
+        if self.continuous:
+            self.action_dim = dim
+
+    @property
+    def agent_names(self) -> list:
+        return [name for names in self.teams.values() for name in names]
+
+    # ------------------------------------------------------------------ rules
+    @abc.abstractmethod
+    def setup(self) -> None:
+        """Declare teams, actions, state_dim and the task's constants (once, at construction)."""
+
+    @abc.abstractmethod
+    def initial_state(self):
+        """A state of the right shapes and dtypes, before any episode (zeros will do): it is the
+        template set_state checks against."""
+
+    @abc.abstractmethod
+    def spawn(self, generator: torch.Generator):
+        """A new episode in every world, sampled with `generator` (the driver keeps it only in the
+        worlds being reset)."""
+
+    @abc.abstractmethod
+    def step(self, state, actions: torch.Tensor, alive: torch.Tensor, generator: torch.Generator) -> Step:
+        """The state one step later for validated actions; agents with alive [W, A] False left the
+        episode and must be ignored. Anything random is drawn from `generator` (the env's)."""
+
+    def observation(self, state, alive: torch.Tensor) -> torch.Tensor:
+        """[W, A, state_dim] float: the low-dimensional observation (obs key "state")."""
+        raise NotImplementedError(f"{type(self).__name__} has no state observation")
+
+    def action_mask(self, state, alive: torch.Tensor) -> torch.Tensor:
+        """[W, A, num_actions] bool; default: every action valid."""
+        return torch.ones(self.num_worlds, self.num_agents, self.num_actions, dtype=torch.bool, device=self.device)
+
+    def heuristic(self, state, alive: torch.Tensor) -> torch.Tensor:
+        """Actions of a scripted policy that reads the state: a reference that beats random."""
+        raise NotImplementedError(f"{type(self).__name__} has no scripted heuristic")
+
+    # ------------------------------------------------------------------ scene binding
+    @abc.abstractmethod
+    def build_scene(self, scene, overview: bool) -> None:
+        """Add static geometry and instance groups to `scene`; mount the agents' cameras unless
+        `overview` (one free camera per world, placed by place_cameras)."""
+
+    @abc.abstractmethod
+    def instances(self, state, full: bool) -> dict:
+        """{group: renderer.update kwargs} of `state`. full=False: only what a step can change
+        (poses); full=True: everything (after a reset, for a new renderer)."""
+
+    def place_cameras(self, renderer, overview: bool) -> None:
+        """Place free cameras once, after the renderer is built. Default: nothing for mounted
+        agent cameras, overview_camera() for the overview."""
+        if overview:
+            eye, target = self.overview_camera()
+            W = self.num_worlds
+            renderer.set_cameras(position=eye.expand(W, 1, 3), look_at=target.expand(W, 1, 3))
+
+    def overview_camera(self):
+        """(eye [3], target [3]) float64 of the overview camera (the same in every world)."""
+        return scenery.top_down_camera(self.arena_half_extent, self.overview_fov_y)
