@@ -11,14 +11,15 @@ its scene as data, so its file holds only rules:
                          max_speed=2.0)
     def initial_state(self): return self.at_rest(zeros [W, A, 2], zeros [W, A], landmarks=zeros [W, L, 2])
     def spawn(self, generator): ...          # a new episode in every world, e.g. by at_rest(...)
-    def rules(self, before, moved, alive, generator):  # -> (state, reward [W, A], terminated [W, A], info)
+    def rules(self, before, moved, actions, alive, generator):  # -> (state, reward, terminated, info)
     def props(self):                         # what else is drawn, and which state field it follows
         return [Prop("landmarks", disc_mesh(), count=L, position="landmarks", height=0.02, ...)]
 
-``rules`` gets the state before the step and the state once the bodies moved (``moved``: new
-pos, vel, yaw; the task's own fields unchanged). Bodies 0 .. A-1 are the agents; a task may add
-more after them (push's ball) with ``setup_arena(bodies=...)``. The state is an ``ArenaState``
-subclass with the task's own fields (envs/state.py).
+``rules`` gets the state before the step, the state once the bodies moved (``moved``: new
+pos, vel, yaw; the task's own fields unchanged) and the actions (a task's own actions beyond
+movement, declared with ``setup_arena(extra_actions=...)``, are read there). Bodies 0 .. A-1
+are the agents; a task may add more after them (push's ball) with ``setup_arena(bodies=...)``.
+The state is an ``ArenaState`` subclass with the task's own fields (envs/state.py).
 """
 from __future__ import annotations
 
@@ -60,7 +61,8 @@ class Prop:
 
     position, yaw and active name a field of the state (or are functions of the state):
     position [W, count, 2] planar centres (m), yaw [W, count] (rad), active [W, count] bool (shown).
-    scale and color are (3,) for all or [count, 3] each (full sizes in m; RGB in [0, 1]).
+    scale and color are (3,) for all or [count, 3] each (full sizes in m; RGB in [0, 1]), or name a
+    field [W, count, 3] of the state (or are functions of it) where they differ between worlds.
     moves=False: the fields change only when an episode starts, so they are sent only then."""
 
     name: str
@@ -86,6 +88,10 @@ class Static:
     color: object
 
 
+def _from_state(source) -> bool:
+    return isinstance(source, str) or callable(source)
+
+
 def _read(state, source) -> Tensor:
     return source(state) if callable(source) else getattr(state, source)
 
@@ -109,16 +115,19 @@ class ArenaScenario(Scenario):
 
     # ------------------------------------------------------------------ declarations
     def setup_arena(self, teams: dict, *, state_dim: int, radius, max_speed: float, substeps: int = 2,
-                    bodies: tuple = ()) -> None:
+                    bodies: tuple = (), extra_actions: tuple = ()) -> None:
         """Declare who plays and how bodies move (first thing in a task's setup).
 
         teams: team -> agent names, in agent order. radius: of the agents' bodies (m), a float or
-        {team: float}. bodies: (radius, mass) of each further body after the agents."""
+        {team: float}. bodies: (radius, mass) of each further body after the agents.
+        extra_actions: names of the task's own actions beyond movement: discrete actions 5, 6, ...
+        (they do not move the body), or continuous values 2, 3, ... (in [-1, 1]); rules reads them."""
         self.teams = teams
         self._team_of = [team for team, names in teams.items() for _ in names]
-        self.discrete_actions(egomotion.ACTION_MEANINGS)
-        self.continuous_actions(2)
-        self.action_table = torch.tensor(egomotion.DISCRETE_ACTIONS, device=self.device)
+        self.discrete_actions(egomotion.ACTION_MEANINGS + tuple(extra_actions))
+        self.continuous_actions(2 + len(extra_actions))
+        still = ((0.0, 0.0),) * len(extra_actions)
+        self.action_table = torch.tensor(egomotion.DISCRETE_ACTIONS + still, device=self.device)
         self.state_dim = state_dim
         W, N = self.num_worlds, self.num_agents
         agent_radius = [radius[team] if isinstance(radius, dict) else radius for team in self._team_of]
@@ -160,10 +169,11 @@ class ArenaScenario(Scenario):
 
     # ------------------------------------------------------------------ rules (the task's)
     @abc.abstractmethod
-    def rules(self, before: ArenaState, moved: ArenaState, alive: Tensor, generator: torch.Generator):
+    def rules(self, before: ArenaState, moved: ArenaState, actions: Tensor, alive: Tensor,
+              generator: torch.Generator):
         """(state, reward [W, A], terminated [W, A] bool, info) of the step, given the state before
-        it, the state once the bodies moved, who took part (alive [W, A]) and the env's generator
-        (for anything random in the step)."""
+        it, the state once the bodies moved, the validated actions, who took part (alive [W, A]) and
+        the env's generator (for anything random in the step)."""
 
     def obstacles(self, state: ArenaState) -> planar.Obstacles | None:
         """Static boxes of the physics (none unless the task has some)."""
@@ -176,7 +186,7 @@ class ArenaScenario(Scenario):
         return planar.BodyState(state.pos, state.vel, self.radius.expand(W, B), self.mass.expand(W, B), active)
 
     def step(self, state, actions, alive, generator) -> Step:
-        command = actions if self.continuous else self.action_table[actions]
+        command = actions[..., :2] if self.continuous else self.action_table[actions]
         yaw, force = egomotion.drive(state.yaw, command, alive, self.thrust, self.physics.dt)
         active, extra = alive, self.radius.shape[0] - self.num_agents
         if extra:  # further bodies (push's ball) feel no force and always take part
@@ -184,7 +194,7 @@ class ArenaScenario(Scenario):
             active = torch.cat((alive, alive.new_ones(self.num_worlds, extra)), 1)
         bodies = planar.step(self.bodies(state, active), force, self.obstacles(state), self.physics)
         moved = dataclasses.replace(state, pos=bodies.pos, vel=bodies.vel, active=bodies.active, yaw=yaw)
-        return Step(*self.rules(state, moved, alive, generator))
+        return Step(*self.rules(state, moved, actions, alive, generator))
 
     # ------------------------------------------------------------------ scene binding
     def build_scene(self, scene: mr.Scene, overview: bool) -> None:
@@ -225,6 +235,9 @@ class ArenaScenario(Scenario):
                 kwargs["active"] = _read(state, prop.active).cpu()
             if full:
                 kwargs = {**constant, **kwargs}
+                for what in ("scale", "color"):
+                    if what not in constant:
+                        kwargs[what] = _read(state, getattr(prop, what)).to("cpu", torch.float32)
             update[prop.name] = kwargs
         return update
 
@@ -239,8 +252,8 @@ class ArenaScenario(Scenario):
             W, data = self.num_worlds, []
             for prop in self._declared():
                 if isinstance(prop, Prop):
-                    constant = {"scale": _per_instance(prop.scale, W, prop.count),
-                                "color": _per_instance(prop.color, W, prop.count)}
+                    constant = {what: _per_instance(value, W, prop.count) for what, value in
+                                (("scale", prop.scale), ("color", prop.color)) if not _from_state(value)}
                     if prop.active is None:
                         constant["active"] = torch.ones(W, prop.count, dtype=torch.bool)
                     data.append((prop, constant))

@@ -122,7 +122,7 @@ class Forage(ArenaScenario):
         return self.at_rest(pos, yaw, items=self._item_spawn(pos, g),
                             item_timer=torch.zeros(W, self.num_items, dtype=torch.int64), team_score=torch.zeros(W))
 
-    def rules(self, before, moved, alive, generator):
+    def rules(self, before, moved, actions, alive, generator):
         # Items away count down; those reaching 0 come back somewhere clear of the agents.
         timer = (before.item_timer - 1).clamp_min(0)
         back = (before.item_timer > 0) & (timer == 0)

@@ -155,7 +155,7 @@ class Push(ArenaScenario):
         ball = ((torch.rand(W, 1, 2, generator=g) * 2 - 1) * torch.tensor([0.3, 0.1])).to(self.device)
         return self.at_rest(torch.cat((torch.stack((x, y), -1), ball), 1), scenery.wrap_angle(yaw))
 
-    def rules(self, before, moved, alive, generator):
+    def rules(self, before, moved, actions, alive, generator):
         ball_before, ball = before.pos[:, -1], moved.pos[:, -1]
         in_mouth = ball[:, 0].abs() < GOAL_HALF_WIDTH
         goal = ((in_mouth & (ball[:, 1] > GOAL_LINE)).long() - (in_mouth & (ball[:, 1] < -GOAL_LINE)).long())  # [W]

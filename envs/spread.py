@@ -99,7 +99,7 @@ class Spread(ArenaScenario):
         landmarks = (torch.rand(W, L, 2, generator=g) * 2 - 1) * SPAWN
         return self.at_rest(pos, yaw, landmarks=landmarks)
 
-    def rules(self, before, moved, alive, generator):
+    def rules(self, before, moved, actions, alive, generator):
         reward, collisions, coverage = self.reward(moved.landmarks, moved.pos)
         info = {"collisions": collisions, "coverage": coverage}
         return moved, reward[:, None].expand(-1, self.num_agents), torch.zeros_like(alive), info

@@ -175,7 +175,7 @@ class Tag(ArenaScenario):
         return self.at_rest(pos[:, K:], yaw, obstacle_center=pos[:, :K], obstacle_angle=angle,
                             shown=torch.ones(W, N, dtype=torch.bool))
 
-    def rules(self, before, moved, alive, generator):
+    def rules(self, before, moved, actions, alive, generator):
         moved = dataclasses.replace(moved, vel=planar.clamp_norm(moved.vel, self.max_speed[:, None]))
         dist = torch.cdist(moved.pos, moved.pos)  # [W, N, N]
         touch = dist < self.radius[:, None] + self.radius[None, :] + CONTACT_TOLERANCE
