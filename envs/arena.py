@@ -144,7 +144,10 @@ class ArenaScenario(Scenario):
         self._mesh_radius = max(agent_radius)
         xy = torch.tensor(agent_radius)[:, None] / self._mesh_radius
         self._agent_scale = torch.cat((xy, xy, torch.ones(N, 1)), 1).expand(W, N, 3)
-        self._agent_color = torch.tensor([self.team_colors[team] for team in self._team_of]).expand(W, N, 3)
+        # A team without a colour in team_colors takes the palette's, in team order.
+        fallback = dict(zip(teams, scenery.palette(len(teams)).tolist(), strict=True))
+        colors = [self.team_colors.get(team, fallback[team]) for team in self._team_of]
+        self._agent_color = torch.tensor(colors, dtype=torch.float32).expand(W, N, 3)
         self._nose_offset = torch.tensor(agent_radius)[:, None]  # [N, 1]
         self._nose_scale = torch.tensor(NOSE_SIZE).expand(W, N, 3)
         self._nose_color = torch.tensor(NOSE_COLOR).expand(W, N, 3)

@@ -116,6 +116,7 @@ class Push(ArenaScenario):
     info_keys = {"goal": torch.int64}
     arena_half_extent = ARENA
     team_colors = TEAM_COLORS
+    opponents = ("team_b",)
 
     def setup(self):
         N = self.num_agents

@@ -97,6 +97,7 @@ class Scenario(abc.ABC):
     overview_resolution: tuple = (128, 128)
     overview_fov_y: float = math.radians(60.0)
     shadow_bounds = None  # the box shadows=True covers; None: fitted to the static geometry
+    opponents: tuple = ()  # teams that play against the others (random in the reference evaluation)
 
     def __init__(self, params, layout: Layout):
         self.params = params

@@ -111,6 +111,7 @@ class Tag(ArenaScenario):
     physics_terms = frozenset({"walls", "body_collisions", "obstacles", "drag"})  # "obstacles" only if K > 0
     info_keys = {"caught": torch.int64, "prey_left": torch.int64}
     arena_half_extent = (ARENA, ARENA)
+    opponents = ("prey",)
     shown = "shown"  # caught prey are drawn in the frame of their catch, then no more
 
     @classmethod

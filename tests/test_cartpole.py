@@ -21,7 +21,7 @@ def make(**kw):
 
 def test_defaults_follow_dm_control():
     env = make()
-    assert isinstance(env, CartPoleBalance)
+    assert isinstance(env.scenario, CartPoleBalance)
     assert env.max_steps == 1000 and env.num_agents == 1 and env.agent_names == ["agent_0"]
     assert env.num_actions == len(FORCE_LEVELS) and env.physics_terms == frozenset()
     assert env.state_dim == 5

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import marl_render as mr
-from marl_render.envs import BatchedEnv, list_envs, make_env, register, registry
+from marl_render.envs import BatchedEnv, Scenario, list_envs, make_env, register_env, registry
 
 W = 3
 RES = 32
@@ -58,14 +58,16 @@ def test_registry_unknown_kwarg_is_named():
 
 def test_register_refuses_duplicates_and_bad_entries():
     with pytest.raises(ValueError, match="already registered"):
-        register("cartpole", object)
-    with pytest.raises(TypeError, match="env must be"):
-        register("broken", 42)
-    register("toy_for_test", ToyEnv, overwrite=True)
+        register_env("cartpole", ToyScenario)
+    with pytest.raises(TypeError, match="scenario must be a Scenario subclass"):
+        register_env("broken", 42)
+    with pytest.raises(TypeError, match="scenario must be a Scenario subclass"):
+        register_env("broken", BatchedEnv)
+    register_env("toy_for_test", ToyScenario, overwrite=True)
     try:
         assert "toy_for_test" in list_envs()
         env = make_env("toy_for_test", num_worlds=2)
-        assert isinstance(env, ToyEnv)
+        assert isinstance(env.scenario, ToyScenario) and env.name == "toy"
         env.close()
     finally:
         registry._REGISTRY.pop("toy_for_test")
@@ -489,7 +491,7 @@ def test_autoreset_starts_a_new_episode(name):
 def test_render_overview(name):
     env = make(name)
     env.reset()
-    assert env._overview is None  # built lazily
+    assert env.views.overview_renderer is None  # built lazily
     view = env.render_overview()
     assert view.dtype == torch.uint8 and view.shape == (W, *env.overview_resolution, 3)
     assert int(view.max()) - int(view.min()) > 50
@@ -524,7 +526,7 @@ class ToyState:
     pos: torch.Tensor  # [W, 2] the agents' places on the line
 
 
-class ToyEnv(BatchedEnv):
+class ToyScenario(Scenario):
     """Two agents on a line. Action 1 moves an agent one unit and earns 1; agent 1 leaves
     the episode (terminated) when it reaches position 2; both leave at position 3."""
 
@@ -534,46 +536,50 @@ class ToyEnv(BatchedEnv):
     default_max_steps = 10
     default_resolution = 8
 
-    def _setup(self):
-        self.agent_names = ["runner_0", "walker_0"]
-        self.groups = {"runner": ["runner_0"], "walker": ["walker_0"]}
-        self.num_actions = 2
-        self.action_dim = 1 if self.continuous else None
+    def setup(self):
+        self.teams = {"runner": ["runner_0"], "walker": ["walker_0"]}
+        self.discrete_actions(("stay", "move"))
+        self.continuous_actions(1)
         self.state_dim = 1
-        self.sim = ToyState(pos=torch.zeros(self.num_worlds, 2))
 
-    def _build_scene(self, scene, overview):
-        scene.add_static("floor", "plane", position=[0, 0, 0], scale=[10, 10, 1])
-        scene.add_group("bodies", "box", capacity=2)
-        if not overview:
-            scene.mount_cameras("bodies", instance=[0, 1], offset=(0, 0, 0.5))
+    def initial_state(self):
+        return ToyState(pos=torch.zeros(self.num_worlds, 2))
 
-    def _reset_state(self, mask):
-        self.sim = ToyState(pos=torch.where(mask[:, None], torch.zeros_like(self.sim.pos), self.sim.pos))
+    def spawn(self, generator):
+        return self.initial_state()
 
-    def _step_state(self, actions, alive):
+    def step(self, state, actions, alive, generator):
         if self.continuous:
             actions = (actions[..., 0] > 0).long()
         move = (actions == 1) & alive
-        pos = self.sim.pos + move
-        self.sim = ToyState(pos=pos)
+        pos = state.pos + move
         terminated = torch.zeros_like(alive)
         terminated[:, 1] = pos[:, 1] >= 2
         terminated |= (pos >= 3)
         # Rewarded for asking to move, alive or not: the core must zero the reward of
         # agents that had already left the episode.
-        return (actions == 1).float(), terminated, {}
+        return ToyState(pos=pos), (actions == 1).float(), terminated, {}
 
-    def _instances(self, full):
+    def build_scene(self, scene, overview):
+        scene.add_static("floor", "plane", position=[0, 0, 0], scale=[10, 10, 1])
+        scene.add_group("bodies", "box", capacity=2)
+        if not overview:
+            scene.mount_cameras("bodies", instance=[0, 1], offset=(0, 0, 0.5))
+
+    def instances(self, state, full):
         position = torch.zeros(self.num_worlds, 2, 3)
-        position[..., 0] = self.sim.pos
+        position[..., 0] = state.pos
         out = {"position": position}
         if full:
             out["active"] = torch.ones(self.num_worlds, 2, dtype=torch.bool)
         return {"bodies": out}
 
-    def _state_obs(self):
-        return self.sim.pos[..., None]
+    def observation(self, state, alive):
+        return state.pos[..., None]
+
+
+def ToyEnv(**kwargs) -> BatchedEnv:  # noqa: N802 (reads like the class it builds)
+    return make_env(ToyScenario, **kwargs)
 
 
 def test_dead_agents_are_ignored_but_keep_their_slot():
@@ -636,8 +642,8 @@ def test_scenery_yaw_and_heading_agree_with_renderer_convention():
 def test_torch_threads_inside_calls_and_restored(monkeypatch):
     seen = []
     env = make("cartpole", torch_threads=1)
-    original = env._step_state
-    monkeypatch.setattr(env, "_step_state", lambda *a: seen.append(torch.get_num_threads()) or original(*a))
+    original = env.scenario.step
+    monkeypatch.setattr(env.scenario, "step", lambda *a: seen.append(torch.get_num_threads()) or original(*a))
     saved = torch.get_num_threads()
     torch.set_num_threads(2)
     try:

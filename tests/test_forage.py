@@ -11,7 +11,7 @@ W, RES = 3, 32
 
 def make(**kwargs):
     kwargs = {"num_worlds": W, "resolution": RES, "seed": 0, **kwargs}
-    return forage.Forage(**kwargs)
+    return make_env("forage", **kwargs)
 
 
 def noop(env):
@@ -39,7 +39,7 @@ def yellow(pixels):
 # Observation, reward and done shapes and dtypes: tests/test_envs_core.py checks them for every env.
 def test_items_state_size_and_info():
     env = make(state_obs=True)
-    N, I = env.num_agents, env.num_items  # noqa: E741
+    N, I = env.num_agents, env.scenario.num_items  # noqa: E741
     assert (N, I) == (3, 6) and env.groups == {"agents": ["agent_0", "agent_1", "agent_2"]}
     assert env.state_dim == 6 + 3 * I + 2 * (N - 1)
     obs = env.reset(seed=1)
@@ -53,7 +53,7 @@ def test_items_state_size_and_info():
 def test_options_and_registry():
     assert "forage" in list_envs()
     env = make_env("forage", num_worlds=1, resolution=8, num_agents=5, num_items=2, respawn_delay=1)
-    assert isinstance(env, forage.Forage) and (env.num_agents, env.num_items) == (5, 2)
+    assert isinstance(env.scenario, forage.Forage) and (env.num_agents, env.scenario.num_items) == (5, 2)
     env.close()
     for kwargs, error in [({"num_items": 0}, ValueError), ({"num_items": 33}, ValueError),
                           ({"respawn_delay": 0}, ValueError), ({"item_reward": -1.0}, ValueError),
@@ -92,7 +92,7 @@ def test_touching_agent_collects_and_item_respawns():
     assert not terminated.any() and not truncated.any()
     away = torch.zeros(W, 6, dtype=torch.bool)
     away[0, 0] = away[1, 0] = True
-    assert torch.equal(env.item_available, ~away)
+    assert torch.equal(forage.item_available(env.sim), ~away)
     assert torch.equal(env.renderer.instance_state("items")["active"], ~away)
     state = obs["state"].reshape(W, 3, -1)
     assert torch.equal(state[:, :, 6 + 12:6 + 18], (~away)[:, None].expand(W, 3, 6).float())  # availability flags
@@ -103,11 +103,11 @@ def test_touching_agent_collects_and_item_respawns():
     old = env.sim.items.clone()
     for step in range(1, delay):
         obs, reward, _, _, info = env.step(noop(env))
-        assert (reward == 0).all() and torch.equal(env.item_available, ~away), step
+        assert (reward == 0).all() and torch.equal(forage.item_available(env.sim), ~away), step
         assert info["team_score"].tolist() == [1.0, 1.0, 0.0]
     # ... then back somewhere else, clear of every agent.
     obs, reward, _, _, info = env.step(noop(env))
-    assert (reward == 0).all() and env.item_available.all()
+    assert (reward == 0).all() and forage.item_available(env.sim).all()
     assert env.renderer.instance_state("items")["active"].all()
     assert torch.equal(env.sim.items[~away], old[~away]) and not torch.equal(env.sim.items[away], old[away])
     assert (torch.cdist(env.sim.items[:2, :1], env.sim.pos[:2]) > forage.RESPAWN_CLEARANCE).all()

@@ -75,7 +75,7 @@ def test_env_close_frees_both_renderers_and_is_final():
     assert windows() == baseline + 2
     env.close()
     env.close()
-    assert windows() == baseline and env.closed and env._overview is None
+    assert windows() == baseline and env.closed and env.views.overview_renderer is None
     for call in (env.reset, lambda: env.step(torch.zeros(W, env.num_agents, dtype=torch.long)), env.get_state,
                  env.render_overview, lambda: env.reset_worlds(torch.ones(W, dtype=torch.bool))):
         with pytest.raises(RuntimeError, match=r"this Tag environment is closed; create a new one"):

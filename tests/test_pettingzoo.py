@@ -32,7 +32,7 @@ def make(name, **kw):
 
 
 def departing(max_steps=5, **kw):
-    return MarlRenderParallelEnv(Departing(num_worlds=1, resolution=RES, max_steps=max_steps, seed=0), **kw)
+    return MarlRenderParallelEnv(make_env(Departing, num_worlds=1, resolution=RES, max_steps=max_steps, seed=0), **kw)
 
 
 def sample(env, obs=None):
@@ -161,7 +161,7 @@ def test_human_render_on_a_headless_machine_warns_once(monkeypatch):
     assert [str(w.message) for w in caught] == [
         "render_mode='human' shows nothing: this machine has no display (neither DISPLAY nor WAYLAND_DISPLAY is "
         "set). Use render_mode='rgb_array' to get the frames as arrays."]
-    assert env.core._overview is None  # nothing was rendered for a window that cannot exist
+    assert env.core.views.overview_renderer is None  # nothing was rendered for a window that cannot exist
     env.close()
 
 

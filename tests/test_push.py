@@ -12,7 +12,7 @@ W, RES = 3, 32
 
 def make(**kwargs):
     kwargs = {"num_worlds": W, "resolution": RES, "seed": 0, **kwargs}
-    return push.Push(**kwargs)
+    return make_env("push", **kwargs)
 
 
 def noop(env):
@@ -58,7 +58,7 @@ def test_teams_state_size_and_info():
 def test_team_sizes_and_registry():
     assert "push" in list_envs()
     env = make_env("push", num_worlds=1, resolution=8, num_agents=6)
-    assert isinstance(env, push.Push)
+    assert isinstance(env.scenario, push.Push)
     assert env.groups == {"team_a": [f"team_a_{i}" for i in range(3)], "team_b": [f"team_b_{i}" for i in range(3)]}
     env.close()
     env = make(num_agents=2, resolution=8)
@@ -126,7 +126,7 @@ def test_ball_is_pushed_by_an_agent():
     actions[:, 0, 0] = 1.0
     for _ in range(8):
         env.step(actions)
-    ball, ball_vel = env.ball
+    ball, ball_vel = env.sim.pos[:, -1], env.sim.vel[:, -1]
     assert (ball[:, 1] > 0.2).all() and (ball_vel[:, 1] > 0.3).all()
     assert torch.allclose(ball[:, 0], torch.zeros(W), atol=1e-4)
     env.close()

@@ -621,7 +621,7 @@ def test_a_failing_overview_shader_raises_too():
     env = make_env("spread", num_worlds=W, resolution=RES, seed=0)
     env.reset()
     env.render_overview()
-    env._overview._groups["landmarks"].node.set_shader(_broken_shader())
+    env.views.overview_renderer._groups["landmarks"].node.set_shader(_broken_shader())
     with pytest.raises(backend.ShaderCompileError, match="landmarks"):
         env.render_overview()
     env.close()

@@ -53,7 +53,7 @@ def held_tensors(env):
     """Every tensor the env and its renderers keep as attributes (state, counters, instance data)."""
     for name, value in vars(env).items():
         yield from tensors_in(value, f"env.{name}")
-    for label, renderer in (("renderer", env.renderer), ("overview", env._overview)):
+    for label, renderer in (("renderer", env.renderer), ("overview", env.views.overview_renderer)):
         if renderer is not None:
             for name, value in vars(renderer).items():
                 yield from tensors_in(value, f"{label}.{name}")
@@ -237,11 +237,11 @@ def test_render_overview_beyond_any_machine_is_a_clear_error_and_keeps_the_old_o
     try:
         env.reset()
         first = env.render_overview(resolution=2)
-        overview, state = env._overview, env.get_state()
+        overview, state = env.views.overview_renderer, env.get_state()
         with pytest.raises(ValueError, match=rf"^render_overview\(resolution=\({GL_LIMIT}, {GL_LIMIT}\)\) with "
                                              r"num_worlds=4096 needs about [\d.]+ GiB of host memory"):
             env.render_overview(resolution=GL_LIMIT)
-        assert env._overview is overview and not overview._closed
+        assert env.views.overview_renderer is overview and not overview._closed
         assert states_equal(state, env.get_state())
         assert torch.equal(env.render_overview(resolution=2), first)
     finally:
@@ -253,12 +253,12 @@ def test_render_overview_counts_its_views_before_replacing_the_old_one(monkeypat
     try:
         env.reset()
         first = env.render_overview()
-        overview = env._overview
+        overview = env.views.overview_renderer
         monkeypatch.setattr(memory, "available_bytes", lambda: 32 * 2 ** 20)
         with pytest.raises(ValueError, match=r"render_overview\(resolution=\(2048, 2048\)\) with num_worlds=2 "
                                              r"needs about 0\.\d\d GiB of host memory, more than the 0\.03 GiB"):
             env.render_overview(resolution=2048)
-        assert env._overview is overview
+        assert env.views.overview_renderer is overview
         assert torch.equal(env.render_overview(), first)
     finally:
         env.close()

@@ -331,7 +331,7 @@ def test_an_env_switches_shadows_on_and_they_only_darken():
             obs = env.reset(seed=5)
             images[shadows] = (obs["pixels"], env.render_overview(resolution=64))
             assert ("shadows" in env.renderer.scene.effects) == shadows
-            assert ("shadows" in env._overview.scene.effects) == shadows
+            assert ("shadows" in env.views.overview_renderer.scene.effects) == shadows
             if shadows:
                 assert env.renderer.scene.shadows.bounds == scenery.arena_shadow_bounds(env.arena_half_extent)
         finally:

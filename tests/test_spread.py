@@ -43,8 +43,8 @@ def agent_pixels(pixels):
 
 def test_defaults():
     env = make()
-    assert isinstance(env, Spread)
-    assert env.num_agents == 3 and env.num_landmarks == 3 and env.max_steps == 100
+    assert isinstance(env.scenario, Spread)
+    assert env.num_agents == 3 and env.scenario.num_landmarks == 3 and env.max_steps == 100
     assert env.agent_names == ["agent_0", "agent_1", "agent_2"] and env.groups == {"agents": env.agent_names}
     assert env.num_actions == 5 and len(ACTION_MEANINGS) == 5
     assert env.state_dim == 6 + 2 * 3 + 2 * 2
@@ -169,7 +169,7 @@ def test_state_observation_contents():
 
 def test_landmarks_have_distinct_colours_from_agents():
     env = make(num_agents=6)
-    colors = env._landmark_color[0]
+    colors = env.scenario.instances(env.sim, full=True)["landmarks"]["color"][0]
     assert len({tuple(c.tolist()) for c in colors}) == 6
     assert not any(torch.allclose(c, torch.tensor(scenery.TEAM_COLORS["agents"])) for c in colors)
     env.close()

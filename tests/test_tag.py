@@ -12,7 +12,7 @@ W, RES = 3, 32
 
 def make(**kwargs):
     kwargs = {"num_worlds": W, "resolution": RES, "seed": 0, **kwargs}
-    return tag.Tag(**kwargs)
+    return make_env("tag", **kwargs)
 
 
 def noop(env):
@@ -41,8 +41,8 @@ def green(pixels):
 # Observation, reward and done shapes and dtypes: tests/test_envs_core.py checks them for every env.
 def test_teams_state_size_and_info():
     env = make(state_obs=True)
-    N, K = env.num_agents, env.num_obstacles
-    assert (N, env.num_predators, env.num_prey, K) == (4, 3, 1, 2)
+    N, K = env.num_agents, env.scenario.num_obstacles
+    assert (N, env.scenario.num_predators, env.scenario.num_prey, K) == (4, 3, 1, 2)
     assert env.groups == {"predator": ["predator_0", "predator_1", "predator_2"], "prey": ["prey_0"]}
     assert env.state_dim == 6 + 3 * (N - 1) + 2 * K
     env.reset(seed=1)
@@ -58,7 +58,7 @@ def test_team_sizes():
                           ({"num_agents": 5, "num_prey": 2}, (3, 2)), ({"num_agents": 5, "num_predators": 4}, (4, 1)),
                           ({"num_predators": 1, "num_prey": 3}, (1, 3))]:
         env = make(num_worlds=1, resolution=8, **kwargs)
-        assert (env.num_predators, env.num_prey) == sizes, kwargs
+        assert (env.scenario.num_predators, env.scenario.num_prey) == sizes, kwargs
         assert env.num_agents == sum(sizes)
         assert env.agent_names == [f"predator_{i}" for i in range(sizes[0])] + [f"prey_{j}" for j in range(sizes[1])]
         env.close()
@@ -75,7 +75,7 @@ def test_team_sizes():
 def test_registered():
     assert "tag" in list_envs()
     env = make_env("tag", num_worlds=1, resolution=8, num_prey=2)
-    assert isinstance(env, tag.Tag) and env.num_agents == 5
+    assert isinstance(env.scenario, tag.Tag) and env.num_agents == 5
     env.close()
 
 

@@ -21,7 +21,7 @@ from torchrl.envs.transforms.functional import rgb_to_grayscale
 from torchrl.envs.utils import MarlGroupMapType, check_env_specs, step_mdp
 
 from departing_env import Departing
-from marl_render.envs import list_envs
+from marl_render.envs import list_envs, make_env
 from marl_render.wrappers.torchrl import MarlRenderTorchRLEnv, make_torchrl_env
 
 try:  # torchrl >= 0.11 renamed SyncDataCollector to Collector
@@ -44,7 +44,7 @@ def make(name, **kw):
 
 
 def departing(max_steps=5, group_map="team"):
-    return MarlRenderTorchRLEnv(Departing(num_worlds=W, resolution=RES, max_steps=max_steps, seed=0),
+    return MarlRenderTorchRLEnv(make_env(Departing, num_worlds=W, resolution=RES, max_steps=max_steps, seed=0),
                                 group_map=group_map)
 
 

@@ -207,7 +207,7 @@ def test_unknown_reset_options_are_ignored():
 
 
 def test_departed_agents_see_black_until_their_world_ends():
-    core = Departing(num_worlds=2, resolution=RES, seed=0, max_steps=4, autoreset="next_step")
+    core = make_env(Departing, num_worlds=2, resolution=RES, seed=0, max_steps=4, autoreset="next_step")
     envs = MarlRenderVectorEnv(core)  # entries: world 0 = 0, 1, 2; world 1 = 3, 4, 5
     envs.reset(seed=0)
     zero = np.zeros(6, dtype=np.int64)

@@ -433,62 +433,62 @@ class Sweeps:
         return out
 
     def spread_physics(self):
-        from marl_render.envs import make_env
+        from marl_render.envs import Layout
+        from marl_render.envs.spread import Spread
 
         c = self.cfg
         W, T = c["physics_worlds"], c["spread_horizon"]  # worlds, steps (the horizon)
         started = time.perf_counter()
-        env = make_env("spread", num_worlds=W, resolution=8, seed=self.args.seed)
-        base = env.physics
-        try:
-            env.reset(seed=self.args.seed)
-            generator = torch.Generator().manual_seed(self.args.seed + 1)
-            actions = torch.randint(env.num_actions, (T, W, env.num_agents), generator=generator)
-            alive = torch.ones(W, env.num_agents, dtype=torch.bool)
-            s = env.sim  # the env's own step, in float64: its state and body constants cast (bench only)
-            start = dataclasses.replace(s, pos=s.pos.double(), vel=s.vel.double(), yaw=s.yaw.double(),
-                                        landmarks=s.landmarks.double())
-            env.radius, env.mass = env.radius.double(), env.mass.double()
+        # The task's public scenario, stepped without an env or a renderer; float64 bodies (bench only).
+        layout = Layout(num_worlds=W, num_agents=Spread.default_num_agents, continuous=False,
+                        device=torch.device("cpu"))
+        template = Spread(Spread.Params(), layout)
+        base = template.physics
+        s = template.spawn(torch.Generator().manual_seed(self.args.seed))
+        generator = torch.Generator().manual_seed(self.args.seed + 1)
+        actions = torch.randint(template.num_actions, (T, W, layout.num_agents), generator=generator)
+        alive = torch.ones(W, layout.num_agents, dtype=torch.bool)
+        start = dataclasses.replace(s, pos=s.pos.double(), vel=s.vel.double(), yaw=s.yaw.double(),
+                                    landmarks=s.landmarks.double())
 
-            def rollout(substeps, integrator):
-                env.physics = dataclasses.replace(base, substeps=substeps, integrator=integrator)
-                env.sim = start
-                for a in actions:
-                    env._step_state(a, alive)  # the env's physics step, without rendering
-                return env.sim
+        def rollout(substeps, integrator):
+            scenario = Spread(Spread.Params(), layout)
+            scenario.physics = dataclasses.replace(base, substeps=substeps, integrator=integrator)
+            scenario.radius, scenario.mass = scenario.radius.double(), scenario.mass.double()
+            state, unused = start, torch.Generator()
+            for a in actions:
+                state = scenario.step(state, a, alive, unused).state
+            return state
 
-            settings, skipped = [], []
-            for integrator in SPREAD_INTEGRATORS:
-                for substeps in c["substeps"]:
-                    try:
-                        dataclasses.replace(base, substeps=substeps, integrator=integrator)
-                    except ValueError as error:  # PhysicsConfig's no-tunnelling bound
-                        skipped.append({"integrator": integrator, "substeps": substeps, "reason": str(error)})
-                        self.bar.update(c["physics_rounds"])
-                        continue
-                    settings.append((substeps, integrator))
-            self.bar.set_description("spread references")
-            reference = rollout(c["reference_substeps"], "velocity_verlet")
-            own = {i: rollout(c["reference_substeps"], i) for i in SPREAD_INTEGRATORS}
-            self.bar.update(1 + len(SPREAD_INTEGRATORS))
-            points = []
-            for (substeps, integrator), (bodies, rounds) in zip(
-                    settings, self._timed_rollouts("spread", settings, rollout, c["physics_rounds"]), strict=True):
-                seconds = min(rounds)
-                pos_err = (bodies.pos - reference.pos).norm(dim=-1)
-                vel_err = (bodies.vel - reference.vel).norm(dim=-1)
-                own_err = (bodies.pos - own[integrator].pos).norm(dim=-1)
-                points.append({
-                    "label": f"{SHORT[integrator]} x{substeps}", "integrator": integrator, "substeps": substeps,
-                    "default": substeps == base.substeps and integrator == base.integrator,
-                    "world_steps_per_s": W * T / seconds, "cost_s": seconds / (W * T), "cost_rounds_s": rounds,
-                    "error": float(pos_err.pow(2).mean().sqrt()), "pos_rms_m": float(pos_err.pow(2).mean().sqrt()),
-                    "pos_max_m": float(pos_err.max()), "vel_rms_m_s": float(vel_err.pow(2).mean().sqrt()),
-                    "pos_rms_vs_own_64_m": float(own_err.pow(2).mean().sqrt())})
-            agents = env.num_agents
-        finally:
-            env.physics = base
-            env.close()
+        settings, skipped = [], []
+        for integrator in SPREAD_INTEGRATORS:
+            for substeps in c["substeps"]:
+                try:
+                    dataclasses.replace(base, substeps=substeps, integrator=integrator)
+                except ValueError as error:  # PhysicsConfig's no-tunnelling bound
+                    skipped.append({"integrator": integrator, "substeps": substeps, "reason": str(error)})
+                    self.bar.update(c["physics_rounds"])
+                    continue
+                settings.append((substeps, integrator))
+        self.bar.set_description("spread references")
+        reference = rollout(c["reference_substeps"], "velocity_verlet")
+        own = {i: rollout(c["reference_substeps"], i) for i in SPREAD_INTEGRATORS}
+        self.bar.update(1 + len(SPREAD_INTEGRATORS))
+        points = []
+        for (substeps, integrator), (bodies, rounds) in zip(
+                settings, self._timed_rollouts("spread", settings, rollout, c["physics_rounds"]), strict=True):
+            seconds = min(rounds)
+            pos_err = (bodies.pos - reference.pos).norm(dim=-1)
+            vel_err = (bodies.vel - reference.vel).norm(dim=-1)
+            own_err = (bodies.pos - own[integrator].pos).norm(dim=-1)
+            points.append({
+                "label": f"{SHORT[integrator]} x{substeps}", "integrator": integrator, "substeps": substeps,
+                "default": substeps == base.substeps and integrator == base.integrator,
+                "world_steps_per_s": W * T / seconds, "cost_s": seconds / (W * T), "cost_rounds_s": rounds,
+                "error": float(pos_err.pow(2).mean().sqrt()), "pos_rms_m": float(pos_err.pow(2).mean().sqrt()),
+                "pos_max_m": float(pos_err.max()), "vel_rms_m_s": float(vel_err.pow(2).mean().sqrt()),
+                "pos_rms_vs_own_64_m": float(own_err.pow(2).mean().sqrt())})
+        agents = layout.num_agents
         pareto_flags(points)
         self.result["spread_physics"] = {
             "what": f"spread physics (dt {base.dt} s, walls + collisions + drag), {W} worlds x {agents} agents, "

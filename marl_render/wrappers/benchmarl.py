@@ -11,8 +11,9 @@
                             seed=0, config=ExperimentConfig.get_from_yaml())
     experiment.run()
 
-One enum member per registered env (``MarlRenderTask.CARTPOLE``, ``FORAGE``, ``PUSH``,
-``SPREAD``, ``TAG``). A task's ``config`` holds the env's keyword arguments (``resolution``,
+One enum member per built-in env (``MarlRenderTask.CARTPOLE``, ``SPREAD``, ...); a task of
+the user's own, registered with ``register_env``, is ``task_for("my_task", config)``. A
+task's ``config`` holds the env's keyword arguments (``resolution``,
 ``num_agents``, ``max_steps``, ``state_obs``, ``group_map``, the env's own ones; see
 ``make_torchrl_env``); an empty config gives the env's defaults. BenchMARL itself chooses the
 number of worlds (``num_envs``), discrete or continuous actions, the seed and the device, so
@@ -39,6 +40,7 @@ import warnings
 from benchmarl.environments.common import Task, TaskClass
 from torchrl.data import Composite
 
+from marl_render.envs import list_envs
 from marl_render.wrappers.torchrl import MarlRenderTorchRLEnv, make_torchrl_env
 
 # Set by BenchMARL through get_env_fun, never by a task's config.
@@ -73,7 +75,7 @@ class MarlRenderTaskClass(TaskClass):
             raise ValueError(f"the task config may not set {chosen}: BenchMARL chooses the number of worlds "
                              f"(num_envs), the action kind, the seed and the device; got config {self.config}")
         # A partial, not a lambda: it pickles, so BenchMARL may hand it to worker processes.
-        return functools.partial(make_torchrl_env, self.name.lower(), num_worlds=num_envs,
+        return functools.partial(make_torchrl_env, _registered_name(self.name), num_worlds=num_envs,
                                  continuous=bool(continuous_actions), seed=seed, device=device, **self.config)
 
     def supports_continuous_actions(self) -> bool:
@@ -147,4 +149,20 @@ class MarlRenderTask(Task):
         return super().get_from_yaml(path)
 
 
-__all__ = ["MarlRenderTask", "MarlRenderTaskClass"]
+def task_for(name: str, config: dict | None = None) -> MarlRenderTaskClass:
+    """The BenchMARL task of any registered env, a user's own (register_env) included; `config`
+    holds its keyword arguments as for the enum's tasks."""
+    _registered_name(name.upper())  # an unknown name fails here, listing the known ones
+    return MarlRenderTaskClass(name=name.upper(), config=dict(config or {}))
+
+
+def _registered_name(task_name: str) -> str:
+    """The registered env whose name is `task_name` in upper case (BenchMARL's task names)."""
+    matches = [name for name in list_envs() if name.upper() == task_name]
+    if len(matches) != 1:
+        raise ValueError(f"no single registered environment is named {task_name.lower()!r} (BenchMARL task "
+                         f"{task_name!r}); known environments: {list_envs()}")
+    return matches[0]
+
+
+__all__ = ["MarlRenderTask", "MarlRenderTaskClass", "task_for"]

@@ -96,10 +96,10 @@ class AgentKeyError(KeyError):
         return str(self.args[0]) if self.args else ""
 
 
-def make_parallel_env(name: str, *, render_mode: str | None = None, action_mask: bool = False,
+def make_parallel_env(name, *, render_mode: str | None = None, action_mask: bool = False,
                       departed_actions: str = "ignore", unknown_options: str = "ignore",
                       **kwargs) -> MarlRenderParallelEnv:
-    """A PettingZoo ParallelEnv of the registered environment `name`, one world.
+    """A PettingZoo ParallelEnv of the registered environment `name` (or a Scenario subclass), one world.
 
     kwargs go to ``marl_render.envs.registry.make_env`` (resolution, num_agents, max_steps,
     continuous, state_obs, depth, seed, device and the env's own arguments); num_worlds
@@ -124,9 +124,12 @@ def make_parallel_env(name: str, *, render_mode: str | None = None, action_mask:
         core.close()
         raise
     # How to build this env again: pickling (vectorising wrappers copy envs that way) makes
-    # a fresh env of the same configuration in the receiving process, not a GL state copy.
-    env._recipe = (name, dict(render_mode=render_mode, action_mask=action_mask, departed_actions=departed_actions,
-                              unknown_options=unknown_options, **kwargs))
+    # a fresh env of the same configuration in the receiving process, not a GL state copy. The
+    # task goes by its Scenario class (module and name), so a worker that never called
+    # register_env rebuilds a user's task too.
+    env._recipe = (type(core.scenario), dict(render_mode=render_mode, action_mask=action_mask,
+                                             departed_actions=departed_actions, unknown_options=unknown_options,
+                                             **kwargs))
     return env
 
 
@@ -156,7 +159,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
     closes it in ``close()``."""
 
     metadata = {"name": "marl_render", "render_modes": list(RENDER_MODES), "is_parallelizable": True}
-    _recipe = None  # (name, make_parallel_env kwargs) when built by make_parallel_env
+    _recipe = None  # (Scenario subclass, make_parallel_env kwargs) when built by make_parallel_env
 
     def __reduce__(self):
         if self._recipe is None:

@@ -1,0 +1,125 @@
+"""Episode returns of a policy: the reference numbers of every task (random and scripted heuristic).
+
+    python -m marl_render.envs.evaluation --env all --episodes 32 --json
+
+For each task it plays `episodes` episodes at once (one per world, no autoreset, the task's
+default length) with the scripted heuristic (``Scenario.heuristic``, which reads the state)
+and with uniformly random valid actions (sampled among the actions the action mask allows),
+and reports the mean and standard deviation of the episode return. The return of an episode
+is the sum of the rewards of the evaluated agents, averaged over those agents. In tasks with
+opponents (``Scenario.opponents``: tag's prey, push's and capture_flag's second team) only the
+other agents are evaluated, and the opponents play random actions in both rows: the rows then
+say how well a team does against random opponents.
+
+``evaluate(name, policy)`` takes any policy ``policy(env, obs) -> actions`` (e.g. a trained
+network), so learners are measured the same way.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+
+import torch
+
+from .registry import env_class, list_envs, make_env
+
+
+def random_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
+    """Uniformly random valid actions: among the unmasked ones for discrete actions."""
+    if env.continuous:
+        return env.random_actions(generator)
+    mask = obs["action_mask"].reshape(-1, env.num_actions).to(torch.float32)
+    return torch.multinomial(mask, 1, generator=generator).reshape(env.num_worlds, env.num_agents)
+
+
+def heuristic_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
+    return env.heuristic_actions()
+
+
+def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution: int = 16, **kwargs) -> dict:
+    """Mean, std, min and max episode return of `policy` over `episodes` episodes (one per world)."""
+    env = make_env(name, num_worlds=episodes, resolution=resolution, seed=seed, **kwargs)
+    try:
+        generator = torch.Generator().manual_seed(seed + 1)
+        opponents = _opponent_mask(env)
+        evaluated = ~opponents
+        obs = env.reset()
+        episode_return = torch.zeros(episodes, env.num_agents, dtype=torch.float64)
+        running = torch.ones(episodes, dtype=torch.bool)
+        steps = 0
+        while bool(running.any()) and steps < env.max_steps:
+            actions = policy(env, obs, generator)
+            if bool(opponents.any()):
+                actions = torch.where(_expand_like(opponents, actions), random_policy(env, obs, generator), actions)
+            obs, reward, terminated, truncated, info = env.step(actions)
+            episode_return += reward.to(torch.float64) * running[:, None]
+            running &= ~info["done_worlds"]
+            steps += 1
+        per_world = (episode_return * evaluated).sum(-1) / evaluated.sum()
+        return {"mean": float(per_world.mean()), "std": float(per_world.std(unbiased=False)),
+                "min": float(per_world.min()), "max": float(per_world.max()), "episodes": episodes,
+                "evaluated_agents": [n for n, e in zip(env.agent_names, evaluated.tolist(), strict=True) if e]}
+    finally:
+        env.close()
+
+
+def _opponent_mask(env) -> torch.Tensor:
+    opponents = set(getattr(env.scenario, "opponents", ()))
+    return torch.tensor([team in opponents for team, names in env.groups.items() for _ in names])
+
+
+def _expand_like(agent_mask: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    mask = agent_mask.expand(actions.shape[0], -1)
+    return mask[..., None].expand_as(actions) if actions.ndim == 3 else mask
+
+
+def reference_returns(name: str, episodes: int = 32, seed: int = 0) -> dict:
+    """{"heuristic": ..., "random": ...} of task `name` at its defaults."""
+    out = {}
+    for label, policy in (("heuristic", heuristic_policy), ("random", random_policy)):
+        start = time.perf_counter()
+        out[label] = evaluate(name, policy, episodes=episodes, seed=seed)
+        out[label]["seconds"] = round(time.perf_counter() - start, 2)
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m marl_render.envs.evaluation", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", nargs="+", default=["all"], help="task names, or all")
+    parser.add_argument("--episodes", type=int, default=32, help="episodes per policy (one per world)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the envs and the random policy")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    args = parser.parse_args(argv)
+    names = list_envs() if args.env == ["all"] else args.env
+    for name in names:
+        env_class(name)  # an unknown name fails now, listing the known ones
+    results = {}
+    for name in names:
+        print(f"evaluating {name} ...", file=sys.stderr, flush=True)
+        results[name] = reference_returns(name, args.episodes, args.seed)
+    if args.json:
+        print(json.dumps(results))
+    else:
+        print(markdown_table(results))
+    return 0
+
+
+def markdown_table(results: dict) -> str:
+    rows = ["| task | heuristic | random | evaluated agents |", "|---|---:|---:|---|"]
+    for name, r in results.items():
+        h, u = r["heuristic"], r["random"]
+        rows.append(f"| {name} | {_pm(h)} | {_pm(u)} | {', '.join(h['evaluated_agents'])} |")
+    return "\n".join(rows)
+
+
+def _pm(r: dict) -> str:
+    digits = 2 if max(abs(r["mean"]), r["std"]) < 100 else 1
+    return f"{r['mean']:.{digits}f} ± {r['std']:.{digits}f}" if math.isfinite(r["mean"]) else "n/a"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
