@@ -129,9 +129,10 @@ class BatchedEnv:
     Attributes: scenario, spec (the EnvSpec every front end translates), name, num_worlds (W),
     num_agents (A), agent_names, groups (team -> agent names, in agent-index order), resolution
     (H, W), continuous, num_actions (discrete, else None), action_dim (continuous, else None),
-    action_meanings, obs_keys, info_keys, state_dim, max_steps, dt, far, device, seed, generator,
+    action_meanings, obs_keys, info_keys, state_dim, max_steps, dt, device, seed, generator,
     renderer, physics (PhysicsConfig or None), sim (the simulation state), alive [W, A] bool,
-    step_count [W] int64.
+    step_count [W] int64; and the scenario's camera settings (background, fov_y, near, far,
+    overview_resolution, overview_fov_y, arena_half_extent) and agent_range.
     Methods: reset, reset_worlds, step, check_actions, episode_over, random_actions,
     heuristic_actions, render_overview, state_observation, get_state, set_state, close.
     """
@@ -201,6 +202,10 @@ class BatchedEnv:
         self.agent_names = s.agent_names
         self.num_actions, self.action_meanings, self.action_dim = s.num_actions, s.action_meanings, s.action_dim
         self.state_dim, self.physics, self.physics_terms = s.state_dim, s.physics, s.physics_terms
+        # The cameras' and the scene's settings, read by tools that draw the same scene (bench floor).
+        for name in ("agent_range", "background", "fov_y", "near", "overview_resolution", "overview_fov_y",
+                     "arena_half_extent"):
+            setattr(self, name, getattr(s, name))
 
     # ================================================================== public API
     @torch.no_grad()
@@ -443,7 +448,7 @@ class BatchedEnv:
 
     def _check_open(self):
         if self._closed:
-            raise RuntimeError(f"this {self.name} environment is closed; create a new one")
+            raise RuntimeError(f"this {type(self.scenario).__name__} environment is closed; create a new one")
 
     def _check_process(self):
         """In a process forked from the one that made this env: ForkedContextError now, before
@@ -452,7 +457,7 @@ class BatchedEnv:
 
     def _check_started(self):
         if self._needs_reset:
-            raise RuntimeError(f"call reset() before using this {self.name} environment")
+            raise RuntimeError(f"call reset() before using this {type(self.scenario).__name__} environment")
 
     def _checked_step(self, result):
         """Scenario.step's result after checking its form, so that a task's mistake is named at its

@@ -17,7 +17,9 @@ an env or info key without one stops the script with an error naming this file.
 tests/test_examples.py runs this script and fails when docs/envs.md differs from its output.
 """
 import argparse
+import dataclasses
 import inspect
+import json
 import math
 import os
 import sys
@@ -25,7 +27,7 @@ import sys
 import torch
 from PIL import Image, ImageFont
 
-from marl_render.envs import BatchedEnv, env_class, list_envs, make_env, make_parallel_env, make_torchrl_env
+from marl_render.envs import env_class, list_envs, make_env, make_parallel_env, make_torchrl_env
 from record_video import frame_image  # examples/record_video.py: labelled views beside the overview
 
 WORLDS = 2  # worlds of the envs built here; shapes print it as "W"
@@ -88,10 +90,8 @@ def table(header, rows) -> list:
 
 
 def own_kwargs(cls) -> str:
-    """The env's own keyword arguments with their defaults (beyond BatchedEnv's common ones)."""
-    common = inspect.signature(BatchedEnv.__init__).parameters
-    parameters = inspect.signature(cls.__init__).parameters.values()
-    own = [f"`{p.name}={p.default!r}`" for p in parameters if p.kind == p.KEYWORD_ONLY and p.name not in common]
+    """The task's own keyword arguments with their defaults: the fields of its Params."""
+    own = [f"`{field.name}={field.default!r}`" for field in dataclasses.fields(cls.Params)]
     return ", ".join(own) or "none"
 
 
@@ -181,9 +181,9 @@ def env_section(name: str, seed: int | None, picture_dir: str | None) -> list:
     title, rules = docstring_parts(cls)
     obs_rows, info_rows = observations(name)
     with make_env(name, num_worlds=WORLDS) as env:
-        low, high = env.agent_range
+        low, high = cls.agent_range
         H, W = env.resolution
-        oh, ow = env.overview_resolution
+        oh, ow = cls.overview_resolution
         lines = [f"## {name}", "", title, ""]
         if picture_dir is not None:
             picture(env, seed, os.path.join(picture_dir, f"{name}.png"))
@@ -197,8 +197,8 @@ def env_section(name: str, seed: int | None, picture_dir: str | None) -> list:
             ("teams (groups)", teams),
             ("max_steps", env.max_steps),
             ("resolution", f"{H}x{W} per agent; overview {oh}x{ow}"),
-            ("camera", f"field of view {math.degrees(env.fov_y):g} degrees (vertical), near {env.near:g} m, "
-                       f"far {env.far:g} m"),
+            ("camera", f"field of view {math.degrees(cls.fov_y):g} degrees (vertical), near {cls.near:g} m, "
+                       f"far {cls.far:g} m"),
             ("physics", physics_text(env)),
             ("own keyword arguments", own_kwargs(cls)),
             ("reward", reward),
@@ -237,9 +237,34 @@ def page(seed: int | None, picture_dir: str | None) -> str:
         cls = env_class(name)
         rows.append((f"[`{name}`](#{name})", cls.default_num_agents, cls.default_max_steps, *SUMMARY[name]))
     lines += table(("env", "agents", "max_steps", "reward", "episode end"), rows) + [""]
+    lines += reference_returns(names)
     for name in names:
         lines += env_section(name, seed, picture_dir)
     return "\n".join(lines)
+
+
+def reference_returns(names: list) -> list:
+    """The table of docs/reference_returns.json (written by the evaluation command it names)."""
+    path = os.path.join(os.path.dirname(__file__), "..", "docs", "reference_returns.json")
+    with open(path) as f:
+        results = json.load(f)
+    absent = sorted(set(names) - set(results))
+    if absent:
+        raise KeyError(f"docs/reference_returns.json has no row for {absent}: run "
+                       f"`python -m marl_render.envs.evaluation --env all --json > docs/reference_returns.json`")
+    rows = []
+    for name in names:
+        h, r = results[name]["heuristic"], results[name]["random"]
+        rows.append((f"`{name}`", f"{h['mean']:.2f} ± {h['std']:.2f}", f"{r['mean']:.2f} ± {r['std']:.2f}",
+                     ", ".join(h["evaluated_agents"])))
+    return (["## Reference returns: scripted heuristic and random", "",
+             "Episode return (the sum of the evaluated agents' rewards over an episode, averaged over those agents), "
+             f"mean ± std over {results[names[0]]['heuristic']['episodes']} episodes at each task's defaults. The "
+             "heuristic (`env.heuristic_actions()`, each task's `Scenario.heuristic`) reads the state; random "
+             "samples uniformly among the valid actions. In tasks with opponents (`Scenario.opponents`) the "
+             "opponents play random actions in both rows. Reproduce with "
+             "`python -m marl_render.envs.evaluation --env all --json > docs/reference_returns.json`.", ""]
+            + table(("task", "heuristic", "random", "evaluated agents"), rows) + [""])
 
 
 def parse_args(argv=None):

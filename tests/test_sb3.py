@@ -96,3 +96,18 @@ def test_attribute_access_and_bad_arguments():
     venv.close()
     with pytest.raises(TypeError, match="autoreset_mode"):
         make(autoreset_mode="NextStep")
+
+
+def test_grayscale_declares_and_returns_one_channel():
+    """The front ends take the channel count from the driver's spec (it was hard-coded to 3)."""
+    venv = make_sb3_env("spread", num_worlds=2, resolution=36, grayscale=True)  # 36 px: NatureCNN's smallest
+    try:
+        assert venv.observation_space.shape == (36, 36, 1)
+        obs = venv.reset()
+        assert obs.shape == (6, 36, 36, 1) and obs.dtype == np.uint8
+        assert venv.observation_space.contains(obs[0])
+        obs, reward, done, infos = venv.step(np.zeros(6, dtype=np.int64))
+        assert obs.shape == (6, 36, 36, 1)
+        PPO("CnnPolicy", VecTransposeImage(venv), n_steps=8, batch_size=24, n_epochs=1, device="cpu").learn(16)
+    finally:
+        venv.close()

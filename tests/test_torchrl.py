@@ -236,12 +236,12 @@ def test_departed_agents():
 
 def test_world_terminated_when_every_agent_left():
     class AllLeave(Departing):
-        def _step_state(self, actions, alive):
-            reward, terminated, info = super()._step_state(actions, alive)
-            terminated[0] |= bool(self.step_count[0] == 3)
-            return reward, terminated, info
+        def rules(self, before, moved, actions, alive, generator):
+            state, reward, terminated, info = super().rules(before, moved, actions, alive, generator)
+            terminated[0] |= bool(before.t[0] == 3)
+            return state, reward, terminated, info
 
-    env = MarlRenderTorchRLEnv(AllLeave(num_worlds=W, resolution=RES, max_steps=10, seed=0))
+    env = MarlRenderTorchRLEnv(make_env(AllLeave, num_worlds=W, resolution=RES, max_steps=10, seed=0))
     td = env.rollout(10)
     assert td.batch_size == (W, 4)  # world 0 ends at step 4 and stops the rollout
     assert td["next", "terminated"][:, 3].squeeze(-1).tolist() == [True, False]
@@ -253,13 +253,14 @@ def test_world_terminated_when_every_agent_left():
 
 def test_action_mask_reaches_the_action_spec():
     class Masked(Departing):
-        def _action_mask(self):
-            mask = super()._action_mask().clone()
+        def action_mask(self, state, alive):
+            mask = super().action_mask(state, alive).clone()
             mask[..., 0] = False  # never noop
             mask[0, 1] = torch.tensor([False, False, False, True, False])  # world 0's prey_0: only action 3
             return mask
 
-    env = MarlRenderTorchRLEnv(Masked(num_worlds=W, resolution=RES, max_steps=10, seed=0), group_map="one_group")
+    env = MarlRenderTorchRLEnv(make_env(Masked, num_worlds=W, resolution=RES, max_steps=10, seed=0),
+                               group_map="one_group")
     check_env_specs(env)
     td = env.rollout(20, break_when_any_done=False)
     assert td["agents", "action_mask"][0, :, 1].tolist() == [[False, False, False, True, False]] * 20

@@ -363,3 +363,16 @@ def test_gymnasium_env_checkers():
     env_checker.check_reset_options(envs)
     env_checker.check_returned_data_not_reused(envs)  # one entry: its `terminated or truncated` is a bool
     envs.close()
+
+
+def test_grayscale_vector_env_declares_what_it_returns():
+    envs = make_vec_env("cartpole", num_worlds=3, resolution=16, grayscale=True)
+    try:
+        assert envs.single_observation_space.shape == (16, 16, 1)
+        assert envs.observation_space.shape == (3, 16, 16, 1)
+        obs, _ = envs.reset(seed=0)
+        assert obs.shape == (3, 16, 16, 1) and envs.observation_space.contains(obs)
+        obs, *_ = envs.step(envs.action_space.sample())
+        assert envs.observation_space.contains(obs)
+    finally:
+        envs.close()

@@ -59,6 +59,8 @@ from gymnasium import logger
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from marl_render.envs.core import BatchedEnv
+from marl_render.envs.registry import make_env
 from marl_render.validation import describe
 from marl_render.wrappers import spaces as spaces_from_spec
 
@@ -79,8 +81,6 @@ def make_vec_env(name: str, num_worlds: int = 1, *, autoreset_mode=AutoresetMode
     kwargs go to ``marl_render.envs.make_env`` (resolution, num_agents, max_steps, continuous,
     state_obs, depth, seed, device and the env's own arguments); ``autoreset`` is set from
     autoreset_mode and may not be passed."""
-    from marl_render.envs.registry import make_env
-
     if "autoreset" in kwargs:
         raise TypeError("make_vec_env() does not accept 'autoreset'; pass autoreset_mode="
                         "gymnasium.vector.AutoresetMode.NEXT_STEP, SAME_STEP or DISABLED")
@@ -119,8 +119,6 @@ class MarlRenderVectorEnv(VectorEnv):
     ``autoreset`` gives the autoreset mode."""
 
     def __init__(self, env, *, action_mask: bool = False, render_mode: str | None = None):
-        from marl_render.envs.core import BatchedEnv
-
         if not isinstance(env, BatchedEnv):
             raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(env)}")

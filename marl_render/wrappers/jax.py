@@ -47,6 +47,8 @@ from __future__ import annotations
 import jax
 import torch
 
+from marl_render.envs.core import BatchedEnv
+from marl_render.envs.registry import make_env
 from marl_render.validation import describe
 
 XLA_CPU_ALIGNMENT = 64  # bytes: XLA's CPU client copies DLPack buffers aligned less than this
@@ -62,8 +64,6 @@ def make_jax_env(name: str, num_worlds: int = 1, **kwargs) -> JaxEnv:
 
     kwargs go to ``marl_render.envs.make_env`` (resolution, num_agents, max_steps, continuous,
     state_obs, depth, seed, autoreset, device and the env's own arguments)."""
-    from marl_render.envs.registry import make_env
-
     core = make_env(name, num_worlds=num_worlds, **kwargs)
     try:
         return JaxEnv(core)
@@ -118,8 +118,6 @@ class JaxEnv:
     """
 
     def __init__(self, core):
-        from marl_render.envs.core import BatchedEnv
-
         if not isinstance(core, BatchedEnv):
             raise TypeError(f"core must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(core)}")

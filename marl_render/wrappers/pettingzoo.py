@@ -74,6 +74,8 @@ import pettingzoo
 import torch
 from gymnasium import spaces
 
+from marl_render.envs.core import BatchedEnv
+from marl_render.envs.registry import make_env
 from marl_render.validation import describe
 from marl_render.wrappers import spaces as spaces_from_spec
 from marl_render.wrappers.window import Window
@@ -104,8 +106,6 @@ def make_parallel_env(name, *, render_mode: str | None = None, action_mask: bool
     kwargs go to ``marl_render.envs.registry.make_env`` (resolution, num_agents, max_steps,
     continuous, state_obs, depth, seed, device and the env's own arguments); num_worlds
     (always 1) and autoreset (always False) are set here and may not be passed."""
-    from marl_render.envs.registry import make_env
-
     for key in ("num_worlds", "autoreset"):
         if key in kwargs:
             raise TypeError(f"make_parallel_env() does not accept {key!r}: a PettingZoo env is one world "
@@ -170,8 +170,6 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
 
     def __init__(self, env, *, render_mode: str | None = None, action_mask: bool = False,
                  departed_actions: str = "ignore", unknown_options: str = "ignore"):
-        from marl_render.envs.core import BatchedEnv
-
         if not isinstance(env, BatchedEnv):
             raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(env)}")

@@ -82,6 +82,8 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import MarlGroupMapType, check_marl_grouping
 
+from marl_render.envs.core import BatchedEnv
+from marl_render.envs.registry import make_env
 from marl_render.validation import describe
 
 GROUP_MAPS = ("team", "one_group", "per_agent")
@@ -95,8 +97,6 @@ def make_torchrl_env(name: str, num_worlds: int = 1, group_map="team", **kwargs)
     kwargs go to ``marl_render.envs.registry.make_env`` (resolution, num_agents, max_steps,
     continuous, state_obs, depth, seed, device and the env's own arguments); autoreset is
     always False (TorchRL resets) and may not be passed."""
-    from marl_render.envs.registry import make_env
-
     if "autoreset" in kwargs:
         raise TypeError("make_torchrl_env() does not accept 'autoreset': TorchRL resets done worlds itself "
                         "(env.rollout / collectors call reset with '_reset' masks), so the core is always "
@@ -160,8 +160,6 @@ class MarlRenderTorchRLEnv(EnvBase):
     resolved {group: [agent names]}."""
 
     def __init__(self, env, group_map="team"):
-        from marl_render.envs.core import BatchedEnv
-
         if not isinstance(env, BatchedEnv):
             raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(env)}")
