@@ -373,6 +373,19 @@ class FramePacker:
                 self.groups[name].frustum_pause = CULL_RECHECK
             self._store_pairs(name, pairs, True, targets)
 
+    def light_pairs(self, planes: torch.Tensor) -> dict:
+        """{group: int32 pairs world * count + instance} of the instances inside each world's light
+        frustum (planes [W, 1, 6, 4], relative to the world origins): what a shadow pass draws.
+        Active instances only, owners included (a body casts its shadow into its own view too)."""
+        out = {}
+        for name, packing in self.groups.items():
+            centers, radii = self._bounds(name)
+            inside = inside_frustum(planes, centers, radii)  # [W, 1, K]
+            if not packing.static:
+                inside &= self.state[name]["active"][:, None, :]
+            out[name] = pair_list(inside)
+        return out
+
     def _bounds(self, name: str):
         """Bounding-sphere centres [W, K, 3] (relative to the world origin) and radii [W, K] of a
         group (scales are >= 0); those of static groups are kept until the world origins move."""

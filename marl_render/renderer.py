@@ -47,15 +47,16 @@ class Frame:
 
 
 @dataclass
-class _DrawGroup:
-    """GL side of one group: its nodes (one per framebuffer), instance data and visible pairs."""
+class DrawGroup:
+    """GL side of one group: its nodes (one per framebuffer), instance data and visible pairs.
+    The renderer hands these to its other passes (the shadow pass draws the same nodes and
+    instance textures); culling is the packer's, for every pass."""
 
     node: object  # the node drawn in the first framebuffer (the others are copies of it)
     count: int  # instances per world (static: in total)
     static: bool
     instances: object  # float32 buffer texture (packing.py writes it)
     pairs: object  # int32 buffer texture: visible view * count + instance
-    radius: float  # bounding sphere of the mesh at unit scale (the shadow pass culls with it)
     pass_nodes: list | None = None  # [(NodePath, PTA_int pair offset, instance count drawn)] per pass
 
 
@@ -153,7 +154,7 @@ class BatchRenderer:
         self.effects = frozenset(scene.effects)
         self.packer = FramePacker(scene, self.layout)  # the state and its packing; this class draws it
         self._passes: list[_Pass] = []
-        self._groups: dict[str, _DrawGroup] = {}
+        self._groups: dict[str, DrawGroup] = {}
         self._targets = _PandaTargets(self._groups)  # the packer writes into their textures
         self.shadow_pass = None
         try:
@@ -327,7 +328,7 @@ class BatchRenderer:
             count = packing.count
             instances = buffer_texture(f"instances:{group.name}", self.packer.instance_texels(group.name))
             pairs = buffer_texture(f"pairs:{group.name}", self.packer.pair_capacity(group.name), integer=True)
-            draw = _DrawGroup(node, count, static, instances, pairs, packing.radius)
+            draw = DrawGroup(node, count, static, instances, pairs)
             node.set_shader_input("instances", draw.instances)
             node.set_shader_input("pairs", draw.pairs)
             node.set_shader_input("capacity", int_input(count))
@@ -388,7 +389,7 @@ class BatchRenderer:
         timings = self.packer.prepare(self._targets)
         packed_groups = timings.pop("packed")
         if self.shadow_pass is not None:  # the atlas depends on the instances, not on the cameras
-            self.shadow_pass.prepare(self.packer.world_origin, self.packer.state, changed=bool(packed_groups))
+            self.shadow_pass.prepare(self.packer, changed=bool(packed_groups))
         self.last_timings = timings
         return packed_groups
 

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from . import backend, layout, shaders
-from .culling import frustum_planes, inside_frustum, pair_list
+from .culling import frustum_planes
 from .meshes import MeshData
 from .panda_buffers import buffer_texture, int_input, writable
 from .scene import Scene
@@ -120,11 +120,13 @@ def atlas_layout(num_worlds: int, resolution: int, max_size: int) -> TileLayout:
 class ShadowPass:
     """The shadow atlas of a BatchRenderer: its buffer, light matrices and caster nodes.
 
-    groups: the renderer's draw groups by name (node, count, static, instances, radius)."""
+    groups: the renderer's draw groups by name (renderer.DrawGroup: node, count, static, instance
+    texture); the casters draw the same nodes and instance data. Which instances cast is the
+    packer's answer (FramePacker.light_pairs), as for the main pass."""
 
     def __init__(self, context, scene: Scene, groups: dict, max_size: int):
         settings = scene.shadows
-        self.scene, self.groups, self._context = scene, groups, context
+        self.scene, self._context = scene, context
         self.layout = atlas_layout(scene.num_worlds, settings.resolution, max_size)
         bounds = settings.bounds if settings.bounds is not None else static_bounds(scene)
         self.bounds = bounds
@@ -218,27 +220,14 @@ class ShadowPass:
         root.set_shader_input("shadow_tiles", LVecBase2i(self.layout.columns, self.layout.tile_width))
         root.set_shader_input("shadow_bias", float(self.bias))
 
-    def prepare(self, world_origin: torch.Tensor, states: dict, changed: bool) -> None:
-        """Light matrices and culled casters for the next frame, when anything moved.
-
-        world_origin [W, 3] float64; states: the renderer's per-group tensors by name."""
+    def prepare(self, packer, changed: bool) -> None:
+        """Light matrices and culled casters for the next frame, when anything moved. The packer
+        (packing.FramePacker) holds the instances and culls them against the lights."""
         if not (changed or self.pending):
             return
-        self._pack_lights(world_origin)
-        planes = frustum_planes(self._world_matrices(world_origin)[:, None])  # [W, 1, 6, 4]
-        W = self.scene.num_worlds
-        for name, draw in self.groups.items():
-            if draw.static:
-                group = self.scene.static[name]
-                centers = group.position[None] - world_origin[:, None]
-                radii = (draw.radius * group.scale.abs().amax(-1)).expand(W, -1)
-                candidate = torch.ones(W, 1, draw.count, dtype=torch.bool)
-            else:
-                state = states[name]
-                centers = state["position"] - world_origin[:, None]
-                radii = draw.radius * state["scale"].abs().amax(-1)
-                candidate = state["active"][:, None, :]
-            pairs = pair_list(inside_frustum(planes, centers, radii) & candidate)
+        self._pack_lights(packer.world_origin)
+        planes = frustum_planes(self._world_matrices(packer.world_origin)[:, None])  # [W, 1, 6, 4]
+        for name, pairs in packer.light_pairs(planes).items():
             caster = self.casters[name]
             if len(pairs) == 0:  # Panda3D would draw an instance count of 0 once
                 caster.hide()
