@@ -16,8 +16,9 @@ from benchmarl.experiment import Experiment, ExperimentConfig  # noqa: E402
 from benchmarl.models import CnnConfig  # noqa: E402
 from torchrl.envs import StepCounter, TransformedEnv  # noqa: E402
 
-from marl_render.envs import list_envs  # noqa: E402
-from marl_render.wrappers.benchmarl import MarlRenderTask, MarlRenderTaskClass  # noqa: E402
+from marl_render.envs import list_envs, registry  # noqa: E402
+from marl_render.envs.spread import Spread  # noqa: E402
+from marl_render.wrappers.benchmarl import MarlRenderTask, MarlRenderTaskClass, task_for  # noqa: E402
 from marl_render.wrappers.torchrl import MarlRenderTorchRLEnv  # noqa: E402
 
 RES = 16
@@ -128,3 +129,31 @@ def test_mappo_with_a_cnn_trains_and_logs_the_statistics(name, tmp_path):
     for group in groups:
         assert f"train_{group}_loss_objective" in scalars
     assert "eval_reward_episode_reward_mean" in scalars
+
+
+class OwnTask(Spread):
+    """A user's task, defined here and not in the package: spread under another name and team."""
+
+    name = "own_task"
+
+    def setup(self):
+        super().setup()
+        self.teams = {"scouts": [f"scout_{i}" for i in range(self.num_agents)]}
+
+
+def test_a_registered_task_of_ones_own_is_a_benchmarl_task():
+    registry.register_env("own_task", OwnTask, overwrite=True)
+    try:
+        task = task_for("own_task", {"resolution": RES, "max_steps": 5})
+        assert isinstance(task, MarlRenderTaskClass) and task.name == "OWN_TASK"
+        create = task.get_env_fun(num_envs=2, continuous_actions=False, seed=1, device="cpu")
+        env = pickle.loads(pickle.dumps(create))()  # BenchMARL may hand the factory to workers
+        assert task.group_map(env) == {"scouts": ["scout_0", "scout_1", "scout_2"]}
+        assert task.observation_spec(env)["scouts", "pixels"].shape == (3, RES, RES, 3)
+        rollout = env.rollout(5)
+        assert rollout["next", "scouts", "reward"].shape == (2, 5, 3, 1)
+        env.close()
+        with pytest.raises(ValueError, match="no single registered environment is named 'nope'"):
+            task_for("nope")
+    finally:
+        registry._REGISTRY.pop("own_task", None)
