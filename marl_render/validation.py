@@ -36,7 +36,10 @@ def as_tensor(name: str, value, *, dtype_kind: str = "float", device=None) -> to
         tensor = value.detach()  # what the library keeps must not hold the caller's autograd graph
     elif isinstance(value, (np.ndarray, list, tuple, int, float, bool, np.generic)):
         try:
-            tensor = torch.as_tensor(np.asarray(value))
+            array = np.asarray(value)
+            if any(stride < 0 for stride in array.strides):  # a reversed view: torch takes no negative strides
+                array = array.copy()
+            tensor = torch.as_tensor(array)
         except (TypeError, ValueError, RuntimeError) as exc:  # RuntimeError: tensors that require grad
             raise TypeError(f"{name} must be array-like of numbers, got {describe(value)}") from exc
     else:

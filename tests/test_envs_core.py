@@ -280,6 +280,20 @@ def test_actions_accept_numpy_and_lists():
     twin.close()
 
 
+@pytest.mark.parametrize("continuous", [False, True])
+def test_actions_with_negative_strides_are_accepted(continuous):
+    """A reversed numpy view (negative strides, which torch cannot wrap) steps like its copy."""
+    env, twin = make("spread", num_worlds=2, continuous=continuous), make("spread", num_worlds=2, continuous=continuous)
+    env.reset(), twin.reset()
+    actions = random_actions(env).numpy()[::-1]
+    if continuous:
+        actions = actions[:, :, ::-1]
+    assert any(stride < 0 for stride in actions.strides)
+    got, expected = env.step(actions), twin.step(torch.from_numpy(actions.copy()))
+    assert torch.equal(got[0]["pixels"], expected[0]["pixels"]) and torch.equal(got[1], expected[1])
+    env.close(), twin.close()
+
+
 # ---------------------------------------------------------------------- determinism and resets
 @pytest.mark.parametrize("name", ENVS)
 def test_same_seed_is_bit_identical(name):

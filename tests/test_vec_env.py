@@ -259,6 +259,17 @@ def test_bad_actions_raise_and_change_nothing():
     envs.close()
 
 
+@pytest.mark.parametrize("continuous", [False, True])
+def test_actions_with_negative_strides_are_accepted(continuous):
+    envs, twin = make("spread", continuous=continuous), make("spread", continuous=continuous)
+    envs.reset(seed=0), twin.reset(seed=0)
+    actions = sample(envs, 1)[::-1]
+    assert actions.strides[0] < 0
+    got, expected = envs.step(actions), twin.step(actions.copy())
+    assert np.array_equal(got[0], expected[0]) and np.array_equal(got[1], expected[1])
+    envs.close(), twin.close()
+
+
 def test_make_vec_env_arguments():
     with pytest.raises(TypeError, match="does not accept 'autoreset'.*autoreset_mode"):
         make_vec_env("cartpole", autoreset=True)
