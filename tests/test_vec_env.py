@@ -238,6 +238,8 @@ def test_seeding_is_deterministic():
             trace.append(envs.step(sample(envs, step))[0])
         runs.append(np.stack(trace))
     assert np.array_equal(runs[0], runs[1]) and not np.array_equal(runs[0], runs[2])
+    obs, _ = envs.reset(seed=np.int64(7))  # a numpy int seeds like the same int (gymnasium takes Python ints)
+    assert np.array_equal(obs, runs[0][0])
     with pytest.raises(TypeError, match="seed must be None or an int.*per-entry"):
         envs.reset(seed=[1, 2, 3])
     envs.close()

@@ -167,6 +167,7 @@ class MarlRenderVectorEnv(VectorEnv):
         if seed is not None and (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))):
             raise TypeError(f"seed must be None or an int (one generator draws for every world, so per-entry "
                             f"seeds are not supported), got {describe(seed)}")
+        seed = None if seed is None else int(seed)  # gymnasium's own seeding takes Python ints only
         worlds = self._reset_mask(options)
         obs = self.core.reset(seed=seed) if worlds is None else self.core.reset_worlds(worlds, seed=seed)
         super().reset(seed=seed)
