@@ -69,6 +69,15 @@ class ArenaEnv(BatchedEnv):
         """shadows=True covers the arena and its walls, not the floor's far margin."""
         return scenery.arena_shadow_bounds(self.arena_half_extent)
 
+    def state_bounds(self) -> dict:
+        """Body centres inside the walls (the step clamps them there anyway); see BatchedEnv."""
+        return {**super().state_bounds(), "pos": self.inside_walls()}
+
+    def inside_walls(self) -> tuple:
+        """(low, high) per axis of a point inside the arena's walls, for state_bounds."""
+        hx, hy = self.arena_half_extent
+        return (-hx, -hy), (hx, hy)
+
     def setup_arena(self, teams: dict, *, state_dim: int, radius, max_speed: float, substeps: int = 2,
                     bodies: tuple = ()) -> None:
         """Declare who plays and how bodies move (first thing in a scenario's _setup).

@@ -94,6 +94,7 @@ from . import scenery
 from . import state as explicit_state
 
 OBS_KEYS = ("pixels", "depth", "state", "action_mask")
+STATE_LIMIT = 1e6  # default bound of float state fields in set_state: float32 math on them (squares, sums) stays finite
 
 
 def _flag(name: str, value) -> bool:
@@ -321,6 +322,14 @@ class BatchedEnv(abc.ABC):
         """{group: renderer.update kwargs} of the current state. full=False: only what can
         change in a step (poses); full=True: everything (after a reset, for a new renderer)."""
 
+    def state_bounds(self) -> dict:
+        """{field of `sim`: (low, high)} that set_state enforces (low / high: a number, or one per
+        index of the field's last axis). Default: every floating field within +-STATE_LIMIT (1e6),
+        so that nothing overflows float32; an env narrows the fields that have a meaning (positions
+        within its walls, timers within their delay)."""
+        return {name: (-STATE_LIMIT, STATE_LIMIT) for name, value in explicit_state.fields(self.sim).items()
+                if value.is_floating_point()}
+
     def _state_obs(self) -> torch.Tensor:
         """[W, A, state_dim] float32 low-dimensional observation."""
         raise NotImplementedError(f"{type(self).__name__} has no state observation")
@@ -504,12 +513,17 @@ class BatchedEnv(abc.ABC):
         RNG included; the env then continues from it as if it had never left it.
 
         Every key must be there, each tensor of the current shape, dtype and device, floats
-        finite; else TypeError / ValueError naming the key, and nothing changes."""
+        finite, "step_count" in [0, max_steps] and the fields of `sim` within ``state_bounds()``
+        (e.g. positions inside the arena's walls); else TypeError / ValueError naming the key, and
+        nothing changes."""
         self._check_open()
         template = {**explicit_state.fields(self.sim), **self._counters(), "rng": self.generator.get_state()}
         state = explicit_state.checked(state, template)
-        if bool((state["step_count"] < 0).any()):
-            raise ValueError(f"state['step_count'] must be >= 0, got minimum {int(state['step_count'].min())}")
+        steps = state["step_count"]
+        if bool(((steps < 0) | (steps > self.max_steps)).any()):
+            raise ValueError(f"state['step_count'] must be >= 0 and <= max_steps={self.max_steps}, got values in "
+                             f"[{int(steps.min())}, {int(steps.max())}]")
+        explicit_state.check_bounds(state, self.state_bounds())
         rng = state.pop("rng")
         try:
             torch.Generator().set_state(rng)

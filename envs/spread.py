@@ -83,6 +83,9 @@ class Spread(ArenaEnv):
         self._landmark_scale = torch.tensor([2 * LANDMARK_RADIUS, 2 * LANDMARK_RADIUS, LANDMARK_HEIGHT]).expand(W, L, 3)
         self._all_landmarks = torch.ones(W, L, dtype=torch.bool)
 
+    def state_bounds(self):
+        return {**super().state_bounds(), "landmarks": self.inside_walls()}
+
     def spawn(self):
         W, N, L, g = self.num_worlds, self.num_agents, self.num_landmarks, self.generator
         pos = (torch.rand(W, N, 2, generator=g) * 2 - 1) * SPAWN

@@ -147,6 +147,9 @@ class Tag(ArenaEnv):
     def obstacles(self):
         return planar.Obstacles(self.sim.obstacle_center, self._obstacle_half, self.sim.obstacle_angle)
 
+    def state_bounds(self):
+        return {**super().state_bounds(), "obstacle_center": self.inside_walls()}
+
     def spawn(self):
         # Obstacles and agents each get their own random cell of the grid (see cell_spawn): nothing
         # overlaps at the start and no predator starts within a catch of a prey.
