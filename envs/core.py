@@ -88,7 +88,7 @@ import torch
 import marl_render as mr
 from marl_render import memory
 from marl_render.threads import limited_threads, thread_count
-from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, resolution_hw
+from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, resolution_hw, unpicklable
 
 from . import scenery
 from . import state as explicit_state
@@ -562,6 +562,9 @@ class BatchedEnv(abc.ABC):
             self.close()
         except Exception:
             pass
+
+    def __reduce__(self):
+        raise unpicklable(f"a marl_render {type(self).__name__} ({self.name!r})", "marl_render.envs.make_env")
 
     def __repr__(self):
         kind = f"continuous action_dim={self.action_dim}" if self.continuous else f"num_actions={self.num_actions}"

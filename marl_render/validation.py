@@ -25,6 +25,14 @@ def describe(value) -> str:
     return text if len(text) <= 80 else text[:77] + "..."
 
 
+def unpicklable(what: str, rebuild: str) -> TypeError:
+    """The error for pickling (or copying) an object that owns GL state: it says what to do instead."""
+    return TypeError(f"{what} cannot be pickled or copied: it owns an OpenGL renderer, whose GL state lives in "
+                     f"this process. Build the env where it is needed from its configuration instead: send the "
+                     f"name and keyword arguments (or functools.partial({rebuild}, ...)) to the worker and call "
+                     f"{rebuild}(...) there")
+
+
 def as_tensor(name: str, value, *, dtype_kind: str = "float", device=None) -> torch.Tensor:
     """Turn lists / numpy arrays / tensors into a tensor without silently changing kind.
     Tensors come back detached from autograd.

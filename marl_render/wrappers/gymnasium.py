@@ -59,7 +59,7 @@ from gymnasium import logger, spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from marl_render.validation import describe
+from marl_render.validation import describe, unpicklable
 
 RENDER_MODES = ("rgb_array",)
 CORE_AUTORESET = {AutoresetMode.NEXT_STEP: "next_step", AutoresetMode.SAME_STEP: "same_step",
@@ -198,6 +198,9 @@ class MarlRenderVectorEnv(VectorEnv):
 
     def close_extras(self, **kwargs):
         self.core.close()
+
+    def __reduce__(self):
+        raise unpicklable("a MarlRenderVectorEnv", "marl_render.envs.make_vec_env")
 
     def __repr__(self):
         return (f"MarlRenderVectorEnv({self.core.name}, num_envs={self.num_envs} = {self.num_worlds} worlds x "

@@ -28,7 +28,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv
 
-from marl_render.validation import describe
+from marl_render.validation import describe, unpicklable
 
 from .gymnasium import MarlRenderVectorEnv, make_vec_env
 
@@ -135,6 +135,9 @@ class MarlRenderSB3VecEnv(VecEnv):
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list:
         return [False for _ in self._get_indices(indices)]
+
+    def __reduce__(self):
+        raise unpicklable("a MarlRenderSB3VecEnv", "marl_render.envs.make_sb3_env")
 
     def __repr__(self):
         return f"MarlRenderSB3VecEnv({self.venv!r})"
