@@ -407,3 +407,36 @@ def test_a_spawn_worker_given_an_env_gets_the_clear_error():
     with pytest.raises(TypeError, match="cannot be pickled or copied.*make_env"):
         process.start()
     env.close()
+
+
+# ---------------------------------------------------------------------- exit (issue 17, item 19)
+EXIT_SCRIPT = textwrap.dedent("""
+    import atexit, sys
+    def teardown():  # registered before marl_render is imported, so it runs after marl_render's exit hook
+        for module in ("marl_render.backend", "marl_render.renderer"):
+            sys.modules[module].os = None  # what the interpreter's teardown leaves once it clears module globals
+        for owner in owners:
+            owner.__del__()
+    atexit.register(teardown)
+    from marl_render.envs import make_env, make_vec_env, make_sb3_env
+    class Owner:  # like RLlib's VectorMultiAgentEnv, whose __del__ closes the env it holds
+        def __init__(self, env):
+            self.env = env
+        def __del__(self):
+            self.env.close()
+    owners = []
+    for env in (make_env("spread", num_worlds=2, resolution=8), make_vec_env("tag", num_worlds=2, resolution=8),
+                make_sb3_env("cartpole", num_worlds=2, resolution=8)):
+        env.reset()
+        owners.append(Owner(env))
+    kept = make_vec_env("spread", num_worlds=1, resolution=8)  # alive at exit, never closed
+    kept.reset()
+    print("done")
+""")
+
+
+def test_envs_alive_at_exit_and_closed_by_late_finalisers_are_silent():
+    """Envs still open at exit, closed by finalisers after module globals are gone: no noise."""
+    done = subprocess.run([sys.executable, "-c", EXIT_SCRIPT], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout == "done\n"
+    assert done.stderr == ""
