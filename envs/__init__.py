@@ -21,6 +21,7 @@ _LAZY_EXPORTS: dict = {
     "make_jax_env": "marl_render.wrappers.jax:make_jax_env",
     "make_vec_env": "marl_render.wrappers.gymnasium:make_vec_env",
     "make_sb3_env": "marl_render.wrappers.sb3:make_sb3_env",
+    "make_gym_env": "marl_render.wrappers.gymnasium:make_gym_env",
 }
 __all__ += list(_LAZY_EXPORTS)
 
@@ -35,3 +36,22 @@ def __getattr__(name):
     value = getattr(importlib.import_module(module), attribute)
     globals()[name] = value
     return value
+
+
+def _register_gymnasium_ids() -> None:
+    """gymnasium ids "marl_render/<name>-v0" of the suite's envs, so that after ``import
+    marl_render.envs``, ``gymnasium.make_vec(id, num_envs=N)`` builds make_vec_env (N entries =
+    worlds x agents) and, for single-agent envs, ``gymnasium.make(id)`` builds make_gym_env.
+    Strings, not imports: no env module or front end is loaded here."""
+    from gymnasium.envs.registration import register as register_id
+    from gymnasium.envs.registration import registry as ids
+
+    for name in list_envs():
+        env_id = f"marl_render/{name}-v0"
+        if env_id not in ids:  # importing twice (a reload) must not warn about overriding
+            register_id(env_id, entry_point="marl_render.wrappers.gymnasium:make_gym_env",
+                        vector_entry_point="marl_render.wrappers.gymnasium:gymnasium_vector_entry_point",
+                        kwargs={"name": name})
+
+
+_register_gymnasium_ids()

@@ -53,13 +53,15 @@ Unknown ``reset`` options are ignored, as gymnasium envs do.
 """
 from __future__ import annotations
 
+import gymnasium
 import numpy as np
 import torch
 from gymnasium import logger, spaces
+from gymnasium.envs.registration import EnvSpec
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from marl_render.validation import describe, unpicklable
+from marl_render.validation import describe, positive_int, unpicklable
 
 RENDER_MODES = ("rgb_array",)
 CORE_AUTORESET = {AutoresetMode.NEXT_STEP: "next_step", AutoresetMode.SAME_STEP: "same_step",
@@ -88,10 +90,121 @@ def make_vec_env(name: str, num_worlds: int = 1, *, autoreset_mode=AutoresetMode
     _check_render_mode(render_mode)
     core = make_env(name, num_worlds=num_worlds, autoreset=CORE_AUTORESET[mode], **kwargs)
     try:
-        return MarlRenderVectorEnv(core, action_mask=action_mask, render_mode=render_mode)
+        envs = MarlRenderVectorEnv(core, action_mask=action_mask, render_mode=render_mode)
     except BaseException:
         core.close()
         raise
+    # gymnasium.make_vec(envs.spec) builds the same again (num_envs is the number of entries).
+    envs.spec = _spec(name, vector_entry_point=f"{__name__}:gymnasium_vector_entry_point",
+                      kwargs=dict(name=name, num_envs=envs.num_envs, autoreset_mode=mode.value,
+                                  action_mask=action_mask, render_mode=render_mode, **kwargs))
+    return envs
+
+
+def gymnasium_id(name: str) -> str:
+    """The gymnasium id of the env `name`: "marl_render/<name>-v0"."""
+    return f"marl_render/{name}-v0"
+
+
+def _spec(name: str, **fields) -> EnvSpec | None:
+    try:
+        return EnvSpec(gymnasium_id(name), **fields)
+    except Exception:  # a user-registered name gymnasium cannot parse as an id: no spec, as before
+        return None
+
+
+def gymnasium_vector_entry_point(name: str, num_envs: int = 1, **kwargs) -> MarlRenderVectorEnv:
+    """``gymnasium.make_vec("marl_render/<name>-v0", num_envs=N, **kwargs)``: make_vec_env with
+    N / num_agents worlds (num_envs counts entries, worlds x agents, so it must be a multiple of
+    num_agents); kwargs as make_vec_env's."""
+    from marl_render.envs.registry import env_class
+
+    num_envs = positive_int("num_envs", num_envs)
+    agents = kwargs.get("num_agents")
+    agents = getattr(env_class(name), "default_num_agents", 1) if agents is None else agents
+    if isinstance(agents, (int, np.integer)) and not isinstance(agents, bool) and agents >= 1 and num_envs % agents:
+        raise ValueError(f"num_envs must be a multiple of num_agents={agents} for {name!r} (num_envs = num_worlds x "
+                         f"num_agents entries), got {num_envs}")
+    envs = make_vec_env(name, max(1, num_envs // agents) if isinstance(agents, (int, np.integer)) else num_envs,
+                        **kwargs)
+    if envs.num_envs != num_envs:
+        envs.close()
+        raise ValueError(f"num_envs must be a multiple of num_agents={envs.num_agents} for {name!r}, got {num_envs}")
+    return envs
+
+
+def make_gym_env(name: str, *, render_mode: str | None = None, **kwargs) -> MarlRenderGymEnv:
+    """A single-world ``gymnasium.Env`` of the single-agent env `name` (cartpole), also made by
+    ``gymnasium.make("marl_render/<name>-v0")``. Observations are one agent's (H, W, 3) uint8
+    frame (or its Dict, as make_vec_env's entries), actions one action; an episode ends by
+    termination or at max_steps (truncation), and the env waits for ``reset()`` (no autoreset).
+    kwargs go to ``marl_render.envs.make_env`` (resolution, max_steps, continuous, state_obs,
+    depth, seed, device, ...); num_worlds (1) and autoreset are set here."""
+    for key in ("num_worlds", "autoreset", "autoreset_mode"):
+        if key in kwargs:
+            raise TypeError(f"make_gym_env() does not accept {key!r}: a gymnasium.Env is one world that resets "
+                            f"when reset() is called; use make_vec_env for batched worlds")
+    envs = make_vec_env(name, 1, autoreset_mode=AutoresetMode.DISABLED, render_mode=render_mode, **kwargs)
+    if envs.num_agents != 1:
+        envs.close()
+        raise ValueError(f"make_gym_env needs a single-agent env, and {name!r} has {envs.num_agents} agents: use "
+                         f"make_parallel_env (PettingZoo) or make_vec_env (one entry per agent) for it")
+    env = MarlRenderGymEnv(envs)
+    env.spec = _spec(name, entry_point=f"{__name__}:make_gym_env", kwargs=dict(name=name, render_mode=render_mode,
+                                                                               **kwargs))
+    return env
+
+
+class MarlRenderGymEnv(gymnasium.Env):
+    """One world of a single-agent env as a ``gymnasium.Env``: a one-entry MarlRenderVectorEnv
+    (autoreset DISABLED) seen one entry at a time; see make_gym_env. ``vector`` is that vector
+    env, owned (closed in ``close()``)."""
+
+    def __init__(self, vector: MarlRenderVectorEnv):
+        if not isinstance(vector, MarlRenderVectorEnv) or vector.num_envs != 1:
+            raise TypeError(f"vector must be a MarlRenderVectorEnv with one entry (see make_gym_env), "
+                            f"got {describe(vector)}")
+        self.vector = vector
+        self.observation_space = vector.single_observation_space
+        self.action_space = vector.single_action_space
+        self.render_mode = vector.render_mode
+        self.metadata = {"render_modes": list(RENDER_MODES), "render_fps": round(1 / vector.core.dt),
+                         "name": vector.core.name}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        observations, _ = self.vector.reset(seed=seed, options=options)  # checks seed before anything changes
+        super().reset(seed=None if seed is None else int(seed))
+        return self._one(observations), {}
+
+    def step(self, action):
+        observations, rewards, terminations, truncations, infos = self.vector.step(self._batch(action))
+        info = {key: value[0] for key, value in infos.items() if not key.startswith("_")}
+        return (self._one(observations), float(rewards[0]), bool(terminations[0]), bool(truncations[0]), info)
+
+    def render(self):
+        """The world's overview, uint8 (H, W, 3), with render_mode="rgb_array"; else None."""
+        frames = self.vector.render()
+        return None if frames is None else frames[0]
+
+    def close(self):
+        self.vector.close()
+
+    def __reduce__(self):
+        raise unpicklable("a MarlRenderGymEnv", "marl_render.wrappers.gymnasium.make_gym_env")
+
+    def __repr__(self):
+        return f"MarlRenderGymEnv({self.vector.core.name})"
+
+    def _batch(self, action):
+        """The action as the vector env's batch of one entry."""
+        if isinstance(action, (torch.Tensor, np.ndarray)):
+            return action[None]
+        return np.asarray([action])
+
+    def _one(self, observations):
+        if isinstance(observations, dict):
+            return {key: value[0] for key, value in observations.items()}
+        return observations[0]
 
 
 def _autoreset_mode(value) -> AutoresetMode:
@@ -300,4 +413,5 @@ def _masked(values: dict, mask: np.ndarray | None) -> dict:
     return out
 
 
-__all__ = ["MarlRenderVectorEnv", "make_vec_env", "CORE_AUTORESET", "RENDER_MODES"]
+__all__ = ["MarlRenderGymEnv", "MarlRenderVectorEnv", "make_gym_env", "make_vec_env", "gymnasium_id",
+           "gymnasium_vector_entry_point", "CORE_AUTORESET", "RENDER_MODES"]
