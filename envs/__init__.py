@@ -17,6 +17,7 @@ __all__ = ["BatchedEnv", "OBS_KEYS", "env_class", "list_envs", "make_env", "regi
 # marl_render.envs never imports pettingzoo or torchrl: public name -> "module:attribute".
 _LAZY_EXPORTS: dict = {
     "make_parallel_env": "marl_render.wrappers.pettingzoo:make_parallel_env",
+    "make_aec_env": "marl_render.wrappers.pettingzoo:make_aec_env",
     "make_torchrl_env": "marl_render.wrappers.torchrl:make_torchrl_env",
     "make_jax_env": "marl_render.wrappers.jax:make_jax_env",
     "make_vec_env": "marl_render.wrappers.gymnasium:make_vec_env",

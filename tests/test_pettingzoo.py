@@ -3,6 +3,7 @@ seed and render tests on every registered environment, agents leaving the episod
 input, and the wrappers users chain (supersuit, parallel_to_aec, torchrl)."""
 from __future__ import annotations
 
+import re
 import sys
 import warnings
 
@@ -57,6 +58,23 @@ def test_pettingzoo_tests_pass_with_default_arguments(name):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "human" on a headless machine warns (once per env: tested below)
         render_test(lambda render_mode=None: parallel_to_aec(make_parallel_env(name, render_mode=render_mode)))
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_aec_env_passes_api_test_with_default_arguments(name):
+    """make_aec_env (parallel_to_aec of make_parallel_env) passes PettingZoo's api_test without a
+    warning: agent names follow its <descriptor>_<number> pattern (push's were team_a_0)."""
+    from pettingzoo import AECEnv
+
+    from marl_render.envs import make_aec_env
+
+    env = make_aec_env(name)
+    assert isinstance(env, AECEnv) and env.possible_agents == env.unwrapped.core.agent_names
+    assert all(re.fullmatch("[a-z]+_[0-9]+", agent) for agent in env.possible_agents)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        api_test(env)
+    env.close()
 
 
 @pytest.mark.parametrize("name", ENVS)

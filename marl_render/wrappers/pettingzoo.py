@@ -129,6 +129,15 @@ def make_parallel_env(name: str, *, render_mode: str | None = None, action_mask:
     return env
 
 
+def make_aec_env(name: str, **kwargs) -> pettingzoo.AECEnv:
+    """A PettingZoo AECEnv of the registered environment `name`, one world: the agents act in
+    turn (PettingZoo's ``parallel_to_aec`` of ``make_parallel_env(name, **kwargs)``; the world
+    steps once every live agent has acted). kwargs as make_parallel_env's."""
+    from pettingzoo.utils.conversions import parallel_to_aec
+
+    return parallel_to_aec(make_parallel_env(name, **kwargs))
+
+
 def _rebuild(name, kwargs):
     return make_parallel_env(name, **kwargs)
 
@@ -487,5 +496,5 @@ def tile_views(views: list, overview: np.ndarray | None = None) -> np.ndarray:
     return canvas
 
 
-__all__ = ["MarlRenderParallelEnv", "make_parallel_env", "ActionTypeError", "AgentKeyError", "tile_views",
-           "KNOWN_OPTIONS", "RENDER_MODES"]
+__all__ = ["MarlRenderParallelEnv", "make_aec_env", "make_parallel_env", "ActionTypeError", "AgentKeyError",
+           "tile_views", "KNOWN_OPTIONS", "RENDER_MODES"]
