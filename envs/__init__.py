@@ -5,8 +5,10 @@
     obs = env.reset(seed=0)                      # obs["pixels"]: uint8 [W, A, H, Wpx, 3]
     obs, reward, terminated, truncated, info = env.step(actions)
 
-make_env returns the batched core (BatchedEnv, see envs/core.py). The PettingZoo and
-TorchRL front ends wrap that core.
+make_env returns the batched core (BatchedEnv, see envs/core.py). The front ends
+(make_parallel_env, make_aec_env, make_vec_env, make_gym_env, make_sb3_env, make_torchrl_env,
+make_jax_env) wrap that core. Importing this package registers the gymnasium ids
+"marl_render/<name>-v0" (see marl_render/wrappers/gymnasium.py).
 """
 from .core import OBS_KEYS, BatchedEnv
 from .registry import env_class, list_envs, make_env, register

@@ -47,6 +47,13 @@ entries that have it. Step infos are ``step_count`` and the env's own keys (e.g.
 reset by a step (NEXT_STEP) or ended their episode on it (SAME_STEP, where the values move
 to ``final_info``) have none. ``reset`` returns an empty info dict.
 
+gymnasium ids: importing ``marl_render.envs`` registers ``marl_render/<name>-v0`` for every
+env of the suite. ``gymnasium.make_vec(id, num_envs=N, **kwargs)`` builds ``make_vec_env``
+with N / num_agents worlds (``gymnasium_vector_entry_point``), and ``make_vec_env`` sets
+``spec`` so that ``gymnasium.make_vec(envs.spec)`` builds the same again. For the
+single-agent env (cartpole) ``gymnasium.make(id)`` or ``make_gym_env(name)`` gives one world
+as a ``gymnasium.Env`` (``MarlRenderGymEnv``) that passes gymnasium's ``check_env``.
+
 Seeding: ``reset(seed=int)`` re-seeds the core's generator (one generator draws for all
 worlds, so a list of per-entry seeds raises TypeError) and the env's ``np_random``.
 Unknown ``reset`` options are ignored, as gymnasium envs do.
