@@ -6,9 +6,11 @@
     obs, reward, terminated, truncated, info = env.step(actions)
 
 make_env returns the batched core (BatchedEnv, the driver: see envs/core.py); the front ends
-(PettingZoo, TorchRL, gymnasium, SB3, JAX) wrap it. A task is a Scenario (envs/scenario.py) or,
-for agents on a floor, an ArenaScenario (envs/arena.py); register_env makes one known to all
-front ends. docs/authoring.md builds one step by step.
+(make_parallel_env, make_aec_env, make_vec_env, make_gym_env, make_sb3_env, make_torchrl_env,
+make_jax_env) wrap it. A task is a Scenario (envs/scenario.py) or, for agents on a floor, an
+ArenaScenario (envs/arena.py); register_env makes one known to all front ends, and
+docs/authoring.md builds one step by step. Importing this package registers the gymnasium ids
+"marl_render/<name>-v0" of the built-in tasks (see marl_render/wrappers/gymnasium.py).
 """
 from .arena import ArenaScenario, ArenaState, Prop, Static
 from .core import OBS_KEYS, BatchedEnv
@@ -25,10 +27,12 @@ __all__ = ["ActionSpec", "ArenaScenario", "ArenaState", "ArraySpec", "BatchedEnv
 # marl_render.envs never imports pettingzoo or torchrl: public name -> "module:attribute".
 _LAZY_EXPORTS: dict = {
     "make_parallel_env": "marl_render.wrappers.pettingzoo:make_parallel_env",
+    "make_aec_env": "marl_render.wrappers.pettingzoo:make_aec_env",
     "make_torchrl_env": "marl_render.wrappers.torchrl:make_torchrl_env",
     "make_jax_env": "marl_render.wrappers.jax:make_jax_env",
     "make_vec_env": "marl_render.wrappers.gymnasium:make_vec_env",
     "make_sb3_env": "marl_render.wrappers.sb3:make_sb3_env",
+    "make_gym_env": "marl_render.wrappers.gymnasium:make_gym_env",
 }
 __all__ += list(_LAZY_EXPORTS)
 

@@ -170,6 +170,15 @@ class ArenaScenario(Scenario):
         """The task's Prop and Static declarations, drawn in this order after the agents."""
         return []
 
+    def state_bounds(self) -> dict:
+        """Body centres inside the walls (the step clamps them there anyway); see Scenario."""
+        return {**super().state_bounds(), "pos": self.inside_walls()}
+
+    def inside_walls(self) -> tuple:
+        """(low, high) per axis of a point inside the arena's walls, for state_bounds."""
+        hx, hy = self.arena_half_extent
+        return (-hx, -hy), (hx, hy)
+
     # ------------------------------------------------------------------ rules (the task's)
     @abc.abstractmethod
     def rules(self, before: ArenaState, moved: ArenaState, actions: Tensor, alive: Tensor,

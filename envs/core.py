@@ -89,7 +89,7 @@ import torch
 
 import marl_render as mr
 from marl_render.threads import limited_threads, thread_count
-from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int
+from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, unpicklable
 
 from . import options as check
 from . import spec as env_spec
@@ -380,12 +380,17 @@ class BatchedEnv:
         RNG included; the env then continues from it as if it had never left it.
 
         Every key must be there, each tensor of the current shape, dtype and device, floats
-        finite; else TypeError / ValueError naming the key, and nothing changes."""
+        finite, "step_count" in [0, max_steps] and the fields of `sim` within the scenario's
+        ``state_bounds()`` (e.g. positions inside the arena's walls); else TypeError / ValueError
+        naming the key, and nothing changes."""
         self._check_open()
         template = {**explicit_state.fields(self.sim), **self._counters(), "rng": self.generator.get_state()}
         state = explicit_state.checked(state, template)
-        if bool((state["step_count"] < 0).any()):
-            raise ValueError(f"state['step_count'] must be >= 0, got minimum {int(state['step_count'].min())}")
+        steps = state["step_count"]
+        if bool(((steps < 0) | (steps > self.max_steps)).any()):
+            raise ValueError(f"state['step_count'] must be >= 0 and <= max_steps={self.max_steps}, got values in "
+                             f"[{int(steps.min())}, {int(steps.max())}]")
+        explicit_state.check_bounds(state, self.scenario.state_bounds())
         rng = state.pop("rng")
         try:
             torch.Generator().set_state(rng)
@@ -421,6 +426,9 @@ class BatchedEnv:
             self.close()
         except Exception:
             pass
+
+    def __reduce__(self):
+        raise unpicklable(f"a marl_render {type(self).__name__} ({self.name!r})", "marl_render.envs.make_env")
 
     def __repr__(self):
         kind = f"continuous action_dim={self.action_dim}" if self.continuous else f"num_actions={self.num_actions}"

@@ -115,6 +115,9 @@ class Forage(ArenaScenario):
         pick = clear.to(torch.uint8).argmax(-1)  # the first clear candidate
         return candidates.reshape(W, I, M, 2).gather(2, pick[..., None, None].expand(W, I, 1, 2)).squeeze(2)
 
+    def state_bounds(self):
+        return {**super().state_bounds(), "items": self.inside_walls(), "item_timer": (0, self.params.respawn_delay)}
+
     def spawn(self, generator):
         W, N, g = self.num_worlds, self.num_agents, generator
         pos = scenery.cell_spawn(g, W, torch.full((N,), AGENT_RADIUS + 0.05), SPAWN_GRID, ARENA).to(self.device)

@@ -9,8 +9,9 @@ its own camera mounted on its body.
   team's colour. ``team_a`` (red) defends the goal at -y and attacks +y; ``team_b``
   (blue) defends +y and attacks -y.
 * Agents: ``num_agents`` (even, 2 to 12, default 4 = 2 vs 2); agents ``0 .. N/2 - 1``
-  are ``team_a``, the rest ``team_b``; names ``team_a_i`` / ``team_b_i``, groups
-  ``{"team_a": [...], "team_b": [...]}``. Capsules of radius 0.15 m, mass 1.
+  are ``team_a``, the rest ``team_b``; names ``red_i`` / ``blue_i`` (PettingZoo's
+  ``<name>_<number>``, after the team colours), groups ``{"team_a": [...], "team_b": [...]}``.
+  Capsules of radius 0.15 m, mass 1.
   The camera sits at 0.4 m, pitched 0.2 rad down; a dark "nose" box shows which way a
   body faces.
 * Ball: a physics body (circle) of radius 0.15 m and mass 0.5, drawn as a white sphere.
@@ -124,7 +125,7 @@ class Push(ArenaScenario):
             raise ValueError(f"num_agents must be even for push (two equal teams), got {N}")
         T = N // 2
         # Bodies 0 .. N-1 are the agents, body N is the ball.
-        self.setup_arena({"team_a": numbered("team_a", T), "team_b": numbered("team_b", T)},
+        self.setup_arena({"team_a": numbered("red", T), "team_b": numbered("blue", T)},
                          state_dim=10 + 2 * (N - 1), radius=AGENT_RADIUS, max_speed=3.0, substeps=3,
                          bodies=((BALL_RADIUS, BALL_MASS),))
         self.is_team_a = torch.arange(N, device=self.device) < T

@@ -17,6 +17,9 @@ from __future__ import annotations
 import dataclasses
 import importlib
 
+from gymnasium.envs.registration import register as register_gymnasium_id
+from gymnasium.envs.registration import registry as gymnasium_ids
+
 from marl_render.validation import describe
 
 from .core import BatchedEnv
@@ -44,6 +47,23 @@ def register_env(name: str, scenario, *, overwrite: bool = False) -> None:
     if name in _REGISTRY and not overwrite:
         raise ValueError(f"an environment named {name!r} is already registered; pass overwrite=True to replace it")
     _REGISTRY[name] = scenario
+    _register_gymnasium_id(name)
+
+
+def _register_gymnasium_id(name: str) -> None:
+    """The gymnasium id "marl_render/<name>-v0": ``gymnasium.make_vec(id, num_envs=N)`` builds
+    make_vec_env (N entries = worlds x agents) and, for single-agent tasks, ``gymnasium.make(id)``
+    builds make_gym_env. Strings, not imports: no task module or front end is loaded here. A name
+    gymnasium cannot take into an id gets none (make_vec_env still works by name)."""
+    env_id = f"marl_render/{name}-v0"
+    if env_id in gymnasium_ids:  # importing twice (a reload) or overwrite=True: gymnasium would warn
+        return
+    try:
+        register_gymnasium_id(env_id, entry_point="marl_render.wrappers.gymnasium:make_gym_env",
+                              vector_entry_point="marl_render.wrappers.gymnasium:gymnasium_vector_entry_point",
+                              kwargs={"name": name})
+    except Exception:  # gymnasium's id grammar refused the name
+        return
 
 
 def list_envs() -> list[str]:
@@ -89,3 +109,7 @@ def make_env(name, **kwargs) -> BatchedEnv:
     scenario = env_class(name)
     options, params = split_kwargs(scenario, kwargs)
     return BatchedEnv(scenario, options, params)
+
+
+for _name in _REGISTRY:  # the built-in tasks' gymnasium ids
+    _register_gymnasium_id(_name)

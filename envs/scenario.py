@@ -36,6 +36,9 @@ from typing import NamedTuple
 import torch
 
 from . import scenery
+from . import state as explicit_state
+
+STATE_LIMIT = 1e6  # default bound of float state fields in set_state: float32 math on them (squares, sums) stays finite
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,6 +161,14 @@ class Scenario(abc.ABC):
     def action_mask(self, state, alive: torch.Tensor) -> torch.Tensor:
         """[W, A, num_actions] bool; default: every action valid."""
         return torch.ones(self.num_worlds, self.num_agents, self.num_actions, dtype=torch.bool, device=self.device)
+
+    def state_bounds(self) -> dict:
+        """{field of the state: (low, high)} that set_state enforces (low / high: a number, or one per
+        index of the field's last axis). Default: every floating field within +-STATE_LIMIT (1e6), so
+        that nothing overflows float32; a task narrows the fields that have a meaning (positions
+        within its walls, timers within their delay)."""
+        return {name: (-STATE_LIMIT, STATE_LIMIT) for name, value in explicit_state.fields(self.initial_state()).items()
+                if value.is_floating_point()}
 
     def heuristic(self, state, alive: torch.Tensor) -> torch.Tensor:
         """Actions of a scripted policy that reads the state: a reference that beats random."""

@@ -92,6 +92,9 @@ class Spread(ArenaScenario):
                      scale=(2 * LANDMARK_RADIUS, 2 * LANDMARK_RADIUS, LANDMARK_HEIGHT),
                      color=torch.cat((colors[:1], colors[2:])), moves=False)]
 
+    def state_bounds(self):
+        return {**super().state_bounds(), "landmarks": self.inside_walls()}
+
     def spawn(self, generator):
         W, N, L, g = self.num_worlds, self.num_agents, self.num_landmarks, generator
         pos = (torch.rand(W, N, 2, generator=g) * 2 - 1) * SPAWN

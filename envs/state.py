@@ -55,5 +55,25 @@ def checked(state, template: dict) -> dict:
     return copies
 
 
+def check_bounds(state: dict, bounds: dict) -> None:
+    """Raise ValueError naming the key if a tensor of `state` leaves its (low, high) in `bounds`
+    ({key: (low, high)}; low / high a number, or one number per index of the last axis, e.g. the
+    arena's (hx, hy) for positions)."""
+    for key, (low, high) in bounds.items():
+        value = state[key]
+        if not value.numel():
+            continue
+        lo = torch.as_tensor(low, dtype=torch.float64)
+        hi = torch.as_tensor(high, dtype=torch.float64)
+        wide = value.to(torch.float64)  # int64 counters compared exactly enough; no overflow in the test
+        if bool(((wide < lo) | (wide > hi)).any()):
+            raise ValueError(f"state[{key!r}] must be within [{_bound(low)}, {_bound(high)}], got values in "
+                             f"[{wide.min().item():.6g}, {wide.max().item():.6g}]")
+
+
+def _bound(value) -> str:
+    return str(list(value)) if isinstance(value, (tuple, list)) else f"{value:g}"
+
+
 def _show(value) -> str:
     return str(list(value)) if isinstance(value, torch.Size) else str(value)

@@ -166,6 +166,9 @@ class Tag(ArenaScenario):
     def obstacles(self, state):
         return planar.Obstacles(state.obstacle_center, self._obstacle_half, state.obstacle_angle)
 
+    def state_bounds(self):
+        return {**super().state_bounds(), "obstacle_center": self.inside_walls()}
+
     def spawn(self, generator):
         # Obstacles and agents each get their own random cell of the grid (see cell_spawn): nothing
         # overlaps at the start and no predator starts within a catch of a prey.

@@ -23,6 +23,7 @@ caller's own binding restored) afterwards.
 """
 from __future__ import annotations
 
+import atexit
 import ctypes
 import logging
 import numbers
@@ -383,6 +384,22 @@ def _forget_in_child():
 
 
 os.register_at_fork(after_in_child=_forget_in_child)
+
+
+def _close_at_exit():
+    # While the interpreter is still whole, close every context of this process and with it
+    # every renderer made on it. A finaliser that closes an env later in the teardown, after
+    # module globals were cleared (RLlib's env runners do), then finds nothing left to free,
+    # instead of failing in an 'Exception ignored in ... __del__' message.
+    for c in list(_open_contexts):
+        if c.pid == os.getpid():
+            try:
+                c.close()
+            except Exception:  # exit goes on; nothing here may be left half-closed for long
+                pass
+
+
+atexit.register(_close_at_exit)
 
 
 def context(egl_device_index: int | None = None) -> GLContext:

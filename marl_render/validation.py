@@ -25,6 +25,14 @@ def describe(value) -> str:
     return text if len(text) <= 80 else text[:77] + "..."
 
 
+def unpicklable(what: str, rebuild: str) -> TypeError:
+    """The error for pickling (or copying) an object that owns GL state: it says what to do instead."""
+    return TypeError(f"{what} cannot be pickled or copied: it owns an OpenGL renderer, whose GL state lives in "
+                     f"this process. Build the env where it is needed from its configuration instead: send the "
+                     f"name and keyword arguments (or functools.partial({rebuild}, ...)) to the worker and call "
+                     f"{rebuild}(...) there")
+
+
 def as_tensor(name: str, value, *, dtype_kind: str = "float", device=None) -> torch.Tensor:
     """Turn lists / numpy arrays / tensors into a tensor without silently changing kind.
     Tensors come back detached from autograd.
@@ -36,7 +44,10 @@ def as_tensor(name: str, value, *, dtype_kind: str = "float", device=None) -> to
         tensor = value.detach()  # what the library keeps must not hold the caller's autograd graph
     elif isinstance(value, (np.ndarray, list, tuple, int, float, bool, np.generic)):
         try:
-            tensor = torch.as_tensor(np.asarray(value))
+            array = np.asarray(value)
+            if any(stride < 0 for stride in array.strides):  # a reversed view: torch takes no negative strides
+                array = array.copy()
+            tensor = torch.as_tensor(array)
         except (TypeError, ValueError, RuntimeError) as exc:  # RuntimeError: tensors that require grad
             raise TypeError(f"{name} must be array-like of numbers, got {describe(value)}") from exc
     else:

@@ -5,10 +5,11 @@ import pathlib
 import pickle
 import re
 
+import gymnasium
 import numpy as np
 import pytest
 import torch
-from pettingzoo.test import parallel_api_test
+from pettingzoo.test import api_test, parallel_api_test
 from torchrl.envs.utils import check_env_specs
 
 from marl_render.envs import (
@@ -16,6 +17,7 @@ from marl_render.envs import (
     ArenaState,
     Prop,
     list_envs,
+    make_aec_env,
     make_env,
     make_jax_env,
     make_parallel_env,
@@ -52,6 +54,7 @@ def test_tutorial_usage_block_runs_as_written(tutorial):
 def test_tutorial_task_passes_pettingzoo_torchrl_and_gymnasium_checks(tutorial):
     assert "rendezvous" in list_envs()
     parallel_api_test(make_parallel_env("rendezvous", resolution=16), num_cycles=30)
+    api_test(make_aec_env("rendezvous", resolution=16), num_cycles=30)
     env = make_torchrl_env("rendezvous", num_worlds=3, resolution=16)
     check_env_specs(env)
     env.close()
@@ -150,6 +153,14 @@ def test_a_task_from_outside_the_package_works_through_every_front_end(beacon):
     sb3 = make_sb3_env("beacon", num_worlds=2, resolution=16)
     assert sb3.reset().shape == (4, 16, 16, 3)
     sb3.close()
+
+    made = gymnasium.make_vec("marl_render/beacon-v0", num_envs=4, resolution=16)  # register_env made the id
+    assert made.num_envs == 4 and made.reset(seed=0)[0].shape == (4, 16, 16, 3)
+    made.close()
+
+    aec = make_aec_env("beacon", resolution=16)
+    api_test(aec, num_cycles=20)
+    aec.close()
 
     jax_env = make_jax_env("beacon", num_worlds=2, resolution=16)
     obs = jax_env.reset(seed=0)

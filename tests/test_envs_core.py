@@ -3,6 +3,7 @@ and on a small toy environment that exercises agents leaving the episode."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -282,6 +283,20 @@ def test_actions_accept_numpy_and_lists():
     twin.close()
 
 
+@pytest.mark.parametrize("continuous", [False, True])
+def test_actions_with_negative_strides_are_accepted(continuous):
+    """A reversed numpy view (negative strides, which torch cannot wrap) steps like its copy."""
+    env, twin = make("spread", num_worlds=2, continuous=continuous), make("spread", num_worlds=2, continuous=continuous)
+    env.reset(), twin.reset()
+    actions = random_actions(env).numpy()[::-1]
+    if continuous:
+        actions = actions[:, :, ::-1]
+    assert any(stride < 0 for stride in actions.strides)
+    got, expected = env.step(actions), twin.step(torch.from_numpy(actions.copy()))
+    assert torch.equal(got[0]["pixels"], expected[0]["pixels"]) and torch.equal(got[1], expected[1])
+    env.close(), twin.close()
+
+
 # ---------------------------------------------------------------------- determinism and resets
 @pytest.mark.parametrize("name", ENVS)
 def test_same_seed_is_bit_identical(name):
@@ -385,6 +400,10 @@ BAD_STATES = [  # (change the state, error, words of the message)
     (lambda s: {**s, first_float_key(s): torch.full_like(s[first_float_key(s)], float("nan"))}, ValueError,
      r"must be finite"),
     (lambda s: {**s, "step_count": s["step_count"] - 10}, ValueError, r"state\['step_count'\] must be >= 0"),
+    (lambda s: {**s, "step_count": torch.full_like(s["step_count"], 2 ** 63 - 1)}, ValueError,
+     r"state\['step_count'\] must be >= 0 and <= max_steps=\d+"),
+    (lambda s: {**s, first_float_key(s): torch.full_like(s[first_float_key(s)], 3e38)}, ValueError,
+     r"state\['\w+'\] must be within \["),
     (lambda s: {**s, "rng": torch.zeros_like(s["rng"])}, ValueError, r"state\['rng'\] must be a torch.Generator state"),
 ]
 
@@ -406,6 +425,31 @@ def test_set_state_rejects_bad_states_and_changes_nothing(name):
     with pytest.raises(RuntimeError, match="closed"):
         env.set_state(before)
     twin.close()
+
+
+@pytest.mark.parametrize("name, key, low, high", [
+    ("tag", "pos", -1.5, 1.5), ("tag", "obstacle_center", -1.5, 1.5), ("spread", "landmarks", -1.5, 1.5),
+    ("spread", "vel", -1e6, 1e6), ("cartpole", "qstate", -1e6, 1e6)])
+def test_set_state_checks_ranges_that_have_meaning(name, key, low, high):
+    """Positions must be inside the walls, other floats within +-1e6, step_count within [0, max_steps]:
+    values beyond them (3e38 positions, a wrapping step counter) would lose the env on its next step."""
+    env = make(name)
+    env.reset()
+    before = env.get_state()
+    bound = re.escape(f"{abs(low):g}")
+    for bad in (high * 1.01, low * 1.01, 3e38):
+        state = env.get_state()
+        state[key][0, 0] = bad
+        with pytest.raises(ValueError, match=rf"state\['{key}'\] must be within \[.*{bound}.*\], got values"):
+            env.set_state(state)
+        assert_state_equal(before, env.get_state())
+    state = env.get_state()
+    state[key][0, 0] = high  # the bounds themselves are fine
+    state["step_count"][:] = env.max_steps  # a finished episode: the next step truncates
+    env.set_state(state)
+    _, reward, terminated, truncated, info = env.step(random_actions(env))
+    assert bool(torch.isfinite(reward).all()) and bool((terminated | truncated).all())
+    env.close()
 
 
 def test_set_state_copies_what_it_is_given():

@@ -3,6 +3,7 @@ seed and render tests on every registered environment, agents leaving the episod
 input, and the wrappers users chain (supersuit, parallel_to_aec, torchrl)."""
 from __future__ import annotations
 
+import re
 import sys
 import warnings
 
@@ -57,6 +58,23 @@ def test_pettingzoo_tests_pass_with_default_arguments(name):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "human" on a headless machine warns (once per env: tested below)
         render_test(lambda render_mode=None: parallel_to_aec(make_parallel_env(name, render_mode=render_mode)))
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_aec_env_passes_api_test_with_default_arguments(name):
+    """make_aec_env (parallel_to_aec of make_parallel_env) passes PettingZoo's api_test without a
+    warning: agent names follow its <descriptor>_<number> pattern (push's were team_a_0)."""
+    from pettingzoo import AECEnv
+
+    from marl_render.envs import make_aec_env
+
+    env = make_aec_env(name)
+    assert isinstance(env, AECEnv) and env.possible_agents == env.unwrapped.core.agent_names
+    assert all(re.fullmatch("[a-z]+_[0-9]+", agent) for agent in env.possible_agents)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        api_test(env)
+    env.close()
 
 
 @pytest.mark.parametrize("name", ENVS)
@@ -599,3 +617,40 @@ def test_pickling_rebuilds_the_same_configuration():
     with pytest.raises(TypeError, match="only envs built by make_parallel_env can be pickled"):
         pickle.dumps(bare)
     bare.close()
+
+
+# ---------------------------------------------------------------------- supersuit's vector env (README recipe)
+@pytest.mark.parametrize("name", ENVS)
+def test_supersuit_vector_recipe_runs_through_catches_and_time_limits(name):
+    """The README's supersuit recipe (black_death=True + pettingzoo_env_to_vec_env_v1 +
+    concat_vec_envs_v1) runs a few hundred steps on every env: through time-limit ends and, in
+    tag, a prey caught mid-episode (before, supersuit's black_death_v3 never saw a time-limit end
+    and the next step raised "the episode is over")."""
+    ss = pytest.importorskip("supersuit")
+    kwargs = dict(num_prey=2) if name == "tag" else {}
+    env = make_parallel_env(name, resolution=16, max_steps=40, black_death=True, seed=0, **kwargs)
+    venv = ss.concat_vec_envs_v1(ss.pettingzoo_env_to_vec_env_v1(env), 2, num_cpus=0, base_class="gymnasium")
+    A = len(env.possible_agents)
+    venv.reset(seed=0)
+    venv.action_space.seed(0)
+    first = venv.vec_envs[0].par_env  # the copy the recipe made (PettingZoo envs pickle as their configuration)
+    ends = 0
+    for step in range(120):
+        if name == "tag" and step == 5:  # prey_1 (entry 4) right beside predator_0: caught in the next step
+            state = first.core.get_state()
+            state["pos"][0, 4] = state["pos"][0, 0] + torch.tensor([0.2, 0.0])
+            state["vel"][:] = 0
+            first.core.set_state(state)
+        obs, rewards, terminations, truncations, infos = venv.step(
+            np.array([venv.action_space.sample() for _ in range(venv.num_envs)]))
+        assert obs.shape == (2 * A, 16, 16, first.core.pixel_channels) and rewards.shape == (2 * A,)
+        done = terminations | truncations
+        assert done[:A].all() == done[:A].any() and done[A:].all() == done[A:].any()  # a world ends as a whole
+        ends += int(done[:A].all())
+        if name == "tag" and 6 <= step < 39:  # caught at step 5: black, reward 0, not done until the time limit
+            assert not obs[4].any() and rewards[4] == 0 and not done[4] and obs[3].any()
+        if name == "tag" and step == 39:  # the time limit: the caught prey terminated, the others truncated
+            assert terminations[:A].tolist() == [0, 0, 0, 0, 1] and truncations[:A].tolist() == [1, 1, 1, 1, 0]
+            assert obs[4].any()  # already the new episode's first frame (supersuit resets in the same step)
+    assert ends == 3  # time limits at steps 39, 79 and 119
+    venv.close()

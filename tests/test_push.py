@@ -46,7 +46,7 @@ SIDELINE = [[-1.2, -0.3], [1.2, -0.3], [-1.2, 0.3], [1.2, 0.3]]  # 4 agents out 
 def test_teams_state_size_and_info():
     env = make(state_obs=True)
     N = env.num_agents
-    assert N == 4 and env.groups == {"team_a": ["team_a_0", "team_a_1"], "team_b": ["team_b_0", "team_b_1"]}
+    assert N == 4 and env.groups == {"team_a": ["red_0", "red_1"], "team_b": ["blue_0", "blue_1"]}
     assert env.state_dim == 10 + 2 * (N - 1)
     obs = env.reset(seed=1)
     assert obs["action_mask"].all()
@@ -59,10 +59,10 @@ def test_team_sizes_and_registry():
     assert "push" in list_envs()
     env = make_env("push", num_worlds=1, resolution=8, num_agents=6)
     assert isinstance(env.scenario, push.Push)
-    assert env.groups == {"team_a": [f"team_a_{i}" for i in range(3)], "team_b": [f"team_b_{i}" for i in range(3)]}
+    assert env.groups == {"team_a": [f"red_{i}" for i in range(3)], "team_b": [f"blue_{i}" for i in range(3)]}
     env.close()
     env = make(num_agents=2, resolution=8)
-    assert env.groups == {"team_a": ["team_a_0"], "team_b": ["team_b_0"]}
+    assert env.groups == {"team_a": ["red_0"], "team_b": ["blue_0"]}
     env.close()
     with pytest.raises(ValueError, match="even"):
         make(num_agents=3)
@@ -120,7 +120,7 @@ def test_ball_is_pushed_by_an_agent():
     env = make(continuous=True)
     env.reset(seed=0)
     agents = torch.tensor(SIDELINE)
-    agents[0] = torch.tensor([0.0, -0.5])  # team_a_0 right behind the ball, facing +y
+    agents[0] = torch.tensor([0.0, -0.5])  # red_0 (team_a) right behind the ball, facing +y
     place(env, agents, torch.tensor([0.0, -0.2]), yaw=torch.zeros(W, 4))
     actions = torch.zeros(W, 4, 2)
     actions[:, 0, 0] = 1.0

@@ -371,3 +371,72 @@ def test_batch_renderer_refuses_a_batch_beyond_memory_before_allocating():
         mr.BatchRenderer(small, supersample=256)
     with mr.BatchRenderer(small) as renderer:
         assert renderer.render().rgb.shape == (64, 4, 64, 64, 3)
+
+
+# ---------------------------------------------------------------------- pickling (issue 17, item 15)
+def _front_ends():
+    from marl_render.envs import make_sb3_env, make_torchrl_env, make_vec_env
+    return [(lambda: make_env("spread", num_worlds=W, resolution=RES), "BatchedEnv|Spread", "make_env"),
+            (lambda: make_vec_env("spread", num_worlds=W, resolution=RES), "MarlRenderVectorEnv", "make_vec_env"),
+            (lambda: make_sb3_env("cartpole", num_worlds=W, resolution=RES), "MarlRenderSB3VecEnv", "make_sb3_env"),
+            (lambda: make_torchrl_env("spread", num_worlds=W, resolution=RES), "MarlRenderTorchRLEnv",
+             "make_torchrl_env")]
+
+
+@pytest.mark.parametrize("index", range(4), ids=["core", "vector", "sb3", "torchrl"])
+def test_pickling_an_env_says_to_build_it_from_its_configuration(index):
+    """pickle.dumps (and so a spawn worker's arguments) and copy.deepcopy of an env that owns GL
+    state raise a TypeError that says what to do, not "cannot pickle '_thread.RLock' object"."""
+    import copy
+    import pickle
+
+    build, kind, maker = _front_ends()[index]
+    env = build()
+    # (the core's copies are refused by its own __copy__ / __deepcopy__)
+    for attempt in (pickle.dumps,) if index == 0 else (pickle.dumps, copy.deepcopy):
+        with pytest.raises(TypeError, match=rf"({kind}).*cannot be pickled or copied: it owns an OpenGL renderer"
+                                            rf".*configuration.*{maker}"):
+            attempt(env)
+    env.reset()  # the env is untouched
+    env.close()
+
+
+def test_a_spawn_worker_given_an_env_gets_the_clear_error():
+    env = make_env("cartpole", num_worlds=1, resolution=RES)
+    process = multiprocessing.get_context("spawn").Process(target=print, args=(env,))
+    with pytest.raises(TypeError, match="cannot be pickled or copied.*make_env"):
+        process.start()
+    env.close()
+
+
+# ---------------------------------------------------------------------- exit (issue 17, item 19)
+EXIT_SCRIPT = textwrap.dedent("""
+    import atexit, sys
+    def teardown():  # registered before marl_render is imported, so it runs after marl_render's exit hook
+        for module in ("marl_render.backend", "marl_render.renderer"):
+            sys.modules[module].os = None  # what the interpreter's teardown leaves once it clears module globals
+        for owner in owners:
+            owner.__del__()
+    atexit.register(teardown)
+    from marl_render.envs import make_env, make_vec_env, make_sb3_env
+    class Owner:  # like RLlib's VectorMultiAgentEnv, whose __del__ closes the env it holds
+        def __init__(self, env):
+            self.env = env
+        def __del__(self):
+            self.env.close()
+    owners = []
+    for env in (make_env("spread", num_worlds=2, resolution=8), make_vec_env("tag", num_worlds=2, resolution=8),
+                make_sb3_env("cartpole", num_worlds=2, resolution=8)):
+        env.reset()
+        owners.append(Owner(env))
+    kept = make_vec_env("spread", num_worlds=1, resolution=8)  # alive at exit, never closed
+    kept.reset()
+    print("done")
+""")
+
+
+def test_envs_alive_at_exit_and_closed_by_late_finalisers_are_silent():
+    """Envs still open at exit, closed by finalisers after module globals are gone: no noise."""
+    done = subprocess.run([sys.executable, "-c", EXIT_SCRIPT], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout == "done\n"
+    assert done.stderr == ""

@@ -111,3 +111,52 @@ def test_grayscale_declares_and_returns_one_channel():
         PPO("CnnPolicy", VecTransposeImage(venv), n_steps=8, batch_size=24, n_epochs=1, device="cpu").learn(16)
     finally:
         venv.close()
+
+
+def test_seed_takes_one_int_and_says_so_otherwise():
+    venv = make()
+    assert venv.seed(np.int64(5)) == [5, 6, 7, 8]
+    with pytest.raises(TypeError, match=r"seed must be None or one int .*got \[1, 2\]"):
+        venv.seed([1, 2])
+    seeds = venv.seed(None)  # a random seed, then seed + i per entry
+    assert seeds[1] == seeds[0] + 1
+    twin = make()
+    venv.seed(np.int64(9)), twin.seed(9)
+    assert np.array_equal(venv.reset(), twin.reset())
+    venv.close(), twin.close()
+
+
+def test_set_options_reach_the_next_reset():
+    venv = make()
+    venv.reset()
+    for _ in range(3):
+        venv.step(np.zeros(W, dtype=np.int64))
+    mask = np.array([True, False, False, True])
+    venv.set_options({"reset_mask": mask})
+    venv.reset()
+    assert venv.get_attr("step_count")[0].tolist() == [0, 3, 3, 0]
+    venv.set_options([{"reset_mask": mask.copy()} for _ in range(W)])  # the same for every entry: fine
+    venv.reset()  # the options are used once, as in SB3
+    assert venv.get_attr("step_count")[0].tolist() == [0, 3, 3, 0]
+    venv.reset()
+    assert venv.get_attr("step_count")[0].tolist() == [0, 0, 0, 0]
+    with pytest.raises(ValueError, match="options must be the same for every entry"):
+        venv.set_options([{"reset_mask": mask}, {}, {}, {}])
+    with pytest.raises(ValueError, match="list of 4 dicts"):
+        venv.set_options([{}])
+    with pytest.raises(TypeError, match="options must be None, a dict"):
+        venv.set_options("reset")
+    venv.close()
+
+
+def test_indices_out_of_range_raise():
+    venv = make()
+    assert venv.get_attr("num_worlds", -1) == [W]
+    for call in (lambda: venv.get_attr("num_worlds", indices=[99]), lambda: venv.set_attr("x", 1, indices=[0, 4]),
+                 lambda: venv.env_method("__repr__", indices=99), lambda: venv.env_is_wrapped(object, [-5])):
+        with pytest.raises(IndexError, match=r"indices must be in \[0, 4\) \(num_envs = 4\)"):
+            call()
+    with pytest.raises(TypeError, match="indices must be"):
+        venv.get_attr("num_worlds", indices=[0.5])
+    assert not hasattr(venv.venv, "x")
+    venv.close()

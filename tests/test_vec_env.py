@@ -238,6 +238,8 @@ def test_seeding_is_deterministic():
             trace.append(envs.step(sample(envs, step))[0])
         runs.append(np.stack(trace))
     assert np.array_equal(runs[0], runs[1]) and not np.array_equal(runs[0], runs[2])
+    obs, _ = envs.reset(seed=np.int64(7))  # a numpy int seeds like the same int (gymnasium takes Python ints)
+    assert np.array_equal(obs, runs[0][0])
     with pytest.raises(TypeError, match="seed must be None or an int.*per-entry"):
         envs.reset(seed=[1, 2, 3])
     envs.close()
@@ -257,6 +259,17 @@ def test_bad_actions_raise_and_change_nothing():
     after = envs.core.get_state()
     assert all(torch.equal(before[k], after[k]) for k in before)
     envs.close()
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+def test_actions_with_negative_strides_are_accepted(continuous):
+    envs, twin = make("spread", continuous=continuous), make("spread", continuous=continuous)
+    envs.reset(seed=0), twin.reset(seed=0)
+    actions = sample(envs, 1)[::-1]
+    assert actions.strides[0] < 0
+    got, expected = envs.step(actions), twin.step(actions.copy())
+    assert np.array_equal(got[0], expected[0]) and np.array_equal(got[1], expected[1])
+    envs.close(), twin.close()
 
 
 def test_make_vec_env_arguments():
@@ -376,3 +389,53 @@ def test_grayscale_vector_env_declares_what_it_returns():
         assert envs.observation_space.contains(obs)
     finally:
         envs.close()
+
+
+# ---------------------------------------------------------------------- gymnasium ids and a single-world Env
+def test_gymnasium_ids_make_the_vector_envs():
+    """`import marl_render.envs` registers marl_render/<name>-v0: make_vec builds make_vec_env (num_envs
+    entries = worlds x agents), and the vector env's spec builds it again."""
+    from marl_render.envs import list_envs
+
+    assert all(f"marl_render/{name}-v0" in gymnasium.registry for name in list_envs())
+    envs = gymnasium.make_vec("marl_render/spread-v0", num_envs=6, resolution=RES, seed=0)
+    assert isinstance(envs, MarlRenderVectorEnv) and (envs.num_worlds, envs.num_agents) == (2, 3)
+    assert envs.spec.id == "marl_render/spread-v0" and envs.observation_space.shape == (6, RES, RES, 3)
+    obs, _ = envs.reset(seed=0)
+    twin = make("spread", num_worlds=2)
+    assert twin.spec.id == "marl_render/spread-v0" and twin.spec.kwargs["num_envs"] == 6
+    again = gymnasium.make_vec(twin.spec)
+    for other in (twin, again):
+        assert np.array_equal(other.reset(seed=0)[0], obs)
+        other.close()
+    envs.close()
+    with pytest.raises(ValueError, match="num_envs must be a multiple of num_agents=3 for 'spread'.*got 4"):
+        gymnasium.make_vec("marl_render/spread-v0", num_envs=4)
+
+
+def test_single_world_gym_env_passes_gymnasiums_checker():
+    import warnings
+
+    from marl_render.envs import make_gym_env
+
+    for kwargs in ({}, {"continuous": True}, {"render_mode": "rgb_array"}):
+        env = make_gym_env("cartpole", resolution=RES, **kwargs)
+        assert isinstance(env, gymnasium.Env) and env.spec.id == "marl_render/cartpole-v0"
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # not even a warning
+            env_checker.check_env(env)
+        env.close()
+    made = gymnasium.make("marl_render/cartpole-v0", resolution=RES, max_steps=2)
+    env_checker.check_env(made.unwrapped)
+    core = make_env("cartpole", num_worlds=1, resolution=RES, max_steps=2)
+    obs, info = made.reset(seed=4)
+    assert obs.shape == (RES, RES, 3) and obs.dtype == np.uint8 and info == {}
+    assert np.array_equal(obs, core.reset(seed=4)["pixels"][0, 0].numpy())
+    for step in range(2):
+        obs, reward, terminated, truncated, info = made.step(1)
+        want, want_reward, *_ = core.step(torch.ones(1, 1, dtype=torch.int64))
+        assert np.array_equal(obs, want["pixels"][0, 0].numpy()) and reward == float(want_reward[0, 0])
+        assert info["step_count"] == step + 1 and (terminated, truncated) == (False, step == 1)
+    made.close(), core.close()
+    with pytest.raises(ValueError, match="make_gym_env needs a single-agent env, and 'spread' has 3 agents"):
+        gymnasium.make("marl_render/spread-v0")

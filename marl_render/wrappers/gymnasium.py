@@ -47,21 +47,30 @@ entries that have it. Step infos are ``step_count`` and the env's own keys (e.g.
 reset by a step (NEXT_STEP) or ended their episode on it (SAME_STEP, where the values move
 to ``final_info``) have none. ``reset`` returns an empty info dict.
 
+gymnasium ids: importing ``marl_render.envs`` registers ``marl_render/<name>-v0`` for every
+env of the suite. ``gymnasium.make_vec(id, num_envs=N, **kwargs)`` builds ``make_vec_env``
+with N / num_agents worlds (``gymnasium_vector_entry_point``), and ``make_vec_env`` sets
+``spec`` so that ``gymnasium.make_vec(envs.spec)`` builds the same again. For the
+single-agent env (cartpole) ``gymnasium.make(id)`` or ``make_gym_env(name)`` gives one world
+as a ``gymnasium.Env`` (``MarlRenderGymEnv``) that passes gymnasium's ``check_env``.
+
 Seeding: ``reset(seed=int)`` re-seeds the core's generator (one generator draws for all
 worlds, so a list of per-entry seeds raises TypeError) and the env's ``np_random``.
 Unknown ``reset`` options are ignored, as gymnasium envs do.
 """
 from __future__ import annotations
 
+import gymnasium
 import numpy as np
 import torch
 from gymnasium import logger
+from gymnasium.envs.registration import EnvSpec
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from marl_render.envs.core import BatchedEnv
-from marl_render.envs.registry import make_env
-from marl_render.validation import describe
+from marl_render.envs.registry import env_class, make_env
+from marl_render.validation import describe, positive_int, unpicklable
 from marl_render.wrappers import spaces as spaces_from_spec
 
 RENDER_MODES = ("rgb_array",)
@@ -89,10 +98,119 @@ def make_vec_env(name: str, num_worlds: int = 1, *, autoreset_mode=AutoresetMode
     _check_render_mode(render_mode)
     core = make_env(name, num_worlds=num_worlds, autoreset=CORE_AUTORESET[mode], **kwargs)
     try:
-        return MarlRenderVectorEnv(core, action_mask=action_mask, render_mode=render_mode)
+        envs = MarlRenderVectorEnv(core, action_mask=action_mask, render_mode=render_mode)
     except BaseException:
         core.close()
         raise
+    # gymnasium.make_vec(envs.spec) builds the same again (num_envs is the number of entries).
+    envs.spec = _spec(name, vector_entry_point=f"{__name__}:gymnasium_vector_entry_point",
+                      kwargs=dict(name=name, num_envs=envs.num_envs, autoreset_mode=mode.value,
+                                  action_mask=action_mask, render_mode=render_mode, **kwargs))
+    return envs
+
+
+def gymnasium_id(name: str) -> str:
+    """The gymnasium id of the env `name`: "marl_render/<name>-v0"."""
+    return f"marl_render/{name}-v0"
+
+
+def _spec(name: str, **fields) -> EnvSpec | None:
+    try:
+        return EnvSpec(gymnasium_id(name), **fields)
+    except Exception:  # a user-registered name gymnasium cannot parse as an id: no spec, as before
+        return None
+
+
+def gymnasium_vector_entry_point(name: str, num_envs: int = 1, **kwargs) -> MarlRenderVectorEnv:
+    """``gymnasium.make_vec("marl_render/<name>-v0", num_envs=N, **kwargs)``: make_vec_env with
+    N / num_agents worlds (num_envs counts entries, worlds x agents, so it must be a multiple of
+    num_agents); kwargs as make_vec_env's."""
+    num_envs = positive_int("num_envs", num_envs)
+    agents = kwargs.get("num_agents")
+    agents = getattr(env_class(name), "default_num_agents", 1) if agents is None else agents
+    if isinstance(agents, (int, np.integer)) and not isinstance(agents, bool) and agents >= 1 and num_envs % agents:
+        raise ValueError(f"num_envs must be a multiple of num_agents={agents} for {name!r} (num_envs = num_worlds x "
+                         f"num_agents entries), got {num_envs}")
+    envs = make_vec_env(name, max(1, num_envs // agents) if isinstance(agents, (int, np.integer)) else num_envs,
+                        **kwargs)
+    if envs.num_envs != num_envs:
+        envs.close()
+        raise ValueError(f"num_envs must be a multiple of num_agents={envs.num_agents} for {name!r}, got {num_envs}")
+    return envs
+
+
+def make_gym_env(name: str, *, render_mode: str | None = None, **kwargs) -> MarlRenderGymEnv:
+    """A single-world ``gymnasium.Env`` of the single-agent env `name` (cartpole), also made by
+    ``gymnasium.make("marl_render/<name>-v0")``. Observations are one agent's (H, W, 3) uint8
+    frame (or its Dict, as make_vec_env's entries), actions one action; an episode ends by
+    termination or at max_steps (truncation), and the env waits for ``reset()`` (no autoreset).
+    kwargs go to ``marl_render.envs.make_env`` (resolution, max_steps, continuous, state_obs,
+    depth, seed, device, ...); num_worlds (1) and autoreset are set here."""
+    for key in ("num_worlds", "autoreset", "autoreset_mode"):
+        if key in kwargs:
+            raise TypeError(f"make_gym_env() does not accept {key!r}: a gymnasium.Env is one world that resets "
+                            f"when reset() is called; use make_vec_env for batched worlds")
+    envs = make_vec_env(name, 1, autoreset_mode=AutoresetMode.DISABLED, render_mode=render_mode, **kwargs)
+    if envs.num_agents != 1:
+        envs.close()
+        raise ValueError(f"make_gym_env needs a single-agent env, and {name!r} has {envs.num_agents} agents: use "
+                         f"make_parallel_env (PettingZoo) or make_vec_env (one entry per agent) for it")
+    env = MarlRenderGymEnv(envs)
+    env.spec = _spec(name, entry_point=f"{__name__}:make_gym_env", kwargs=dict(name=name, render_mode=render_mode,
+                                                                               **kwargs))
+    return env
+
+
+class MarlRenderGymEnv(gymnasium.Env):
+    """One world of a single-agent env as a ``gymnasium.Env``: a one-entry MarlRenderVectorEnv
+    (autoreset DISABLED) seen one entry at a time; see make_gym_env. ``vector`` is that vector
+    env, owned (closed in ``close()``)."""
+
+    def __init__(self, vector: MarlRenderVectorEnv):
+        if not isinstance(vector, MarlRenderVectorEnv) or vector.num_envs != 1:
+            raise TypeError(f"vector must be a MarlRenderVectorEnv with one entry (see make_gym_env), "
+                            f"got {describe(vector)}")
+        self.vector = vector
+        self.observation_space = vector.single_observation_space
+        self.action_space = vector.single_action_space
+        self.render_mode = vector.render_mode
+        self.metadata = {"render_modes": list(RENDER_MODES), "render_fps": round(1 / vector.core.dt),
+                         "name": vector.core.name}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        observations, _ = self.vector.reset(seed=seed, options=options)  # checks seed before anything changes
+        super().reset(seed=None if seed is None else int(seed))
+        return self._one(observations), {}
+
+    def step(self, action):
+        observations, rewards, terminations, truncations, infos = self.vector.step(self._batch(action))
+        info = {key: value[0] for key, value in infos.items() if not key.startswith("_")}
+        return (self._one(observations), float(rewards[0]), bool(terminations[0]), bool(truncations[0]), info)
+
+    def render(self):
+        """The world's overview, uint8 (H, W, 3), with render_mode="rgb_array"; else None."""
+        frames = self.vector.render()
+        return None if frames is None else frames[0]
+
+    def close(self):
+        self.vector.close()
+
+    def __reduce__(self):
+        raise unpicklable("a MarlRenderGymEnv", "marl_render.wrappers.gymnasium.make_gym_env")
+
+    def __repr__(self):
+        return f"MarlRenderGymEnv({self.vector.core.name})"
+
+    def _batch(self, action):
+        """The action as the vector env's batch of one entry."""
+        if isinstance(action, (torch.Tensor, np.ndarray)):
+            return action[None]
+        return np.asarray([action])
+
+    def _one(self, observations):
+        if isinstance(observations, dict):
+            return {key: value[0] for key, value in observations.items()}
+        return observations[0]
 
 
 def _autoreset_mode(value) -> AutoresetMode:
@@ -150,6 +268,7 @@ class MarlRenderVectorEnv(VectorEnv):
         if seed is not None and (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))):
             raise TypeError(f"seed must be None or an int (one generator draws for every world, so per-entry "
                             f"seeds are not supported), got {describe(seed)}")
+        seed = None if seed is None else int(seed)  # gymnasium's own seeding takes Python ints only
         worlds = self._reset_mask(options)
         obs = self.core.reset(seed=seed) if worlds is None else self.core.reset_worlds(worlds, seed=seed)
         super().reset(seed=seed)
@@ -180,6 +299,9 @@ class MarlRenderVectorEnv(VectorEnv):
 
     def close_extras(self, **kwargs):
         self.core.close()
+
+    def __reduce__(self):
+        raise unpicklable("a MarlRenderVectorEnv", "marl_render.envs.make_vec_env")
 
     def __repr__(self):
         return (f"MarlRenderVectorEnv({self.core.name}, num_envs={self.num_envs} = {self.num_worlds} worlds x "
@@ -279,4 +401,5 @@ def _masked(values: dict, mask: np.ndarray | None) -> dict:
     return out
 
 
-__all__ = ["MarlRenderVectorEnv", "make_vec_env", "CORE_AUTORESET", "RENDER_MODES"]
+__all__ = ["MarlRenderGymEnv", "MarlRenderVectorEnv", "make_gym_env", "make_vec_env", "gymnasium_id",
+           "gymnasium_vector_entry_point", "CORE_AUTORESET", "RENDER_MODES"]

@@ -32,8 +32,9 @@ action_mask, reward, terminated, truncated and 32-bit info entries arrive withou
 Actions (and ``reset_worlds`` masks) go the other way, JAX -> torch by DLPack, also
 without a copy, and are then checked by the core's ``check_actions``: the same
 TypeError / ValueError naming ``actions``, the expected and the given, and a rejected
-call changes nothing. numpy arrays, lists and torch tensors are passed to the core as
-they are.
+call changes nothing. Actions sharded over several devices (``jax.sharding``) are
+gathered into host memory first, a copy. numpy arrays, lists and torch tensors are passed
+to the core as they are.
 
 GL and a second LLVM: Mesa's llvmpipe links its own LLVM and jaxlib bundles XLA's. Both
 import orders (jax before the GL context, or after it, then jitting and rendering in
@@ -45,6 +46,7 @@ needs a JAX with a GPU backend; without one ``make_jax_env`` raises ValueError.
 from __future__ import annotations
 
 import jax
+import numpy as np
 import torch
 
 from marl_render.envs.core import BatchedEnv
@@ -95,6 +97,11 @@ def to_torch(name: str, value):
         return value
     if value.is_deleted():
         raise ValueError(f"{name} must be a live jax.Array, got a deleted one (donated or deleted)")
+    if len(value.sharding.device_set) > 1:  # DLPack exports one device's buffer: gather the shards (a copy)
+        if not value.is_fully_addressable:
+            raise ValueError(f"{name} must be addressable from this process, got a jax.Array sharded over "
+                             f"devices of other processes ({value.sharding}); gather it first")
+        return torch.from_numpy(np.array(value))
     try:
         return torch.from_dlpack(value)
     except Exception as exc:  # XLA raises its own error type for dtypes without a DLPack code

@@ -47,6 +47,13 @@ frame is shown in a matplotlib window after every ``reset`` and ``step`` (and by
 simulated seconds per step (10 for the arena envs, 100 for cartpole). Where no window can
 be opened (a headless machine) the first frame gives one warning and nothing is shown.
 
+``black_death=True`` keeps the agent set fixed for vectorising wrappers that need one
+(supersuit's ``pettingzoo_env_to_vec_env_v1``): an agent that leaves before its world's
+episode ends (tag's caught prey) stays in ``agents``, sees zeros (not the action mask) with
+reward 0 and is neither terminated nor truncated, its actions ignored, until the episode
+ends for every agent at once (then ``agents == []`` as usual). It changes nothing in envs
+whose agents never leave.
+
 Input checks (every call checks all of its input before it changes anything):
 
 * ``step(actions)``: a dict with one action for every agent in ``agents``. Unknown agent
@@ -100,7 +107,7 @@ class AgentKeyError(KeyError):
 
 def make_parallel_env(name, *, render_mode: str | None = None, action_mask: bool = False,
                       departed_actions: str = "ignore", unknown_options: str = "ignore",
-                      **kwargs) -> MarlRenderParallelEnv:
+                      black_death: bool = False, **kwargs) -> MarlRenderParallelEnv:
     """A PettingZoo ParallelEnv of the registered environment `name` (or a Scenario subclass), one world.
 
     kwargs go to ``marl_render.envs.registry.make_env`` (resolution, num_agents, max_steps,
@@ -116,10 +123,12 @@ def make_parallel_env(name, *, render_mode: str | None = None, action_mask: bool
     _check_flag("action_mask", action_mask)
     _check_policy("departed_actions", departed_actions)
     _check_policy("unknown_options", unknown_options)
+    _check_flag("black_death", black_death)
     core = make_env(name, num_worlds=1, **kwargs)
     try:
         env = MarlRenderParallelEnv(core, render_mode=render_mode, action_mask=action_mask,
-                                    departed_actions=departed_actions, unknown_options=unknown_options)
+                                    departed_actions=departed_actions, unknown_options=unknown_options,
+                                    black_death=black_death)
     except BaseException:
         core.close()
         raise
@@ -129,8 +138,17 @@ def make_parallel_env(name, *, render_mode: str | None = None, action_mask: bool
     # register_env rebuilds a user's task too.
     env._recipe = (type(core.scenario), dict(render_mode=render_mode, action_mask=action_mask,
                                              departed_actions=departed_actions, unknown_options=unknown_options,
-                                             **kwargs))
+                                             black_death=black_death, **kwargs))
     return env
+
+
+def make_aec_env(name: str, **kwargs) -> pettingzoo.AECEnv:
+    """A PettingZoo AECEnv of the registered environment `name`, one world: the agents act in
+    turn (PettingZoo's ``parallel_to_aec`` of ``make_parallel_env(name, **kwargs)``; the world
+    steps once every live agent has acted). kwargs as make_parallel_env's."""
+    from pettingzoo.utils.conversions import parallel_to_aec
+
+    return parallel_to_aec(make_parallel_env(name, **kwargs))
 
 
 def _rebuild(name, kwargs):
@@ -169,7 +187,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         return _rebuild, (name, kwargs)
 
     def __init__(self, env, *, render_mode: str | None = None, action_mask: bool = False,
-                 departed_actions: str = "ignore", unknown_options: str = "ignore"):
+                 departed_actions: str = "ignore", unknown_options: str = "ignore", black_death: bool = False):
         if not isinstance(env, BatchedEnv):
             raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(env)}")
@@ -183,6 +201,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         _check_flag("action_mask", action_mask)
         _check_policy("departed_actions", departed_actions)
         _check_policy("unknown_options", unknown_options)
+        _check_flag("black_death", black_death)
         if action_mask and env.continuous:
             raise ValueError("action_mask=True needs a discrete env (continuous=False); "
                              "continuous actions have no mask")
@@ -191,6 +210,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         self.render_mode = render_mode
         self.departed_actions = departed_actions
         self.unknown_options = unknown_options
+        self.black_death = bool(black_death)
         self.metadata = {**type(self).metadata, "name": env.name, "render_fps": 1.0 / env.dt}
         self.possible_agents = list(env.agent_names)
         self.agents: list[str] = []
@@ -248,6 +268,14 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         rew = reward[0].tolist()
         term = terminated[0].tolist()
         trunc = truncated[0].tolist()
+        if self.black_death and not all(t or u for t, u in zip(term, trunc, strict=True)):
+            # A fixed agent set until the world's episode ends: those that left stay in `agents`,
+            # seeing zeros with reward 0 (the core's), not done; their actions are ignored.
+            departed = ~self.core.alive[0]
+            for key in self._obs_keys:
+                if key != "action_mask":
+                    obs[key][0][departed] = 0
+            term = [t and not d for t, d in zip(term, departed.tolist(), strict=True)]
         observations = self._observations(obs, acting)
         rewards, terminations, truncations, infos = {}, {}, {}, {}
         world_info = _world_info(info, len(self.possible_agents))
@@ -470,5 +498,5 @@ def tile_views(views: list, overview: np.ndarray | None = None) -> np.ndarray:
     return canvas
 
 
-__all__ = ["MarlRenderParallelEnv", "make_parallel_env", "ActionTypeError", "AgentKeyError", "tile_views",
-           "KNOWN_OPTIONS", "RENDER_MODES"]
+__all__ = ["MarlRenderParallelEnv", "make_aec_env", "make_parallel_env", "ActionTypeError", "AgentKeyError",
+           "tile_views", "KNOWN_OPTIONS", "RENDER_MODES"]

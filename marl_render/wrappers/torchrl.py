@@ -84,7 +84,7 @@ from torchrl.envs.utils import MarlGroupMapType, check_marl_grouping
 
 from marl_render.envs.core import BatchedEnv
 from marl_render.envs.registry import make_env
-from marl_render.validation import describe
+from marl_render.validation import describe, unpicklable
 
 GROUP_MAPS = ("team", "one_group", "per_agent")
 _DONE_KEYS = ("done", "terminated", "truncated")
@@ -324,6 +324,9 @@ class MarlRenderTorchRLEnv(EnvBase):
     def close(self, *, raise_if_closed: bool = True) -> None:
         self.core.close()
         super().close(raise_if_closed=raise_if_closed)
+
+    def __reduce__(self):
+        raise unpicklable("a MarlRenderTorchRLEnv", "marl_render.envs.make_torchrl_env")
 
     def __repr__(self):
         return f"MarlRenderTorchRLEnv({self.core!r}, group_map={self.group_map})"
