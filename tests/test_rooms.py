@@ -110,6 +110,20 @@ def test_walls_block_bodies_and_open_slots_do_not():
     env.close()
 
 
+def test_no_body_ever_enters_a_wall():
+    # Four agents jostling in doorways (heuristic and random steps in turn), new layouts on autoreset.
+    env = make(num_worlds=8, num_agents=4, resolution=8, autoreset=True)
+    env.reset()
+    g = torch.Generator().manual_seed(0)
+    for t in range(150):
+        env.step(env.random_actions(g) if t % 2 else env.heuristic_actions())
+        centre, size, shown = env.scenario.walls(env.sim)
+        outside = (env.sim.pos[:, :, None] - centre[:, None]).abs() - size[:, None, :, :2] / 2  # [W, A, 24, 2]
+        gap = torch.where((outside < 0).all(-1), outside.max(-1).values, outside.clamp_min(0).norm(dim=-1))
+        assert (gap[shown[:, None].expand_as(gap)] >= rooms.AGENT_RADIUS - 1e-4).all(), t
+    env.close()
+
+
 # --------------------------------------------------------------------------- rules
 def test_finding_the_goal_rewards_everyone_once_and_terminates():
     env = make(step_penalty=0.01)
