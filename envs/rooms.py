@@ -1,7 +1,8 @@
 """Rooms: find a goal hidden in a procedurally generated layout of rooms and doors.
 
-A memory and exploration task (like Megaverse's): the goal is only seen from inside its room,
-so agents must search the rooms, remember which they have seen, and (in the ``return_home``
+A memory and exploration task (like Megaverse's): walls hide the goal (a camera sees it only
+from its room or through a door; the state observation gives it only inside its room), so
+agents must search the rooms, remember which they have seen, and (in the ``return_home``
 variant) find their way back.
 
 * Arena: |x|, |y| <= 3 m, divided into a 3 x 3 grid of 2 m square rooms (room index
