@@ -225,13 +225,13 @@ class Rooms(ArenaScenario):
 
     def observation(self, state, alive):
         W, N = self.num_worlds, self.num_agents
-        pos = state.pos[:, :N]
-        sees = (room_of(pos) == room_of(state.goal)).to(pos.dtype)[..., None]  # [W, N, 1]
-        layout = torch.cat((state.visited.to(pos.dtype), (~state.wall_open).to(pos.dtype), state.door), -1)
-        return torch.cat((self.own_obs(state), layout[:, None].expand(W, N, -1), sees, (state.goal - pos) * sees,
-                          state.finder[..., None].to(pos.dtype), state.finder.any(1, keepdim=True)[:, None].to(
-                              pos.dtype).expand(W, N, 1), self.room_centre(state.home)[:, None] - pos,
-                          self.others_obs(state).reshape(W, N, -1)), -1)
+        pos, f = state.pos[:, :N], state.pos.dtype
+        sees = (room_of(pos) == room_of(state.goal)).to(f)[..., None]  # [W, N, 1]: in the goal's room
+        layout = torch.cat((state.visited.to(f), (~state.wall_open).to(f), state.door), -1)[:, None].expand(W, N, -1)
+        found = state.finder.any(1, keepdim=True)[:, None].expand(W, N, 1).to(f)
+        return torch.cat((self.own_obs(state), layout, sees, (state.goal - pos) * sees, state.finder[..., None].to(f),
+                          found, self.room_centre(state.home)[:, None] - pos, self.others_obs(state).reshape(W, N, -1)),
+                         -1)
 
     def heuristic(self, state, alive):
         """Only what the state observation gives: an agent in the goal's room drives to the goal;

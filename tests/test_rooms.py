@@ -136,6 +136,8 @@ def test_finding_the_goal_rewards_everyone_once_and_terminates():
     assert terminated.tolist() == [[True, True], [False, False]] and not truncated.any()
     assert info["found"].tolist() == [1, 0] and info["returned"].tolist() == [0, 0]
     assert env.sim.finder.tolist() == [[True, False], [False, False]]
+    flags = env.state_observation()[..., 42:44]  # (this agent reached the goal, some agent did)
+    assert flags.tolist() == [[[1.0, 1.0], [0.0, 1.0]], [[0.0, 0.0], [0.0, 0.0]]]
     assert info["rooms_visited"].tolist() == [2, 2]  # home and the goal's room
     env.close()
 
@@ -172,7 +174,7 @@ def test_state_obs_gives_the_goal_only_in_its_room():
     assert torch.allclose(rel[:, 0], torch.full((W, 2), -0.3)) and (rel[:, 1] == 0).all()
     assert torch.equal(obs[:, 0, 6:15], env.sim.visited.float())
     assert torch.equal(obs[:, 0, 15:27], (~env.sim.wall_open).float()) and torch.equal(obs[:, 0, 27:39], env.sim.door)
-    assert torch.allclose(obs[:, 1, 42:44], torch.zeros(W, 2))  # agent 1 sits at the home centre
+    assert torch.allclose(obs[:, 1, 44:46], torch.zeros(W, 2))  # agent 1 sits at the home centre
     env.close()
 
 
