@@ -97,7 +97,7 @@ def test_walls_block_bodies_and_open_slots_do_not():
     wall_open = torch.zeros(W, 12, dtype=torch.bool)
     wall_open[1, 0] = True
     edit(env, pos=torch.tensor([[-2.0, -2.6], [2.0, 2.0]]), yaw=torch.tensor([FACE_PLUS_X, 0.0]), door=door,
-         wall_open=wall_open)
+         wall_open=wall_open, visited=torch.zeros(9, dtype=torch.bool))
     obstacles = env.scenario.obstacles(env.sim)
     assert (obstacles.center[1, :2] == rooms.FAR_AWAY).all() and (obstacles.center[0, :2].abs() < ARENA + 1).all()
     drive = torch.tensor([[FORWARD, NOOP]] * W)
@@ -105,7 +105,10 @@ def test_walls_block_bodies_and_open_slots_do_not():
         _, _, _, _, info = env.step(drive)
         assert env.sim.pos[0, 0, 0] <= -ROOM / 2 - WALL_THICKNESS / 2 - rooms.AGENT_RADIUS + 1e-4
     assert env.sim.pos[0, 0, 0] > -1.25  # it did reach the wall
-    assert env.sim.pos[1, 0, 0] > 0.5 and info["rooms_visited"].tolist() == [2, 3]  # world 1: through rooms 1, 2
+    # World 1: through the open slot into room 1, up to slot 1's wall (x = 1; its door is at y = -2).
+    assert abs(env.sim.pos[1, 0, 0] - (ROOM / 2 - WALL_THICKNESS / 2 - rooms.AGENT_RADIUS)) < 1e-4
+    assert env.sim.visited.nonzero().tolist() == [[0, 0], [0, 8], [1, 0], [1, 1], [1, 8]]
+    assert info["rooms_visited"].tolist() == [2, 3]
     assert torch.equal(env.sim.pos[:, 1], torch.tensor([[2.0, 2.0]] * W))
     env.close()
 
