@@ -33,6 +33,7 @@ _REGISTRY: dict = {
     "tag": "marl_render.envs.tag:Tag",
     "forage": "marl_render.envs.forage:Forage",
     "push": "marl_render.envs.push:Push",
+    "rooms": "marl_render.envs.rooms:Rooms",
 }
 
 
