@@ -50,11 +50,15 @@ SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
     "push": ("+goal_reward (1) to every agent of the scoring team, -goal_reward to the other team; "
              "optional zero-sum shaping by the ball's progress",
              "a goal terminates every agent (one goal per episode); truncated at max_steps"),
+    "rooms": ("shared: +found_reward (1) when any agent first reaches the goal; with return_home another "
+              "+found_reward when an agent that reached it is first back in the home room; -step_penalty (0) per step",
+              "the goal found (with return_home: a finder back home) terminates every agent; truncated at max_steps"),
 }
 EGOCENTRIC_DIMS = ("thrust along the body's heading (+ forward)", "turn rate (+ left)")
 CONTINUOUS_DIMS = {  # env -> meaning of each continuous action dimension, all in [-1, 1]
     "cartpole": ("motor control: force on the cart, x 10 N (gear 10)",),
     "spread": EGOCENTRIC_DIMS, "tag": EGOCENTRIC_DIMS, "forage": EGOCENTRIC_DIMS, "push": EGOCENTRIC_DIMS,
+    "rooms": EGOCENTRIC_DIMS,
 }
 INFO = {  # step info key -> meaning
     "step_count": "steps of the episode just stepped",
@@ -66,6 +70,9 @@ INFO = {  # step info key -> meaning
     "collected": "items collected in this step",
     "team_score": "the team's total reward of the episode so far (sum over agents and steps)",
     "goal": "+1: team_a scored in this step, -1: team_b scored, 0: no goal",
+    "found": "1 once an agent has reached the goal in this episode",
+    "returned": "1 once an agent that reached the goal is back in the home room (return_home; else always 0)",
+    "rooms_visited": "distinct rooms any agent has been in this episode (the home room included)",
 }
 CONDITION = {"pixels": "always", "depth": "`depth=True`", "state": "`state_obs=True`",
              "action_mask": "discrete actions (the default)"}

@@ -553,6 +553,7 @@ DECLARED_TERMS = {
     "forage": {"walls", "body_collisions", "drag"},
     "push": {"walls", "body_collisions", "drag"},
     "tag": {"walls", "body_collisions", "drag", "obstacles"},
+    'rooms': {'walls', 'body_collisions', 'drag', 'obstacles'},
 }
 
 

@@ -137,6 +137,7 @@ class MarlRenderTask(Task):
     PUSH = None
     SPREAD = None
     TAG = None
+    ROOMS = None
 
     @staticmethod
     def associated_class():
