@@ -62,7 +62,8 @@ class Prop:
     position, yaw and active name a field of the state (or are functions of the state):
     position [W, count, 2] planar centres (m), yaw [W, count] (rad), active [W, count] bool (shown).
     scale and color are (3,) for all or [count, 3] each (full sizes in m; RGB in [0, 1]), or name a
-    field [W, count, 3] of the state (or are functions of it) where they differ between worlds.
+    field [W, count, 3] of the state (or are functions of it) where they differ between worlds or
+    change during an episode (then sent every step, unless moves=False).
     moves=False: the fields change only when an episode starts, so they are sent only then."""
 
     name: str
@@ -75,6 +76,7 @@ class Prop:
     yaw: object = None
     active: object = None
     moves: bool = True
+    hidden_from: int | None = None  # an agent whose camera does not see these objects (all others do)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,11 +247,11 @@ class ArenaScenario(Scenario):
                 kwargs["rotation"] = scenery.yaw_quat(_read(state, prop.yaw).cpu())
             if prop.active is not None:
                 kwargs["active"] = _read(state, prop.active).cpu()
+            for what in ("scale", "color"):
+                if what not in constant:
+                    kwargs[what] = _read(state, getattr(prop, what)).to("cpu", torch.float32)
             if full:
                 kwargs = {**constant, **kwargs}
-                for what in ("scale", "color"):
-                    if what not in constant:
-                        kwargs[what] = _read(state, getattr(prop, what)).to("cpu", torch.float32)
             update[prop.name] = kwargs
         return update
 
@@ -268,6 +270,8 @@ class ArenaScenario(Scenario):
                                 (("scale", prop.scale), ("color", prop.color)) if not _from_state(value)}
                     if prop.active is None:
                         constant["active"] = torch.ones(W, prop.count, dtype=torch.bool)
+                    if prop.hidden_from is not None:
+                        constant["owner"] = torch.full((W, prop.count), prop.hidden_from, dtype=torch.int64)
                     data.append((prop, constant))
             self._prop_data = data
         return self._prop_data

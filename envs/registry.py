@@ -34,6 +34,7 @@ _REGISTRY: dict = {
     "forage": "marl_render.envs.forage:Forage",
     "push": "marl_render.envs.push:Push",
     "rooms": "marl_render.envs.rooms:Rooms",
+    "speaker_listener": "marl_render.envs.speaker_listener:SpeakerListener",
 }
 
 

@@ -50,6 +50,8 @@ SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
     "push": ("+goal_reward (1) to every agent of the scoring team, -goal_reward to the other team; "
              "optional zero-sum shaping by the ball's progress",
              "a goal terminates every agent (one goal per episode); truncated at max_steps"),
+    "speaker_listener": ("shared: -0.1 x the listener's distance to the goal per step, +1 when it reaches the goal",
+                         "the listener reaching the goal terminates both agents; truncated at max_steps"),
     "rooms": ("shared: +found_reward (1) when any agent first reaches the goal; with return_home another "
               "+found_reward when an agent that reached it is first back in the home room; -step_penalty (0) per step",
               "the goal found (with return_home: a finder back home) terminates every agent; truncated at max_steps"),
@@ -59,6 +61,8 @@ CONTINUOUS_DIMS = {  # env -> meaning of each continuous action dimension, all i
     "cartpole": ("motor control: force on the cart, x 10 N (gear 10)",),
     "spread": EGOCENTRIC_DIMS, "tag": EGOCENTRIC_DIMS, "forage": EGOCENTRIC_DIMS, "push": EGOCENTRIC_DIMS,
     "rooms": EGOCENTRIC_DIMS,
+    "speaker_listener": EGOCENTRIC_DIMS + tuple(f"lamp value of target {k}: the lamp shows the colour of the largest "
+                                                f"when it is above 0.5 (the speaker's only)" for k in range(3)),
 }
 INFO = {  # step info key -> meaning
     "step_count": "steps of the episode just stepped",
@@ -73,6 +77,9 @@ INFO = {  # step info key -> meaning
     "found": "1 once an agent has reached the goal in this episode",
     "returned": "1 once an agent that reached the goal is back in the home room (return_home; else always 0)",
     "rooms_visited": "distinct rooms any agent has been in this episode (the home room included)",
+    "reached": "1 on the step the listener reaches the goal",
+    "distance": "the listener's distance to the goal (m)",
+    "lamp_correct": "1 while the lamp shows the goal's colour",
 }
 CONDITION = {"pixels": "always", "depth": "`depth=True`", "state": "`state_obs=True`",
              "action_mask": "discrete actions (the default)"}

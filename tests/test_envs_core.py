@@ -162,7 +162,9 @@ def test_minimal_obs_keys(name):
     assert env.obs_keys == ("pixels", "action_mask")
     obs = env.reset()
     assert set(obs) == {"pixels", "action_mask"}
-    assert bool(obs["action_mask"].all())
+    mask = obs["action_mask"]
+    assert mask.dtype == torch.bool and mask.shape == (W, env.num_agents, env.num_actions)
+    assert bool(mask[..., 0].all())  # action 0 (noop, or the first force level) is valid at the start
     env.close()
     env = make(name, continuous=True)
     assert set(env.reset()) == {"pixels"}
@@ -216,13 +218,13 @@ def test_context_manager_closes():
 
 # ---------------------------------------------------------------------- bad actions
 BAD_DISCRETE = [
-    (lambda A: torch.zeros(W, A + 1, dtype=torch.long), ValueError, r"shape \[3, \d+\]"),
-    (lambda A: torch.zeros(W, dtype=torch.long), ValueError, "shape"),
-    (lambda A: torch.zeros(W, A), TypeError, "integer"),
-    (lambda A: torch.zeros(W, A, dtype=torch.bool), TypeError, "integer"),
-    (lambda A: torch.full((W, A), 5), ValueError, r"\[0, 5\)"),
-    (lambda A: torch.full((W, A), -1), ValueError, r"\[0, 5\)"),
-    (lambda A: "left", TypeError, "actions"),
+    (lambda A, n: torch.zeros(W, A + 1, dtype=torch.long), ValueError, r"shape \[3, \d+\]"),
+    (lambda A, n: torch.zeros(W, dtype=torch.long), ValueError, "shape"),
+    (lambda A, n: torch.zeros(W, A), TypeError, "integer"),
+    (lambda A, n: torch.zeros(W, A, dtype=torch.bool), TypeError, "integer"),
+    (lambda A, n: torch.full((W, A), n), ValueError, r"\[0, {n}\)"),  # n: the env's number of actions
+    (lambda A, n: torch.full((W, A), -1), ValueError, r"\[0, {n}\)"),
+    (lambda A, n: "left", TypeError, "actions"),
 ]
 BAD_CONTINUOUS = [
     (lambda A, D: torch.zeros(W, A), ValueError, "shape"),
@@ -242,8 +244,8 @@ def test_bad_discrete_actions_raise_and_change_nothing(name, case):
     env.step(random_actions(env)), twin.step(random_actions(twin))
     before = env.get_state()
     with pytest.raises(error, match="actions") as excinfo:
-        env.step(make_bad(env.num_agents))
-    assert excinfo.match(words)
+        env.step(make_bad(env.num_agents, env.num_actions))
+    assert excinfo.match(words.format(n=env.num_actions))
     assert_state_equal(before, env.get_state())
     # ... and the env continues exactly like one that never saw the bad call.
     a = random_actions(env)
@@ -553,6 +555,7 @@ DECLARED_TERMS = {
     "forage": {"walls", "body_collisions", "drag"},
     "push": {"walls", "body_collisions", "drag"},
     "tag": {"walls", "body_collisions", "drag", "obstacles"},
+    'speaker_listener': {'body_collisions', 'walls', 'drag'},
     'rooms': {'walls', 'body_collisions', 'drag', 'obstacles'},
 }
 

@@ -270,6 +270,13 @@ def test_state_through_torchrl_return_state():
     env.close()
 
 
+STEP_STATISTICS = {  # the info keys each task declares, written out (not read from the task)
+    "cartpole": set(), "spread": {"collisions", "coverage"}, "forage": {"collected", "team_score"},
+    "tag": {"caught", "prey_left"}, "push": {"goal"}, "rooms": {"found", "returned", "rooms_visited"},
+    "speaker_listener": {"reached", "distance", "lamp_correct"},
+}
+
+
 @pytest.mark.parametrize("name", ENVS)
 def test_infos_carry_the_envs_step_statistics(name):
     # spread's collisions and coverage, forage's collected and team_score, tag's caught and
@@ -283,9 +290,7 @@ def test_infos_carry_the_envs_step_statistics(name):
         _, _, _, _, infos = env.step(actions)
         _, _, _, _, info = twin.step(torch.ones(1, twin.num_agents, dtype=torch.long))
         want = {k: v[0].item() for k, v in info.items() if k != "done_worlds"}
-        assert set(want) == {"step_count"} | {"cartpole": set(), "spread": {"collisions", "coverage"},
-                                              "forage": {"collected", "team_score"}, "tag": {"caught", "prey_left"},
-                                              "push": {"goal"}, 'rooms': {'found', 'rooms_visited', 'returned'}}[name]
+        assert set(want) == {"step_count"} | STEP_STATISTICS[name]
         assert infos == {agent: want for agent in actions}
         assert all(type(v) is type(want[k]) for i in infos.values() for k, v in i.items())
     env.close()

@@ -137,6 +137,7 @@ class MarlRenderTask(Task):
     PUSH = None
     SPREAD = None
     TAG = None
+    SPEAKER_LISTENER = None
     ROOMS = None
 
     @staticmethod
