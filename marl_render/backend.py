@@ -170,6 +170,10 @@ class GLContext:
     the default context (context()). One process renders on one EGL device
     (egl_device_index; None: $MARL_RENDER_EGL_DEVICE, else the default display)."""
 
+    def __reduce__(self):  # copy.copy, copy.deepcopy and pickle all come here
+        raise TypeError("a marl_render GLContext cannot be pickled or copied: it is this process's EGL context; "
+                        "make one where it is needed (marl_render.GLContext()) or use the default")
+
     def __init__(self, egl_device_index: int | None = None):
         from panda3d.core import FrameBufferProperties, GraphicsEngine, GraphicsPipe, WindowProperties
 

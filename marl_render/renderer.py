@@ -32,7 +32,7 @@ from .shadows import ShadowPass
 from .threads import one_thread
 from .tiling import TileLayout, column_layout
 from .triangle_corners import to_panda_geom_with_corners
-from .validation import describe, positive_int
+from .validation import describe, positive_int, unpicklable
 
 
 @dataclass
@@ -569,6 +569,9 @@ class BatchRenderer:
 
     def __exit__(self, *exc):
         self.close()
+
+    def __reduce__(self):  # copy.copy, copy.deepcopy and pickle all come here
+        raise unpicklable("a marl_render BatchRenderer", "marl_render.BatchRenderer")
 
     def __del__(self):
         try:

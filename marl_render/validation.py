@@ -28,7 +28,7 @@ def describe(value) -> str:
 def unpicklable(what: str, rebuild: str) -> TypeError:
     """The error for pickling (or copying) an object that owns GL state: it says what to do instead."""
     return TypeError(f"{what} cannot be pickled or copied: it owns an OpenGL renderer, whose GL state lives in "
-                     f"this process. Build the env where it is needed from its configuration instead: send the "
+                     f"this process. Build it where it is needed from its configuration instead: send the "
                      f"name and keyword arguments (or functools.partial({rebuild}, ...)) to the worker and call "
                      f"{rebuild}(...) there")
 

@@ -444,3 +444,23 @@ def test_pettingzoo_reset_with_a_seed_reproduces_an_episode():
     episode(12)
     assert episode(11) == first
     env.close()
+
+
+# ---------------------------------------------------------------------- copies
+def test_copies_of_gl_owning_objects_are_refused_and_the_original_keeps_working():
+    """copy.copy(env) used to share the renderer; collecting the copy closed the original's."""
+    import copy
+
+    env = make_env("spread", num_worlds=1, resolution=8, seed=0)
+    env.reset()
+    renderer = mr.BatchRenderer(mr.Scene(num_worlds=1, agents_per_world=1, resolution=8))
+    for original, words in ((env, r"BatchedEnv \('spread'\)"), (renderer, "BatchRenderer"),
+                            (mr.backend.context(), "GLContext")):
+        for duplicate in (copy.copy, copy.deepcopy):
+            with pytest.raises(TypeError, match=f"{words} cannot be pickled or copied"):
+                duplicate(original)
+    gc.collect()
+    env.step(env.random_actions())  # the original still renders
+    assert renderer.render().rgb.shape == (1, 1, 8, 8, 3)
+    renderer.close()
+    env.close()
