@@ -493,6 +493,7 @@ class BatchedEnv:
             _check_tensor(f"{where}'s state.{name}", getattr(state, name), tuple(want.shape), want.dtype, want.device)
 
     def _reset_masked(self, mask: torch.Tensor) -> None:
+        self.views.invalidate()  # before the state changes: an interruption from here on still resyncs
         fresh = self.scenario.spawn(self.generator)
         self._check_state(f"{type(self.scenario).__name__}.spawn", fresh)
         self.sim = explicit_state.select_worlds(mask, fresh, self.sim)

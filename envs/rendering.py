@@ -23,13 +23,25 @@ class EnvRenderer:
         self.grayscale, self.context, self.device = grayscale, context, device
         self.overview_renderer = None
         self.renderer = None
+        # The next sync must send everything: set before any change that a pose update does not
+        # carry (a reset) and kept until a sync has finished, so an interrupted one (a caught
+        # Ctrl-C) cannot leave the renderer's copy of the scene half old.
+        self._needs_full = True
         scene = self._scene(overview=False, resolution=resolution, effects=effects)
         check_memory(scene, scenario.num_worlds, scenario.num_agents, resolution)
         self.renderer = self._renderer(scene, overview=False)
 
     def sync(self, state, full: bool) -> None:
-        """Hand the agents' renderer the instance data of `state` (full: everything, else poses)."""
+        """Hand the agents' renderer the instance data of `state` (full: everything, else poses;
+        everything anyway after invalidate() or an interrupted sync)."""
+        full = full or self._needs_full
+        self._needs_full = True
         self._sync(self.renderer, state, full)
+        self._needs_full = False
+
+    def invalidate(self) -> None:
+        """The state is about to change beyond poses: the next sync sends everything."""
+        self._needs_full = True
 
     def render(self) -> mr.Frame:
         return self.renderer.render()

@@ -440,3 +440,29 @@ def test_envs_alive_at_exit_and_closed_by_late_finalisers_are_silent():
     done = subprocess.run([sys.executable, "-c", EXIT_SCRIPT], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout == "done\n"
     assert done.stderr == ""
+
+
+def test_an_interrupted_sync_is_made_whole_by_the_next_render(monkeypatch):
+    """A caught Ctrl-C inside reset_worlds' instance sync used to leave the renderer with the old
+    episode's landmarks while the state had the new ones."""
+    env = make_env("spread", num_worlds=3, resolution=16, seed=2)
+    twin = make_env("spread", num_worlds=3, resolution=16, seed=2)
+    env.reset(), twin.reset()
+    original = env.scenario.instances
+    calls = {"n": 0}
+
+    def interrupted_once(state, full):
+        if full and calls["n"] == 0:
+            calls["n"] += 1
+            raise KeyboardInterrupt
+        return original(state, full)
+
+    monkeypatch.setattr(env.scenario, "instances", interrupted_once)
+    with pytest.raises(KeyboardInterrupt):
+        env.reset_worlds(torch.tensor([True, False, True]))
+    twin.set_state(env.get_state())  # the same state, synced in full
+    actions = torch.tensor([[1, 2, 3], [0, 1, 4], [3, 3, 1]])
+    for _ in range(3):
+        mine, theirs = env.step(actions)[0], twin.step(actions)[0]
+        assert torch.equal(mine["pixels"], theirs["pixels"])
+    env.close(), twin.close()
