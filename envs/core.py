@@ -88,6 +88,7 @@ import numpy as np
 import torch
 
 import marl_render as mr
+from marl_render.shadows import atlas_layout
 from marl_render.threads import limited_threads, thread_count
 from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, unpicklable
 
@@ -171,6 +172,8 @@ class BatchedEnv:
         self.shadows = check.shadows(options.shadows, scenario.shadow_bounds)
         effects = ("lighting", "depth") if self.depth else ("lighting",)
         effects += ("shadows",) if self.shadows else ()
+        if self.shadows:  # an atlas GL cannot hold is named as such, not as a memory shortage
+            atlas_layout(self.num_worlds, self.shadows.resolution, self.context.info().max_framebuffer_size)
         # Views and pixels alone, before the scenario allocates anything; the whole scene below.
         check_memory(mr.Scene(num_worlds=self.num_worlds, agents_per_world=self.num_agents,
                               resolution=self.resolution, effects=effects),

@@ -28,7 +28,7 @@ from .packing import FramePacker
 from .panda_buffers import buffer_texture, int_input, panda_texture, vec3_input, writable
 from .provoking import shared_corner_mesh
 from .scene import Scene
-from .shadows import ShadowPass
+from .shadows import ShadowPass, atlas_layout
 from .threads import one_thread
 from .tiling import TileLayout, column_layout
 from .triangle_corners import to_panda_geom_with_corners
@@ -125,10 +125,6 @@ class BatchRenderer:
                              "bit-packed samples would be averaged); use supersample instead")
         self.multisamples = multisamples
         height, width = scene.resolution
-        memory.check_fits(memory.renderer_bytes(scene, self.supersample),
-                          f"a BatchRenderer of num_worlds={scene.num_worlds} x agents_per_world="
-                          f"{scene.agents_per_world} at resolution {height}x{width} (supersample={self.supersample})",
-                          "lower num_worlds, agents_per_world, resolution or supersample")
         self.scene = scene
         self.readback = readback
         self.channels_first = bool(channels_first)
@@ -148,6 +144,12 @@ class BatchRenderer:
             max_framebuffer_size = gl_max
         if not isinstance(max_framebuffer_size, int) or not 1 <= max_framebuffer_size <= gl_max:
             raise ValueError(f"max_framebuffer_size must be an int in [1, {gl_max}], got {max_framebuffer_size!r}")
+        if "shadows" in scene.effects:  # an atlas GL cannot hold is named as such, not as a memory shortage
+            atlas_layout(scene.num_worlds, scene.shadows.resolution, gl_max)
+        memory.check_fits(memory.renderer_bytes(scene, self.supersample),
+                          f"a BatchRenderer of num_worlds={scene.num_worlds} x agents_per_world="
+                          f"{scene.agents_per_world} at resolution {height}x{width} (supersample={self.supersample})",
+                          "lower num_worlds, agents_per_world, resolution or supersample")
         height, width = scene.resolution
         k = self.supersample
         self.layout: TileLayout = column_layout(scene.num_views, height * k, width * k, max_framebuffer_size)

@@ -371,3 +371,15 @@ def test_shadows_far_from_the_origin_still_match_the_analytic_projection():
         frame = renderer.render()
         assert bool((renderer.world_origin != 0).all(dim=1).any())
     check_views(frame, scene, BOXES)  # the analytic shadow is the same relative to the shift
+
+
+def test_an_atlas_too_large_for_gl_is_named_before_the_memory_estimate():
+    """Shadows(resolution=2**31) used to fail with a memory message blaming num_worlds and resolution."""
+    from marl_render.envs import make_env
+
+    scene = mr.Scene(num_worlds=4, agents_per_world=1, resolution=8, effects=("lighting", "shadows"),
+                     shadows=mr.Shadows(resolution=2 ** 31))
+    with pytest.raises(ValueError, match=r"shadows\.resolution must let 4 shadow maps fit .* got 2147483648"):
+        mr.BatchRenderer(scene)
+    with pytest.raises(ValueError, match=r"shadows\.resolution must let 2 shadow maps fit"):
+        make_env("spread", num_worlds=2, resolution=8, shadows=mr.Shadows(resolution=2 ** 31))
