@@ -14,12 +14,14 @@ _MIN_QUAT_NORM = 1e-12
 def normalize_quat(q: torch.Tensor, *, name: str = "rotation") -> torch.Tensor:
     """Unit quaternion with w >= 0 (q and -q are the same rotation).
 
-    Raises ValueError for (near-)zero quaternions instead of producing NaN.
+    Raises ValueError for (near-)zero quaternions instead of producing NaN. The largest component
+    is divided out before the norm is taken, so that huge quaternions (1e200) do not overflow it.
     """
-    norm = q.norm(dim=-1, keepdim=True)
-    if bool((norm < _MIN_QUAT_NORM).any()):
+    largest = q.abs().amax(dim=-1, keepdim=True)
+    if bool((largest < _MIN_QUAT_NORM).any()):
         raise ValueError(f"{name} must be non-zero quaternions (w, x, y, z), got one with norm < {_MIN_QUAT_NORM}")
-    q = q / norm
+    q = q / largest
+    q = q / q.norm(dim=-1, keepdim=True)
     return torch.where(q[..., :1] < 0, -q, q)
 
 

@@ -302,3 +302,21 @@ def test_texture_must_be_an_image():
 
     with pytest.raises(ValueError, match=r"texture of group 'boxes': texture must be a uint8 array"):
         panda_texture(np.zeros((4, 4), dtype=np.uint8), "boxes")
+
+
+def test_huge_quaternions_are_normalised_not_stored_as_zeros():
+    """Quaternions above ~1e154 overflowed the norm, were stored as zeros and jammed every later render."""
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=8)
+    scene.add_group("box", "box", capacity=1)
+    huge = torch.tensor([[[1e200, 0.0, 0.0, 1e200]]], dtype=torch.float64)
+    with mr.BatchRenderer(scene) as renderer, mr.BatchRenderer(scene) as twin:
+        renderer.update("box", rotation=huge, active=torch.ones(1, 1, dtype=torch.bool))
+        twin.update("box", rotation=torch.tensor([[[1.0, 0.0, 0.0, 1.0]]]), active=torch.ones(1, 1, dtype=torch.bool))
+        renderer.set_cameras(rotation=huge * 3, position=torch.tensor([[[0.0, -3.0, 0.0]]]))
+        twin.set_cameras(rotation=torch.tensor([[[3.0, 0.0, 0.0, 3.0]]]), position=torch.tensor([[[0.0, -3.0, 0.0]]]))
+        assert torch.equal(renderer.render().rgb, twin.render().rgb)
+        for kwargs in ({"rotation": torch.zeros(1, 1, 4)}, {"rotation": torch.full((1, 1, 4), 1e-300,
+                                                                                   dtype=torch.float64)}):
+            with pytest.raises(ValueError, match="rotation must be non-zero quaternions"):
+                renderer.update("box", **kwargs)
+        assert renderer.render().rgb.shape == (1, 1, 8, 8, 3)  # the refused calls changed nothing
