@@ -383,7 +383,12 @@ class BatchRenderer:
         with self._context.current():  # raises in a forked child
             self._prepare()
             self.last_timings.update(gl=0.0, copy=0.0)
-            return self._draw_and_read()
+            try:
+                return self._draw_and_read()
+            except AssertionError as error:  # Panda3D's C++ assertions (e.g. an input it could not bind)
+                # The variants of this draw may be left unusable: never hand them out again.
+                shaders.forget_compiled()
+                raise backend.ShaderCompileError(f"the frame failed in Panda3D: {error}".strip()) from error
 
     def _prepare(self) -> list[str]:
         """Pack the frame into the buffer textures (packing.py) and bring the shadow atlas up
@@ -436,10 +441,10 @@ class BatchRenderer:
                 render_pass.buffer.set_active(False)
             if self.shadow_pass is not None:
                 self.shadow_pass.set_active(False)
-        self._check_shaders()
         copy_seconds = 0.0
         for render_pass in self._passes:
             copy_seconds += self._read_pass(render_pass, rgb, depth, segmentation)
+        self._check_shaders()  # after the reads: Panda3D reports some failures of the frame only then
         self.last_timings["gl"] = time.perf_counter() - started - copy_seconds
         self.last_timings["copy"] = copy_seconds
         rgb = rgb.view((W, A) + rgb_shape[1:])
@@ -452,7 +457,13 @@ class BatchRenderer:
         failed = [name for name, draw in self._groups.items()
                   if any(node.get_shader().get_error_flag() for node, _, _ in draw.pass_nodes)]
         failed += self.shadow_pass.failed_groups() if self.shadow_pass is not None else []
+        # A shader input Panda3D could not bind (a NaN uniform was one way) fails the draw without an
+        # error flag and leaves the variant unusable for every later renderer: a failure too.
+        unbound = [line for line in log if "Shader input" in line and "is not present" in line]
+        if unbound and not failed:
+            failed = sorted(self._groups)
         if failed:
+            shaders.forget_compiled()  # the failed Shader keeps its error flag: never hand it out again
             text = "\n".join(log or self._context.recent_log[-20:])
             raise backend.ShaderCompileError(f"the shader of group(s) {failed} failed to compile or link:\n{text}")
 

@@ -45,6 +45,8 @@ from .validation import (
     resolution_hw,
 )
 
+MIN_DIRECTION_LENGTH, MAX_DIRECTION_LENGTH = 1e-30, 1e30  # Lighting.direction's length (see there)
+
 
 @dataclass(frozen=True)
 class Lighting:
@@ -58,6 +60,12 @@ class Lighting:
         direction = _numbers("lighting.direction", self.direction, (3,))
         if not any(direction):
             raise ValueError(f"lighting.direction must be a non-zero vector, got {direction}")
+        # Its length is squared on the way to a unit vector (here in float64, in the shader in
+        # float32): one that underflows or overflows there would reach the shader as NaN or 0.
+        length = math.hypot(*direction)
+        if not MIN_DIRECTION_LENGTH <= length <= MAX_DIRECTION_LENGTH:
+            raise ValueError(f"lighting.direction must have a length in [{MIN_DIRECTION_LENGTH:g}, "
+                             f"{MAX_DIRECTION_LENGTH:g}] (scale it), got {direction} of length {length:g}")
         object.__setattr__(self, "direction", direction)
         # Light colours may exceed 1 (a bright light); they only must not be negative.
         object.__setattr__(self, "color", _color("lighting.color", self.color, high=None))

@@ -80,9 +80,24 @@ def variant_source(stage: str, defines: tuple[str, ...]) -> str:
     return header + source(f"batch.{stage}")
 
 
-@functools.cache
+_COMPILED: dict = {}  # ("view" | "caster", defines) -> Panda3D Shader
+
+
+def forget_compiled() -> None:
+    """Drop every cached variant: after a variant failed to compile or link, its Shader object
+    keeps its error flag, and a cached one would make every later renderer draw nothing."""
+    _COMPILED.clear()
+
+
 def compiled(defines: tuple[str, ...]):
     """Cached Panda3D Shader for one variant (compiled by the driver on first draw)."""
+    key = ("view", defines)
+    if key not in _COMPILED:
+        _COMPILED[key] = _compile_view(defines)
+    return _COMPILED[key]
+
+
+def _compile_view(defines: tuple[str, ...]):
     from panda3d.core import Shader
 
     geometry = variant_source("geom", defines) if "DEPTH_PLANE_FROM_GEOMETRY" in defines else ""
@@ -113,9 +128,15 @@ def caster_defines(*, static: bool, joints: int = 0, influences: int = 4) -> tup
     return tuple(sorted(_instance_defines(static, joints, influences) | {"SHADOW_CASTER"}))
 
 
-@functools.cache
 def compiled_caster(defines: tuple[str, ...]):
     """Cached Panda3D Shader of the depth-only shadow pass: batch.vert, an empty fragment stage."""
+    key = ("caster", defines)
+    if key not in _COMPILED:
+        _COMPILED[key] = _compile_caster(defines)
+    return _COMPILED[key]
+
+
+def _compile_caster(defines: tuple[str, ...]):
     from panda3d.core import Shader
 
     fragment = GLSL_VERSION + source("shadow_caster.frag")

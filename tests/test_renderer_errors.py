@@ -320,3 +320,37 @@ def test_huge_quaternions_are_normalised_not_stored_as_zeros():
             with pytest.raises(ValueError, match="rotation must be non-zero quaternions"):
                 renderer.update("box", **kwargs)
         assert renderer.render().rgb.shape == (1, 1, 8, 8, 3)  # the refused calls changed nothing
+
+
+@pytest.mark.parametrize("direction", [(0, 0, -1e-310), (1e308, 1e308, -1e308), (0.0, 1e-40, 0.0)])
+def test_light_directions_whose_length_cannot_be_normalised_are_refused(direction):
+    with pytest.raises(ValueError, match=r"lighting\.direction must have a length in \[1e-30, 1e\+30\]"):
+        mr.Lighting(direction=direction)
+
+
+
+def test_a_failed_frame_drops_the_cached_shader_variants():
+    """A variant whose draw failed keeps Panda3D's error state: handed out again, every later renderer
+    with the same effects drew only the background. A failure now drops the cache, so the next
+    renderer compiles afresh."""
+    from panda3d.core import Shader
+
+    from marl_render import backend, shaders
+
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=8)
+    scene.add_group("box", "box", capacity=1)
+    camera = {"position": torch.tensor([[[0.0, -3.0, 0.0]]]), "look_at": torch.tensor([[[0.0, 0.0, 0.0]]])}
+    with mr.BatchRenderer(scene) as broken:
+        broken.update("box", position=[[[0.0, 0.0, 0.0]]], active=[[True]])
+        broken.set_cameras(**camera)
+        assert shaders._COMPILED  # the variants of this scene are cached
+        broken._groups["box"].node.set_shader(Shader.make(
+            Shader.SL_GLSL, "#version 410\nvoid main() { gl_Position = vec4(0.0); }",
+            "#version 410\nout vec4 c;\nvoid main() { c = undefined_colour; }"))
+        with pytest.raises(backend.ShaderCompileError):
+            broken.render()
+        assert not shaders._COMPILED
+    with mr.BatchRenderer(scene) as fresh:
+        fresh.update("box", position=[[[0.0, 0.0, 0.0]]], active=[[True]])
+        fresh.set_cameras(**camera)
+        assert len(set(map(tuple, fresh.render().rgb.reshape(-1, 3).tolist()))) > 1  # the box is drawn
