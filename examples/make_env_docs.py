@@ -48,11 +48,15 @@ SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
     "push": ("+goal_reward (1) to every agent of the scoring team, -goal_reward to the other team; "
              "optional zero-sum shaping by the ball's progress",
              "a goal terminates every agent (one goal per episode); truncated at max_steps"),
+    "commons": ("per agent: +1 per apple it collects; apples regrow only next to present ones; zapping "
+                "tags another agent out for tag_timeout (25) steps",
+                "never terminates; truncated at max_steps"),
 }
 EGOCENTRIC_DIMS = ("thrust along the body's heading (+ forward)", "turn rate (+ left)")
 CONTINUOUS_DIMS = {  # env -> meaning of each continuous action dimension, all in [-1, 1]
     "cartpole": ("motor control: force on the cart, x 10 N (gear 10)",),
     "spread": EGOCENTRIC_DIMS, "tag": EGOCENTRIC_DIMS, "forage": EGOCENTRIC_DIMS, "push": EGOCENTRIC_DIMS,
+    "commons": EGOCENTRIC_DIMS + ("zap (> 0.5: tag the nearest agent in view within 1.5 m)",),
 }
 INFO = {  # step info key -> meaning
     "step_count": "steps of the episode just stepped",
@@ -61,7 +65,10 @@ INFO = {  # step info key -> meaning
     "coverage": "sum over landmarks of the distance to the closest agent (m)",
     "caught": "prey caught in this step",
     "prey_left": "live prey after the step",
-    "collected": "items collected in this step",
+    "collected": "items (forage) or apples (commons) collected in this step",
+    "apples_left": "apples present after the step",
+    "tags": "agents tagged out in this step",
+    "depleted_at": "step of the episode at which the last apple went; -1 while some remain",
     "team_score": "the team's total reward of the episode so far (sum over agents and steps)",
     "goal": "+1: team_a scored in this step, -1: team_b scored, 0: no goal",
 }

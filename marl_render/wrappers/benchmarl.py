@@ -11,7 +11,7 @@
                             seed=0, config=ExperimentConfig.get_from_yaml())
     experiment.run()
 
-One enum member per registered env (``MarlRenderTask.CARTPOLE``, ``FORAGE``, ``PUSH``,
+One enum member per registered env (``MarlRenderTask.CARTPOLE``, ``COMMONS``, ``FORAGE``, ``PUSH``,
 ``SPREAD``, ``TAG``). A task's ``config`` holds the env's keyword arguments (``resolution``,
 ``num_agents``, ``max_steps``, ``state_obs``, ``group_map``, the env's own ones; see
 ``make_torchrl_env``); an empty config gives the env's defaults. BenchMARL itself chooses the
@@ -131,6 +131,7 @@ class MarlRenderTask(Task):
     """Enum of the suite's envs as BenchMARL tasks (``tests`` check it lists every registered env)."""
 
     CARTPOLE = None
+    COMMONS = None
     FORAGE = None
     PUSH = None
     SPREAD = None
