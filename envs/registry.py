@@ -35,6 +35,7 @@ _REGISTRY: dict = {
     "push": "marl_render.envs.push:Push",
     "rooms": "marl_render.envs.rooms:Rooms",
     "speaker_listener": "marl_render.envs.speaker_listener:SpeakerListener",
+    "commons": "marl_render.envs.commons:Commons",
 }
 
 

@@ -55,6 +55,9 @@ SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
     "rooms": ("shared: +found_reward (1) when any agent first reaches the goal; with return_home another "
               "+found_reward when an agent that reached it is first back in the home room; -step_penalty (0) per step",
               "the goal found (with return_home: a finder back home) terminates every agent; truncated at max_steps"),
+    "commons": ("per agent: +1 per apple it collects; apples regrow only next to present ones; zapping "
+                "tags another agent out for tag_timeout (25) steps",
+                "never terminates; truncated at max_steps"),
 }
 EGOCENTRIC_DIMS = ("thrust along the body's heading (+ forward)", "turn rate (+ left)")
 CONTINUOUS_DIMS = {  # env -> meaning of each continuous action dimension, all in [-1, 1]
@@ -63,6 +66,7 @@ CONTINUOUS_DIMS = {  # env -> meaning of each continuous action dimension, all i
     "rooms": EGOCENTRIC_DIMS,
     "speaker_listener": EGOCENTRIC_DIMS + tuple(f"lamp value of target {k}: the lamp shows the colour of the largest "
                                                 f"when it is above 0.5 (the speaker's only)" for k in range(3)),
+    "commons": EGOCENTRIC_DIMS + ("zap (> 0.5: tag the nearest agent in view within 1.5 m)",),
 }
 INFO = {  # step info key -> meaning
     "step_count": "steps of the episode just stepped",
@@ -71,7 +75,10 @@ INFO = {  # step info key -> meaning
     "coverage": "sum over landmarks of the distance to the closest agent (m)",
     "caught": "prey caught in this step",
     "prey_left": "live prey after the step",
-    "collected": "items collected in this step",
+    "collected": "items (forage) or apples (commons) collected in this step",
+    "apples_left": "apples present after the step",
+    "tags": "agents tagged out in this step",
+    "depleted_at": "step of the episode at which the last apple went; -1 while some remain",
     "team_score": "the team's total reward of the episode so far (sum over agents and steps)",
     "goal": "+1: team_a scored in this step, -1: team_b scored, 0: no goal",
     "found": "1 once an agent has reached the goal in this episode",

@@ -557,6 +557,7 @@ DECLARED_TERMS = {
     "tag": {"walls", "body_collisions", "drag", "obstacles"},
     'speaker_listener': {'body_collisions', 'walls', 'drag'},
     'rooms': {'walls', 'body_collisions', 'drag', 'obstacles'},
+    "commons": {"walls", "body_collisions", "drag"},
 }
 
 

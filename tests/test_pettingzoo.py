@@ -274,6 +274,7 @@ STEP_STATISTICS = {  # the info keys each task declares, written out (not read f
     "cartpole": set(), "spread": {"collisions", "coverage"}, "forage": {"collected", "team_score"},
     "tag": {"caught", "prey_left"}, "push": {"goal"}, "rooms": {"found", "returned", "rooms_visited"},
     "speaker_listener": {"reached", "distance", "lamp_correct"},
+    "commons": {"collected", "apples_left", "tags", "depleted_at"},
 }
 
 

@@ -133,6 +133,7 @@ class MarlRenderTask(Task):
     """Enum of the suite's envs as BenchMARL tasks (``tests`` check it lists every registered env)."""
 
     CARTPOLE = None
+    COMMONS = None
     FORAGE = None
     PUSH = None
     SPREAD = None
