@@ -30,6 +30,7 @@ _REGISTRY: dict = {
     "tag": "marl_render.envs.tag:Tag",
     "forage": "marl_render.envs.forage:Forage",
     "push": "marl_render.envs.push:Push",
+    "capture_flag": "marl_render.envs.capture_flag:CaptureFlag",
 }
 
 
