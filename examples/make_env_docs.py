@@ -48,11 +48,16 @@ SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
     "push": ("+goal_reward (1) to every agent of the scoring team, -goal_reward to the other team; "
              "optional zero-sum shaping by the ball's progress",
              "a goal terminates every agent (one goal per episode); truncated at max_steps"),
+    "capture_flag": ("shared per team, zero-sum: +capture_reward (1) to every agent of a team per capture it "
+                     "scores, -capture_reward per capture of the other team",
+                     "with captures_to_win > 0, every agent terminates once a team has that many captures; "
+                     "truncated at max_steps"),
 }
 EGOCENTRIC_DIMS = ("thrust along the body's heading (+ forward)", "turn rate (+ left)")
 CONTINUOUS_DIMS = {  # env -> meaning of each continuous action dimension, all in [-1, 1]
     "cartpole": ("motor control: force on the cart, x 10 N (gear 10)",),
     "spread": EGOCENTRIC_DIMS, "tag": EGOCENTRIC_DIMS, "forage": EGOCENTRIC_DIMS, "push": EGOCENTRIC_DIMS,
+    "capture_flag": EGOCENTRIC_DIMS,
 }
 INFO = {  # step info key -> meaning
     "step_count": "steps of the episode just stepped",
@@ -64,6 +69,10 @@ INFO = {  # step info key -> meaning
     "collected": "items collected in this step",
     "team_score": "the team's total reward of the episode so far (sum over agents and steps)",
     "goal": "+1: team_a scored in this step, -1: team_b scored, 0: no goal",
+    "captures_red": "captures red scored in this step",
+    "captures_blue": "captures blue scored in this step",
+    "tags": "agents tagged (sent home) in this step",
+    "flag_carried": "flags carried after the step (0 to 2)",
 }
 CONDITION = {"pixels": "always", "depth": "`depth=True`", "state": "`state_obs=True`",
              "action_mask": "discrete actions (the default)"}

@@ -153,11 +153,11 @@ def test_seeded_episodes_are_identical_and_state_round_trips():
             out.append((obs["state"].clone(), obs["pixels"].clone(), reward.clone()))
         runs.append(out)
         saved = env.get_state()
-    assert all(torch.equal(a, b) for x, y in zip(*runs) for a, b in zip(x, y))
+    assert all(torch.equal(a, b) for x, y in zip(*runs, strict=True) for a, b in zip(x, y, strict=True))
     actions = [env.random_actions(torch.Generator().manual_seed(k)) for k in range(5)]
     first = [env.step(a)[0]["state"] for a in actions]
     env.set_state(saved)
-    assert all(torch.equal(a, env.step(b)[0]["state"]) for a, b in zip(first, actions))
+    assert all(torch.equal(a, env.step(b)[0]["state"]) for a, b in zip(first, actions, strict=True))
     env.close()
 
 

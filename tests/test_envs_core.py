@@ -507,6 +507,7 @@ DECLARED_TERMS = {
     "forage": {"walls", "body_collisions", "drag"},
     "push": {"walls", "body_collisions", "drag"},
     "tag": {"walls", "body_collisions", "drag", "obstacles"},
+    "capture_flag": {"walls", "body_collisions", "drag"},
 }
 
 

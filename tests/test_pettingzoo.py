@@ -267,7 +267,9 @@ def test_infos_carry_the_envs_step_statistics(name):
         want = {k: v[0].item() for k, v in info.items() if k != "done_worlds"}
         assert set(want) == {"step_count"} | {"cartpole": set(), "spread": {"collisions", "coverage"},
                                               "forage": {"collected", "team_score"}, "tag": {"caught", "prey_left"},
-                                              "push": {"goal"}}[name]
+                                              "push": {"goal"},
+                                              "capture_flag": {"captures_red", "captures_blue", "tags",
+                                                               "flag_carried"}}[name]
         assert infos == {agent: want for agent in actions}
         assert all(type(v) is type(want[k]) for i in infos.values() for k, v in i.items())
     env.close()
