@@ -11,8 +11,9 @@
   flags at home.
 * Actions, egocentric, as in ``spread``: discrete 5: 0 noop, 1 forward, 2 turn left,
   3 turn right, 4 backward; continuous 2: (thrust in [-1, 1] along the heading, turn rate).
-* Rules, in this order, after the bodies moved ("touch": the bodies' gap, or an agent's centre
-  to a flag's base point, is below ``REACH`` = 0.05 m plus the agent's radius for a flag):
+* Rules, in this order, after the bodies moved. Two agents touch while their bodies' gap is below
+  ``REACH`` (0.05 m); an agent touches a flag at home while its centre is within its radius +
+  ``REACH`` of the flag's base point.
   1. Tag: an agent touching an opponent while in the opponent's half (the sign of its y) is
      tagged: it goes back to its home slot (a fixed place behind its base, two rows across
      the arena), still, and drops the flag it carries, which returns home.
