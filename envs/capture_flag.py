@@ -105,6 +105,7 @@ class CaptureFlag(ArenaScenario):
         self.side = self.team * 2.0 - 1.0  # [N] the sign of y in the own half
         self.base = torch.tensor([[0.0, -BASE_Y], [0.0, BASE_Y]], device=d)  # [2, 2] per team
         self.same = self.team[:, None] == self.team[None, :]  # [N, N]
+        # Home slots (where tagged agents go): two rows behind the team's base, over |x| <= 2.5 m.
         slot = torch.arange(N, device=d) % T
         cols = (T + 1) // 2
         x = (slot // 2).float() * (5.0 / max(cols - 1, 1)) - (2.5 if cols > 1 else 0.0)
