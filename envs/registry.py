@@ -36,6 +36,7 @@ _REGISTRY: dict = {
     "rooms": "marl_render.envs.rooms:Rooms",
     "speaker_listener": "marl_render.envs.speaker_listener:SpeakerListener",
     "commons": "marl_render.envs.commons:Commons",
+    "capture_flag": "marl_render.envs.capture_flag:CaptureFlag",
 }
 
 

@@ -58,6 +58,10 @@ SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
     "commons": ("per agent: +1 per apple it collects; apples regrow only next to present ones; zapping "
                 "tags another agent out for tag_timeout (25) steps",
                 "never terminates; truncated at max_steps"),
+    "capture_flag": ("shared per team, zero-sum: +capture_reward (1) to every agent of a team per capture it "
+                     "scores, -capture_reward per capture of the other team",
+                     "with captures_to_win > 0, every agent terminates once a team has that many captures; "
+                     "truncated at max_steps"),
 }
 EGOCENTRIC_DIMS = ("thrust along the body's heading (+ forward)", "turn rate (+ left)")
 CONTINUOUS_DIMS = {  # env -> meaning of each continuous action dimension, all in [-1, 1]
@@ -67,6 +71,7 @@ CONTINUOUS_DIMS = {  # env -> meaning of each continuous action dimension, all i
     "speaker_listener": EGOCENTRIC_DIMS + tuple(f"lamp value of target {k}: the lamp shows the colour of the largest "
                                                 f"when it is above 0.5 (the speaker's only)" for k in range(3)),
     "commons": EGOCENTRIC_DIMS + ("zap (> 0.5: tag the nearest agent in view within 1.5 m)",),
+    "capture_flag": EGOCENTRIC_DIMS,
 }
 INFO = {  # step info key -> meaning
     "step_count": "steps of the episode just stepped",
@@ -77,7 +82,7 @@ INFO = {  # step info key -> meaning
     "prey_left": "live prey after the step",
     "collected": "items (forage) or apples (commons) collected in this step",
     "apples_left": "apples present after the step",
-    "tags": "agents tagged out in this step",
+    "tags": "agents tagged in this step (commons: out for a while; capture_flag: sent home)",
     "depleted_at": "step of the episode at which the last apple went; -1 while some remain",
     "team_score": "the team's total reward of the episode so far (sum over agents and steps)",
     "goal": "+1: team_a scored in this step, -1: team_b scored, 0: no goal",
@@ -87,6 +92,9 @@ INFO = {  # step info key -> meaning
     "reached": "1 on the step the listener reaches the goal",
     "distance": "the listener's distance to the goal (m)",
     "lamp_correct": "1 while the lamp shows the goal's colour",
+    "captures_red": "captures red scored in this step",
+    "captures_blue": "captures blue scored in this step",
+    "flag_carried": "flags carried after the step (0 to 2)",
 }
 CONDITION = {"pixels": "always", "depth": "`depth=True`", "state": "`state_obs=True`",
              "action_mask": "discrete actions (the default)"}

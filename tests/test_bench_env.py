@@ -27,3 +27,13 @@ def test_bench_env_rejects_an_unknown_front_end():
     result = subprocess.run([sys.executable, "-m", "marl_render.bench", "env", "--api", "gym"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode != 0 and "invalid choice: 'gym'" in result.stderr
+
+
+def test_bench_env_measures_every_world_and_agent_count():
+    # --worlds and --agents take several values: one row per (worlds, agents) pair.
+    out = subprocess.run([sys.executable, "-m", "marl_render.bench", "env", "--env", "capture_flag", "--worlds", "1",
+                          "2", "--agents", "4", "6", "--resolution", "8", "--steps", "1", "--json"],
+                         capture_output=True, text=True, timeout=120, check=True).stdout
+    rows = json.loads(out.strip().splitlines()[-1])["results"]
+    assert [(row["worlds"], row["agents"]) for row in rows] == [(1, 4), (1, 6), (2, 4), (2, 6)]
+    assert all(row["agent_frames_per_s"] == pytest.approx(row["env_steps_per_s"] * row["agents"]) for row in rows)

@@ -558,6 +558,7 @@ DECLARED_TERMS = {
     'speaker_listener': {'body_collisions', 'walls', 'drag'},
     'rooms': {'walls', 'body_collisions', 'drag', 'obstacles'},
     "commons": {"walls", "body_collisions", "drag"},
+    "capture_flag": {"walls", "body_collisions", "drag"},
 }
 
 

@@ -275,6 +275,7 @@ STEP_STATISTICS = {  # the info keys each task declares, written out (not read f
     "tag": {"caught", "prey_left"}, "push": {"goal"}, "rooms": {"found", "returned", "rooms_visited"},
     "speaker_listener": {"reached", "distance", "lamp_correct"},
     "commons": {"collected", "apples_left", "tags", "depleted_at"},
+    "capture_flag": {"captures_red", "captures_blue", "tags", "flag_carried"},
 }
 
 

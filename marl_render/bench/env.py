@@ -17,6 +17,7 @@ convention), which renders twice on a step where a world ends.
 """
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
@@ -29,8 +30,9 @@ APIS = ("core", "vec", "sb3", "jax")
 
 def add_arguments(parser):
     parser.add_argument("--env", default="cartpole", help="environment name, or 'all'")
-    parser.add_argument("--worlds", type=int, default=256)
-    parser.add_argument("--agents", type=int, default=None, help="agents per world (env default if omitted)")
+    parser.add_argument("--worlds", type=int, nargs="+", default=[256], help="worlds per env (several: one row each)")
+    parser.add_argument("--agents", type=int, nargs="+", default=[None],
+                        help="agents per world (env default if omitted; several: one row each)")
     parser.add_argument("--resolution", type=int, nargs="+", default=[64])
     parser.add_argument("--steps", type=int, default=30, help="timed steps per front end")
     parser.add_argument("--continuous", action="store_true")
@@ -149,9 +151,9 @@ def run(args) -> dict:
     names = list_envs() if args.env == "all" else [args.env]
     apis = tuple(dict.fromkeys(args.api))  # in the given order, once each
     rows = []
-    for name in names:
-        for resolution in args.resolution:
-            progress(f"env {name}: {args.worlds} worlds at {resolution}px, {args.steps} steps "
-                     f"through {', '.join(apis)}")
-            rows += measure(name, args.worlds, resolution, args.steps, args.agents, args.continuous, apis)
+    for name, worlds, agents, resolution in itertools.product(names, args.worlds, args.agents, args.resolution):
+        each = "default" if agents is None else agents
+        progress(f"env {name}: {worlds} worlds of {each} agents at {resolution}px, {args.steps} steps "
+                 f"through {', '.join(apis)}")
+        rows += measure(name, worlds, resolution, args.steps, agents, args.continuous, apis)
     return {"benchmark": "env", "machine": machine(), "results": rows}

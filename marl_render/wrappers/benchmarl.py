@@ -132,6 +132,7 @@ class MarlRenderTaskClass(TaskClass):
 class MarlRenderTask(Task):
     """Enum of the suite's envs as BenchMARL tasks (``tests`` check it lists every registered env)."""
 
+    CAPTURE_FLAG = None
     CARTPOLE = None
     COMMONS = None
     FORAGE = None
