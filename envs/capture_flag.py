@@ -91,6 +91,7 @@ class CaptureFlag(ArenaScenario):
     info_keys = {"captures_red": torch.int64, "captures_blue": torch.int64, "tags": torch.int64,
                  "flag_carried": torch.int64}
     arena_half_extent = ARENA
+    opponents = ("blue",)  # the reference evaluation: red plays the policy, blue random
 
     def setup(self):
         N = self.num_agents
