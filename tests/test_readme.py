@@ -11,7 +11,7 @@ import pytest
 
 from readme_snippets import SIDE_VENV, snippets
 
-SIDE_VENVS = {"benchmarl"}  # the side venvs whose tests run their blocks
+SIDE_VENVS = {"benchmarl", "rllib"}  # the side venvs whose tests run their blocks
 BUDGETS = {  # text in a block -> the same with a budget that runs in seconds
     "n_steps=128, batch_size=256, device=\"cpu\").learn(100_000)":
         "n_steps=8, batch_size=256, device=\"cpu\").learn(256)",
