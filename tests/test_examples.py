@@ -251,3 +251,17 @@ def test_env_docs_are_up_to_date(tmp_path):
         picture = png(tmp_path / "envs" / f"{name}.png")
         assert picture.shape[0] >= 256 and picture.std() > 10
         assert png(ROOT / "docs" / "envs" / f"{name}.png").shape == picture.shape
+
+
+def test_train_mappo_keeps_its_budget_evaluations_included_and_shows_no_nan(tmp_path):
+    out_dir = tmp_path / "mappo"
+    # 8-step batches of 40-step episodes: no episode ends in the first batch
+    result = run("train_mappo.py", "--minutes", 0.2, "--worlds", 8, "--resolution", 16, "--max-steps", 40,
+                 "--rollout", 8, "--epochs", 1, "--out", out_dir, cwd=tmp_path)
+    summary = json.loads((out_dir / "result.json").read_text())
+    assert summary["budget_minutes"] == 0.2 and summary["eval_seconds"] < 2  # the budget leaves time to train
+    assert summary["minutes"] * 60 <= 0.2 * 60 + 1.0  # the whole run, its three evaluations included
+    assert summary["curve"][0][3] is None  # no episode ended in the first batch ...
+    progress = result.stderr.replace("\r", "\n")
+    assert "episode return - (running episodes so far -" in progress  # ... and the bar says so
+    assert "nan" not in progress
