@@ -40,25 +40,29 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def parse_args():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     parser.add_argument("--worlds", type=int, default=64, help="parallel worlds (vector env entries)")
     parser.add_argument("--resolution", type=int, default=48, help="pixels per side of each frame")
     parser.add_argument("--steps", type=int, default=1_000_000, help="environment steps to train for, all worlds")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the env and the network")
     parser.add_argument("--out", default="out/ppo_cartpole", help="folder for curve.png and result.json")
     parser.add_argument("--max-steps", type=int, default=1000, help="episode length (dm_control: 1000 = 10 s)")
     parser.add_argument("--action-repeat", type=int, default=4, help="environment steps per decision")
     parser.add_argument("--frames", type=int, default=3, help="stacked decision frames the policy sees")
     parser.add_argument("--rollout", type=int, default=32, help="decisions per world between updates")
-    parser.add_argument("--epochs", type=int, default=4)
-    parser.add_argument("--minibatches", type=int, default=4)
-    parser.add_argument("--lr", type=float, default=3e-4)
+    parser.add_argument("--epochs", type=int, default=4, help="passes over each rollout")
+    parser.add_argument("--minibatches", type=int, default=4, help="minibatches per pass")
+    parser.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate")
     parser.add_argument("--gamma", type=float, default=0.95, help="discount per decision")
-    parser.add_argument("--gae-lambda", type=float, default=0.95)
-    parser.add_argument("--clip", type=float, default=0.2)
-    parser.add_argument("--ent-coef", type=float, default=0.01)
-    parser.add_argument("--vf-coef", type=float, default=0.5)
+    parser.add_argument("--gae-lambda", type=float, default=0.95, help="GAE lambda")
+    parser.add_argument("--clip", type=float, default=0.2, help="PPO clip range of the probability ratio")
+    parser.add_argument("--ent-coef", type=float, default=0.01, help="entropy bonus weight")
+    parser.add_argument("--vf-coef", type=float, default=0.5, help="value loss weight")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads for the network (the renderer has its own)")
     return parser.parse_args()

@@ -4,6 +4,7 @@ record_video.py, train_mappo.py and make_env_docs.py that their results rest on.
 import importlib.util
 import json
 import os
+import re
 import subprocess
 import sys
 import types
@@ -98,6 +99,11 @@ def test_help_lists_the_options(script, help_texts):
     assert out.startswith("usage: ")
     for option in ["--out", *OPTIONS.get(script, [])]:
         assert f"{option} " in out or f"{option}\n" in out, f"{script} --help does not list {option}:\n{out}"
+    # every option but --help says its default (one entry per option, "  -x" or "  --x" at line start)
+    entries = re.split(r"\n(?=  -)", out.split("\noptions:\n", 1)[1])
+    for entry in entries:
+        if not entry.lstrip().startswith("-h"):
+            assert "(default:" in entry, f"{script} --help shows no default for:\n{entry}"
 
 
 def test_demo_writes_the_grid_of_views(tmp_path):
