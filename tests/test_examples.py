@@ -271,3 +271,18 @@ def test_train_mappo_keeps_its_budget_evaluations_included_and_shows_no_nan(tmp_
     progress = result.stderr.replace("\r", "\n")
     assert "episode return - (running episodes so far -" in progress  # ... and the bar says so
     assert "nan" not in progress
+
+
+def test_ppo_cartpole_shorter_than_an_episode_still_plots_its_training(tmp_path):
+    out_dir = tmp_path / "ppo"
+    # 4 updates of 8 decisions x 4 steps x 4 worlds = 512 steps; one episode of every world takes 800
+    out = run("ppo_cartpole_pixels.py", "--worlds", 4, "--resolution", 16, "--steps", 512, "--max-steps", 200,
+              "--rollout", 8, "--epochs", 1, "--out", out_dir, cwd=tmp_path).stdout
+    result = json.loads((out_dir / "result.json").read_text())
+    assert result["curve"] == []  # no training episode ended ...
+    assert "no training episode ended in 512 steps" in out
+    steps = [s for s, _ in result["rollout_curve"]]
+    assert steps == [128, 256, 384, 512]  # ... but every update has its rollout's reward rate
+    for _, rate in result["rollout_curve"]:
+        assert 0 < rate <= 200  # cartpole's reward is in [0, 1] per step
+    assert png(out_dir / "curve.png").shape[0] > 100
