@@ -39,7 +39,7 @@ def test_pixels_are_the_vector_envs_as_float32_in_0_1():
 
 
 def test_dict_observations_convert_only_the_pixels():
-    envs = make_rllib_env({"env": "cartpole", "num_worlds": 2, "resolution": RES, "depth": True})
+    envs = make_rllib_env(Context(env="cartpole", num_worlds=2, resolution=RES, depth=True, seed=None))
     obs, _ = envs.reset(seed=0)
     assert obs["pixels"].dtype == np.float32 and obs["pixels"].max() <= 1.0
     assert obs["depth"].dtype == envs.env.single_observation_space["depth"].dtype

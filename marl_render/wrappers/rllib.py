@@ -50,8 +50,8 @@ class FloatPixels(VectorObservationWrapper):
 def make_rllib_env(env_config: Mapping) -> FloatPixels:
     """RLlib env creator. env_config (RLlib's ``env_config``, an EnvContext): "env" (the
     registered name), "num_worlds" (default 1) and any argument of make_vec_env; RLlib adds
-    "num_envs", which must be num_worlds x num_agents. "seed" (default 0) is offset by the
-    EnvRunner's worker_index so that runners play different worlds."""
+    "num_envs", which must be num_worlds x num_agents. "seed" (default 0; None: unseeded) is
+    offset by the EnvRunner's worker_index so that runners play different worlds."""
     if not isinstance(env_config, Mapping):
         raise TypeError(f"env_config must be a mapping (RLlib's env_config), got {describe(env_config)}")
     config = dict(env_config)
@@ -59,8 +59,9 @@ def make_rllib_env(env_config: Mapping) -> FloatPixels:
         raise ValueError(f"env_config must name the environment under 'env', got keys {sorted(config)}")
     name = config.pop("env")
     num_envs = config.pop("num_envs", None)
-    worker = getattr(env_config, "worker_index", 0)
-    config["seed"] = config.get("seed", 0) + worker
+    seed = config.get("seed", 0)
+    if seed is not None:  # None: unseeded, as in make_vec_env
+        config["seed"] = seed + getattr(env_config, "worker_index", 0)
     envs = make_vec_env(name, config.pop("num_worlds", 1), **config)
     if num_envs is not None and num_envs != envs.num_envs:
         envs.close()
