@@ -7,7 +7,10 @@ STAMP := $(VENV)/.installed
 BENCHMARL_VENV ?= .venv-benchmarl
 BENCHMARL_STAMP := $(BENCHMARL_VENV)/.installed
 
-.PHONY: demo test test-benchmarl bench clean
+RLLIB_VENV ?= .venv-rllib
+RLLIB_STAMP := $(RLLIB_VENV)/.installed
+
+.PHONY: demo test test-benchmarl test-rllib bench clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -36,8 +39,19 @@ $(BENCHMARL_STAMP): pyproject.toml constraints.txt constraints-benchmarl.txt
 test-benchmarl: $(BENCHMARL_STAMP)
 	$(BENCHMARL_VENV)/bin/python -m pytest -q tests/test_torchrl.py tests/test_benchmarl.py
 
+# Third matrix entry: RLlib on Ray, which pins gymnasium==1.2.2, in its own venv (a large download).
+$(RLLIB_STAMP): pyproject.toml constraints.txt constraints-rllib.txt
+	$(PYTHON) -m venv $(RLLIB_VENV)
+	grep -vE '^gymnasium==' constraints.txt > $(RLLIB_VENV)/constraints-main.txt
+	$(RLLIB_VENV)/bin/pip install --quiet --disable-pip-version-check -c $(RLLIB_VENV)/constraints-main.txt \
+		-c constraints-rllib.txt -e ".[test]" "ray[rllib]"
+	touch $(RLLIB_STAMP)
+
+test-rllib: $(RLLIB_STAMP)
+	$(RLLIB_VENV)/bin/python -m pytest -q tests/test_rllib.py
+
 bench: $(STAMP)
 	$(PY) -m marl_render.bench render --json
 
 clean:
-	rm -rf $(VENV) $(BENCHMARL_VENV) out
+	rm -rf $(VENV) $(BENCHMARL_VENV) $(RLLIB_VENV) out

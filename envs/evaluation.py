@@ -86,9 +86,13 @@ def reference_returns(name: str, episodes: int = 32, seed: int = 0) -> dict:
     return out
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m marl_render.envs.evaluation", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                                     formatter_class=HelpFormatter)
     parser.add_argument("--env", nargs="+", default=["all"], help="task names, or all")
     parser.add_argument("--episodes", type=int, default=32, help="episodes per policy (one per world)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the envs and the random policy")

@@ -16,15 +16,19 @@ from pathlib import Path
 from marl_render.envs import list_envs
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="spread", choices=list_envs())
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--env", default="spread", choices=list_envs(), help="environment")
     parser.add_argument("--worlds", type=int, default=8, help="worlds stepped together while collecting")
-    parser.add_argument("--resolution", type=int, default=32)
+    parser.add_argument("--resolution", type=int, default=32, help="pixels per side of each view")
     parser.add_argument("--steps", type=int, default=50, help="steps per episode (max_steps)")
     parser.add_argument("--iters", type=int, default=3, help="collect + train iterations")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="out/benchmarl")
+    parser.add_argument("--seed", type=int, default=0, help="experiment seed")
+    parser.add_argument("--out", default="out/benchmarl", help="folder for BenchMARL's logs")
     args = parser.parse_args()
     try:  # imported here so that --help works without BenchMARL
         from benchmarl.algorithms import MappoConfig

@@ -9,9 +9,14 @@ from PIL import Image
 
 import marl_render as mr
 
-parser = argparse.ArgumentParser(description=__doc__)
-parser.add_argument("--out", default="out", help="output folder (default: out)")
-parser.add_argument("--worlds", type=int, default=4, help="worlds, each with its own balls (default: 4)")
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
+parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+parser.add_argument("--out", default="out", help="output folder")
+parser.add_argument("--worlds", type=int, default=4, help="worlds, each with its own balls")
 parser.add_argument("--resolution", type=int, nargs=2, default=(96, 128), metavar=("H", "W"), help="view size")
 args = parser.parse_args()
 

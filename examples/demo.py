@@ -61,17 +61,21 @@ def save_grid(rgb: torch.Tensor, path: str, scale: int = 2) -> None:
     Image.fromarray(canvas).resize((canvas.shape[1] * scale, canvas.shape[0] * scale), Image.NEAREST).save(path)
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", default="out", help="folder for demo.png (default: %(default)s)")
-    parser.add_argument("--worlds", type=int, default=8, help="worlds in the picture (default: %(default)s)")
-    parser.add_argument("--agents", type=int, default=4, help="agents (views) per world (default: %(default)s)")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--out", default="out", help="folder for demo.png")
+    parser.add_argument("--worlds", type=int, default=8, help="worlds in the picture")
+    parser.add_argument("--agents", type=int, default=4, help="agents (views) per world")
     parser.add_argument("--resolution", type=int, default=96, help="pixels per side of a view in the picture "
-                                                                   "(default: %(default)s)")
+                                                                   "")
     parser.add_argument("--bench-worlds", type=int, default=256, help="worlds in the throughput measurement, "
-                                                                      "64x64 views (default: %(default)s)")
+                                                                      "64x64 views")
     parser.add_argument("--steps", type=int, default=20, help="timed frames of the throughput measurement; "
-                                                              "0 skips it (default: %(default)s)")
+                                                              "0 skips it")
     return parser.parse_args(argv)
 
 

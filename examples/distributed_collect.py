@@ -114,20 +114,24 @@ def remote_worker(rank: int, master_addr: str, port: int, world_size: int, backe
     _distributed_init_delayed(rank, backend, master_addr, port, world_size)
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--launcher", choices=("mp", "delayed"), default="mp")
-    parser.add_argument("--env", default="spread")
-    parser.add_argument("--workers", type=int, default=2)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--launcher", choices=("mp", "delayed"), default="mp", help="how workers start (see above)")
+    parser.add_argument("--env", default="spread", help="environment")
+    parser.add_argument("--workers", type=int, default=2, help="worker processes")
     parser.add_argument("--worlds", type=int, default=8, help="worlds per worker")
-    parser.add_argument("--resolution", type=int, default=32)
+    parser.add_argument("--resolution", type=int, default=32, help="pixels per side of each view")
     parser.add_argument("--steps-per-batch", type=int, default=8, help="steps per worker per batch")
-    parser.add_argument("--batches", type=int, default=4)
+    parser.add_argument("--batches", type=int, default=4, help="batches to collect")
     parser.add_argument("--seed", type=int, default=0, help="worker r (1..N) gets seed + r - 1")
     parser.add_argument("--port", type=int, default=0, help="rendezvous port (0: a free one)")
     parser.add_argument("--timeout", type=float, default=180.0, help="watchdog, seconds for the whole run")
     parser.add_argument("--out", default=None, help="folder: write summary.json and batches.pt (the list of "
-                                                    "batches, TensorDicts) there (default: write nothing)")
+                                                    "batches, TensorDicts) there")
     parser.add_argument("--save", default=None, help="torch.save the list of batches (TensorDicts) to this file")
     parser.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
     return parser.parse_args(argv)

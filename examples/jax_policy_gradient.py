@@ -13,13 +13,18 @@ import json
 import os
 import time
 
-parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-parser.add_argument("--out", default="out/jax_pg", help="folder for result.json and curve.png (default: %(default)s)")
-parser.add_argument("--worlds", type=int, default=16, help="worlds played side by side (default: %(default)s)")
-parser.add_argument("--resolution", type=int, default=32, help="pixels per side (default: %(default)s)")
-parser.add_argument("--steps", type=int, default=6000, help="env steps per world in all (default: %(default)s)")
-parser.add_argument("--horizon", type=int, default=100, help="steps per episode (default: %(default)s)")
-parser.add_argument("--seed", type=int, default=0)
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
+parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
+parser.add_argument("--out", default="out/jax_pg", help="folder for result.json and curve.png")
+parser.add_argument("--worlds", type=int, default=16, help="worlds played side by side")
+parser.add_argument("--resolution", type=int, default=32, help="pixels per side")
+parser.add_argument("--steps", type=int, default=6000, help="env steps per world in all")
+parser.add_argument("--horizon", type=int, default=100, help="steps per episode")
+parser.add_argument("--seed", type=int, default=0, help="seed of the env and the policy")
 args = parser.parse_args()  # before importing jax: --help works without the extra
 
 import jax  # noqa: E402

@@ -296,11 +296,15 @@ def reference_returns(names: list) -> list:
             + table(("task", "heuristic", "random", "evaluated agents"), rows) + [""])
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", default="docs", help="folder for envs.md and envs/NAME.png (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=None, help="reset seed of every picture (default: "
-                                                                 f"{PICTURE_SEEDS}, else 0)")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--out", default="docs", help="folder for envs.md and envs/NAME.png")
+    parser.add_argument("--seed", type=int, default=None, help="reset seed of every picture; none: "
+                                                                 f"{PICTURE_SEEDS}, else 0")
     return parser.parse_args(argv)
 
 

@@ -13,8 +13,12 @@ Before and after training, the same evaluation runs: one full episode per world 
 uniform random actions (drawn every step, and drawn every decision), with no force at all
 (the pole then falls slowly from its nearly upright start: a strong baseline, since every
 push costs reward) and with the trained policy (greedy). The script prints them, writes
-`curve.png` (episode return against environment steps, with those levels) and
-`result.json` to `--out`, and shows a progress bar.
+`curve.png` and `result.json` to `--out`, and shows a progress bar. The curve has the
+returns of the training episodes that ended (none in a run shorter than one episode of
+every world, --max-steps x --worlds steps) and, after every update, the mean reward per
+step of that update's rollout times --max-steps: the return an episode would get at
+that rate, so that short runs show their progress on the same scale (a rate, not a return:
+the worlds run in step, and the early steps of an episode, pole still up, earn more).
 
     python examples/ppo_cartpole_pixels.py                 # defaults: about 10 minutes on 2 cores
     python examples/ppo_cartpole_pixels.py --steps 50000   # a quick look
@@ -40,25 +44,29 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def parse_args():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     parser.add_argument("--worlds", type=int, default=64, help="parallel worlds (vector env entries)")
     parser.add_argument("--resolution", type=int, default=48, help="pixels per side of each frame")
     parser.add_argument("--steps", type=int, default=1_000_000, help="environment steps to train for, all worlds")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the env and the network")
     parser.add_argument("--out", default="out/ppo_cartpole", help="folder for curve.png and result.json")
     parser.add_argument("--max-steps", type=int, default=1000, help="episode length (dm_control: 1000 = 10 s)")
     parser.add_argument("--action-repeat", type=int, default=4, help="environment steps per decision")
     parser.add_argument("--frames", type=int, default=3, help="stacked decision frames the policy sees")
     parser.add_argument("--rollout", type=int, default=32, help="decisions per world between updates")
-    parser.add_argument("--epochs", type=int, default=4)
-    parser.add_argument("--minibatches", type=int, default=4)
-    parser.add_argument("--lr", type=float, default=3e-4)
+    parser.add_argument("--epochs", type=int, default=4, help="passes over each rollout")
+    parser.add_argument("--minibatches", type=int, default=4, help="minibatches per pass")
+    parser.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate")
     parser.add_argument("--gamma", type=float, default=0.95, help="discount per decision")
-    parser.add_argument("--gae-lambda", type=float, default=0.95)
-    parser.add_argument("--clip", type=float, default=0.2)
-    parser.add_argument("--ent-coef", type=float, default=0.01)
-    parser.add_argument("--vf-coef", type=float, default=0.5)
+    parser.add_argument("--gae-lambda", type=float, default=0.95, help="GAE lambda")
+    parser.add_argument("--clip", type=float, default=0.2, help="PPO clip range of the probability ratio")
+    parser.add_argument("--ent-coef", type=float, default=0.01, help="entropy bonus weight")
+    parser.add_argument("--vf-coef", type=float, default=0.5, help="value loss weight")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads for the network (the renderer has its own)")
     return parser.parse_args()
@@ -153,9 +161,13 @@ def evaluate(envs, agent, args, seed: int, policy: str):
     return returns, chosen / chosen.sum()
 
 
-def plot(curve, levels: dict, args):
-    """curve.png: training episode returns against environment steps, and horizontal levels."""
+def plot(curve, rollouts, levels: dict, args):
+    """curve.png: training episode returns and rollout reward rates against environment
+    steps, and horizontal levels."""
     figure, axes = plt.subplots(figsize=(6, 3.6))
+    if rollouts:
+        axes.plot(*zip(*rollouts, strict=True), color="tab:purple", alpha=0.6,
+                  label=f"training rollouts: reward per step x {args.max_steps}")
     if curve:
         axes.plot(*zip(*curve, strict=True), marker="o", label="training episodes (sampled actions)")
     styles = (("grey", "--"), ("orange", "-."), ("green", ":"))  # one per level
@@ -205,11 +217,14 @@ def main():
     restart_now = torch.zeros(N, dtype=torch.bool)  # this step is a next-step autoreset step
     episode_return = np.zeros(N)
     curve = []  # (env steps, mean return of the episodes that ended in this rollout)
+    rollouts = []  # (env steps, mean reward per step of this rollout x max_steps)
     steps_per_update = T * N * args.action_repeat  # at most: blocks end early at episode ends
     updates = args.steps // steps_per_update
     env_steps = 0
-    for _ in tqdm(range(updates), desc="PPO cartpole", unit="update"):
+    progress = tqdm(range(updates), desc="PPO cartpole", unit="update")
+    for _ in progress:
         ended = []
+        rollout_reward, rollout_steps = 0.0, 0
         for t in range(T):
             with torch.no_grad():
                 distribution, value = agent(frames_now)
@@ -220,6 +235,7 @@ def main():
             repeat = 1 if bool(restart_now.any()) else args.action_repeat
             obs, reward, term, trunc, taken = act(envs, action.numpy(), repeat)
             env_steps += taken * N
+            rollout_reward, rollout_steps = rollout_reward + float(reward.sum()), rollout_steps + taken * N
             rewards[t] = torch.from_numpy(reward) * reward_scale
             terminated[t], truncated[t] = torch.from_numpy(term), torch.from_numpy(trunc)
             episode_return += reward
@@ -264,6 +280,8 @@ def main():
                 loss.backward()
                 nn.utils.clip_grad_norm_(agent.parameters(), 0.5)
                 optimizer.step()
+        rollouts.append((env_steps, rollout_reward / rollout_steps * args.max_steps))
+        progress.set_postfix_str(f"rollout reward per step x {args.max_steps}: {rollouts[-1][1]:.1f}")
         if ended:
             curve.append((env_steps, float(np.mean(ended))))
             tqdm.write(f"steps {curve[-1][0]:>8}: episode return {curve[-1][1]:7.1f}")
@@ -279,7 +297,10 @@ def main():
           f"{np.round(trained_actions, 3).tolist()}; {wall:.0f} s wall, {cpu:.0f} s CPU, "
           f"load average {os.getloadavg()[0]:.1f}")
 
-    plot(curve, {"random policy": random_returns.mean(), "no force": no_force.mean(),
+    if not curve:
+        print(f"no training episode ended in {env_steps} steps (one episode of every world takes "
+              f"{args.max_steps * N}): curve.png shows the rollouts' reward per step x {args.max_steps}")
+    plot(curve, rollouts, {"random policy": random_returns.mean(), "no force": no_force.mean(),
                  "trained policy (greedy)": trained_returns.mean()}, args)
     result = {"random_return_mean": float(random_returns.mean()), "random_return_std": float(random_returns.std()),
               "random_each_step_return_mean": float(random_each_step.mean()),
@@ -287,7 +308,9 @@ def main():
               "trained_greedy_action_shares": trained_actions.tolist(),
               "trained_return_mean": float(trained_returns.mean()),
               "trained_return_std": float(trained_returns.std()), "episodes_per_evaluation": N,
-              "curve": curve, "train_seconds": train_seconds, "wall_seconds": wall, "cpu_seconds": cpu,
+              "curve": curve, "rollout_curve": rollouts,
+              "rollout_curve_is": f"(env steps, mean reward per step of the update's rollout x {args.max_steps})",
+              "train_seconds": train_seconds, "wall_seconds": wall, "cpu_seconds": cpu,
               "load_average_1min_at_end": os.getloadavg()[0], "cpu_count": os.cpu_count(), "args": vars(args)}
     with open(os.path.join(args.out, "result.json"), "w") as f:
         json.dump(result, f, indent=1)

@@ -17,14 +17,18 @@ from marl_render.envs import list_envs
 from marl_render.wrappers.pettingzoo import make_parallel_env
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="spread", choices=list_envs(), help="environment (default: %(default)s)")
-    parser.add_argument("--episodes", type=int, default=2, help="episodes to play (default: %(default)s)")
-    parser.add_argument("--steps", type=int, default=50, help="max_steps of an episode (default: %(default)s)")
-    parser.add_argument("--resolution", type=int, default=64, help="pixels per side of a view (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i (default: %(default)s)")
-    parser.add_argument("--out", default="out", help="folder for random_pettingzoo.png (default: %(default)s)")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--env", default="spread", choices=list_envs(), help="environment")
+    parser.add_argument("--episodes", type=int, default=2, help="episodes to play")
+    parser.add_argument("--steps", type=int, default=50, help="max_steps of an episode")
+    parser.add_argument("--resolution", type=int, default=64, help="pixels per side of a view")
+    parser.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
+    parser.add_argument("--out", default="out", help="folder for random_pettingzoo.png")
     return parser.parse_args(argv)
 
 

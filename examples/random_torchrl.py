@@ -21,15 +21,19 @@ from marl_render.envs import list_envs
 from marl_render.wrappers.torchrl import make_torchrl_env
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="spread", choices=list_envs(), help="environment (default: %(default)s)")
-    parser.add_argument("--worlds", type=int, default=64, help="worlds stepped together (default: %(default)s)")
-    parser.add_argument("--steps", type=int, default=60, help="rollout length (default: %(default)s)")
-    parser.add_argument("--max-steps", type=int, default=25, help="episode length limit (default: %(default)s)")
-    parser.add_argument("--resolution", type=int, default=32, help="pixels per side of a view (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
-    parser.add_argument("--out", default="out", help="folder for random_torchrl.png (default: %(default)s)")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--env", default="spread", choices=list_envs(), help="environment")
+    parser.add_argument("--worlds", type=int, default=64, help="worlds stepped together")
+    parser.add_argument("--steps", type=int, default=60, help="rollout length")
+    parser.add_argument("--max-steps", type=int, default=25, help="episode length limit")
+    parser.add_argument("--resolution", type=int, default=32, help="pixels per side of a view")
+    parser.add_argument("--seed", type=int, default=0, help="reset seed")
+    parser.add_argument("--out", default="out", help="folder for random_torchrl.png")
     return parser.parse_args(argv)
 
 

@@ -47,15 +47,19 @@ def agent_labels(env) -> list:
     return [name if up else f"{name} (left)" for name, up in zip(env.agent_names, alive, strict=True)]
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="spread", choices=list_envs(), help="environment (default: %(default)s)")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--env", default="spread", choices=list_envs(), help="environment")
     parser.add_argument("--steps", type=int, default=60, help="steps at most; the episode may end first "
-                                                              "(default: %(default)s)")
-    parser.add_argument("--resolution", type=int, default=64, help="pixels per side of a view (default: %(default)s)")
-    parser.add_argument("--scale", type=int, default=2, help="enlargement of the views (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
-    parser.add_argument("--out", default="out/episode.gif", help="output file, .gif or .mp4 (default: %(default)s)")
+                                                              "")
+    parser.add_argument("--resolution", type=int, default=64, help="pixels per side of a view")
+    parser.add_argument("--scale", type=int, default=2, help="enlargement of the views")
+    parser.add_argument("--seed", type=int, default=0, help="reset seed")
+    parser.add_argument("--out", default="out/episode.gif", help="output file, .gif or .mp4")
     args = parser.parse_args(argv)
     if os.path.splitext(args.out)[1].lower() not in FORMATS:
         parser.error(f"--out must end in one of {FORMATS}, got {args.out!r}")

@@ -122,14 +122,18 @@ def views_per_s(renderer, walk, skinned, steps):
     return renderer.num_views * steps / (time.perf_counter() - start)
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", default="out", help="output folder (default: out)")
-    parser.add_argument("--worlds", type=int, default=16, help="worlds (default: 16)")
-    parser.add_argument("--agents", type=int, default=3, help="walkers per world, each with a camera (default: 3)")
-    parser.add_argument("--resolution", type=int, default=64, help="view size in pixels (default: 64)")
-    parser.add_argument("--steps", type=int, default=40, help="steps per renderer in the timing (default: 40; 0 skips)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--out", default="out", help="output folder")
+    parser.add_argument("--worlds", type=int, default=16, help="worlds")
+    parser.add_argument("--agents", type=int, default=3, help="walkers per world, each with a camera")
+    parser.add_argument("--resolution", type=int, default=64, help="view size in pixels")
+    parser.add_argument("--steps", type=int, default=40, help="steps per renderer in the timing")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the walks")
     args = parser.parse_args()
 
     # The walk is a few dozen ops on tiny tensors: on one thread they leave the cores to the

@@ -10,7 +10,9 @@ fresh worlds (fixed seeds), played by the greedy policy and by uniform random ac
 The reported return is the true episode return: the sum of an agent's rewards over its
 episode, averaged over agents and episodes. The script prints the returns and writes
 OUT/curve.png (the returns of the training episodes as they end, against time, with the
-evaluations) and OUT/result.json.
+evaluations) and OUT/result.json. --minutes is the budget of the whole run, evaluations
+included: training stops when the next batch and the final evaluation would not fit (it
+always trains at least one batch).
 
     python examples/train_mappo.py [--minutes 12] [--worlds 64] [--resolution 32] [--out out/mappo]
 """
@@ -31,6 +33,10 @@ from tqdm import tqdm
 from marl_render.envs import make_torchrl_env
 
 GROUP = "agents"
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
 
 
 class PixelActor(nn.Module):
@@ -107,19 +113,21 @@ def completed_episodes(batch, running: torch.Tensor) -> tuple[torch.Tensor, torc
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--minutes", type=float, default=12.0, help="training wall-clock budget")
-    parser.add_argument("--worlds", type=int, default=64)
-    parser.add_argument("--agents", type=int, default=3)
-    parser.add_argument("--resolution", type=int, default=32)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--minutes", type=float, default=12.0, help="wall-clock budget, evaluations included")
+    parser.add_argument("--worlds", type=int, default=64, help="worlds stepped together")
+    parser.add_argument("--agents", type=int, default=3, help="agents per world")
+    parser.add_argument("--resolution", type=int, default=32, help="pixels per side of each view")
     parser.add_argument("--max-steps", type=int, default=100, help="episode length (spread's default)")
     parser.add_argument("--rollout", type=int, default=32, help="steps per world per batch")
-    parser.add_argument("--epochs", type=int, default=4)
+    parser.add_argument("--epochs", type=int, default=4, help="passes over each batch")
     parser.add_argument("--minibatch", type=int, default=512, help="(world, step) samples per minibatch")
-    parser.add_argument("--lr", type=float, default=5e-4)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="out/mappo")
+    parser.add_argument("--lr", type=float, default=5e-4, help="Adam learning rate")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the env and the networks")
+    parser.add_argument("--out", default="out/mappo", help="folder for curve.png and result.json")
     args = parser.parse_args()
+    started = time.perf_counter()
+    deadline = started + args.minutes * 60
     torch.manual_seed(args.seed)
 
     env_kwargs = dict(num_agents=args.agents, resolution=args.resolution, max_steps=args.max_steps, state_obs=True)
@@ -145,18 +153,21 @@ def main():
 
     print(f"evaluating the untrained and the random policy on {args.worlds} episodes ...", flush=True)
     random_return, episodes = evaluate(eval_env, actor, 123, random=True)
+    before = time.perf_counter()
     untrained_return, _ = evaluate(eval_env, actor, 123, random=False)
+    eval_seconds = time.perf_counter() - before  # the final evaluation is the same one
     print(f"episode return per agent: random policy {random_return:.2f}, untrained greedy {untrained_return:.2f}",
           flush=True)
 
     frames_per_batch = args.worlds * args.rollout
     collector = Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=-1)
-    budget = args.minutes * 60
     start = time.perf_counter()
+    budget = max(deadline - eval_seconds - start, 0.0)  # seconds for training
     curve = []  # (seconds, agent-frames, mean reward per agent-step, mean return of the episodes ended or None)
     progress = tqdm(total=int(budget), unit="s", desc="training",
                     bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt}s {postfix}")
-    agent_frames, running, last_return = 0, torch.zeros(args.worlds), float("nan")
+    agent_frames, running, last_return = 0, torch.zeros(args.worlds), None
+    batch_started = start
     for batch in collector:
         ended, running = completed_episodes(batch, running)
         batch = batch.reshape(-1)  # [worlds * rollout] samples, each with its N agents
@@ -179,18 +190,26 @@ def main():
         last_return = last_return if episode_return is None else episode_return
         curve.append((elapsed, agent_frames, reward, episode_return))
         progress.n = min(int(elapsed), int(budget))
-        progress.set_postfix_str(f"episode return {last_return:.1f}, {agent_frames / elapsed:,.0f} agent-frames/s")
+        # Until an episode ends there is no episode return to show: show the return so far.
+        shown = "-" if last_return is None else f"{last_return:.1f}"
+        progress.set_postfix_str(f"episode return {shown} (running episodes so far {float(running.mean()):.1f}), "
+                                 f"{agent_frames / elapsed:,.0f} agent-frames/s")
         progress.refresh()
-        if elapsed > budget:
+        now = time.perf_counter()
+        batch_seconds, batch_started = now - batch_started, now
+        if now + batch_seconds > start + budget:  # the next batch would eat into the final evaluation
             break
     progress.close()
     collector.shutdown()
 
+    trained_at = time.perf_counter()
     trained_return, _ = evaluate(eval_env, actor, 123, random=False)
     result = {"random_return": random_return, "untrained_return": untrained_return, "trained_return": trained_return,
               "return": "sum of an agent's rewards over its episode, mean over agents and episodes",
               "eval_episodes": episodes, "episode_steps": eval_env.core.max_steps,
-              "minutes": (time.perf_counter() - start) / 60, "agent_frames": agent_frames,
+              "minutes": (time.perf_counter() - started) / 60, "budget_minutes": args.minutes,
+              "eval_seconds": eval_seconds,
+              "train_minutes": (trained_at - start) / 60, "agent_frames": agent_frames,
               "worlds": args.worlds, "agents": args.agents, "resolution": args.resolution}
     print(f"return per agent and episode ({episodes} episodes): random {random_return:.2f} -> trained "
           f"{trained_return:.2f}")

@@ -4,6 +4,7 @@ record_video.py, train_mappo.py and make_env_docs.py that their results rest on.
 import importlib.util
 import json
 import os
+import re
 import subprocess
 import sys
 import types
@@ -98,6 +99,11 @@ def test_help_lists_the_options(script, help_texts):
     assert out.startswith("usage: ")
     for option in ["--out", *OPTIONS.get(script, [])]:
         assert f"{option} " in out or f"{option}\n" in out, f"{script} --help does not list {option}:\n{out}"
+    # every option but --help says its default (one entry per option, "  -x" or "  --x" at line start)
+    entries = re.split(r"\n(?=  -)", out.split("\noptions:\n", 1)[1])
+    for entry in entries:
+        if not entry.lstrip().startswith("-h"):
+            assert "(default:" in entry, f"{script} --help shows no default for:\n{entry}"
 
 
 def test_demo_writes_the_grid_of_views(tmp_path):
@@ -251,3 +257,32 @@ def test_env_docs_are_up_to_date(tmp_path):
         picture = png(tmp_path / "envs" / f"{name}.png")
         assert picture.shape[0] >= 256 and picture.std() > 10
         assert png(ROOT / "docs" / "envs" / f"{name}.png").shape == picture.shape
+
+
+def test_train_mappo_keeps_its_budget_evaluations_included_and_shows_no_nan(tmp_path):
+    out_dir = tmp_path / "mappo"
+    # 8-step batches of 40-step episodes: no episode ends in the first batch
+    result = run("train_mappo.py", "--minutes", 0.2, "--worlds", 8, "--resolution", 16, "--max-steps", 40,
+                 "--rollout", 8, "--epochs", 1, "--out", out_dir, cwd=tmp_path)
+    summary = json.loads((out_dir / "result.json").read_text())
+    assert summary["budget_minutes"] == 0.2 and summary["eval_seconds"] < 2  # the budget leaves time to train
+    assert summary["minutes"] * 60 <= 0.2 * 60 + 1.0  # the whole run, its three evaluations included
+    assert summary["curve"][0][3] is None  # no episode ended in the first batch ...
+    progress = result.stderr.replace("\r", "\n")
+    assert "episode return - (running episodes so far -" in progress  # ... and the bar says so
+    assert "nan" not in progress
+
+
+def test_ppo_cartpole_shorter_than_an_episode_still_plots_its_training(tmp_path):
+    out_dir = tmp_path / "ppo"
+    # 4 updates of 8 decisions x 4 steps x 4 worlds = 512 steps; one episode of every world takes 800
+    out = run("ppo_cartpole_pixels.py", "--worlds", 4, "--resolution", 16, "--steps", 512, "--max-steps", 200,
+              "--rollout", 8, "--epochs", 1, "--out", out_dir, cwd=tmp_path).stdout
+    result = json.loads((out_dir / "result.json").read_text())
+    assert result["curve"] == []  # no training episode ended ...
+    assert "no training episode ended in 512 steps" in out
+    steps = [s for s, _ in result["rollout_curve"]]
+    assert steps == [128, 256, 384, 512]  # ... but every update has its rollout's reward rate
+    for _, rate in result["rollout_curve"]:
+        assert 0 < rate <= 200  # cartpole's reward is in [0, 1] per step
+    assert png(out_dir / "curve.png").shape[0] > 100

@@ -23,6 +23,7 @@ _LAZY_EXPORTS = {
     "make_vec_env": "marl_render.wrappers.gymnasium",
     "MarlRenderSB3VecEnv": "marl_render.wrappers.sb3",
     "make_sb3_env": "marl_render.wrappers.sb3",
+    "make_rllib_env": "marl_render.wrappers.rllib",
 }
 
 __all__ = list(_LAZY_EXPORTS)
