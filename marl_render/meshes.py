@@ -219,12 +219,22 @@ def to_panda_geom(mesh: MeshData, extra: dict | None = None):
 # never parses it. Textures the model references are then decoded here with Pillow (see
 # images.py): the renderer never shows a model's own textures (a group's `texture=`
 # replaces them), but a model whose textures are corrupt is refused, not half-loaded.
-MODEL_LOAD_TIMEOUT = 120.0  # seconds; a file that hangs the parser is refused after this
+# The child is started isolated (-I: neither the working directory nor PYTHON* variables reach
+# its module path, so a numpy.py planted where the user runs cannot execute), dies with this
+# process (Linux: PR_SET_PDEATHSIG), and works in a folder named after this process's pid, which
+# a later load removes if this process died before it could (model_checks.py refuses the files
+# that would keep the parser busy until the timeout).
+MODEL_LOAD_TIMEOUT = 120.0  # seconds; a file that still hangs the parser is refused after this (load_model(timeout=))
 
 # Runs meshes.py in the child without importing the marl_render package (torch is slow
 # to import and not needed there); the module needs only numpy and Panda3D.
 _CHILD_BOOTSTRAP = """
 import importlib.util, sys
+try:  # Linux: killed when the parent dies (prctl PR_SET_PDEATHSIG = 1, SIGKILL = 9)
+    import ctypes
+    ctypes.CDLL(None).prctl(1, 9)
+except (OSError, AttributeError):  # elsewhere the parent's timeout still bounds the child
+    pass
 spec = importlib.util.spec_from_file_location("marl_render_model_child", sys.argv[1])
 module = importlib.util.module_from_spec(spec)
 sys.modules[spec.name] = module
@@ -233,37 +243,51 @@ getattr(module, sys.argv[4])(sys.argv[2], sys.argv[3])
 """
 
 
-def load_model(path, *, name: str = "mesh") -> MeshData:
+def load_model(path, *, name: str = "mesh", timeout: float | None = None) -> MeshData:
     """Triangles of a model file Panda3D reads (.egg, .bam, and through Assimp .gltf, .obj,
     .fbx, ...), in the model's frame with its node transforms applied, as MeshData.
 
     Raises FileNotFoundError for a missing file and ValueError for anything that is not a
     regular file, not a model, corrupt or without triangles, or that references a texture
     file that is not a complete image (textures that cannot be found are left out, as
-    Panda3D does); every message names `name` and the file."""
-    path, result = _arrays_from_child(path, name, "_write_model_arrays")
+    Panda3D does); every message names `name` and the file. `timeout` (seconds, default
+    MODEL_LOAD_TIMEOUT = 120) bounds the parse; files known to hang the parser (a cycle in a
+    glTF hierarchy, an .egg referencing a device, an OBJ face of more than 10,000 corners)
+    are refused before it starts."""
+    path, result = _arrays_from_child(path, name, "_write_model_arrays", timeout)
     return _mesh(os.path.basename(path), result["positions"], result["normals"], result["uvs"], result["triangles"])
 
 
-def _arrays_from_child(path, name: str, writer: str) -> tuple[str, dict]:
+def _arrays_from_child(path, name: str, writer: str, timeout: float | None = None) -> tuple[str, dict]:
     """(absolute path, arrays) that the function `writer` of this module saved after
     parsing the model file in a child process; errors as load_model documents them."""
     import subprocess
     import sys
     import tempfile
 
-    from .validation import regular_file
+    from .model_checks import check_model_file
+    from .validation import positive_float, regular_file
 
+    timeout = MODEL_LOAD_TIMEOUT if timeout is None else positive_float("timeout", timeout)
     path = os.path.abspath(regular_file(name, path, kind="model"))
-    with tempfile.TemporaryDirectory(prefix="marl_render_model_") as folder:
+    check_model_file(name, path)
+    _remove_orphaned_folders(tempfile.gettempdir())
+    with tempfile.TemporaryDirectory(prefix=f"marl_render_model_{os.getpid()}_") as folder:
         output = os.path.join(folder, "arrays.npz")
         try:
-            child = subprocess.run([sys.executable, "-c", _CHILD_BOOTSTRAP, __file__, path, output, writer],
-                                   stdin=subprocess.DEVNULL, capture_output=True, timeout=MODEL_LOAD_TIMEOUT)
+            child = subprocess.run([sys.executable, "-I", "-c", _CHILD_BOOTSTRAP, __file__, path, output, writer],
+                                   stdin=subprocess.DEVNULL, capture_output=True, timeout=timeout, cwd=folder)
         except subprocess.TimeoutExpired:
-            raise ValueError(f"{name}: model file {path!r} was still loading after {MODEL_LOAD_TIMEOUT:.0f} s; "
-                             "refused") from None
+            raise ValueError(f"{name}: model file {path!r} was still loading after {timeout:g} s; refused (raise "
+                             f"load_model's timeout if the file is just large)") from None
+        except OSError as error:
+            raise RuntimeError(f"the Python interpreter {sys.executable!r} (sys.executable) could not be started to "
+                               f"parse {name}'s model file in a child process: {error!r}") from None
         log = child.stderr.decode(errors="replace")
+        if "No module named 'panda3d'" in log or "No module named 'numpy'" in log:
+            missing = "panda3d" if "'panda3d'" in log else "numpy"
+            raise RuntimeError(f"{missing} cannot be imported by {sys.executable!r} (sys.executable), which parses "
+                               f"model files in a child process; install it for that interpreter") from None
         textures = _textures_in_log(log)
         _check_textures(name, path, textures)  # first: a corrupt texture is the likely cause of a crash
         if child.returncode != 0 or not os.path.exists(output):
@@ -279,6 +303,27 @@ def _arrays_from_child(path, name: str, writer: str) -> tuple[str, dict]:
             log = ""  # its list of every known extension is too long for a message
         raise ValueError(f"{name}: model file {path!r} {reason}.{_messages(log)}")
     return path, result
+
+
+def _remove_orphaned_folders(root: str) -> None:
+    """Remove the work folders of loads whose process died before it could (named with its pid)."""
+    import shutil
+
+    try:
+        entries = os.listdir(root)
+    except OSError:
+        return
+    for entry in entries:
+        parts = entry.split("_")
+        if not entry.startswith("marl_render_model_") or len(parts) < 5 or not parts[3].isdigit():
+            continue
+        pid = int(parts[3])
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            shutil.rmtree(os.path.join(root, entry), ignore_errors=True)
+        except OSError:
+            continue
 
 
 def _textures_in_log(log: str) -> list[str]:

@@ -7,9 +7,13 @@ The cases that could do that run in a child process here, so that a crash fails 
 instead of ending pytest.
 """
 import json
+import math
+import os
 import subprocess
 import sys
+import tempfile
 import textwrap
+import time
 
 import numpy as np
 import pytest
@@ -282,3 +286,88 @@ def test_mesh_data_checks_its_arrays():
     positions[3, 1] = np.nan
     with pytest.raises(ValueError, match=r"mesh 'm': positions must be finite"):
         mr.MeshData("m", positions, box.normals, box.uvs, box.triangles)
+
+
+# ---------------------------------------------------------------------- the loader's child process
+def test_the_loader_child_does_not_run_code_from_the_working_directory(tmp_path):
+    """The child was started with `python -c`, so the working directory came first on its module
+    path: a numpy.py planted where the user runs a script was executed."""
+    model = quad_egg(tmp_path / "quad.egg")
+    work = tmp_path / "work"
+    work.mkdir()
+    marker = tmp_path / "planted_ran"
+    (work / "numpy.py").write_text(f"open({str(marker)!r}, 'w').write('ran')\nraise ImportError('planted')\n")
+    script = tmp_path / "scripts" / "load.py"  # a user's script, run from the folder with the planted module
+    script.parent.mkdir()
+    script.write_text(f"import marl_render as mr\nprint(mr.load_model({str(model)!r}).triangles.shape)")
+    run = subprocess.run([sys.executable, str(script)], cwd=work, capture_output=True, text=True, timeout=120)
+    assert not marker.exists(), run.stderr
+    assert "(2, 3)" in run.stdout, run.stderr
+
+
+def test_model_files_that_would_hang_the_parser_are_refused_at_once(tmp_path):
+    cycle = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+             "nodes": [{"name": "root", "children": [1]}, {"name": "j1", "children": [2]},
+                       {"name": "j2", "children": [1]}]}
+    (tmp_path / "cycle.gltf").write_text(json.dumps(cycle))
+    (tmp_path / "self.gltf").write_text(json.dumps({**cycle, "nodes": [{"name": "me", "children": [0]}]}))
+    (tmp_path / "zero.egg").write_text('<CoordinateSystem> { Z-up }\n<Texture> tex { "/dev/zero" }\n')
+    corners = 10_001
+    (tmp_path / "face.obj").write_text("".join(f"v {math.cos(i)} {math.sin(i)} 0\n" for i in range(corners))
+                                       + "f " + " ".join(str(i + 1) for i in range(corners)) + "\n")
+    cases = [("cycle.gltf", r"cycle in its node hierarchy \(node 1 \('j1'\) -> node 2 \('j2'\) -> node 1"),
+             ("self.gltf", r"cycle in its node hierarchy \(node 0 \('me'\) -> node 0"),
+             ("zero.egg", r"references '/dev/zero', which is not a regular file"),
+             ("face.obj", r"a face with 10001 corners on line 10002")]
+    for file, words in cases:
+        start = time.perf_counter()
+        with pytest.raises(ValueError, match=words):
+            mr.load_model(tmp_path / file)
+        assert time.perf_counter() - start < 1.0
+    with pytest.raises(ValueError, match="timeout must be a finite number > 0, got 0.0"):
+        mr.load_model(quad_egg(tmp_path / "quad.egg"), timeout=0)
+
+
+def test_a_killed_parent_leaves_no_parser_and_no_work_folder(tmp_path):
+    """A parent killed during a load used to leave the child spinning and its temporary files behind."""
+    import psutil
+
+    corners = 9_000  # a few seconds of triangulation: the load is under way when the parent is killed
+    model = tmp_path / "slow.obj"
+    model.write_text("".join(f"v {math.cos(i * 0.001)} {math.sin(i * 0.001)} 0\n" for i in range(corners))
+                     + "f " + " ".join(str(i + 1) for i in range(corners)) + "\n")
+    parent = subprocess.Popen([sys.executable, "-c", f"import marl_render as mr; mr.load_model({str(model)!r})"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        children = []
+        while not children and time.monotonic() < deadline:
+            children = psutil.Process(parent.pid).children()
+            time.sleep(0.05)
+        assert children, "the load never started its child"
+        folders = [f for f in os.listdir(tempfile.gettempdir()) if f.startswith(f"marl_render_model_{parent.pid}_")]
+        assert folders
+        parent.kill()
+        parent.wait(timeout=10)
+        gone, alive = psutil.wait_procs(children, timeout=5)
+        assert not alive
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+    mr.load_model(quad_egg(tmp_path / "quad.egg"))  # the next load removes the dead process's folder
+    assert not any(f.startswith(f"marl_render_model_{parent.pid}_") for f in os.listdir(tempfile.gettempdir()))
+
+
+def test_an_unusable_interpreter_is_named_not_the_model_file(tmp_path, monkeypatch):
+    model = quad_egg(tmp_path / "quad.egg")
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "no_such_python"))
+    with pytest.raises(RuntimeError, match=r"the Python interpreter '.*no_such_python' \(sys.executable\) could not "
+                                           r"be started"):
+        mr.load_model(model)
+    base = getattr(sys, "_base_executable", None)  # outside the venv: no numpy, no panda3d
+    probe = subprocess.run([base, "-I", "-c", "import numpy, panda3d"], capture_output=True) if base else None
+    if probe is None or probe.returncode == 0:
+        pytest.skip("no interpreter without numpy / panda3d at hand")
+    monkeypatch.setattr(sys, "executable", base)
+    with pytest.raises(RuntimeError, match=r"(numpy|panda3d) cannot be imported by .*install it for that interpreter"):
+        mr.load_model(model)
