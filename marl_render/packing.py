@@ -22,7 +22,7 @@ import torch
 
 from . import layout, skinning
 from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
-from .scene import Scene, StaticGroup
+from .scene import Scene, StaticGroup, check_depth_range
 from .tiling import TileLayout
 from .transforms import look_at_quat, normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_to_matrix
 from .validation import FLOAT_DTYPES, as_tensor, check_finite, check_host, check_range, check_shape, describe
@@ -226,6 +226,7 @@ class FramePacker:
         near_new, far_new = staged.get("near", self.near), staged.get("far", self.far)
         if bool((far_new <= near_new).any()):
             raise ValueError("far must be greater than near for every camera")
+        check_depth_range(near_new, far_new, "log_depth" in self.scene.effects)
         for key, value in staged.items():
             target = {"position": self.camera_position, "rotation": self.camera_rotation}.get(key)
             (target if target is not None else getattr(self, key)).copy_(value)

@@ -45,6 +45,22 @@ from .validation import (
     resolution_hw,
 )
 
+# far / near beyond which the depth buffer (24 bits, perspective depth) cannot tell distances apart:
+# measured here, a box at half the far distance vanished at 1e7 and was drawn at 3e6.
+MAX_DEPTH_RATIO = 1e6
+
+
+def check_depth_range(near, far, log_depth: bool) -> None:
+    """near / far (floats or tensors) that the depth buffer can resolve, unless log_depth is on."""
+    if log_depth:
+        return
+    ratio = float((torch.as_tensor(far, dtype=torch.float64) / torch.as_tensor(near, dtype=torch.float64)).max())
+    if ratio > MAX_DEPTH_RATIO:
+        raise ValueError(f"far / near must be at most {MAX_DEPTH_RATIO:g} without the log_depth effect (the depth "
+                         f"buffer cannot tell distances apart beyond that: frames would come out blank), got a "
+                         f"ratio of {ratio:.3g}; raise near, lower far, or add 'log_depth' to the scene's effects")
+
+
 MIN_DIRECTION_LENGTH, MAX_DIRECTION_LENGTH = 1e-30, 1e30  # Lighting.direction's length (see there)
 
 
@@ -172,6 +188,7 @@ class Scene:
         self.far = positive_float("far", self.far)
         if not self.far > self.near:
             raise ValueError(f"far must be greater than near, got near={self.near}, far={self.far}")
+        check_depth_range(self.near, self.far, "log_depth" in self.effects)
         self.fov_y = finite_float("fov_y", self.fov_y)
         if not 0 < self.fov_y < math.pi:
             raise ValueError(f"fov_y must be in (0, pi) radians, got {self.fov_y}")

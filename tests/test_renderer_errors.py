@@ -354,3 +354,21 @@ def test_a_failed_frame_drops_the_cached_shader_variants():
         fresh.update("box", position=[[[0.0, 0.0, 0.0]]], active=[[True]])
         fresh.set_cameras(**camera)
         assert len(set(map(tuple, fresh.render().rgb.reshape(-1, 3).tolist()))) > 1  # the box is drawn
+
+
+def test_near_far_ratios_the_depth_buffer_cannot_resolve_are_refused():
+    """far=100 with near=1e-8 used to draw nothing in most pixels, near<=1e-10 all background, silently."""
+    words = r"far / near must be at most 1e\+06 without the log_depth effect .* got a ratio of 1e\+10"
+    with pytest.raises(ValueError, match=words):
+        mr.Scene(num_worlds=1, agents_per_world=1, near=1e-8, far=100.0)
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=8, near=1e-4, far=100.0)  # 1e6: still fine
+    scene.add_group("box", "box", capacity=1)
+    with mr.BatchRenderer(scene) as renderer:
+        with pytest.raises(ValueError, match=words):
+            renderer.set_cameras(near=torch.full((1, 1), 1e-8))
+        renderer.update("box", position=[[[0.0, 0.0, 0.0]]], scale=[[[20.0, 20.0, 20.0]]], active=[[True]])
+        renderer.set_cameras(position=torch.tensor([[[0.0, -50.0, 0.0]]]), look_at=torch.zeros(1, 1, 3))
+        rgb = renderer.render().rgb[0, 0]
+        assert bool((rgb != rgb[0, 0]).any())  # the box, 50 m away, is drawn at the largest ratio allowed
+    far_ok = mr.Scene(num_worlds=1, agents_per_world=1, near=1e-8, far=100.0, effects=("lighting", "log_depth"))
+    assert far_ok.near == 1e-8
