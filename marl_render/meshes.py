@@ -270,7 +270,7 @@ def _arrays_from_child(path, name: str, writer: str, timeout: float | None = Non
 
     timeout = MODEL_LOAD_TIMEOUT if timeout is None else positive_float("timeout", timeout)
     path = os.path.abspath(regular_file(name, path, kind="model"))
-    check_model_file(name, path)
+    check_model_file(name, path, skinned=writer == "_write_skin_arrays")
     _remove_orphaned_folders(tempfile.gettempdir())
     with tempfile.TemporaryDirectory(prefix=f"marl_render_model_{os.getpid()}_") as folder:
         output = os.path.join(folder, "arrays.npz")
@@ -288,6 +288,10 @@ def _arrays_from_child(path, name: str, writer: str, timeout: float | None = Non
             missing = "panda3d" if "'panda3d'" in log else "numpy"
             raise RuntimeError(f"{missing} cannot be imported by {sys.executable!r} (sys.executable), which parses "
                                f"model files in a child process; install it for that interpreter") from None
+        printed = child.stdout.decode(errors="replace")  # panda3d-gltf reports on stdout
+        if "Could not find joint in jvtmap" in log + printed:  # it dropped (or misbound) a vertex's joint
+            raise ValueError(f"{name}: model file {path!r} has vertices that follow a joint its skin does not list; "
+                             "refused (its influences would be dropped or bound to another joint)")
         textures = _textures_in_log(log)
         _check_textures(name, path, textures)  # first: a corrupt texture is the likely cause of a crash
         if child.returncode != 0 or not os.path.exists(output):

@@ -19,16 +19,16 @@ MAX_FACE_CORNERS = 10_000  # an OBJ face with more would keep the parser busy fo
 TEXT_LIMIT = 64 * 2 ** 20  # text formats are scanned up to this size (a larger file is left to the timeout)
 
 
-def check_model_file(name: str, path: str) -> None:
-    """Raise ValueError naming `name` and the file for the cases of the module docstring."""
+def check_model_file(name: str, path: str, *, skinned: bool = False) -> None:
+    """Raise ValueError naming `name` and the file for the cases of the module docstring; with
+    `skinned`, also for glTF skins that panda3d-gltf would load wrong (see _check_gltf_skin)."""
     extension = os.path.splitext(path)[1].lower()
-    if extension == ".gltf":
-        _check_gltf(name, path, _read_json(path))
-    elif extension == ".glb":
-        document = _glb_json(path)
-        if document is not None:
-            _check_gltf(name, path, document)
-    elif extension == ".egg":
+    document = _read_json(path) if extension == ".gltf" else _glb_json(path) if extension == ".glb" else None
+    if document is not None:
+        _check_gltf(name, path, document)
+        if skinned:
+            _check_gltf_skin(name, path, document)
+    if extension == ".egg":
         _check_egg(name, path)
     elif extension == ".obj":
         _check_obj(name, path)
@@ -91,6 +91,19 @@ def _check_gltf(name: str, path: str, document) -> None:
                 state[child] = 1
                 path_nodes.append(child)
                 stack.append((child, iter(children[child])))
+
+
+def _check_gltf_skin(name: str, path: str, document) -> None:
+    """More than 4 influences per vertex (JOINTS_1 / WEIGHTS_1): panda3d-gltf 1.3 binds every vertex
+    to joint 0 with weight 1 ("Column transform_index repeated in format"), so the file is refused."""
+    for mesh in document.get("meshes", []) if isinstance(document.get("meshes"), list) else []:
+        for primitive in mesh.get("primitives", []) if isinstance(mesh, dict) else []:
+            attributes = primitive.get("attributes", {}) if isinstance(primitive, dict) else {}
+            extra = sorted(key for key in attributes if key.startswith(("JOINTS_", "WEIGHTS_")) and key[-2:] != "_0")
+            if extra:
+                raise ValueError(f"{name}: model file {path!r} gives vertices more than 4 joint influences ({extra}), "
+                                 "which panda3d-gltf cannot load right (every vertex would follow joint 0); "
+                                 "export at most 4 influences per vertex (the 4 heaviest, renormalised)")
 
 
 def _node_name(node, index: int) -> str:

@@ -188,8 +188,10 @@ def load_skinned_model(path, *, name: str = "mesh") -> SkinnedMesh:
     Joints are the model's joints that vertices follow, and the joints between them,
     parents first, named as in the file; pivots are their bind-pose positions in the
     model's frame (Panda3D's: Z up; glTF's Y-up files are turned). Joint rotations are then
-    given in the model's axes, like every SkinnedMesh's. Vertices with more than four
-    influences keep their four heaviest (renormalised); geometry without skin follows an
+    given in the model's axes, like every SkinnedMesh's. Vertices of Panda3D characters with
+    more than four influences keep their four heaviest (renormalised); glTF files with more
+    than four (JOINTS_1 / WEIGHTS_1), or whose vertices name a joint the skin does not list, are
+    refused (panda3d-gltf would load them wrong); geometry without skin follows an
     extra root joint "(model)". Errors as load_model's, plus ValueError for a model
     without skin."""
     path, arrays = _arrays_from_child(path, name, "_write_skin_arrays")

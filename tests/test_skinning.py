@@ -472,3 +472,31 @@ def test_renderer_compiles_skinning_only_for_skinned_groups(monkeypatch):
     skinned = [defines for defines in seen if "SKINNING" in defines]
     assert len(skinned) == 1 and f"ROW_TEXELS {layout.INSTANCE.texels + 3 * layout.JOINT_TEXELS}" in skinned[0]
     assert "joints" not in renderer.instance_state("boxes")
+
+
+def _edited_strip(tmp_path, edit) -> str:
+    """The glTF strip with its JSON changed by edit(document)."""
+    path = strip_file("gltf", tmp_path)
+    document = json.loads(open(path).read())
+    edit(document)
+    with open(path, "w") as file:
+        json.dump(document, file)
+    return path
+
+
+def test_gltf_skins_that_would_load_wrong_are_refused(tmp_path):
+    """Both loaded silently wrong before: more than 4 influences bound every vertex to joint 0 with
+    weight 1; a joint the skin does not list was dropped or bound to another joint."""
+    def more_influences(document):
+        document["meshes"][0]["primitives"][0]["attributes"].update(JOINTS_1=1, WEIGHTS_1=2)
+
+    with pytest.raises(ValueError, match=r"strip\.gltf' gives vertices more than 4 joint influences "
+                                         r"\(\['JOINTS_1', 'WEIGHTS_1'\]\)"):
+        skinning.load_skinned_model(_edited_strip(tmp_path, more_influences))
+
+    def unlisted_joint(document):
+        document["skins"][0]["joints"] = [1]  # vertices still name joint 1 of the skin ("upper")
+
+    with pytest.raises(ValueError, match=r"strip\.gltf' has vertices that follow a joint its skin does not list"):
+        skinning.load_skinned_model(_edited_strip(tmp_path, unlisted_joint))
+    assert skinning.load_skinned_model(strip_file("gltf", tmp_path)).num_joints >= 2  # the intact file still loads
