@@ -259,6 +259,11 @@ def test_soak_command_line(tmp_path):
     result = json.loads(out.stdout)
     assert result["benchmark"] == "soak" and result["steps"] == 20 and result["non_finite_count"] == 0
     assert (tmp_path / "soak.json").exists() and "soak spread: step 20/20" in out.stderr
+    out = subprocess.run([sys.executable, "-m", "marl_render.bench", "soak", "--json", "--steps", "20", "--worlds", "2",
+                          "--resolution", "16", "--every", "10", "--no-plot", "--shadows", "--autoreset", "next_step",
+                          "--max-steps", "5", "--out", str(tmp_path)], capture_output=True, text=True, timeout=300)
+    result = json.loads(out.stdout)
+    assert result["shadows"] is True and result["autoreset"] == "next_step" and result["auto_resets"] > 0
 
 
 # ---------------------------------------------------------------------- several environments in one process

@@ -1,11 +1,11 @@
 """Soak: a long run with random actions and resets, watching memory and numerics.
 
 Steps --worlds worlds (default 64) of --env (default spread) with uniformly random
-actions, auto-reset of finished worlds (autoreset=True) and, every --reset-every steps,
-reset_worlds() of a random subset (each world with probability --reset-fraction).
+actions, auto-reset of finished worlds (--autoreset, same_step by default) and, every
+--reset-every steps, reset_worlds() of a random subset (each world with probability --reset-fraction).
 Every --every steps it samples the resident memory (RSS, through psutil) and
 checks the simulation state; every step it checks the float observations and rewards
-for NaN/Inf. After --warmup steps the memory growth is reported as MB in total and MB
+for NaN/Inf (--shadows adds the shadow pass). After --warmup steps the memory growth is reported as MB in total and MB
 per 1000 steps (least-squares slope over the samples after warm-up).
 
 Writes soak.json (the result below) and soak.png (memory over steps) into --out;
@@ -42,6 +42,9 @@ def add_arguments(parser):
     parser.add_argument("--max-steps", type=int, default=None, help="episode length (env default if omitted)")
     parser.add_argument("--continuous", action="store_true")
     parser.add_argument("--depth", action="store_true", help="also render depth (checked for NaN)")
+    parser.add_argument("--shadows", action="store_true", help="the env's shadows on (a shadow pass every frame)")
+    parser.add_argument("--autoreset", choices=("same_step", "next_step"), default="same_step",
+                        help="the env's autoreset mode")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-malloc-trim", dest="malloc_trim", action="store_false",
                         help="sample raw RSS (without returning freed heap memory to the OS first)")
@@ -94,7 +97,8 @@ def non_finite_values(step: int, obs: dict, reward: torch.Tensor, state: dict | 
 def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agents: int | None = None,
          resolution: int = 64, every: int = 50, warmup: int | None = None, reset_every: int = 10,
          reset_fraction: float = 0.25, max_steps: int | None = None, continuous: bool = False,
-         depth: bool = False, seed: int = 0, trim: bool = True) -> dict:
+         depth: bool = False, seed: int = 0, trim: bool = True, shadows: bool = False,
+         autoreset: str = "same_step") -> dict:
     """Run the soak and return its result dict (see the module docstring)."""
     from marl_render.envs import make_env
 
@@ -106,7 +110,7 @@ def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agent
         warmup = max(every, steps // 10)
     warmup = min(max(warmup, 0), steps)
     kwargs = {"num_worlds": worlds, "resolution": resolution, "continuous": continuous, "seed": seed,
-              "autoreset": True, "state_obs": True, "depth": depth}
+              "autoreset": autoreset, "state_obs": True, "depth": depth, "shadows": shadows}
     if agents is not None:
         kwargs["num_agents"] = agents
     if max_steps is not None:
@@ -162,7 +166,8 @@ def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agent
     return {
         "benchmark": "soak", "machine": machine(),
         "env": env_name, "worlds": worlds, "agents": num_agents, "resolution": resolution,
-        "continuous": continuous, "depth": depth, "seed": seed, "steps": steps, "every": every, "warmup": warmup,
+        "continuous": continuous, "depth": depth, "shadows": shadows, "autoreset": autoreset, "seed": seed,
+        "steps": steps, "every": every, "warmup": warmup,
         "reset_every": reset_every, "reset_fraction": reset_fraction, "malloc_trim": trim,
         "partial_resets": partial_resets, "auto_resets": auto_resets,
         "seconds": elapsed, "steps_per_s": steps / elapsed, "env_steps_per_s": steps * worlds / elapsed,
@@ -236,7 +241,8 @@ def run(args) -> dict:
     result = soak(args.env, args.worlds, args.steps, agents=args.agents, resolution=args.resolution,
                   every=args.every, warmup=args.warmup, reset_every=args.reset_every,
                   reset_fraction=args.reset_fraction, max_steps=args.max_steps, continuous=args.continuous,
-                  depth=args.depth, seed=args.seed, trim=args.malloc_trim)
+                  depth=args.depth, seed=args.seed, trim=args.malloc_trim, shadows=args.shadows,
+                  autoreset=args.autoreset)
     os.makedirs(args.out, exist_ok=True)
     files = {"json": os.path.join(args.out, "soak.json")}
     if args.plot:
