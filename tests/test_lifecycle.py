@@ -15,7 +15,7 @@ import json
 import multiprocessing
 import subprocess
 import sys
-from argparse import Namespace
+from argparse import ArgumentParser
 
 import pytest
 import torch
@@ -224,9 +224,11 @@ def soak_result(tmp_path_factory):
     from marl_render.bench import soak
 
     out = tmp_path_factory.mktemp("soak")
-    args = Namespace(env="spread", worlds=8, agents=None, resolution=32, steps=300, every=25, warmup=50,
-                     reset_every=10, reset_fraction=0.25, max_steps=40, continuous=False, depth=True, seed=0,
-                     malloc_trim=True, plot=True, out=str(out))
+    # Parsed by the bench's own parser, so a new option gets its default here as it does on the command line.
+    parser = ArgumentParser()
+    soak.add_arguments(parser)
+    args = parser.parse_args(["--env", "spread", "--worlds", "8", "--resolution", "32", "--steps", "300",
+                              "--every", "25", "--warmup", "50", "--max-steps", "40", "--depth", "--out", str(out)])
     return soak.run(args)
 
 
