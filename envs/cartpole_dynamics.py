@@ -13,6 +13,9 @@ import math
 import torch
 from torch import Tensor
 
+from . import array_ops
+from .array_ops import NumpyOps, TorchOps
+
 # Constants as in dm_control cartpole.xml (dm_control/suite/cartpole.xml):
 #   <option timestep="0.01" integrator="RK4">, MuJoCo's default gravity 9.81;
 #   cart: box geom mass 1 on a "slider" slide joint, damping 5e-4;
@@ -48,19 +51,19 @@ CARTPOLE = dict(
 CARTPOLE_INTEGRATORS = ("semi_implicit_euler", "velocity_verlet", "rk4")
 
 
-def cartpole_accel(theta: Tensor, xdot: Tensor, thetadot: Tensor, force: Tensor,
-                   slider_damping: float, hinge_damping: float) -> tuple[Tensor, Tensor]:
+def cartpole_accel(theta, xdot, thetadot, force, slider_damping: float, hinge_damping: float, ops=TorchOps):
     """(x_ddot, theta_ddot) of the cart-pole; theta = 0 upright, > 0 tilts to +x.
 
     Lagrangian with q = (x, theta): mass matrix
     [[M + m, m l cos], [m l cos, I + m l^2]], gravity torque m g l sin(theta),
     centripetal term m l sin(theta) theta_dot^2 on the cart, viscous joint damping;
-    l is pole_com (hinge to the pole's centre of mass, `com` below).
+    l is pole_com (hinge to the pole's centre of mass, `com` below). Tensors, or the arrays
+    of `ops` (envs/array_ops.py).
     """
     p = CARTPOLE
     M, m, com, g = p["cart_mass"], p["pole_mass"], p["pole_com"], p["gravity"]
     J = p["pole_inertia"] + m * com * com
-    cos, sin = torch.cos(theta), torch.sin(theta)
+    cos, sin = ops.cos(theta), ops.sin(theta)
     rhs_x = force - slider_damping * xdot + m * com * sin * thetadot * thetadot
     rhs_t = m * g * com * sin - hinge_damping * thetadot
     mlc = m * com * cos
@@ -68,6 +71,15 @@ def cartpole_accel(theta: Tensor, xdot: Tensor, thetadot: Tensor, force: Tensor,
     xdd = (J * rhs_x - mlc * rhs_t) / det
     tdd = ((M + m) * rhs_t - mlc * rhs_x) / det
     return xdd, tdd
+
+
+def check_step_arguments(dt, substeps: int, integrator: str) -> None:
+    if not (isinstance(substeps, int) and not isinstance(substeps, bool) and substeps >= 1):
+        raise ValueError(f"substeps must be an int >= 1, got {substeps!r}")
+    if not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
+    if integrator not in CARTPOLE_INTEGRATORS:
+        raise ValueError(f"integrator must be one of {CARTPOLE_INTEGRATORS}, got {integrator!r}")
 
 
 def cartpole_step(
@@ -86,18 +98,26 @@ def cartpole_step(
     settings. "velocity_verlet" treats the velocity-dependent terms
     explicitly (half-kick with the current velocity).
     """
-    if not (isinstance(substeps, int) and not isinstance(substeps, bool) and substeps >= 1):
-        raise ValueError(f"substeps must be an int >= 1, got {substeps!r}")
-    if not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
-    if integrator not in CARTPOLE_INTEGRATORS:
-        raise ValueError(f"integrator must be one of {CARTPOLE_INTEGRATORS}, got {integrator!r}")
+    check_step_arguments(dt, substeps, integrator)
     force = CARTPOLE["gear"] * action.clamp(-1.0, 1.0).to(state.dtype)
+    ops = array_ops.for_tensor(state) if array_ops.for_tensor(force) is NumpyOps else TorchOps
+    q = integrate(ops, array_ops.to_ops(ops, state), array_ops.to_ops(ops, force), dt, substeps, integrator,
+                  slider_damping, hinge_damping)
+    return array_ops.to_tensor(q)
+
+
+def integrate(ops, state, force, dt: float, substeps: int, integrator: str, slider_damping: float,
+              hinge_damping: float):
+    """cartpole_step on the arrays of `ops` (arguments checked by the caller), `force` in N."""
     h = dt / substeps
 
     def accel(q, v):
-        return torch.stack(cartpole_accel(q[..., 1], v[..., 0], v[..., 1], force,
-                                          slider_damping, hinge_damping), dim=-1)
+        return ops.stack(cartpole_accel(q[..., 1], v[..., 0], v[..., 1], force, slider_damping, hinge_damping, ops),
+                         -1)
+
+    def derivative(y):  # dy/dt of y = (x, theta, x_dot, theta_dot): (x_dot, theta_dot, x_ddot, theta_ddot)
+        xdd, tdd = cartpole_accel(y[..., 1], y[..., 2], y[..., 3], force, slider_damping, hinge_damping, ops)
+        return ops.stack((y[..., 2], y[..., 3], xdd, tdd), -1)
 
     q, v = state[..., :2], state[..., 2:]
     for _ in range(substeps):
@@ -112,14 +132,15 @@ def cartpole_step(
             # drop the scheme to first order; one fixed-point pass keeps second.
             v = v_half + 0.5 * h * accel(q, v_half)
             v = v_half + 0.5 * h * accel(q, v)
-        else:  # classic RK4 on (q, v), as MuJoCo's RK4 integrator
-            k1q, k1v = v, accel(q, v)
-            k2q, k2v = v + 0.5 * h * k1v, accel(q + 0.5 * h * k1q, v + 0.5 * h * k1v)
-            k3q, k3v = v + 0.5 * h * k2v, accel(q + 0.5 * h * k2q, v + 0.5 * h * k2v)
-            k4q, k4v = v + h * k3v, accel(q + h * k3q, v + h * k3v)
-            q = q + h / 6.0 * (k1q + 2 * k2q + 2 * k3q + k4q)
-            v = v + h / 6.0 * (k1v + 2 * k2v + 2 * k3v + k4v)
-    return torch.cat([q, v], dim=-1)
+        else:  # classic RK4 on y = (q, v), as MuJoCo's RK4 integrator
+            y = ops.concatenate([q, v], -1)
+            k1 = derivative(y)
+            k2 = derivative(y + 0.5 * h * k1)
+            k3 = derivative(y + 0.5 * h * k2)
+            k4 = derivative(y + h * k3)
+            y = y + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+            q, v = y[..., :2], y[..., 2:]
+    return ops.concatenate([q, v], -1)
 
 
 def cartpole_energy(state: Tensor) -> Tensor:
@@ -141,13 +162,19 @@ SLIDER_LIMIT = 1.8  # m, dm_control cartpole.xml slider range
 def slider_limit(q: Tensor, limit: float = SLIDER_LIMIT) -> Tensor:
     """Hard inelastic stop at |x| = limit: the cart's velocity into the stop is removed and the
     pole gets the impulse that keeps the hinge constraint (d theta_dot = m l cos / J * x_dot)."""
-    x, theta, xdot, thetadot = q.unbind(-1)
+    ops = array_ops.for_tensor(q)
+    return array_ops.to_tensor(stop_at_limit(ops, array_ops.to_ops(ops, q), limit))
+
+
+def stop_at_limit(ops, q, limit: float = SLIDER_LIMIT):
+    """slider_limit on the arrays of `ops`."""
+    x, theta, xdot, thetadot = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     hit = ((x > limit) & (xdot > 0)) | ((x < -limit) & (xdot < 0))
     p = CARTPOLE
     m, com = p["pole_mass"], p["pole_com"]
     J = p["pole_inertia"] + m * com * com
-    zero = torch.zeros_like(xdot)
-    thetadot = torch.where(hit, thetadot + m * com * torch.cos(theta) / J * xdot, thetadot)
-    xdot = torch.where(hit, zero, xdot)
-    x = x.clamp(-limit, limit)
-    return torch.stack((x, theta, xdot, thetadot), -1)
+    zero = ops.zeros_like(xdot)
+    thetadot = ops.where(hit, thetadot + m * com * ops.cos(theta) / J * xdot, thetadot)
+    xdot = ops.where(hit, zero, xdot)
+    x = ops.clip(x, -limit, limit)
+    return ops.stack((x, theta, xdot, thetadot), -1)

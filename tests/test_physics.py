@@ -716,3 +716,37 @@ def test_cartpole_action_is_clipped_and_validated():
         C.cartpole_step(s, torch.zeros(1), integrator="euler")
     with pytest.raises(ValueError, match="substeps"):
         C.cartpole_step(s, torch.zeros(1), substeps=0)
+
+
+# The numpy path (envs/array_ops.py) that CPU batches take must give the torch path's bits.
+@pytest.mark.parametrize("integrator", C.CARTPOLE_INTEGRATORS)
+@pytest.mark.parametrize("worlds", [1, 16, 1000])
+def test_cartpole_numpy_path_gives_the_torch_paths_bits(integrator, worlds):
+    from marl_render.envs.array_ops import NumpyOps, TorchOps
+
+    g = torch.Generator().manual_seed(worlds)
+    s = (torch.rand(worlds, 4, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([3.0, 7.0, 4.0, 9.0],
+                                                                                        dtype=torch.float64)
+    outs = {}
+    for ops in (NumpyOps, TorchOps):
+        q = s.clone() if ops is TorchOps else s.clone().numpy()
+        for t in range(300):  # 3 s: the pole falls and swings over; the cart hits the stops
+            force = 10.0 * torch.sin(torch.full((worlds,), 0.07 * t, dtype=torch.float64))
+            q = C.integrate(ops, q, force if ops is TorchOps else force.numpy(), 0.01, 2, integrator, 5e-4, 2e-6)
+            q = C.stop_at_limit(ops, q)
+            reward = R.balance_reward(ops, q, force / 10.0 if ops is TorchOps else force.numpy() / 10.0)
+        outs[ops] = (torch.as_tensor(q), torch.as_tensor(reward))
+    assert torch.equal(outs[NumpyOps][0], outs[TorchOps][0]) and torch.equal(outs[NumpyOps][1], outs[TorchOps][1])
+    assert outs[NumpyOps][0].dtype == torch.float64
+
+
+@pytest.mark.parametrize("sigmoid", ["gaussian", "hyperbolic", "long_tail", "reciprocal", "cosine", "linear",
+                                     "quadratic", "tanh_squared"])
+def test_tolerance_numpy_path_gives_the_torch_paths_bits(sigmoid):
+    from marl_render.envs.array_ops import NumpyOps
+
+    x = torch.linspace(-4, 4, 1001, dtype=torch.float64)
+    value = 0.0 if sigmoid in ("linear", "quadratic", "cosine") else 0.1
+    expected = R.tolerance(x, bounds=(-0.5, 1.0), margin=2.0, sigmoid=sigmoid, value_at_margin=value)
+    got = R.tolerance(x.numpy(), bounds=(-0.5, 1.0), margin=2.0, sigmoid=sigmoid, value_at_margin=value, ops=NumpyOps)
+    assert torch.equal(torch.from_numpy(got), expected)
