@@ -300,7 +300,7 @@ class ArenaScenario(Scenario):
         delta = target - state.pos[:, :N]
         bearing = torch.atan2(-delta[..., 0], delta[..., 1])  # yaw 0 faces +y; yaw > 0 turns left
         error = scenery.wrap_angle(bearing - state.yaw)
-        near = delta.norm(dim=-1) <= reach
+        near = torch.linalg.vector_norm(delta, dim=-1) <= reach
         if self.continuous:
             turn = (error / 0.5).clamp(-1, 1)
             thrust = torch.where(error.abs() < 0.6, torch.ones_like(turn), torch.zeros_like(turn))

@@ -12,6 +12,8 @@ the same bits (the arithmetic operators are IEEE-exact in both).
 """
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 
@@ -28,6 +30,45 @@ class TorchOps:
 
     cos, sin, exp, cosh, tanh = torch.cos, torch.sin, torch.exp, torch.cosh, torch.tanh
     where, zeros_like, ones_like, abs = torch.where, torch.zeros_like, torch.ones_like, torch.abs
+    isfinite, maximum, minimum, copysign = torch.isfinite, torch.maximum, torch.minimum, torch.copysign
+    reciprocal = torch.reciprocal
+
+    @staticmethod
+    def norm(x, keepdim: bool = False):
+        """Euclidean norm over the last axis."""
+        return torch.linalg.vector_norm(x, dim=-1, keepdim=keepdim)
+
+    @staticmethod
+    def clamp_min(x, low):
+        return x.clamp_min(low)
+
+    @staticmethod
+    def clamp_max(x, high):
+        return x.clamp(max=high)
+
+    @staticmethod
+    def max_last(x):
+        """(largest value, index of its first occurrence) over the last axis."""
+        values, indices = x.max(dim=-1)
+        return values, indices
+
+    @staticmethod
+    def pick(x, index, axis: int):
+        """x's entries at `index` along `axis` (index has x's shape without that axis and the last)."""
+        expanded = index.unsqueeze(axis).unsqueeze(-1).expand(*index.shape[:axis], 1, *index.shape[axis:], x.shape[-1])
+        return torch.gather(x, axis, expanded).squeeze(axis)
+
+    @staticmethod
+    def swap_last(x):
+        return x.transpose(-1, -2)
+
+    @staticmethod
+    def min_last(x):
+        return x.min(dim=-1).values
+
+    @staticmethod
+    def cast_like(x, like):
+        return x.to(like.dtype)
 
     @staticmethod
     def stack(arrays, axis: int):
@@ -41,12 +82,48 @@ class TorchOps:
     def clip(x, low, high):
         return x.clamp(low, high)
 
+    @staticmethod
+    def quiet():
+        return contextlib.nullcontext()
+
 
 class NumpyOps:
     """numpy arithmetic with torch's transcendental kernels (see the module docstring)."""
 
     cos, sin, exp, cosh, tanh = (_through_torch(f) for f in (torch.cos, torch.sin, torch.exp, torch.cosh, torch.tanh))
     where, zeros_like, ones_like, abs, clip = np.where, np.zeros_like, np.ones_like, np.abs, np.clip
+    isfinite, maximum, minimum, copysign = np.isfinite, np.maximum, np.minimum, np.copysign
+    reciprocal, clamp_min, clamp_max = np.reciprocal, np.maximum, np.minimum
+
+    @staticmethod
+    def quiet():
+        """IEEE results without numpy's warnings (torch gives inf and NaN silently too)."""
+        return np.errstate(all="ignore")
+
+    @staticmethod
+    def norm(x, keepdim: bool = False):
+        # torch's float32 norm accumulates differently from sqrt(sum(x * x)): use its kernel
+        return torch.linalg.vector_norm(torch.from_numpy(x), dim=-1, keepdim=keepdim).numpy()
+
+    @staticmethod
+    def max_last(x):
+        return x.max(axis=-1), x.argmax(axis=-1)
+
+    @staticmethod
+    def pick(x, index, axis: int):
+        return np.take_along_axis(x, np.expand_dims(index, (axis, -1)), axis=axis).squeeze(axis)
+
+    @staticmethod
+    def swap_last(x):
+        return np.swapaxes(x, -1, -2)
+
+    @staticmethod
+    def min_last(x):
+        return x.min(axis=-1)
+
+    @staticmethod
+    def cast_like(x, like):
+        return x.astype(like.dtype)
 
     @staticmethod
     def stack(arrays, axis: int):

@@ -101,8 +101,9 @@ def cartpole_step(
     check_step_arguments(dt, substeps, integrator)
     force = CARTPOLE["gear"] * action.clamp(-1.0, 1.0).to(state.dtype)
     ops = array_ops.for_tensor(state) if array_ops.for_tensor(force) is NumpyOps else TorchOps
-    q = integrate(ops, array_ops.to_ops(ops, state), array_ops.to_ops(ops, force), dt, substeps, integrator,
-                  slider_damping, hinge_damping)
+    with ops.quiet():
+        q = integrate(ops, array_ops.to_ops(ops, state), array_ops.to_ops(ops, force), dt, substeps, integrator,
+                      slider_damping, hinge_damping)
     return array_ops.to_tensor(q)
 
 
@@ -163,7 +164,8 @@ def slider_limit(q: Tensor, limit: float = SLIDER_LIMIT) -> Tensor:
     """Hard inelastic stop at |x| = limit: the cart's velocity into the stop is removed and the
     pole gets the impulse that keeps the hinge constraint (d theta_dot = m l cos / J * x_dot)."""
     ops = array_ops.for_tensor(q)
-    return array_ops.to_tensor(stop_at_limit(ops, array_ops.to_ops(ops, q), limit))
+    with ops.quiet():
+        return array_ops.to_tensor(stop_at_limit(ops, array_ops.to_ops(ops, q), limit))
 
 
 def stop_at_limit(ops, q, limit: float = SLIDER_LIMIT):

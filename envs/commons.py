@@ -168,7 +168,7 @@ class Commons(ArenaScenario):
         zap = actions[..., 2] > 0.5 if self.continuous else actions == 5
         delta = moved.pos[:, None, :N] - moved.pos[:, :N, None]  # [W, zapper, target, 2]
         bearing = torch.atan2(-delta[..., 0], delta[..., 1])
-        gap = delta.norm(dim=-1)
+        gap = torch.linalg.vector_norm(delta, dim=-1)
         seen = (scenery.wrap_angle(bearing - yaw[..., None]).abs() <= ZAP_HALF_ANGLE) & (gap <= ZAP_RANGE)
         seen &= (zap & playing)[:, :, None] & playing[:, None, :] & ~torch.eye(N, dtype=torch.bool, device=self.device)
         hit = torch.where(seen, gap, torch.full_like(gap, math.inf)).argmin(-1)  # [W, zapper]

@@ -55,13 +55,18 @@ dtype and device always follow the input tensors (float32 or float64).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
+
+from . import array_ops
+from .array_ops import NumpyOps, TorchOps
 
 __all__ = [
     "TERM_NAMES",
@@ -244,17 +249,17 @@ class Obstacles(NamedTuple):
     angle: Tensor        # [W, K], radians, counter-clockwise
 
 
-def _eps(t: Tensor) -> float:
-    return float(torch.finfo(t.dtype).eps)
+def _eps(t) -> float:
+    return float(np.finfo(t.dtype).eps) if isinstance(t, np.ndarray) else float(torch.finfo(t.dtype).eps)
 
 
-def _movable(state: BodyState) -> Tensor:
-    return state.active & torch.isfinite(state.mass)
+def _movable(state: BodyState, ops=TorchOps):
+    return state.active & ops.isfinite(state.mass)
 
 
-def _inv_mass(state: BodyState) -> Tensor:
+def _inv_mass(state: BodyState, ops=TorchOps):
     # 0 for immovable and inactive bodies, so they take no share of an impulse.
-    return torch.where(_movable(state), 1.0 / state.mass, torch.zeros_like(state.mass))
+    return ops.where(_movable(state, ops), ops.reciprocal(state.mass), ops.zeros_like(state.mass))
 
 
 def clamp_norm(v: Tensor, max_norm) -> Tensor:
@@ -262,8 +267,15 @@ def clamp_norm(v: Tensor, max_norm) -> Tensor:
 
     ``max_norm`` is a float > 0 or a tensor broadcasting against ``v[..., :1]``.
     """
-    # A zero vector gives max_norm / 0 = inf -> scale 1 -> stays zero (no NaN).
-    return v * (max_norm / v.norm(dim=-1, keepdim=True)).clamp(max=1.0)
+    return _clamp_norm(TorchOps, v, max_norm)
+
+
+def _clamp_norm(ops, v, max_norm):
+    # A zero vector gives max_norm / 0 = inf -> scale 1 -> stays zero (no NaN). A float over a
+    # tensor is torch's reciprocal times the float: written so, both namespaces give its bits.
+    norm = ops.norm(v, keepdim=True)
+    scale = ops.reciprocal(norm) * max_norm if isinstance(max_norm, (int, float)) else max_norm / norm
+    return v * ops.clamp_max(scale, 1.0)
 
 
 def check_scene(state: BodyState, obstacles: Obstacles | None, cfg: PhysicsConfig) -> None:
@@ -308,7 +320,7 @@ def check_scene(state: BodyState, obstacles: Obstacles | None, cfg: PhysicsConfi
 # positions and velocities.
 # --------------------------------------------------------------------------
 
-def _drag(state, obstacles, cfg, h):
+def _drag(state, obstacles, cfg, h, ops=TorchOps):
     # Exact solution of dv/dt = -drag * v over h: never overshoots zero.
     factor = math.exp(-cfg.drag * h)
 
@@ -318,17 +330,25 @@ def _drag(state, obstacles, cfg, h):
     return apply
 
 
-def _friction(state, obstacles, cfg, h):
+def _friction(state, obstacles, cfg, h, ops=TorchOps):
     # Kinetic Coulomb friction removes mu*g*h of speed, opposite to motion; it
     # may stop a body but never reverse it (what is left is static friction).
     dv = cfg.friction * cfg.gravity * h
 
     def apply(pos, vel):
-        speed = vel.norm(dim=-1, keepdim=True)
-        new_speed = (speed - dv).clamp_min(0.0)
-        return pos, vel * (new_speed / speed.clamp_min(_eps(vel)))
+        speed = ops.norm(vel, keepdim=True)
+        new_speed = ops.clamp_min(speed - dv, 0.0)
+        return pos, vel * (new_speed / ops.clamp_min(speed, _eps(vel)))
 
     return apply
+
+
+@functools.lru_cache(maxsize=64)
+def _pair_constants(B: int, dtype: torch.dtype, device: torch.device, numpy: bool) -> tuple:
+    """(eye [B, B] bool, fallback normals [B, B, 2]): the same every step, built once (read only)."""
+    like = torch.empty(0, dtype=dtype, device=device)
+    eye, fallback = torch.eye(B, dtype=torch.bool, device=device), _fallback_normals(B, like)
+    return (eye.numpy(), fallback.numpy()) if numpy else (eye, fallback)
 
 
 def _fallback_normals(B: int, like: Tensor) -> Tensor:
@@ -346,7 +366,7 @@ def _fallback_normals(B: int, like: Tensor) -> Tensor:
     return torch.stack([torch.cos(phi), torch.sin(phi)], dim=-1) * sign[..., None]
 
 
-def _body_collisions(state, obstacles, cfg, h):
+def _body_collisions(state, obstacles, cfg, h, ops=TorchOps):
     """Circle-circle contacts for all pairs at once ([W, B, B]).
 
     Velocity: restitution impulses split by inverse mass, a few Jacobi passes
@@ -359,40 +379,41 @@ def _body_collisions(state, obstacles, cfg, h):
     """
     W, B = state.pos.shape[:2]
     eps = _eps(state.pos)
-    inv_m = _inv_mass(state)
-    eye = torch.eye(B, dtype=torch.bool, device=state.pos.device)
+    inv_m = _inv_mass(state, ops)
+    eye, fallback = _pair_constants(B, _torch_dtype(state.pos), _device(state.pos), ops is NumpyOps)
     inv_sum = inv_m[:, :, None] + inv_m[:, None, :]                          # [W,B,B]
     # Both active, distinct, and at least one of them can move.
     pair_ok = state.active[:, :, None] & state.active[:, None, :] & ~eye & (inv_sum > 0)
-    share = torch.where(pair_ok, inv_m[:, :, None] / inv_sum.clamp_min(eps), torch.zeros_like(inv_sum))
+    share = ops.where(pair_ok, inv_m[:, :, None] / ops.clamp_min(inv_sum, eps), ops.zeros_like(inv_sum))
     rsum = state.radius[:, :, None] + state.radius[:, None, :]
-    fallback = _fallback_normals(B, state.pos)
     kick = -(1.0 + cfg.restitution)
 
     def apply(pos, vel):
         d = pos[:, :, None, :] - pos[:, None, :, :]                           # p_i - p_j
-        dist = d.norm(dim=-1)
-        n = torch.where((dist > eps)[..., None], d / dist.clamp_min(eps)[..., None], fallback)
+        dist = ops.norm(d)
         contact = pair_ok & (dist < rsum)
-        count = contact.sum(-1, dtype=pos.dtype).clamp_min(1.0)             # [W,B]
+        if not contact.any():  # no pair touches (the usual case): every impulse and correction is 0
+            return pos, vel
+        n = ops.where((dist > eps)[..., None], d / ops.clamp_min(dist, eps)[..., None], fallback)
+        count = ops.clamp_min(contact.sum(-1, dtype=pos.dtype), 1.0)             # [W,B]
         # Body i's part of pair (i, j), zero where there is no contact.
-        weight = share.masked_fill(~contact, 0.0) / torch.maximum(count[:, :, None], count[:, None, :])
+        weight = ops.where(contact, share, 0.0) / ops.maximum(count[:, :, None], count[:, None, :])
         kicked = kick * weight
 
         for _ in range(cfg.solver_iterations):
             vn = ((vel[:, :, None, :] - vel[:, None, :, :]) * n).sum(-1)     # < 0: approaching
-            dvn = kicked * vn.clamp(max=0.0)
-            vel = vel + (dvn[..., None] * n).sum(dim=2)
+            dvn = kicked * ops.clamp_max(vn, 0.0)
+            vel = vel + (dvn[..., None] * n).sum(2)
 
         # Positional correction: pure projection, velocity untouched.
-        depth = (rsum - dist).clamp_min(0.0)
-        pos = pos + ((cfg.position_correction * weight * depth)[..., None] * n).sum(dim=2)
+        depth = ops.clamp_min(rsum - dist, 0.0)
+        pos = pos + ((cfg.position_correction * weight * depth)[..., None] * n).sum(2)
         return pos, vel
 
     return apply
 
 
-def _obstacles(state, obstacles, cfg, h):
+def _obstacles(state, obstacles, cfg, h, ops=TorchOps):
     """Circle vs static oriented box: push out along the closest-feature normal.
 
     Outside the box the normal runs from the closest surface point to the
@@ -405,12 +426,12 @@ def _obstacles(state, obstacles, cfg, h):
         return lambda pos, vel: (pos, vel)
     kick = 1.0 + cfg.restitution
     eps = _eps(state.pos)
-    fixed = ~_movable(state)[:, :, None]                                     # [W,B,1]
+    fixed = ~_movable(state, ops)[:, :, None]                                # [W,B,1]
     r = state.radius[:, :, None]
-    c, s = torch.cos(obstacles.angle), torch.sin(obstacles.angle)
+    c, s = ops.cos(obstacles.angle), ops.sin(obstacles.angle)
     # Rows of R(-angle) (world -> box) and of R(+angle) (box -> world): [W,1,K,2,2].
-    to_box = torch.stack([torch.stack([c, s], -1), torch.stack([-s, c], -1)], -2)[:, None]
-    to_world = to_box.transpose(-1, -2)
+    to_box = ops.stack([ops.stack([c, s], -1), ops.stack([-s, c], -1)], -2)[:, None]
+    to_world = ops.swap_last(to_box)
     he = obstacles.half_extent[:, None]                                      # [W,1,K,2]
     center = obstacles.center[:, None]
 
@@ -418,47 +439,63 @@ def _obstacles(state, obstacles, cfg, h):
         for _ in range(cfg.solver_iterations):
             rel = (pos[:, :, None, :] - center)[..., None, :]                # [W,B,K,1,2]
             local = (to_box * rel).sum(-1)                                   # [W,B,K,2]
-            delta = local - torch.maximum(torch.minimum(local, he), -he)     # centre - closest point
-            dist_out = delta.norm(dim=-1)
+            delta = local - ops.maximum(ops.minimum(local, he), -he)         # centre - closest point
+            dist_out = ops.norm(delta)
             inside = dist_out <= 0
-            gap = he - local.abs()                                           # to the faces, per axis
+            gap = he - ops.abs(local)                                        # to the faces, per axis
             use_x = gap[..., 0] <= gap[..., 1]
-            n_in = torch.copysign(torch.stack([use_x, ~use_x], -1).to(pos.dtype), local)
-            n_out = delta / dist_out.clamp_min(eps)[..., None]
-            n_loc = torch.where(inside[..., None], n_in, n_out)
-            depth = torch.where(inside, r + gap.min(dim=-1).values, r - dist_out)
-            depth = depth.masked_fill(fixed, -1.0)
+            n_in = ops.copysign(ops.cast_like(ops.stack([use_x, ~use_x], -1), local), local)
+            n_out = delta / ops.clamp_min(dist_out, eps)[..., None]
+            n_loc = ops.where(inside[..., None], n_in, n_out)
+            depth = ops.where(inside, r + ops.min_last(gap), r - dist_out)
+            depth = ops.where(fixed, -1.0, depth)
 
-            depth_k, k = depth.max(dim=-1)                                   # deepest box per body
+            depth_k, k = ops.max_last(depth)                                 # deepest box per body
             n_all = (to_world * n_loc[..., None, :]).sum(-1)                 # world frame [W,B,K,2]
-            n_w = torch.gather(n_all, 2, k[:, :, None, None].expand(-1, -1, 1, 2)).squeeze(2)
+            n_w = ops.pick(n_all, k, 2)
             hit = depth_k > 0
-            pos = pos + (depth_k.clamp_min(0.0))[..., None] * n_w
+            pos = pos + ops.clamp_min(depth_k, 0.0)[..., None] * n_w
             vn = (vel * n_w).sum(-1)
-            vel = vel - (kick * vn.clamp(max=0.0).masked_fill(~hit, 0.0))[..., None] * n_w
+            vel = vel - (kick * ops.where(hit, ops.clamp_max(vn, 0.0), 0.0))[..., None] * n_w
         return pos, vel
 
     return apply
 
 
-def _walls(state, obstacles, cfg, h):
-    half = torch.tensor(cfg.arena_half_extent, dtype=state.pos.dtype, device=state.pos.device)
-    hi = half - state.radius[..., None]                                      # [W,B,2]
+def _walls(state, obstacles, cfg, h, ops=TorchOps):
+    hi = _arena_half(state.pos, cfg) - state.radius[..., None]               # [W,B,2]
     lo = -hi
-    fixed = ~_movable(state)[..., None]
+    fixed = ~_movable(state, ops)[..., None]
     e = cfg.restitution
 
     def apply(pos, vel):
         # Clamp centres to [-(H - r), H - r]: bodies are never outside afterwards.
         out_lo = (pos < lo) & ~fixed
         out_hi = (pos > hi) & ~fixed
-        pos = torch.where(out_lo, lo, torch.where(out_hi, hi, pos))
+        if not (out_lo | out_hi).any():  # nobody at a wall (the usual case): nothing to clamp or reflect
+            return pos, vel
+        pos = ops.where(out_lo, lo, ops.where(out_hi, hi, pos))
         # Reflect only an outward normal velocity (a body sliding along a wall keeps it).
         bounce = (out_lo & (vel < 0)) | (out_hi & (vel > 0))
-        vel = torch.where(bounce, -e * vel, vel)
+        vel = ops.where(bounce, -e * vel, vel)
         return pos, vel
 
     return apply
+
+
+def _arena_half(like, cfg):
+    """The arena's half extents as an array of `like`'s kind, dtype and device."""
+    if isinstance(like, np.ndarray):
+        return np.asarray(cfg.arena_half_extent, dtype=like.dtype)
+    return torch.tensor(cfg.arena_half_extent, dtype=like.dtype, device=like.device)
+
+
+def _torch_dtype(x) -> torch.dtype:
+    return torch.from_numpy(x[:0]).dtype if isinstance(x, np.ndarray) else x.dtype
+
+
+def _device(x) -> torch.device:
+    return torch.device("cpu") if isinstance(x, np.ndarray) else x.device
 
 
 #: Term builders by name, looked up at call time and only for declared terms.
@@ -481,26 +518,43 @@ def step(state: BodyState, force: Tensor, obstacles: Obstacles | None, cfg: Phys
     ``force`` [W, B, 2] (N) is held constant over the step. ``obstacles`` may be
     None: no boxes. Returns a new BodyState; inactive bodies are returned
     bit-for-bit unchanged, immovable ones keep their position with zero velocity.
+
+    CPU float batches run on numpy arrays over the same memory (envs/array_ops.py: at
+    small batches the cost is the number of calls); the results are torch's bits.
     """
+    tensors = [*state, force] + ([] if obstacles is None else [*obstacles])
+    floats = [t for t in tensors if t.is_floating_point()]
+    ops = NumpyOps if all(array_ops.for_tensor(t) is NumpyOps for t in floats) and all(
+        t.device.type == "cpu" for t in tensors) else TorchOps
+    if ops is TorchOps:
+        return _step(ops, state, force, obstacles, cfg)
+    arrays = BodyState(*(t.numpy() for t in state))
+    boxes = None if obstacles is None else Obstacles(*(t.numpy() for t in obstacles))
+    with ops.quiet():
+        moved = _step(ops, arrays, force.numpy(), boxes, cfg)
+    return state._replace(pos=torch.from_numpy(moved.pos), vel=torch.from_numpy(moved.vel))
+
+
+def _step(ops, state: BodyState, force, obstacles: Obstacles | None, cfg: PhysicsConfig) -> BodyState:
     h = cfg.dt / cfg.substeps
-    movable = _movable(state)[..., None]
+    movable = _movable(state, ops)[..., None]
     # where() rather than a product: inf mass or an inactive zero mass must not make NaNs.
-    accel = torch.where(movable, force / state.mass[..., None], torch.zeros_like(force))
+    accel = ops.where(movable, force / state.mass[..., None], ops.zeros_like(force))
     # Fixed order: velocity-only terms, then contacts; walls last so nothing ends outside.
     # Velocity Verlet splits drag around the force kick (Strang splitting): applied whole
     # after the kick it would make the scheme first order. Coulomb friction stays whole,
     # after the kick, so that static friction still holds a body exactly.
     split = cfg.integrator == "velocity_verlet" and "drag" in cfg.terms
-    half_drag = TERMS["drag"](state, obstacles, cfg, h / 2) if split else None
-    velocity_terms = [half_drag if split and t == "drag" else TERMS[t](state, obstacles, cfg, h)
+    half_drag = TERMS["drag"](state, obstacles, cfg, h / 2, ops=ops) if split else None
+    velocity_terms = [half_drag if split and t == "drag" else TERMS[t](state, obstacles, cfg, h, ops=ops)
                       for t in ("drag", "friction") if t in cfg.terms]
-    contact_terms = [TERMS[t](state, obstacles, cfg, h) for t in ("body_collisions",) if t in cfg.terms]
-    boundary_terms = [TERMS[t](state, obstacles, cfg, h) for t in ("obstacles", "walls") if t in cfg.terms]
+    contact_terms = [TERMS[t](state, obstacles, cfg, h, ops=ops) for t in ("body_collisions",) if t in cfg.terms]
+    boundary_terms = [TERMS[t](state, obstacles, cfg, h, ops=ops) for t in ("obstacles", "walls") if t in cfg.terms]
     max_travel = cfg.max_speed * h
     dv = accel * h
 
     pos = state.pos
-    vel = torch.where(movable, clamp_norm(state.vel, cfg.max_speed), torch.zeros_like(state.vel))
+    vel = ops.where(movable, _clamp_norm(ops, state.vel, cfg.max_speed), ops.zeros_like(state.vel))
     for _ in range(cfg.substeps):
         pos0, v0 = pos, vel
         # Velocity first, so drag and friction act before anything moves.
@@ -510,7 +564,7 @@ def step(state: BodyState, force: Tensor, obstacles: Obstacles | None, cfg: Phys
         v1 = v1 + dv
         for term in velocity_terms:
             _, v1 = term(pos0, v1)
-        vel = clamp_norm(v1, cfg.max_speed)
+        vel = _clamp_norm(ops, v1, cfg.max_speed)
         if cfg.integrator == "semi_implicit_euler":
             pos = pos0 + vel * h
         else:
@@ -524,17 +578,16 @@ def step(state: BodyState, force: Tensor, obstacles: Obstacles | None, cfg: Phys
             for term in contact_terms:
                 pos, vel = term(pos, vel)
             # Impulses can speed a body up (a light one hit by a heavy one).
-            vel = clamp_norm(vel, cfg.max_speed)
+            vel = _clamp_norm(ops, vel, cfg.max_speed)
             # Travel cap (motion + overlap correction): the no-tunnelling
             # invariant. Integration alone already respects it.
-            pos = pos0 + clamp_norm(pos - pos0, max_travel)
+            pos = pos0 + _clamp_norm(ops, pos - pos0, max_travel)
         # Reflections with restitution <= 1 never increase a speed: no clamp after.
         for term in boundary_terms:
             pos, vel = term(pos, vel)
 
     active = state.active[..., None]
-    return state._replace(pos=torch.where(active, pos, state.pos),
-                          vel=torch.where(active, vel, state.vel))
+    return state._replace(pos=ops.where(active, pos, state.pos), vel=ops.where(active, vel, state.vel))
 
 
 def kinetic_energy(state: BodyState) -> Tensor:

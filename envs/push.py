@@ -184,7 +184,7 @@ class Push(ArenaScenario):
         ball = state.pos[:, -1:].expand(-1, N, 2)
         goal = torch.stack((torch.zeros_like(self.side), self.side * ARENA[1]), -1)  # [N, 2]
         line = goal - ball
-        line = line / line.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        line = line / torch.linalg.vector_norm(line, dim=-1, keepdim=True).clamp_min(1e-6)
         behind = ball - line * (BALL_RADIUS + AGENT_RADIUS + 0.1)
         lined_up = (state.pos[:, :N] - behind).norm(dim=-1, keepdim=True) < 0.15
         return self.steer_to(state, torch.where(lined_up, goal.expand_as(ball), behind))

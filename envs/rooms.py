@@ -248,7 +248,7 @@ class Rooms(ArenaScenario):
         target = torch.where(going_home, state.home[:, None], target)
         ahead = t["next_room"][room, target]  # [W, N]
         direction = t["room_centre"][ahead] - t["room_centre"][room]
-        direction = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        direction = direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-6)
         door = self.doors(state).gather(1, t["slot_to"][room, ahead][..., None].expand(-1, -1, 2))
         offset = pos - door
         lateral = (offset - (offset * direction).sum(-1, keepdim=True) * direction).norm(dim=-1, keepdim=True)

@@ -228,6 +228,7 @@ class Tag(ArenaScenario):
         to_predator = torch.where(self.is_predator & alive[:, None, :], dist, inf).argmin(-1)
         threat = pos.gather(1, to_predator[..., None].expand(-1, -1, 2))
         away = pos - threat
-        flee = (pos + away / away.norm(dim=-1, keepdim=True).clamp_min(1e-6)).clamp(-ARENA * 0.8, ARENA * 0.8)
+        away = away / torch.linalg.vector_norm(away, dim=-1, keepdim=True).clamp_min(1e-6)
+        flee = (pos + away).clamp(-ARENA * 0.8, ARENA * 0.8)
         target = torch.where(self.is_predator[None, :, None], chase, flee)
         return self.steer_to(state, target)
