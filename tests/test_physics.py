@@ -750,3 +750,30 @@ def test_tolerance_numpy_path_gives_the_torch_paths_bits(sigmoid):
     expected = R.tolerance(x, bounds=(-0.5, 1.0), margin=2.0, sigmoid=sigmoid, value_at_margin=value)
     got = R.tolerance(x.numpy(), bounds=(-0.5, 1.0), margin=2.0, sigmoid=sigmoid, value_at_margin=value, ops=NumpyOps)
     assert torch.equal(torch.from_numpy(got), expected)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("integrator", P.INTEGRATORS)
+def test_planar_numpy_path_gives_the_torch_paths_bits(dtype, integrator):
+    # A crowded box with obstacles, an immovable and an inactive body, friction and drag: every
+    # term and branch (contacts, walls, inside and outside boxes) runs on both namespaces.
+    from marl_render.envs.array_ops import TorchOps
+
+    cfg = P.PhysicsConfig(terms=P.TERM_NAMES, integrator=integrator, friction=0.1, drag=0.2)
+    W, B, K = 6, 9, 3
+    s = scene(W, B, radius=0.12, spread=0.9, dtype=dtype, seed=3, speed=2.0)
+    mass = s.mass.clone()
+    mass[:, 0] = math.inf
+    active = s.active.clone()
+    active[:, 1] = False
+    s = s._replace(mass=mass, active=active)
+    g = torch.Generator().manual_seed(1)
+    boxes = P.Obstacles((torch.rand(W, K, 2, generator=g, dtype=dtype) - 0.5),
+                        torch.full((W, K, 2), 0.15, dtype=dtype), torch.rand(W, K, generator=g, dtype=dtype) * 3)
+    numpy_state, torch_state = s, s
+    for t in range(60):
+        force = torch.randn(W, B, 2, generator=g, dtype=dtype) * 3
+        numpy_state = P.step(numpy_state, force, boxes, cfg)
+        torch_state = P._step(TorchOps, torch_state, force, boxes, cfg)
+        assert torch.equal(numpy_state.pos, torch_state.pos) and torch.equal(numpy_state.vel, torch_state.vel), t
+    assert numpy_state.pos.dtype == dtype and not torch.equal(numpy_state.pos, s.pos)

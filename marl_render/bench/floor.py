@@ -10,8 +10,10 @@ medians are compared: ratio = env-steps/s / floor frames/s (a frame = one step o
 world). The floor runs twice, without and with frustum culling, and the faster of the
 two is the floor (culling pays in the arena scenes, not in cart-pole). Each env row
 also carries the renderer's median stage times per step (pack,
-cull, gl, copy; `update`: validating and storing the new poses) and the env's own
-code outside the renderer (`env`), the fixed cost that dominates at small batches.
+cull, gl, copy; `update`: validating and storing the new poses), the task's physics and
+rules (`physics`: Scenario.step) and the rest of the env's code outside the renderer
+(`env`: the driver, actions, observations, instance data), the fixed cost that dominates
+at small batches.
 """
 from __future__ import annotations
 
@@ -56,7 +58,7 @@ def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds:
     env = make_env(name, **kwargs)
     floors = {}
     generator = torch.Generator().manual_seed(0)
-    stages = {key: [] for key in STAGES + ("env",)}
+    stages = {key: [] for key in STAGES + ("physics", "env")}
 
     updating = [0.0]
     update = env.renderer.update
@@ -69,16 +71,28 @@ def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds:
             updating[0] += time.perf_counter() - start
 
     env.renderer.update = timed_update
+    stepping = [0.0]
+    scenario_step = env.scenario.step
+
+    def timed_scenario_step(*args, **kwargs):  # the task's physics and rules (Scenario.step)
+        start = time.perf_counter()
+        try:
+            return scenario_step(*args, **kwargs)
+        finally:
+            stepping[0] += time.perf_counter() - start
+
+    env.scenario.step = timed_scenario_step
 
     def env_step():
-        updating[0] = 0.0
+        updating[0] = stepping[0] = 0.0
         start = time.perf_counter()
         env.step(env.random_actions(generator))
         total = time.perf_counter() - start
         timings = dict(env.renderer.last_timings, update=updating[0])
         for key in STAGES:
             stages[key].append(timings.get(key, 0.0))
-        stages["env"].append(total - sum(timings.get(key, 0.0) for key in STAGES))
+        stages["physics"].append(stepping[0])
+        stages["env"].append(total - stepping[0] - sum(timings.get(key, 0.0) for key in STAGES))
 
     try:
         env.reset(seed=0)
@@ -144,8 +158,8 @@ def markdown(rows: list[dict]) -> list[str]:
     lines += [f"| {r['env']} | {r['agents']} | {r['worlds']} | {r['env_steps_per_s']:,.0f} | "
               f"{r['floor_frames_per_s']:,.0f} | **{r['ratio']:.2f}** | {r['best_ratio']:.2f} | {r['cpu_ratio']:.2f} |"
               for r in rows]
-    lines += ["", "| env | agents | worlds | ms/step | " + " | ".join(STAGES + ("env",)) + " |",
-              "|---|---:|---:|---:|" + "---:|" * (len(STAGES) + 1)]
+    lines += ["", "| env | agents | worlds | ms/step | " + " | ".join(STAGES + ("physics", "env")) + " |",
+              "|---|---:|---:|---:|" + "---:|" * (len(STAGES) + 2)]
     lines += [f"| {r['env']} | {r['agents']} | {r['worlds']} | {r['env_ms_per_step']:.2f} | "
-              + " | ".join(f"{r['stages_ms'][k]:.2f}" for k in STAGES + ("env",)) + " |" for r in rows]
+              + " | ".join(f"{r['stages_ms'][k]:.2f}" for k in STAGES + ("physics", "env")) + " |" for r in rows]
     return lines
