@@ -333,8 +333,10 @@ class BatchedEnv:
         if tuple(tensor.shape) != (W, A):
             raise ValueError(f"actions must be {want}, got shape {list(tensor.shape)}")
         checked = tensor.to(torch.float64) if tensor.dtype in (torch.uint16, torch.uint32, torch.uint64) else tensor
-        if checked.numel() and (bool((checked < 0).any()) or bool((checked >= self.num_actions).any())):
-            raise ValueError(f"actions must be {want}, got values in [{checked.min().item()}, {checked.max().item()}]")
+        if checked.numel():
+            low, high = (value.item() for value in torch.aminmax(checked))
+            if low < 0 or high >= self.num_actions:
+                raise ValueError(f"actions must be {want}, got values in [{low}, {high}]")
         return tensor.to(device=self.device, dtype=torch.int64)
 
     @torch.no_grad()
