@@ -69,6 +69,9 @@ def add_arguments(parser):
     for comparison, (dest, default, target) in VENVS.items():
         parser.add_argument("--" + dest.replace("_", "-"), default=default,
                             help=f"venv of the {comparison} peer (built by `make {target}`)")
+    parser.add_argument("--lp-num-threads", type=int, default=None,
+                        help="LP_NUM_THREADS (llvmpipe's rasteriser threads) of every worker; default: each "
+                             "system's own (marl-render: 2 per core; llvmpipe's: 1 per core)")
     parser.add_argument("--out", default=None, help="also write DIR/peers.json and DIR/peers.md")
 
 
@@ -79,12 +82,14 @@ class WorkerError(RuntimeError):
 class Worker:
     """One peers_worker.py process running `python`; its stderr goes to a log file."""
 
-    def __init__(self, label: str, python: str, log_dir: str):
+    def __init__(self, label: str, python: str, log_dir: str, lp_num_threads: int | None = None):
         self.label = label
         self.log_path = os.path.join(log_dir, f"{label}.log")
         self._log = open(self.log_path, "w")
         env = dict(LAUNCH_ENVIRON, PYTHONUNBUFFERED="1", SDL_VIDEODRIVER="dummy", SDL_AUDIODRIVER="dummy",
                    TF_CPP_MIN_LOG_LEVEL="2")
+        if lp_num_threads is not None:
+            env["LP_NUM_THREADS"] = str(lp_num_threads)
         self.process = subprocess.Popen([python, WORKER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                         stderr=self._log, text=True, env=env)
         self.info = None
@@ -190,7 +195,7 @@ def run_group(specs: list, args, reset: bool, log_dir: str) -> dict:
     workers, infos = [], {}
     try:
         for label, python, system, config in specs:
-            worker = Worker(label, python, log_dir)
+            worker = Worker(label, python, log_dir, args.lp_num_threads)
             workers.append(worker)
             config = config(infos) if callable(config) else config
             progress(f"  setting up {label} ({system} {config})")
@@ -211,6 +216,8 @@ def command_line(args) -> str:
     for dest, default, _ in VENVS.values():
         if getattr(args, dest) != default:
             words += ["--" + dest.replace("_", "-"), getattr(args, dest)]
+    if args.lp_num_threads is not None:
+        words += ["--lp-num-threads", str(args.lp_num_threads)]
     if args.out:
         words += ["--out", args.out]
     return " ".join(shlex.quote(word) for word in words)
@@ -276,12 +283,15 @@ def run(args) -> dict:
         raise ValueError(f"--rounds must be >= 3 (medians of at least 3 rounds), got {args.rounds}")
     if not args.block_seconds > 0:
         raise ValueError(f"--block-seconds must be > 0, got {args.block_seconds}")
+    if args.lp_num_threads is not None and args.lp_num_threads < 1:
+        raise ValueError(f"--lp-num-threads must be >= 1, got {args.lp_num_threads}")
     comparisons = list(dict.fromkeys(args.only))
     pythons = {comparison: venv_python(args, comparison) for comparison in comparisons}  # all checked up front
     start, load_before = time.perf_counter(), os.getloadavg()
     result = {"benchmark": "peers", "machine": {**machine(), "cpu_count": os.cpu_count()},
               "command": command_line(args),
-              "settings": {"rounds": args.rounds, "block_seconds": args.block_seconds, "pythons": pythons},
+              "settings": {"rounds": args.rounds, "block_seconds": args.block_seconds,
+                           "lp_num_threads": args.lp_num_threads, "pythons": pythons},
               "comparisons": {}}
     with tempfile.TemporaryDirectory(prefix="marl_render_peers_") as log_dir:
         for comparison in comparisons:
@@ -295,6 +305,40 @@ def run(args) -> dict:
 
 
 # --------------------------------------------------------------------------- report
+NOTES = """\
+## What is compared
+
+* **meltingpot**: dm-meltingpot 2.4.1 on dmlab2d 1.0.2 (Python 3.11), built from its sdist with
+  the download of its bot models patched out (`make meltingpot-venv`): substrates work,
+  scenarios (which need the bots) do not. `commons_harvest__open` has 7 players; every step
+  renders each player's 88x88 RGB view (11 x 11 cells of 8 px sprites, top-down, egocentric)
+  and a 144x192 `WORLD.RGB`. Its episodes end at random: at least 1,000 steps, then with
+  probability 0.15 every 100 steps (expected length 1,567); its reset rebuilds the level.
+  marl-render `commons` (envs/commons.py) is the analogue in 3D: apples in patches that regrow
+  only next to apples, a zap that tags agents out for a while; each agent's 88x88 view is a
+  perspective render of the arena. It runs with `max_steps` = Melting Pot's expected episode
+  length (its default is 300). Rows `marl_render_core_W` are the batched core at W worlds.
+* **mpe**: PettingZoo MPE `simple_spread_v3` (mpe2 1.1.1), 3 agents, 25-step episodes (its
+  default `max_cycles`); `mpe_render` calls `render()` after every step: one 700x700 frame of the
+  whole scene (pygame), no per-agent views. marl-render `spread` with 3 agents renders the 3
+  agents' 64x64 views every step, with `max_steps` = 25.
+* **pybatchrender**: PyBatchRender (git, branch clawding, commit in the Makefile) `CartPole-v0`,
+  64x64, stepped as its own `clawding/tests/benchmark_one_env.py` steps it; marl-render
+  `cartpole` stepped as `python -m marl_render.bench env --env cartpole --worlds W` steps it.
+  Both reset finished worlds inside `step`. Its own benchmark, to cross-check:
+  `cd .venv-pybatchrender/src/pybatchrender && ../../bin/python -m clawding.tests.benchmark_one_env
+  --env CartPole-v0 --num-scenes 16 --steps 200` (its "fps" is env-steps/s). Its
+  `examples/scripts/cartpole_benchmark.py` needs Python >= 3.12 (nested quotes in an f-string);
+  the venv is Python 3.11, the version of the CPU torch 2.13.0 wheel used here.
+* Each worker runs with its system's own `LP_NUM_THREADS` unless `--lp-num-threads` is given
+  (marl-render sets 2 per core; llvmpipe's default, which PyBatchRender gets, is 1 per core).
+* Columns: "/s" excludes resets timed apart, "incl. resets" amortises the median reset over an
+  episode of the "episode" length (see marl_render/bench/peers.py); "CPU-s" is the worker's
+  process time (all threads); "CPU/wall" the worker's CPU time over wall time while stepping;
+  "spread" (max - min) / median of the rounds' steps/s.
+"""
+
+
 def _f(value, digits=0):
     return "-" if value is None else f"{value:,.{digits}f}"
 
@@ -311,18 +355,18 @@ def markdown(result: dict) -> list:
              f"{result['seconds']:.0f} s in all.", ""]
     for name, comparison in result["comparisons"].items():
         systems = comparison["systems"]
-        lines += [f"## {name}", "", "| system | worlds | agents | episode | reset s | " + " | ".join(
+        lines += [f"## {name}", "", "| system | worlds | agents | episode | reset ms | " + " | ".join(
             f"{unit}{rate}" for unit in ("env-steps", "agent-frames") for rate in RATE_NAMES.values())
-            + " | CPU/wall | spread |", "|---|" + "---:|" * 15]
+            + " | CPU/wall | spread |", "|---|" + "---:|" * 14]
         for label, system in systems.items():
             info, s = system["info"], system["summary"]
             rates = [_f(s[unit] and s[unit][key]) for unit in ("env_steps", "agent_frames") for key in RATE_KEYS]
-            lines.append(f"| {label} | {info['worlds']} | {info['agents']} | {_f(s['episode_steps'])} | "
-                         f"{_f(s['reset_s'], 3)} | " + " | ".join(rates) + f" | {s['cpu_per_wall']:.2f} | "
-                         f"{s['spread']:.2f} |")
+            reset_ms = _f(s["reset_s"] and 1e3 * s["reset_s"], 1)
+            lines.append(f"| {label} | {info['worlds']} | {info['agents']} | {_f(s['episode_steps'])} | {reset_ms} | "
+                         + " | ".join(rates) + f" | {s['cpu_per_wall']:.2f} | {s['spread']:.2f} |")
         lines += ["", "| ratio (marl-render / peer) | " + " | ".join(RATE_NAMES.values()) + " |",
                   "|---|---:|---:|---:|---:|"]
         for label, r in comparison["ratios"].items():
             lines.append(f"| {label} | " + " | ".join(f"{r[key]:.2f}" for key in RATE_KEYS) + " |")
         lines.append("")
-    return lines
+    return lines + NOTES.splitlines()
