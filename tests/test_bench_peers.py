@@ -84,3 +84,14 @@ def test_worker_errors_carry_the_workers_traceback(tmp_path):
             worker.request({"op": "jump"})
     finally:
         worker.close()
+
+
+def test_a_worker_that_died_is_reported_with_its_exit_code(tmp_path):
+    worker = peers.Worker("gone", sys.executable, str(tmp_path))
+    worker.process.kill()
+    worker.process.wait()
+    try:
+        with pytest.raises(peers.WorkerError, match=r"worker gone exited \(code -9\) during block"):
+            worker.block(0.1, reset=False)
+    finally:
+        worker.close()

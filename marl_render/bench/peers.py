@@ -330,6 +330,9 @@ NOTES = """\
   --env CartPole-v0 --num-scenes 16 --steps 200` (its "fps" is env-steps/s). Its
   `examples/scripts/cartpole_benchmark.py` needs Python >= 3.12 (nested quotes in an f-string);
   the venv is Python 3.11, the version of the CPU torch 2.13.0 wheel used here.
+* Building the venvs downloads TensorFlow and more for Melting Pot (a few minutes). PyBatchRender
+  is cloned from GitHub; where GitHub cannot be reached, point `make` at a clone or mirror:
+  `make pybatchrender-venv PYBATCHRENDER_GIT=/path/to/pybatchrender` (the commit is pinned).
 * Each worker runs with its system's own `LP_NUM_THREADS` unless `--lp-num-threads` is given
   (marl-render sets 2 per core; llvmpipe's default, which PyBatchRender gets, is 1 per core).
 * Columns: "/s" excludes resets timed apart, "incl. resets" amortises the median reset over an
