@@ -121,17 +121,23 @@ class Worker:
         with open(self.log_path) as f:
             return f.read()[-STDERR_TAIL:]
 
-    def close(self):
-        if self.process.poll() is None:
+    def begin_close(self):
+        """Ask the worker to exit without waiting for it (several exit at once)."""
+        if self.process.poll() is None and not self.process.stdin.closed:
             try:
-                self.request({"op": "close"})
-            except (WorkerError, OSError):
+                self.process.stdin.write(json.dumps({"op": "close"}) + "\n")
+                self.process.stdin.close()
+            except OSError:
                 pass
-            try:
-                self.process.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
+
+    def close(self):
+        self.begin_close()
+        try:
+            self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        self.process.stdout.close()
         self._log.close()
 
 
@@ -202,6 +208,8 @@ def run_group(specs: list, args, reset: bool, log_dir: str) -> dict:
             infos[label] = worker.setup(system, config)
         blocks = alternate(workers, args.rounds, args.block_seconds, reset)
     finally:
+        for worker in workers:
+            worker.begin_close()
         for worker in workers:
             worker.close()
     return {label: {"info": infos[label], "summary": summarise(infos[label], blocks[label]),
