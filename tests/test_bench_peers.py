@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from marl_render.bench import peers
+from marl_render.bench import peers, peers_worker
 
 
 def block(steps, wall, cpu, resets=0, reset_wall=0.0, reset_cpu=0.0):
@@ -95,3 +95,14 @@ def test_a_worker_that_died_is_reported_with_its_exit_code(tmp_path):
             worker.block(0.1, reset=False)
     finally:
         worker.close()
+
+
+def test_melting_pots_expected_episode_length_from_its_stochastic_ending():
+    ending = {"component": "StochasticIntervalEpisodeEnding",
+              "kwargs": {"minimumFramesPerEpisode": 1000, "intervalLength": 100,
+                         "probabilityTerminationPerInterval": 0.15}}
+    settings = {"maxEpisodeLengthFrames": 5000,
+                "simulation": {"scene": {"components": [{"component": "Neighborhoods", "kwargs": {}}, ending]}}}
+    assert peers_worker.expected_episode_steps(settings) == pytest.approx(1000 + 100 * 0.85 / 0.15)
+    assert peers_worker.expected_episode_steps({**settings, "maxEpisodeLengthFrames": 1200}) == 1200
+    assert peers_worker.expected_episode_steps({"maxEpisodeLengthFrames": 5000, "simulation": {}}) is None
