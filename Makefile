@@ -108,7 +108,8 @@ peers-venvs: meltingpot-venv mpe-venv pybatchrender-venv
 
 # Writes docs/bench/peers.json and peers.md (a few minutes; run it on a quiet machine).
 bench-peers: $(STAMP) peers-venvs
-	$(PY) -m marl_render.bench peers --out docs/bench
+	$(PY) -m marl_render.bench peers --meltingpot-venv $(MELTINGPOT_VENV) --mpe-venv $(MPE_VENV) \
+		--pybatchrender-venv $(PYBATCHRENDER_VENV) --out docs/bench
 
 clean:
 	rm -rf $(VENV) $(BENCHMARL_VENV) $(RLLIB_VENV) $(MELTINGPOT_VENV) $(MPE_VENV) $(PYBATCHRENDER_VENV) out
