@@ -10,7 +10,25 @@ BENCHMARL_STAMP := $(BENCHMARL_VENV)/.installed
 RLLIB_VENV ?= .venv-rllib
 RLLIB_STAMP := $(RLLIB_VENV)/.installed
 
-.PHONY: demo test test-benchmarl test-rllib bench clean
+# Peers of `python -m marl_render.bench peers`, each in its own venv (large downloads: TensorFlow
+# for Melting Pot). Melting Pot's dmlab2d 1.0.2 has wheels for CPython 3.11 only.
+PEERS_PYTHON ?= $(PYTHON)
+MELTINGPOT_VENV ?= .venv-meltingpot
+MELTINGPOT_STAMP := $(MELTINGPOT_VENV)/.installed
+MELTINGPOT_VERSION := 2.4.1
+MELTINGPOT_SRC := $(MELTINGPOT_VENV)/src/dm-meltingpot-$(MELTINGPOT_VERSION)
+MPE_VENV ?= .venv-mpe
+MPE_STAMP := $(MPE_VENV)/.installed
+PYBATCHRENDER_VENV ?= .venv-pybatchrender
+PYBATCHRENDER_STAMP := $(PYBATCHRENDER_VENV)/.installed
+# PyBatchRender is not on PyPI: its git repository (a local clone or mirror works too), at the
+# tested commit of its branch clawding (2026-02-13).
+PYBATCHRENDER_GIT ?= https://github.com/dolphin-in-a-coma/pybatchrender
+PYBATCHRENDER_COMMIT := 3ef046acc65c7d0c49495fa0f354ccc24e8c949f
+PEERS_PIP := pip install --quiet --disable-pip-version-check
+
+.PHONY: demo test test-benchmarl test-rllib bench bench-peers peers-venvs meltingpot-venv mpe-venv \
+	pybatchrender-venv clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -53,5 +71,45 @@ test-rllib: $(RLLIB_STAMP)
 bench: $(STAMP)
 	$(PY) -m marl_render.bench render --json
 
+# Melting Pot from its sdist: its build_py downloads bot models from storage.googleapis.com,
+# replaced here by an empty assets folder (substrates need no bots; scenarios do and fail).
+# The grep fails the build if the patched line was not found.
+$(MELTINGPOT_STAMP): constraints-peers-meltingpot.txt
+	$(PEERS_PYTHON) -m venv $(MELTINGPOT_VENV)
+	rm -rf $(MELTINGPOT_VENV)/src
+	$(MELTINGPOT_VENV)/bin/pip download --quiet --disable-pip-version-check --no-deps --no-binary :all: \
+		-d $(MELTINGPOT_VENV)/src dm-meltingpot==$(MELTINGPOT_VERSION)
+	tar -xzf $(MELTINGPOT_VENV)/src/dm_meltingpot-$(MELTINGPOT_VERSION).tar.gz -C $(MELTINGPOT_VENV)/src
+	sed -i 's|^    self\.download_and_extract_assets()$$|    os.makedirs("meltingpot/assets", exist_ok=True)  # no download|' \
+		$(MELTINGPOT_SRC)/setup.py
+	grep -q 'os.makedirs("meltingpot/assets", exist_ok=True)  # no download' $(MELTINGPOT_SRC)/setup.py
+	$(MELTINGPOT_VENV)/bin/$(PEERS_PIP) -c constraints-peers-meltingpot.txt $(MELTINGPOT_SRC) dmlab2d
+	touch $(MELTINGPOT_STAMP)
+
+$(MPE_STAMP): constraints-peers-mpe.txt
+	$(PEERS_PYTHON) -m venv $(MPE_VENV)
+	$(MPE_VENV)/bin/$(PEERS_PIP) -c constraints-peers-mpe.txt mpe2
+	touch $(MPE_STAMP)
+
+# With marl-render's own pins (constraints.txt): the CPU torch 2.13.0, torchrl, panda3d.
+$(PYBATCHRENDER_STAMP): constraints.txt constraints-peers-pybatchrender.txt
+	$(PEERS_PYTHON) -m venv $(PYBATCHRENDER_VENV)
+	rm -rf $(PYBATCHRENDER_VENV)/src
+	git clone --quiet $(PYBATCHRENDER_GIT) $(PYBATCHRENDER_VENV)/src/pybatchrender
+	git -C $(PYBATCHRENDER_VENV)/src/pybatchrender checkout --quiet $(PYBATCHRENDER_COMMIT)
+	$(PYBATCHRENDER_VENV)/bin/$(PEERS_PIP) -c constraints.txt -c constraints-peers-pybatchrender.txt \
+		$(PYBATCHRENDER_VENV)/src/pybatchrender
+	touch $(PYBATCHRENDER_STAMP)
+
+meltingpot-venv: $(MELTINGPOT_STAMP)
+mpe-venv: $(MPE_STAMP)
+pybatchrender-venv: $(PYBATCHRENDER_STAMP)
+peers-venvs: meltingpot-venv mpe-venv pybatchrender-venv
+
+# Writes docs/bench/peers.json and peers.md (a few minutes; run it on a quiet machine).
+bench-peers: $(STAMP) peers-venvs
+	$(PY) -m marl_render.bench peers --meltingpot-venv $(MELTINGPOT_VENV) --mpe-venv $(MPE_VENV) \
+		--pybatchrender-venv $(PYBATCHRENDER_VENV) --out docs/bench
+
 clean:
-	rm -rf $(VENV) $(BENCHMARL_VENV) $(RLLIB_VENV) out
+	rm -rf $(VENV) $(BENCHMARL_VENV) $(RLLIB_VENV) $(MELTINGPOT_VENV) $(MPE_VENV) $(PYBATCHRENDER_VENV) out

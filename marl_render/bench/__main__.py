@@ -16,6 +16,7 @@ SUBCOMMANDS = {
     "scale": ("marl_render.bench.scale", "scaling with views and resolution"),
     "soak": ("marl_render.bench.soak", "long run: memory over time, non-finite values"),
     "parallel": ("marl_render.bench.parallel", "one process against TorchRL ParallelEnv / collectors with 2 workers"),
+    "peers": ("marl_render.bench.peers", "against Melting Pot, MPE and PyBatchRender in their own venvs (ratios)"),
 }
 
 
