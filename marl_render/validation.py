@@ -6,7 +6,6 @@ unchanged. Messages name the argument, what was expected and what was given.
 from __future__ import annotations
 
 import math
-
 import os
 import stat
 from collections.abc import Sequence
