@@ -401,7 +401,7 @@ def _body_collisions(state, obstacles, cfg, h, ops=TorchOps):
         kicked = kick * weight
 
         for _ in range(cfg.solver_iterations):
-            vn = ((vel[:, :, None, :] - vel[:, None, :, :]) * n).sum(-1)     # < 0: approaching
+            vn = ops.sum_xy((vel[:, :, None, :] - vel[:, None, :, :]) * n)  # < 0: approaching
             dvn = kicked * ops.clamp_max(vn, 0.0)
             vel = vel + (dvn[..., None] * n).sum(2)
 
@@ -438,7 +438,7 @@ def _obstacles(state, obstacles, cfg, h, ops=TorchOps):
     def apply(pos, vel):
         for _ in range(cfg.solver_iterations):
             rel = (pos[:, :, None, :] - center)[..., None, :]                # [W,B,K,1,2]
-            local = (to_box * rel).sum(-1)                                   # [W,B,K,2]
+            local = ops.sum_xy(to_box * rel)                                 # [W,B,K,2]
             delta = local - ops.maximum(ops.minimum(local, he), -he)         # centre - closest point
             dist_out = ops.norm(delta)
             inside = dist_out <= 0
@@ -451,11 +451,11 @@ def _obstacles(state, obstacles, cfg, h, ops=TorchOps):
             depth = ops.where(fixed, -1.0, depth)
 
             depth_k, k = ops.max_last(depth)                                 # deepest box per body
-            n_all = (to_world * n_loc[..., None, :]).sum(-1)                 # world frame [W,B,K,2]
+            n_all = ops.sum_xy(to_world * n_loc[..., None, :])               # world frame [W,B,K,2]
             n_w = ops.pick(n_all, k, 2)
             hit = depth_k > 0
             pos = pos + ops.clamp_min(depth_k, 0.0)[..., None] * n_w
-            vn = (vel * n_w).sum(-1)
+            vn = ops.sum_xy(vel * n_w)
             vel = vel - (kick * ops.where(hit, ops.clamp_max(vn, 0.0), 0.0))[..., None] * n_w
         return pos, vel
 
