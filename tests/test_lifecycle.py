@@ -299,6 +299,25 @@ def test_soak_memory_is_flat_after_warmup(soak_result):
     assert r["render_states_growth"] < 50
 
 
+def test_soak_runs_shadows_skinned_agents_and_next_step_autoreset():
+    from marl_render.bench import soak
+
+    r = soak.soak("spread", worlds=2, steps=24, resolution=16, every=8, warmup=8, max_steps=6, depth=True,
+                  shadows=True, skinned=True, autoreset="next_step")
+    assert (r["shadows"], r["skinned"], r["autoreset"]) == (True, True, "next_step")
+    assert r["non_finite_count"] == 0, r["non_finite"]
+    assert r["auto_resets"] > 0 and [s["step"] for s in r["samples"]] == [0, 8, 16, 24]
+    assert all(s["heap_in_use_mb"] > 0 for s in r["samples"])  # glibc's mallinfo2 (Linux only, as this module)
+
+
+def test_soak_skinned_agents_need_an_arena_env():
+    from marl_render.bench import soak
+
+    with pytest.raises(ValueError, match=r"^skinned agents need an arena env \(an ArenaScenario: spread, tag, "
+                                         r"\.\.\.\), got 'cartpole'"):
+        soak.soak("cartpole", worlds=1, steps=1, skinned=True)
+
+
 def test_soak_command_line(tmp_path):
     out = subprocess.run([sys.executable, "-m", "marl_render.bench", "soak", "--json", "--steps", "20", "--worlds", "2",
                           "--resolution", "16", "--every", "10", "--no-plot", "--out", str(tmp_path)],
