@@ -584,7 +584,9 @@ class BatchRenderer:
             textures += [render_pass.color, *render_pass.aux.values()]
         self._passes = []
         textures += [t for g in self._groups.values() for t in (g.instances, g.pairs)]
-        self._targets.release()
+        targets = getattr(self, "_targets", None)
+        if targets is not None:  # the packer's views keep Panda3D's arrays alive
+            targets.release()
         for texture in textures:
             if texture is not None:
                 texture.release_all()
