@@ -10,7 +10,9 @@ for NaN/Inf. --shadows adds the shadow pass; --skinned draws the agents of an ar
 their joints are packed and skinned in every frame. After --warmup steps the memory growth
 is reported as MB in total and MB per 1000 steps (least-squares slope over the samples
 after warm-up), for RSS and for the heap in use (glibc's mallinfo2: live allocations only,
-so a leak of small blocks shows there without the noise of freed pages).
+so a leak of small blocks shows there without the noise of freed pages), and as the rise
+of the RSS floor (the lowest sample of the last quarter after warm-up against the first
+quarter's), which a block alive at only some samples does not move.
 
 Writes soak.json (the result below) and soak.png (memory over steps) into --out;
 progress goes to stderr.
@@ -203,6 +205,11 @@ def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agent
     slope = slope_per_step([(s["step"], s["rss_mb"]) for s in after_warmup])
     heap = [(s["step"], s["heap_in_use_mb"]) for s in after_warmup if s["heap_in_use_mb"] is not None]
     heap_slope = slope_per_step(heap) * 1000.0 if heap else None
+    # A block alive at some samples and not at others (a frame, a step's temporaries) moves the
+    # slope; a leak also lifts the lowest readings: the last quarter's minimum against the first's.
+    quarter = max(len(after_warmup) // 4, 1)
+    rss_floor_growth = (min(s["rss_mb"] for s in after_warmup[-quarter:])
+                        - min(s["rss_mb"] for s in after_warmup[:quarter])) if after_warmup else 0.0
     states = [s["render_states"] for s in after_warmup if s["render_states"] is not None]
     return {
         "benchmark": "soak", "machine": machine(),
@@ -220,6 +227,7 @@ def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agent
         "rss_peak_mb": max(s["rss_mb"] for s in samples),
         "growth_mb": growth, "growth_steps": measured_steps,
         "growth_mb_per_1000_steps": slope * 1000.0, "heap_in_use_mb_per_1000_steps": heap_slope,
+        "rss_floor_growth_mb": rss_floor_growth,
         "render_states_growth": (states[-1] - states[0]) if len(states) >= 2 else None,
         "non_finite_count": len(non_finite), "non_finite": non_finite[:20],
         "samples": samples,
@@ -295,6 +303,7 @@ def run(args) -> dict:
     heap = result["heap_in_use_mb_per_1000_steps"]
     progress(f"soak: {result['steps_per_s']:.1f} steps/s, growth after warm-up {result['growth_mb']:+.1f} MB "
              f"({result['growth_mb_per_1000_steps']:+.2f} MB/1000 steps"
-             + ("" if heap is None else f"; heap in use {heap:+.3f} MB/1000 steps") + "), non-finite values: "
+             + ("" if heap is None else f"; heap in use {heap:+.3f} MB/1000 steps")
+             + f"; floor {result['rss_floor_growth_mb']:+.1f} MB), non-finite values: "
              f"{result['non_finite_count']}; wrote {', '.join(files.values())}")
     return result
