@@ -190,7 +190,7 @@ def test_twenty_million_worlds_at_resolution_1_is_a_clear_error(name):
 
 
 def test_the_guard_counts_views_instances_and_state_not_only_pixels(monkeypatch):
-    """4,000 worlds of spread at 1x1 pixel: 36 kB of pixels, about 70 MB in all."""
+    """4,000 worlds of spread at 1x1 pixel: 36 kB of pixels, about 60 MB in all."""
     env = make_env("spread", num_worlds=4000, resolution=1)
     needed = memory.renderer_bytes(env.renderer.scene) + env.num_worlds * memory.ENV_WORLD_BYTES
     env.close()
