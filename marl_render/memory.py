@@ -4,33 +4,43 @@ Sizes are checked before the bulk is allocated, so that a batch too large for th
 machine is a ValueError naming its sizes, not a raw allocator error halfway through a
 step, nor the OOM killer.
 
-The estimate counts everything that grows with the batch, in four units. Per view:
+The estimate counts everything that grows with the batch, in five units. Per view:
 camera state, view and projection matrices, culling planes and the view buffer texture.
 Per (view, instance) pair: the culling products and the visible-pair list. Per instance
 row (world x dynamic instance): pose state, its packing and the instance buffer texture.
-Per pixel: the output tensor, the tiled framebuffer (GL colour and depth, and Panda3D's
-RAM copy); depth and segmentation outputs add their own target and tensor. An
-environment adds a constant per world (its state, the step's temporaries, the
-observation dict).
+Per pixel: the output tensor and the tiled framebuffer (GL colour and depth; the frame is
+read straight into the output, with no copy in between); depth and segmentation outputs
+add their own target and tensor. Per shadow-map texel (worlds x Shadows.resolution^2, with
+the "shadows" effect): the atlas's depth texture and the rest of its framebuffer, as
+llvmpipe holds them. An environment adds a constant per world (its state, the step's
+temporaries, the observation dict).
 
-The bytes per unit were fitted to the peak RSS (torch 2.13 CPU, Mesa llvmpipe, 2 cores)
-of renderers alone (500-60,000 worlds, 1-8 views per world, 1-16 instances, 1x1 to
-128x128 pixels, two renders each): the estimate is 0.93-1.24 times the measured peak at
-all 28 points. Of the five built-in environments after 30 steps (10,000-30,000 worlds at
-1x1; cartpole and spread also at 16x16 to 128x128 with 500-4,000 worlds) the measured
-peak is 0.79-1.19 times the estimate. A batch is refused when its estimate exceeds the
+The bytes per unit were fitted (least squares on the relative error) to the peak RSS of
+22 batches and checked on 11 more (torch 2.13 CPU, Mesa llvmpipe, 2 cores; each batch in a
+fresh process, its peak above the process after a 1-world warm-up, after building and 2
+renders, or reset and 5 steps): renderers of the bench's arena scene (1-8 views per world,
+10 or 40 instances, 1x1 to 128x128 pixels, depth, Shadows(64) to Shadows(512)) and all
+nine built-in envs (1x1 to 64x64, 128-30,000 worlds, Shadows(128) to Shadows(1024),
+depth). The env term is rounded up from the fit's 0.9 KB for speaker_listener, whose own
+temporaries are larger. The peaks, 116 MiB to 3.0 GiB, were 0.84-1.28 times the estimate
+(37 readings; the four of speaker_listener 1.19-1.28). Under about 100 MB, constant costs
+of a first renderer (shader variants, GL objects) that no unit counts make the ratio
+larger (1.3 for rooms at 86 MiB). A batch is refused when its estimate exceeds the
 memory available now: within that accuracy, it would not have fitted.
 """
 from __future__ import annotations
 
 import os
 
-VIEW_BYTES = 2560
+VIEW_BYTES = 1792
 PAIR_BYTES = 128
-INSTANCE_BYTES = 288
-PIXEL_BYTES = 20
-EXTRA_TARGET_PIXEL_BYTES = 16  # each of the depth and segmentation outputs
-ENV_WORLD_BYTES = 2048
+INSTANCE_BYTES = 320
+PIXEL_BYTES = 14
+EXTRA_TARGET_PIXEL_BYTES = 13  # each of the depth and segmentation outputs
+# Per texel of the shadow atlas: 11.4 B measured (4,096 worlds x Shadows(256): 3.1 GiB),
+# against the 8 B (4-byte depth, 4-byte colour target) counted before.
+SHADOW_TEXEL_BYTES = 12
+ENV_WORLD_BYTES = 1536
 # Per joint of every instance of a skinned group: its quaternion, and the forward-kinematics
 # temporaries of a render ([W, C, J, 3, 4] matrices and their products). Fitted to a 300-joint
 # glTF at W=512, C=8: about 275 MB more peak RSS than at W=16, 231 B per (world, instance, joint).
@@ -39,9 +49,9 @@ JOINT_BYTES = 240
 
 def renderer_bytes(scene, supersample: int = 1) -> int:
     """Host bytes a BatchRenderer of `scene` holds at its peak, one render included
-    (supersample=k draws k x k samples per pixel; a shadow atlas holds W maps of 4-byte
-    depth and Panda3D's unused 4-byte colour target; skinned groups hold their joints and the
-    forward-kinematics temporaries of a render)."""
+    (supersample=k draws k x k samples per pixel; a shadow atlas holds W maps of
+    Shadows.resolution^2 texels; skinned groups hold their joints and the forward-kinematics
+    temporaries of a render)."""
     height, width = scene.resolution
     views = scene.num_views
     dynamic = sum(group.capacity for group in scene.groups.values())
@@ -49,7 +59,8 @@ def renderer_bytes(scene, supersample: int = 1) -> int:
     extra_targets = sum(effect in scene.effects for effect in ("depth", "segmentation"))
     per_pixel = PIXEL_BYTES + extra_targets * EXTRA_TARGET_PIXEL_BYTES
     shadow_maps = getattr(scene, "shadows", None)
-    atlas = scene.num_worlds * shadow_maps.resolution ** 2 * 8 if "shadows" in scene.effects and shadow_maps else 0
+    atlas = (scene.num_worlds * shadow_maps.resolution ** 2 * SHADOW_TEXEL_BYTES
+             if "shadows" in scene.effects and shadow_maps else 0)
     joints = sum(group.capacity * getattr(group.mesh, "num_joints", 0) for group in scene.groups.values())
     return (views * VIEW_BYTES + views * (dynamic + static) * PAIR_BYTES
             + scene.num_worlds * dynamic * INSTANCE_BYTES + views * height * width * per_pixel * supersample ** 2

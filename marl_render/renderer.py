@@ -25,7 +25,7 @@ import torch
 from . import backend, memory, readback, shaders, skinning
 from .meshes import MeshData, to_panda_geom
 from .packing import FramePacker
-from .panda_buffers import buffer_texture, int_input, panda_texture, vec3_input, writable
+from .panda_buffers import TextureMemory, buffer_texture, int_input, panda_texture, vec3_input
 from .provoking import shared_corner_mesh
 from .scene import Scene
 from .shadows import ShadowPass, atlas_layout
@@ -62,20 +62,33 @@ class DrawGroup:
 
 class _PandaTargets:
     """The packer's destinations (packing.PackTargets): the RAM images of the buffer
-    textures, each marked for upload when the packer asks for it."""
+    textures, each marked for upload when the packer asks for it (views made once:
+    panda_buffers.TextureMemory says why)."""
 
     def __init__(self, groups: dict):
         self.groups = groups  # the renderer's draw groups by name, filled as they are built
         self.views_texture = None
+        self._memory: dict[tuple, TextureMemory] = {}
 
     def views(self) -> torch.Tensor:
-        return writable(self.views_texture, np.float32)
+        return self._view(("views",), self.views_texture, np.float32)
 
     def instances(self, group: str) -> torch.Tensor:
-        return writable(self.groups[group].instances, np.float32)
+        return self._view(("instances", group), self.groups[group].instances, np.float32)
 
     def pairs(self, group: str) -> torch.Tensor:
-        return writable(self.groups[group].pairs, np.int32)
+        return self._view(("pairs", group), self.groups[group].pairs, np.int32)
+
+    def _view(self, key: tuple, texture, dtype) -> torch.Tensor:
+        view = self._memory.get(key)
+        if view is None or view.texture is not texture:
+            view = self._memory[key] = TextureMemory(texture, dtype)
+        return view()
+
+    def release(self) -> None:
+        for view in self._memory.values():
+            view.release()
+        self._memory.clear()
 
 
 @dataclass
@@ -571,6 +584,9 @@ class BatchRenderer:
             textures += [render_pass.color, *render_pass.aux.values()]
         self._passes = []
         textures += [t for g in self._groups.values() for t in (g.instances, g.pairs)]
+        targets = getattr(self, "_targets", None)
+        if targets is not None:  # the packer's views keep Panda3D's arrays alive
+            targets.release()
         for texture in textures:
             if texture is not None:
                 texture.release_all()

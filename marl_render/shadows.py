@@ -35,7 +35,7 @@ import torch
 from . import backend, layout, shaders
 from .culling import frustum_planes
 from .meshes import MeshData
-from .panda_buffers import buffer_texture, int_input, writable
+from .panda_buffers import TextureMemory, buffer_texture, int_input
 from .scene import Scene
 from .skinning import SkinnedMesh
 from .tiling import TileLayout, plan_layout
@@ -133,6 +133,8 @@ class ShadowPass:
         self.light, self.bias = light_projection(scene.lighting.direction, bounds)
         self.buffer = self.root = None
         self.casters, self.pairs, self.pair_offsets = {}, {}, {}
+        self.pair_memory: dict[str, TextureMemory] = {}  # views of the pairs' RAM images, made once
+        self.light_memory = None
         self.pending = True  # the atlas must be drawn in the next frame
         self.lights = self.atlas = None
         try:
@@ -192,6 +194,7 @@ class ShadowPass:
         self.root.set_attrib(ColorWriteAttrib.make(ColorWriteAttrib.C_off))
         W = self.scene.num_worlds
         self.lights = buffer_texture("lights", W * layout.VIEW.texels)
+        self.light_memory = TextureMemory(self.lights, np.float32)
         self.root.set_shader_input("views", self.lights)
         self.root.set_shader_input("agents", int_input(1))
         self.root.set_shader_input("grid", LVecBase2i(self.layout.columns, self.layout.rows))
@@ -204,6 +207,7 @@ class ShadowPass:
             caster.set_shader(shaders.compiled_caster(shaders.caster_defines(
                 static=draw.static, joints=joints, influences=mesh.influences if joints else 4)))
             self.pairs[name] = buffer_texture(f"shadow_pairs:{name}", W * draw.count, integer=True)
+            self.pair_memory[name] = TextureMemory(self.pairs[name], np.int32)
             self.pair_offsets[name] = int_input(0)
             caster.set_shader_input("instances", draw.instances)
             caster.set_shader_input("pairs", self.pairs[name])
@@ -232,7 +236,7 @@ class ShadowPass:
             if len(pairs) == 0:  # Panda3D would draw an instance count of 0 once
                 caster.hide()
                 continue
-            writable(self.pairs[name], np.int32)[: len(pairs)] = pairs
+            self.pair_memory[name]()[: len(pairs)] = pairs
             caster.show()
             caster.set_instance_count(len(pairs))
         self.pending = True
@@ -245,7 +249,7 @@ class ShadowPass:
 
     def _pack_lights(self, world_origin: torch.Tensor) -> None:
         row = layout.VIEW  # one "view" per world: the light's
-        memory = writable(self.lights, np.float32).view(-1, row.texels, 4)
+        memory = self.light_memory().view(-1, row.texels, 4)
         first = row.fields["projection"].texel
         memory[:, first:first + layout.VIEW_PROJECTION_TEXELS] = self._world_matrices(world_origin).transpose(1, 2)
         origin_hi = world_origin.to(torch.float32)
@@ -279,5 +283,10 @@ class ShadowPass:
             if texture is not None:
                 texture.release_all()
                 texture.clear_ram_image()
+        for view in [self.light_memory, *self.pair_memory.values()]:
+            if view is not None:
+                view.release()
+        self.light_memory = None
+        self.pair_memory.clear()
         self.pairs.clear()
         self.casters.clear()

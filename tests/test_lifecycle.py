@@ -17,6 +17,7 @@ import subprocess
 import sys
 from argparse import ArgumentParser
 
+import numpy as np
 import pytest
 import torch
 
@@ -219,6 +220,51 @@ def test_render_states_do_not_accumulate():
     assert per_step < 20 and per_env < 40, f"render states grew by {per_step} over 100 steps, {per_env} over 20 envs"
 
 
+def test_texture_memory_is_one_view_and_still_marks_each_call_for_upload():
+    from marl_render.panda_buffers import TextureMemory, buffer_texture
+
+    texture = buffer_texture("test", 2)  # 2 RGBA32F texels: 8 floats
+    memory = TextureMemory(texture, np.float32)
+    first = memory()
+    first[:] = torch.arange(8.0)
+    seen = texture.get_image_modified().get_seq()
+    assert memory() is first and texture.get_image_modified().get_seq() != seen  # same view, marked again
+    assert np.frombuffer(texture.get_ram_image(), np.float32).tolist() == list(range(8))
+    texture.clear_ram_image()  # Panda3D's array is gone: the next call views the new one
+    second = memory()
+    assert second is not first and second.shape == (8,) and second.dtype == torch.float32
+    second[:] = 5.0
+    assert np.frombuffer(texture.get_ram_image(), np.float32).tolist() == [5.0] * 8
+
+
+def test_steps_make_no_buffer_request_on_panda3d_arrays(monkeypatch):
+    """Each buffer request on a Panda3D array leaves 32 bytes behind (Panda3D never frees the
+    shape it reports); views made per frame grew an env with shadows by 0.3-0.6 MB per 1,000
+    steps (issue 17 item 16). The packing targets and the shadow pass view each texture once."""
+    from marl_render import panda_buffers
+    from marl_render.bench.soak import skinned_agents
+    from marl_render.envs.registry import env_class
+
+    requests = []
+    view = panda_buffers.array_view
+    monkeypatch.setattr(panda_buffers, "array_view", lambda array, dtype: requests.append(dtype) or view(array, dtype))
+    env = make_env(skinned_agents(env_class("spread")), num_worlds=W, resolution=RES, seed=0, shadows=True,
+                   depth=True, autoreset="same_step", max_steps=4)
+    try:
+        g = torch.Generator().manual_seed(0)
+        env.reset()
+        env.step(env.random_actions(g))
+        made = len(requests)
+        assert made >= 7  # views, and instances and pairs of each group (the shadow pass's too)
+        for step in range(12):  # moving agents, skinned joints, auto-resets every 4 steps, partial resets
+            env.step(env.random_actions(g))
+            if step % 5 == 0:
+                env.reset_worlds(torch.tensor([True, False]))
+        assert len(requests) == made, f"{len(requests) - made} buffer requests in 12 steps"
+    finally:
+        env.close()
+
+
 @pytest.fixture(scope="module")
 def soak_result(tmp_path_factory):
     from marl_render.bench import soak
@@ -251,6 +297,25 @@ def test_soak_memory_is_flat_after_warmup(soak_result):
     assert r["growth_mb"] < 4.0, (f"resident memory grew {r['growth_mb']:.1f} MB over {r['growth_steps']} steps "
                                   f"after warm-up ({r['growth_mb_per_1000_steps']:.1f} MB per 1000 steps)")
     assert r["render_states_growth"] < 50
+
+
+def test_soak_runs_shadows_skinned_agents_and_next_step_autoreset():
+    from marl_render.bench import soak
+
+    r = soak.soak("spread", worlds=2, steps=24, resolution=16, every=8, warmup=8, max_steps=6, depth=True,
+                  shadows=True, skinned=True, autoreset="next_step")
+    assert (r["shadows"], r["skinned"], r["autoreset"]) == (True, True, "next_step")
+    assert r["non_finite_count"] == 0, r["non_finite"]
+    assert r["auto_resets"] > 0 and [s["step"] for s in r["samples"]] == [0, 8, 16, 24]
+    assert all(s["heap_in_use_mb"] > 0 for s in r["samples"])  # glibc's mallinfo2 (Linux only, as this module)
+
+
+def test_soak_skinned_agents_need_an_arena_env():
+    from marl_render.bench import soak
+
+    with pytest.raises(ValueError, match=r"^skinned agents need an arena env \(an ArenaScenario: spread, tag, "
+                                         r"\.\.\.\), got 'cartpole'"):
+        soak.soak("cartpole", worlds=1, steps=1, skinned=True)
 
 
 def test_soak_command_line(tmp_path):

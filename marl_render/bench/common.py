@@ -60,6 +60,33 @@ def malloc_trim() -> bool:
     return True
 
 
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                     "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+
+@functools.lru_cache(maxsize=1)
+def _libc_mallinfo2():
+    try:
+        function = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallinfo2  # glibc >= 2.33
+    except (OSError, AttributeError):
+        return None
+    function.restype = _MallInfo2
+    function.argtypes = []
+    return function
+
+
+def heap_in_use_mb() -> float | None:
+    """Bytes of malloc's heap in live allocations (glibc's mallinfo2: arenas plus mmapped
+    blocks, free chunks not counted), in MB; None where unavailable. Unlike RSS it does not
+    move with freed memory the allocator keeps, so a leak of small blocks shows up in it."""
+    mallinfo2 = _libc_mallinfo2()
+    if mallinfo2 is None:
+        return None
+    info = mallinfo2()
+    return (info.uordblks + info.hblkhd) / 2 ** 20
+
+
 def settled_rss_mb() -> float:
     """RSS after collecting garbage and returning freed heap memory: memory still in use."""
     gc.collect()

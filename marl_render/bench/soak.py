@@ -5,8 +5,14 @@ actions, auto-reset of finished worlds (--autoreset, same_step by default) and, 
 --reset-every steps, reset_worlds() of a random subset (each world with probability --reset-fraction).
 Every --every steps it samples the resident memory (RSS, through psutil) and
 checks the simulation state; every step it checks the float observations and rewards
-for NaN/Inf (--shadows adds the shadow pass). After --warmup steps the memory growth is reported as MB in total and MB
-per 1000 steps (least-squares slope over the samples after warm-up).
+for NaN/Inf. --shadows adds the shadow pass; --skinned draws the agents of an arena env
+(spread, tag, ...) as mr.skinned_character(), posed from the state every step, so that
+their joints are packed and skinned in every frame. After --warmup steps the memory growth
+is reported as MB in total and MB per 1000 steps (least-squares slope over the samples
+after warm-up), for RSS and for the heap in use (glibc's mallinfo2: live allocations only,
+so a leak of small blocks shows there without the noise of freed pages), and as the rise
+of the RSS floor (the lowest sample of the last quarter after warm-up against the first
+quarter's), which a block alive at only some samples does not move.
 
 Writes soak.json (the result below) and soak.png (memory over steps) into --out;
 progress goes to stderr.
@@ -25,7 +31,7 @@ import time
 import numpy as np
 import torch
 
-from .common import machine, malloc_trim, progress, rss_mb
+from .common import heap_in_use_mb, machine, malloc_trim, progress, rss_mb
 
 
 def add_arguments(parser):
@@ -45,6 +51,8 @@ def add_arguments(parser):
     parser.add_argument("--shadows", action="store_true", help="the env's shadows on (a shadow pass every frame)")
     parser.add_argument("--autoreset", choices=("same_step", "next_step"), default="same_step",
                         help="the env's autoreset mode")
+    parser.add_argument("--skinned", action="store_true",
+                        help="agents drawn as a skinned character posed every step (arena envs only)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-malloc-trim", dest="malloc_trim", action="store_false",
                         help="sample raw RSS (without returning freed heap memory to the OS first)")
@@ -69,6 +77,36 @@ def slope_per_step(points: list[tuple[int, float]]) -> float:
         return 0.0
     steps, values = zip(*points, strict=True)
     return float(np.polyfit(steps, values, 1)[0])
+
+
+# ---------------------------------------------------------------------- skinned agents
+def skinned_agents(scenario: type) -> type:
+    """A subclass of the arena scenario `scenario` whose agents are mr.skinned_character(),
+    every joint swinging with the agent's position (so each step packs new joints)."""
+    import marl_render as mr
+    from marl_render.envs.arena import ArenaScenario
+
+    if not (isinstance(scenario, type) and issubclass(scenario, ArenaScenario)):
+        raise ValueError(f"skinned agents need an arena env (an ArenaScenario: spread, tag, ...), got "
+                         f"{getattr(scenario, 'name', scenario)!r}")
+    character = mr.skinned_character()
+
+    class SkinnedAgents(scenario):
+        def build_scene(self, scene, overview):
+            super().build_scene(scene, overview)
+            scene.groups["agents"].mesh = character
+
+        def instances(self, state, full):
+            update = super().instances(state, full)
+            pos = state.pos[:, :self.num_agents].to("cpu", torch.float32)
+            phase = 4.0 * pos.sum(-1, keepdim=True) + torch.arange(character.num_joints)  # [W, A, J]
+            pitch = 0.5 * torch.sin(phase)
+            update["agents"]["joints"] = mr.quat_from_yaw_pitch_roll(torch.zeros_like(pitch), pitch,
+                                                                     torch.zeros_like(pitch))
+            return update
+
+    SkinnedAgents.__name__ = SkinnedAgents.__qualname__ = f"Skinned{scenario.__name__}"
+    return SkinnedAgents
 
 
 # ---------------------------------------------------------------------- checks
@@ -98,9 +136,10 @@ def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agent
          resolution: int = 64, every: int = 50, warmup: int | None = None, reset_every: int = 10,
          reset_fraction: float = 0.25, max_steps: int | None = None, continuous: bool = False,
          depth: bool = False, seed: int = 0, trim: bool = True, shadows: bool = False,
-         autoreset: str = "same_step") -> dict:
+         autoreset: str = "same_step", skinned: bool = False) -> dict:
     """Run the soak and return its result dict (see the module docstring)."""
     from marl_render.envs import make_env
+    from marl_render.envs.registry import env_class
 
     if steps < 1 or every < 1 or worlds < 1:
         raise ValueError(f"steps, every and worlds must be >= 1, got {steps}, {every}, {worlds}")
@@ -116,14 +155,16 @@ def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agent
     if max_steps is not None:
         kwargs["max_steps"] = max_steps
 
+    scenario = skinned_agents(env_class(env_name)) if skinned else env_name
+
     def sample(step: int, elapsed: float) -> dict:
         gc.collect()
         trimmed = malloc_trim() if trim else False
-        return {"step": step, "rss_mb": rss_mb(), "elapsed_s": elapsed, "malloc_trim": trimmed,
-                "render_states": render_state_count()}
+        return {"step": step, "rss_mb": rss_mb(), "heap_in_use_mb": heap_in_use_mb(), "elapsed_s": elapsed,
+                "malloc_trim": trimmed, "render_states": render_state_count()}
 
     rss_before = rss_mb()
-    env = make_env(env_name, **kwargs)
+    env = make_env(scenario, **kwargs)
     try:
         generator = torch.Generator().manual_seed(seed)
         obs = env.reset(seed=seed)
@@ -162,11 +203,19 @@ def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agent
     measured_steps = end["step"] - base["step"]
     growth = end["rss_mb"] - base["rss_mb"]
     slope = slope_per_step([(s["step"], s["rss_mb"]) for s in after_warmup])
+    heap = [(s["step"], s["heap_in_use_mb"]) for s in after_warmup if s["heap_in_use_mb"] is not None]
+    heap_slope = slope_per_step(heap) * 1000.0 if heap else None
+    # A block alive at some samples and not at others (a frame, a step's temporaries) moves the
+    # slope; a leak also lifts the lowest readings: the last quarter's minimum against the first's.
+    quarter = max(len(after_warmup) // 4, 1)
+    rss_floor_growth = (min(s["rss_mb"] for s in after_warmup[-quarter:])
+                        - min(s["rss_mb"] for s in after_warmup[:quarter])) if after_warmup else 0.0
     states = [s["render_states"] for s in after_warmup if s["render_states"] is not None]
     return {
         "benchmark": "soak", "machine": machine(),
         "env": env_name, "worlds": worlds, "agents": num_agents, "resolution": resolution,
-        "continuous": continuous, "depth": depth, "shadows": shadows, "autoreset": autoreset, "seed": seed,
+        "continuous": continuous, "depth": depth, "shadows": shadows, "autoreset": autoreset, "skinned": skinned,
+        "seed": seed,
         "steps": steps, "every": every, "warmup": warmup,
         "reset_every": reset_every, "reset_fraction": reset_fraction, "malloc_trim": trim,
         "partial_resets": partial_resets, "auto_resets": auto_resets,
@@ -177,7 +226,8 @@ def soak(env_name: str = "spread", worlds: int = 64, steps: int = 2000, *, agent
         "rss_after_warmup_mb": base["rss_mb"], "rss_end_mb": end["rss_mb"],
         "rss_peak_mb": max(s["rss_mb"] for s in samples),
         "growth_mb": growth, "growth_steps": measured_steps,
-        "growth_mb_per_1000_steps": slope * 1000.0,
+        "growth_mb_per_1000_steps": slope * 1000.0, "heap_in_use_mb_per_1000_steps": heap_slope,
+        "rss_floor_growth_mb": rss_floor_growth,
         "render_states_growth": (states[-1] - states[0]) if len(states) >= 2 else None,
         "non_finite_count": len(non_finite), "non_finite": non_finite[:20],
         "samples": samples,
@@ -242,7 +292,7 @@ def run(args) -> dict:
                   every=args.every, warmup=args.warmup, reset_every=args.reset_every,
                   reset_fraction=args.reset_fraction, max_steps=args.max_steps, continuous=args.continuous,
                   depth=args.depth, seed=args.seed, trim=args.malloc_trim, shadows=args.shadows,
-                  autoreset=args.autoreset)
+                  autoreset=args.autoreset, skinned=args.skinned)
     os.makedirs(args.out, exist_ok=True)
     files = {"json": os.path.join(args.out, "soak.json")}
     if args.plot:
@@ -250,7 +300,10 @@ def run(args) -> dict:
     result["files"] = files
     with open(files["json"], "w") as f:
         json.dump(result, f, indent=2, default=str)
+    heap = result["heap_in_use_mb_per_1000_steps"]
     progress(f"soak: {result['steps_per_s']:.1f} steps/s, growth after warm-up {result['growth_mb']:+.1f} MB "
-             f"({result['growth_mb_per_1000_steps']:+.2f} MB/1000 steps), non-finite values: "
+             f"({result['growth_mb_per_1000_steps']:+.2f} MB/1000 steps"
+             + ("" if heap is None else f"; heap in use {heap:+.3f} MB/1000 steps")
+             + f"; floor {result['rss_floor_growth_mb']:+.1f} MB), non-finite values: "
              f"{result['non_finite_count']}; wrote {', '.join(files.values())}")
     return result
