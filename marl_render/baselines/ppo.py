@@ -230,7 +230,8 @@ class MAPPO:
                 total.backward()
                 nn.utils.clip_grad_norm_(self.loss.parameters(), hp.max_grad_norm)
                 self.optimizer.step()
-                terms.append({k: float(out[k].detach().mean()) for k in ("loss_objective", "loss_critic", "entropy")})
+                terms.append({k: float(out[k].detach().mean())
+                              for k in ("loss_objective", "loss_critic", "entropy", "explained_variance")})
         return {k: sum(t[k] for t in terms) / len(terms) for k in terms[0]}
 
     def close(self) -> None:

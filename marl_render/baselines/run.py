@@ -13,8 +13,8 @@ evaluated agents, averaged over them; opponents (tag's prey, push's and capture_
 team) play random actions in training and in every evaluation.
 
 Writes OUT/result.json (env, seeds, versions, env steps, wall-clock, hyperparameters, the
-training curve, the evaluations) and OUT/curve.png. Options left out take the task's default
-(marl_render/baselines/settings.py).
+training curve, the evaluations), OUT/curve.png and OUT/actor.pt (the actor's state_dict).
+Options left out take the task's default (marl_render/baselines/settings.py).
 """
 from __future__ import annotations
 
@@ -163,7 +163,8 @@ def main(argv=None) -> int:
     with open(os.path.join(args.out, "result.json"), "w") as f:
         json.dump(result, f, indent=1)
     plot_curve(result, os.path.join(args.out, "curve.png"))
-    print(f"wrote {args.out}/result.json and curve.png in {result['wall_clock_seconds']:.0f} s", flush=True)
+    torch.save(trainer.actor_net.state_dict(), os.path.join(args.out, "actor.pt"))
+    print(f"wrote {args.out}/result.json, curve.png and actor.pt in {result['wall_clock_seconds']:.0f} s", flush=True)
     return 0
 
 
