@@ -68,6 +68,7 @@ def test_report_tables_every_task(runs, tmp_path):
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{report.START}\nold table\n{report.END}\nrest\n")
     out = tmp_path / "baselines.md"
+    (runs / "notes.md").write_text("a finding written by hand\n")
     assert report.main(["--results", str(runs), "--out", str(out), "--readme", str(readme)]) == 0
     text = out.read_text()
     rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")}
@@ -77,6 +78,7 @@ def test_report_tables_every_task(runs, tmp_path):
     spread = json.loads((runs / "spread" / "result.json").read_text())
     assert f"{spread['evaluation']['random']['mean']:.0f}" in rows["spread"]
     assert "python -m marl_render.baselines --env spread" in text and "spread/curve.png" in text
+    assert text.rstrip().endswith("## Findings\n\na finding written by hand")
     readme_text = readme.read_text()
     assert readme_text.startswith("intro\n") and readme_text.endswith("\nrest\n") and "old table" not in readme_text
     assert "| tag |" in readme_text

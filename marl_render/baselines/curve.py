@@ -14,7 +14,7 @@ def plot_curve(result: dict, path: str) -> None:
     evaluation = result["evaluation"]
     levels = (("random", "grey", "--"), ("heuristic", "orange", "-."), ("policy", "green", ":"))
     figure, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
-    for ax, key, scale, label in ((axes[0], "env_steps", 1.0, "env steps (all worlds)"),
+    for ax, key, scale, label in ((axes[0], "env_steps", 1e-6, "million env steps (all worlds)"),
                                   (axes[1], "seconds", 1 / 60, "wall-clock minutes of training (2 CPU cores)")):
         ax.plot([p[key] * scale for p in points], [p["episode_return"] for p in points], marker=".",
                 label="training episodes (sampled actions)")

@@ -54,9 +54,13 @@ class PixelEncoder(nn.Module):
 
 
 class Actor(nn.Module):
-    """(observation, agent one-hot, action mask) -> masked logits [N, actions]."""
+    """(observation, agent one-hot, action mask) -> masked logits [N, actions].
 
-    def __init__(self, obs: str, obs_shape: tuple, agents: int, actions: int, hidden: int):
+    With `state_dim` > 0 it also has ``state_head``, a linear map from the features of its last
+    forward (``features``) to the agent's standardised state observation: an auxiliary loss
+    for training only (the state is privileged information; acting needs only the pixels)."""
+
+    def __init__(self, obs: str, obs_shape: tuple, agents: int, actions: int, hidden: int, state_dim: int = 0):
         super().__init__()
         self.obs = obs
         if obs == "pixels":
@@ -70,9 +74,15 @@ class Actor(nn.Module):
                                   nn.Linear(hidden, actions))
         nn.init.orthogonal_(self.head[-1].weight, 0.01)  # a near-uniform policy to start from
         nn.init.zeros_(self.head[-1].bias)
+        self.state_head = nn.Linear(features, state_dim) if state_dim else None
+        self.state_norm = RunningNorm(state_dim) if state_dim else None
+        self.features = None
 
     def forward(self, observation, agent, mask):
-        logits = self.head(torch.cat((self.encoder(observation), agent), -1))
+        features = self.encoder(observation)
+        if self.state_head is not None:
+            self.features = features
+        logits = self.head(torch.cat((features, agent), -1))
         return logits.masked_fill(~mask, MASKED_LOGIT)
 
 

@@ -95,7 +95,9 @@ class MAPPO:
         self.stack.reset(self._observation(self.last_obs))
         self.alive = torch.ones(env.num_worlds, A, dtype=torch.bool)
         obs_shape = tuple(self.stack.stack.shape[2:])
-        self.actor_net = Actor(obs, obs_shape, A, env.num_actions, hp.hidden)
+        self.aux_state = hp.aux_state if obs == "pixels" else 0.0
+        self.actor_net = Actor(obs, obs_shape, A, env.num_actions, hp.hidden,
+                               state_dim=env.state_dim if self.aux_state else 0)
         self.critic_net = CentralCritic(A * env.state_dim, A, hp.hidden)
         self.actor = ProbabilisticActor(
             TensorDictModule(self.actor_net, in_keys=["observation", "agent", "mask"], out_keys=["logits"]),
@@ -144,6 +146,9 @@ class MAPPO:
             if self.obs_key == "state":
                 self.actor_net.encoder.update(observation)
             global_state = self._global_state(self.last_obs)
+            self.last_obs_state = self.last_obs["state"][:, self.trained]
+            if self.aux_state:
+                self.actor_net.state_norm.update(self.last_obs_state)
             mask = self.last_obs["action_mask"][:, self.trained]
             td = self._inputs(observation, global_state[:, None].expand(W, At, -1), mask)
             with set_exploration_type(ExplorationType.RANDOM):
@@ -163,7 +168,8 @@ class MAPPO:
                 ended += (self.running_return[done] + reward[done].mean(-1).double()).tolist()
                 self._reset(done)
             self.running_return = torch.where(done, 0.0, self.running_return + reward.mean(-1).double())
-            steps.append(dict(observation=observation, global_state=global_state, mask=mask,
+            own_state = self.last_obs_state
+            steps.append(dict(observation=observation, global_state=global_state, mask=mask, own_state=own_state,
                               action=td["action"].reshape(W, At), sample_log_prob=td["sample_log_prob"].reshape(W, At),
                               value=td["state_value"].reshape(W, At),
                               reward=self.reward_scale(reward.double(), done[:, None] | terminated).float(),
@@ -189,7 +195,8 @@ class MAPPO:
         samples = self._inputs(batch["observation"], batch["global_state"][:, :, None].expand(T, W, At, -1),
                                batch["mask"])
         samples.update(action=batch["action"].reshape(-1), sample_log_prob=batch["sample_log_prob"].reshape(-1),
-                       advantage=back(advantage).reshape(-1, 1), value_target=back(value_target).reshape(-1, 1))
+                       advantage=back(advantage).reshape(-1, 1), value_target=back(value_target).reshape(-1, 1),
+                       own_state=batch["own_state"].flatten(0, 2))
         return samples[batch["valid"].reshape(-1)], ended
 
     def _act(self, actions: torch.Tensor):
@@ -224,14 +231,20 @@ class MAPPO:
         for _ in range(hp.epochs):
             terms = []
             for index in torch.randperm(size).split(minibatch):
-                out = self.loss(samples[index])
+                minibatch_samples = samples[index]
+                out = self.loss(minibatch_samples)
                 total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+                if self.aux_state:  # on the features of the forward the PPO loss just ran
+                    target = self.actor_net.state_norm(minibatch_samples["own_state"])
+                    out["loss_aux_state"] = (self.actor_net.state_head(self.actor_net.features) - target).pow(2).mean()
+                    total = total + self.aux_state * out["loss_aux_state"]
                 self.optimizer.zero_grad()
                 total.backward()
                 nn.utils.clip_grad_norm_(self.loss.parameters(), hp.max_grad_norm)
                 self.optimizer.step()
-                terms.append({k: float(out[k].detach().mean())
-                              for k in ("loss_objective", "loss_critic", "entropy", "explained_variance")})
+                terms.append({k: float(out[k].detach().mean()) for k in ("loss_objective", "loss_critic", "entropy",
+                                                                         "explained_variance", "loss_aux_state")
+                              if k in out.keys()})
         return {k: sum(t[k] for t in terms) / len(terms) for k in terms[0]}
 
     def close(self) -> None:

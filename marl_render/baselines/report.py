@@ -5,7 +5,8 @@
 One table over every task: the uniform random policy, the scripted heuristic, the greedy
 policy learned from pixels and the one learned from the state (where a run exists), the
 wall-clock and the env steps of each run; then per task the hyperparameters, the command
-that reproduces the run and its curve. A task with no run has a row saying so. README.md's
+that reproduces the run and its curve; then RESULTS/notes.md (hand-written findings), if there
+is one. A task with no run has a row of dashes. README.md's
 table between the markers ``<!-- baselines:start -->`` and ``<!-- baselines:end -->`` is
 rewritten too (--readme '' leaves README alone).
 """
@@ -80,6 +81,24 @@ def table(runs: dict, short: bool = False) -> str:
     return "\n".join(rows)
 
 
+def reproducing_command(run: dict) -> str:
+    """The run's command with every hyperparameter spelled out, so that it still reproduces the
+    run after a task's defaults change."""
+    parts = ["python -m marl_render.baselines", f"--env {run['env']}"]
+    if run["obs"] != "pixels":
+        parts.append(f"--obs {run['obs']}")
+    parts += [f"--seed {run['seeds']['train']}", f"--eval-seed {run['seeds']['evaluation']}",
+              f"--episodes {run['evaluation']['policy']['episodes']}", f"--budget-minutes {run['budget_minutes']:g}"]
+    for name, value in run["hyperparameters"].items():
+        flag = "--" + name.replace("_", "-")
+        if isinstance(value, bool):
+            parts += [flag] if value else []
+        else:
+            parts.append(f"{flag} {value:g}" if isinstance(value, float) else f"{flag} {value}")
+    parts.append(f"--out docs/baselines/{run['folder'].name}")
+    return " ".join(parts)
+
+
 def details(env: str, run: dict, docs: Path) -> str:
     hp = run["hyperparameters"]
     changed = ", ".join(f"{k}={v}" for k, v in hp.items() if DEFAULTS.get(k) != v) or "none"
@@ -88,7 +107,7 @@ def details(env: str, run: dict, docs: Path) -> str:
     return "\n".join([
         f"### {env} from {run['obs']}",
         "",
-        f"`{run['command']}`",
+        f"`{reproducing_command(run)}`",
         "",
         f"- greedy policy {_pm(e['policy'])} over {e['policy']['episodes']} episodes (random {_pm(e['random'])}, "
         f"heuristic {_pm(e['heuristic'])}), evaluation seed {run['seeds']['evaluation']}",
@@ -103,7 +122,7 @@ def details(env: str, run: dict, docs: Path) -> str:
     ])
 
 
-def document(runs: dict, docs: Path) -> str:
+def document(runs: dict, docs: Path, notes: str = "") -> str:
     defaults = ", ".join(f"{k}={v}" for k, v in DEFAULTS.items())
     parts = [
         "# Reference results: every task learned from pixels",
@@ -131,6 +150,8 @@ def document(runs: dict, docs: Path) -> str:
             run = runs.get(env, {}).get(obs)
             if run is not None:
                 parts.append(details(env, run, docs))
+    if notes:
+        parts += ["## Findings", "", notes.strip(), ""]
     return "\n".join(parts)
 
 
@@ -151,8 +172,9 @@ def main(argv=None) -> int:
     parser.add_argument("--readme", default="README.md", help="README whose table to rewrite ('' for none)")
     args = parser.parse_args(argv)
     runs = load_results(Path(args.results))
+    notes = Path(args.results) / "notes.md"
     out = Path(args.out)
-    out.write_text(document(runs, out.parent))
+    out.write_text(document(runs, out.parent, notes.read_text() if notes.is_file() else ""))
     if args.readme:
         update_readme(Path(args.readme), runs)
     print(f"wrote {out} ({sum(len(v) for v in runs.values())} runs)" + (f" and {args.readme}" if args.readme else ""))

@@ -35,7 +35,7 @@ from marl_render.envs.evaluation import evaluate, heuristic_policy, random_polic
 from .curve import plot_curve
 from .policy import GreedyPolicy
 from .ppo import MAPPO
-from .settings import task_hyperparameters
+from .settings import FIELDS, task_hyperparameters
 
 PROGRESS_SECONDS = 10.0  # at most one progress line per this many seconds
 
@@ -58,8 +58,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     hp = parser.add_argument_group("hyperparameters (default: the task's, see settings.py)")
     for name, kind in (("worlds", int), ("resolution", int), ("frames", int), ("action-repeat", int),
                        ("rollout", int), ("epochs", int), ("minibatches", int), ("lr", float), ("gamma", float),
-                       ("gae-lambda", float), ("clip", float), ("entropy", float), ("hidden", int),
-                       ("torch-threads", int)):
+                       ("gae-lambda", float), ("clip", float), ("entropy", float), ("critic-coef", float),
+                       ("max-grad-norm", float), ("hidden", int),
+                       ("torch-threads", int), ("aux-state", float)):
         hp.add_argument(f"--{name}", type=kind, default=None)
     hp.add_argument("--grayscale", action="store_true", default=None, help="one-channel pixels")
     args = parser.parse_args(argv)
@@ -88,9 +89,7 @@ def main(argv=None) -> int:
     started = time.perf_counter()
     args = parse_args(argv)
     deadline = started + args.budget_minutes * 60
-    names = ("worlds", "resolution", "grayscale", "frames", "action_repeat", "rollout", "epochs", "minibatches", "lr",
-             "gamma", "gae_lambda", "clip", "entropy", "hidden", "torch_threads")
-    hp = task_hyperparameters(args.env, **{name: getattr(args, name) for name in names})
+    hp = task_hyperparameters(args.env, **{name: getattr(args, name) for name in FIELDS})
     torch.set_num_threads(hp.torch_threads)
     load_start = os.getloadavg()[0]
     print(f"{args.env}: MAPPO from {args.obs}, budget {args.budget_minutes:g} min, {hp}", flush=True)
