@@ -40,7 +40,8 @@ def load_results(folder: Path) -> dict:
 def _pm(r: dict | None) -> str:
     if r is None:
         return "–"
-    digits = 2 if max(abs(r["mean"]), r["std"]) < 100 else 0
+    size = max(abs(r["mean"]), r["std"])
+    digits = 2 if size < 10 else 1 if size < 100 else 0
     return f"{r['mean']:.{digits}f} ± {r['std']:.{digits}f}"
 
 
