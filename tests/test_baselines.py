@@ -76,7 +76,7 @@ def test_report_tables_every_task(runs, tmp_path):
     assert set(list_envs()) <= set(rows)
     assert rows["cartpole"].count("–") == 6  # no run: every learned and cost cell empty
     spread = json.loads((runs / "spread" / "result.json").read_text())
-    assert f"{spread['evaluation']['random']['mean']:.0f}" in rows["spread"]
+    assert f"| {report.mean_std(spread['evaluation']['random'])} |" in rows["spread"]
     assert "python -m marl_render.baselines --env spread" in text and "spread/curve.png" in text
     assert text.rstrip().endswith("## Findings\n\na finding written by hand")
     readme_text = readme.read_text()

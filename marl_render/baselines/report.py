@@ -37,7 +37,8 @@ def load_results(folder: Path) -> dict:
     return runs
 
 
-def _pm(r: dict | None) -> str:
+def mean_std(r: dict | None) -> str:
+    """"mean ± std" of an evaluation, digits by its size; a dash for none."""
     if r is None:
         return "–"
     size = max(abs(r["mean"]), r["std"])
@@ -53,7 +54,7 @@ def _learned(run: dict | None) -> str:
     policy, random = e["policy"], e["random"]
     margin = (policy["std"] ** 2 / policy["episodes"] + random["std"] ** 2 / random["episodes"]) ** 0.5
     flag = "" if policy["mean"] > random["mean"] + margin else " (not above random)"
-    return _pm(policy) + flag
+    return mean_std(policy) + flag
 
 
 def _cost(run: dict | None) -> str:
@@ -74,7 +75,7 @@ def table(runs: dict, short: bool = False) -> str:
         pixels, state = pair.get("pixels"), pair.get("state")
         any_run = pixels or state
         e = any_run["evaluation"] if any_run else None
-        row = (f"| {env} | {_pm(e and e['random'])} | {_pm(e and e['heuristic'])} | {_learned(pixels)} | "
+        row = (f"| {env} | {mean_std(e and e['random'])} | {mean_std(e and e['heuristic'])} | {_learned(pixels)} | "
                f"{_learned(state)} |")
         if not short:
             row += f" {_cost(pixels)} | {_cost(state)} |"
@@ -110,8 +111,9 @@ def details(env: str, run: dict, docs: Path) -> str:
         "",
         f"`{reproducing_command(run)}`",
         "",
-        f"- greedy policy {_pm(e['policy'])} over {e['policy']['episodes']} episodes (random {_pm(e['random'])}, "
-        f"heuristic {_pm(e['heuristic'])}), evaluation seed {run['seeds']['evaluation']}",
+        f"- greedy policy {mean_std(e['policy'])} over {e['policy']['episodes']} episodes "
+        f"(random {mean_std(e['random'])}, heuristic {mean_std(e['heuristic'])}), "
+        f"evaluation seed {run['seeds']['evaluation']}",
         f"- {run['wall_clock_seconds'] / 60:.1f} min wall-clock (budget {run['budget_minutes']:g}; training "
         f"{run['training_seconds'] / 60:.1f} min, of which env steps {run['env_seconds_in_training'] / 60:.1f}), "
         f"{run['env_steps']:,} env steps, {run['updates']} updates, seed {run['seeds']['train']}",
