@@ -44,7 +44,7 @@ def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution
     env = make_env(name, num_worlds=episodes, resolution=resolution, seed=seed, **kwargs)
     try:
         generator = torch.Generator().manual_seed(seed + 1)
-        opponents = _opponent_mask(env)
+        opponents = opponent_mask(env)
         evaluated = ~opponents
         obs = env.reset()
         episode_return = torch.zeros(episodes, env.num_agents, dtype=torch.float64)
@@ -66,7 +66,8 @@ def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution
         env.close()
 
 
-def _opponent_mask(env) -> torch.Tensor:
+def opponent_mask(env) -> torch.Tensor:
+    """bool [A]: the agents of the task's opponent teams (they play random actions in evaluations)."""
     opponents = set(getattr(env.scenario, "opponents", ()))
     return torch.tensor([team in opponents for team, names in env.groups.items() for _ in names])
 

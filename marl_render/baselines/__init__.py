@@ -1,0 +1,20 @@
+"""Reference results: every task learned from pixels, one command per task.
+
+    python -m marl_render.baselines --env spread                  # 15 minutes, writes out/baselines/spread/
+    python -m marl_render.baselines --env cartpole --budget-minutes 30 --out docs/baselines/cartpole
+    python -m marl_render.baselines.report                        # docs/baselines.md from docs/baselines/*/
+
+The learner is MAPPO (PPO with a centralised critic) written with TorchRL's ClipPPOLoss and
+GAE: one actor shared by the trained agents (an agent one-hot tells them apart) sees only the
+agent's own egocentric pixels (``--obs state``: its state observation instead); the critic sees
+the state observations of all agents of the world. The learned greedy policy is measured with
+``marl_render.envs.evaluation.evaluate``, the same evaluation as the task's uniform random and
+scripted heuristic policies (docs/reference_returns.json).
+
+Modules: settings (hyperparameters and their per-task defaults), networks (actor and critic),
+ppo (rollouts and updates), policy (the greedy policy handed to evaluate), curve (curve.png),
+run (the command line and result.json), report (docs/baselines.md).
+"""
+from .settings import TASK_DEFAULTS, Hyperparameters, task_hyperparameters
+
+__all__ = ["Hyperparameters", "TASK_DEFAULTS", "task_hyperparameters"]

@@ -1,0 +1,39 @@
+"""The learned policy as ``marl_render.envs.evaluation.evaluate`` takes it: greedy actions.
+
+``evaluate`` calls ``policy(env, obs, generator)`` once per step from a fresh reset; the policy
+decides every ``action_repeat`` steps on its stack of decision frames, as in training, and
+holds its actions in between. One GreedyPolicy plays one evaluation (it keeps the frame stack).
+"""
+from __future__ import annotations
+
+import torch
+
+from .networks import Actor
+from .ppo import FrameStack
+
+
+class GreedyPolicy:
+    def __init__(self, actor: Actor, trained: torch.Tensor, obs_key: str, frames: int, action_repeat: int):
+        self.actor, self.trained, self.obs_key = actor, trained, obs_key
+        self.action_repeat = action_repeat
+        self.onehot = torch.eye(len(trained))[trained]
+        self.stack = FrameStack(frames)
+        self.calls = 0
+        self.actions = None
+
+    @torch.no_grad()
+    def __call__(self, env, obs: dict, generator: torch.Generator) -> torch.Tensor:
+        decide = self.calls % self.action_repeat == 0
+        self.calls += 1
+        if not decide:
+            return self.actions
+        observation = obs[self.obs_key][:, self.trained]
+        stack = self.stack.reset(observation) if self.stack.stack is None else self.stack.push(observation)
+        W, At = stack.shape[:2]
+        logits = self.actor(stack.flatten(0, 1), self.onehot.repeat(W, 1),
+                            obs["action_mask"][:, self.trained].flatten(0, 1))
+        # The opponents' actions are replaced by random ones in evaluate; 0 is only a placeholder.
+        actions = torch.zeros(W, len(self.trained), dtype=torch.int64)
+        actions[:, self.trained] = logits.argmax(-1).reshape(W, At)
+        self.actions = actions
+        return actions

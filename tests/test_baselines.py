@@ -1,0 +1,131 @@
+"""python -m marl_render.baselines end to end with a tiny budget (files and their fields, not
+training results), its argument errors, and the report generator on those files."""
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from marl_render.baselines import report, run
+from marl_render.baselines.ppo import FrameStack
+from marl_render.baselines.settings import Hyperparameters, task_hyperparameters
+
+TINY = ["--budget-minutes", "0.02", "--worlds", "2", "--resolution", "8", "--episodes", "2", "--rollout", "4"]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Two tiny runs: spread from pixels, tag (random prey) from the state."""
+    root = tmp_path_factory.mktemp("baselines")
+    assert run.main(["--env", "spread", "--out", str(root / "spread"), *TINY]) == 0
+    assert run.main(["--env", "tag", "--obs", "state", "--out", str(root / "tag-state"), *TINY]) == 0
+    return root
+
+
+def _check_return(r: dict, episodes: int):
+    assert set(r) >= {"mean", "std", "min", "max", "episodes", "evaluated_agents"}
+    assert r["episodes"] == episodes
+    assert all(isinstance(r[k], float) and math.isfinite(r[k]) for k in ("mean", "std", "min", "max"))
+    assert r["min"] <= r["mean"] <= r["max"]
+
+
+@pytest.mark.parametrize("folder, env, obs, trained",
+                         [("spread", "spread", "pixels", 3), ("tag-state", "tag", "state", 3)])
+def test_result_json_has_every_field(runs, folder, env, obs, trained):
+    result = json.loads((runs / folder / "result.json").read_text())
+    assert result["env"] == env and result["obs"] == obs
+    assert result["command"].startswith("python -m marl_render.baselines --env ")
+    assert result["seeds"] == {"train": 0, "evaluation": 1000}
+    assert set(result["versions"]) >= {"marl_render", "torch", "torchrl", "tensordict"}
+    assert result["hyperparameters"] == {**vars(task_hyperparameters(env)), "worlds": 2, "resolution": 8,
+                                         "rollout": 4}
+    assert len(result["trained_agents"]) == trained
+    assert isinstance(result["env_steps"], int) and result["env_steps"] >= 2 * 4  # one update at least
+    assert result["updates"] == len(result["curve"]) >= 1
+    for key in ("wall_clock_seconds", "training_seconds", "evaluation_seconds"):
+        assert isinstance(result[key], float) and result[key] > 0
+    steps = [p["env_steps"] for p in result["curve"]]
+    assert steps == sorted(steps) and steps[-1] == result["env_steps"]
+    for point in result["curve"]:
+        assert set(point) >= {"env_steps", "seconds", "episode_return", "episodes_ended", "entropy"}
+        assert point["episode_return"] is None or isinstance(point["episode_return"], float)
+    for policy in ("policy", "random", "heuristic"):
+        _check_return(result["evaluation"][policy], 2)
+
+
+def test_curve_png_is_written(runs):
+    with Image.open(runs / "spread" / "curve.png") as image:
+        assert image.format == "PNG"
+        pixels = np.asarray(image.convert("L"))
+    assert pixels.shape[0] > 200 and pixels.shape[1] > 400
+    assert pixels.min() < 100 < pixels.max()  # lines drawn on a light background
+
+
+def test_report_tables_every_task(runs, tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{report.START}\nold table\n{report.END}\nrest\n")
+    out = tmp_path / "baselines.md"
+    (runs / "notes.md").write_text("a finding written by hand\n")
+    assert report.main(["--results", str(runs), "--out", str(out), "--readme", str(readme)]) == 0
+    text = out.read_text()
+    rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")}
+    from marl_render.envs import list_envs
+    assert set(list_envs()) <= set(rows)
+    assert rows["cartpole"].count("–") == 6  # no run: every learned and cost cell empty
+    spread = json.loads((runs / "spread" / "result.json").read_text())
+    assert f"| {report.mean_std(spread['evaluation']['random'])} |" in rows["spread"]
+    assert "python -m marl_render.baselines --env spread" in text and "spread/curve.png" in text
+    assert text.rstrip().endswith("## Findings\n\na finding written by hand")
+    readme_text = readme.read_text()
+    assert readme_text.startswith("intro\n") and readme_text.endswith("\nrest\n") and "old table" not in readme_text
+    assert "| tag |" in readme_text
+
+
+def test_report_refuses_a_readme_without_markers(runs, tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text("no markers\n")
+    with pytest.raises(ValueError, match="markers"):
+        report.main(["--results", str(runs), "--out", str(tmp_path / "b.md"), "--readme", str(readme)])
+    assert readme.read_text() == "no markers\n"
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--env", "nope"], "invalid choice"),
+    (["--env", "spread", "--worlds", "0"], "--worlds must be >= 1, got 0"),
+    (["--env", "spread", "--budget-minutes", "-1"], "--budget-minutes must be > 0, got -1"),
+])
+def test_bad_arguments_are_named(args, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        run.parse_args(args)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_help_runs_as_a_module():
+    result = subprocess.run([sys.executable, "-m", "marl_render.baselines", "--help"], capture_output=True,
+                            text=True, timeout=60)
+    assert result.returncode == 0
+    assert "--budget-minutes" in result.stdout and "--obs" in result.stdout
+
+
+def test_task_hyperparameters_apply_task_defaults_then_overrides():
+    assert task_hyperparameters("spread") == Hyperparameters()
+    cartpole = task_hyperparameters("cartpole", frames=None, lr=1e-3)
+    assert cartpole.action_repeat > 1 and cartpole.frames > 1 and cartpole.lr == 1e-3
+    with pytest.raises(TypeError, match="unknown hyperparameter"):
+        task_hyperparameters("spread", learning_rate=1.0)
+
+
+def test_frame_stack_keeps_the_last_frames_and_restarts_worlds():
+    import torch
+    stack = FrameStack(3)
+    first = torch.zeros(2, 1, 1)
+    assert stack.reset(first).tolist() == [[[0, 0, 0]], [[0, 0, 0]]]
+    stack.push(torch.ones(2, 1, 1))
+    stack.push(torch.full((2, 1, 1), 2.0))
+    assert stack.stack.tolist() == [[[0, 1, 2]], [[0, 1, 2]]]
+    stack.restart(torch.full((2, 1, 1), 5.0), torch.tensor([False, True]))
+    assert stack.stack.tolist() == [[[0, 1, 2]], [[5, 5, 5]]]
