@@ -114,12 +114,19 @@ class MPE:
         self.env.reset()
 
     def step(self) -> bool:
-        agents = self.env.agents
-        draws = self.rng.integers(0, self.num_actions, len(agents)).tolist()
-        self.env.step(dict(zip(agents, draws, strict=True)))
+        ended = _random_parallel_step(self.env, self.rng, self.num_actions)
         if self.render:
             self.env.render()
-        return not self.env.agents
+        return ended
+
+
+def _random_parallel_step(env, rng, num_actions: int) -> bool:
+    """One step of a PettingZoo parallel env with uniformly random discrete actions; True when
+    every agent has left (the episode is over)."""
+    agents = env.agents
+    draws = rng.integers(0, num_actions, len(agents)).tolist()
+    env.step(dict(zip(agents, draws, strict=True)))
+    return not env.agents
 
 
 class MarlRenderParallel:
@@ -150,10 +157,7 @@ class MarlRenderParallel:
         self.env.reset()
 
     def step(self) -> bool:
-        agents = self.env.agents
-        draws = self.rng.integers(0, self.num_actions, len(agents)).tolist()
-        self.env.step(dict(zip(agents, draws, strict=True)))
-        return not self.env.agents
+        return _random_parallel_step(self.env, self.rng, self.num_actions)
 
 
 class MarlRenderCore:
