@@ -3,7 +3,7 @@
 A small batch (16 cart-poles) needs microseconds of arithmetic, but every torch call costs
 1-2.5 us of dispatch on this project's machine, and an RK4 step with its reward is about 150
 calls; a numpy call costs 0.3-1 us. So the dynamics and rewards that have many small ops take an ``ops`` namespace and
-use only operators and the functions below; ``for_tensor`` picks numpy for plain CPU float
+use only operators and the functions below; ``for_tensors`` picks numpy for plain CPU float
 tensors (sharing their memory, no copy) and torch otherwise (CUDA, autograd, other dtypes).
 
 The transcendental functions of the numpy namespace go through torch's own kernels: numpy's
@@ -150,11 +150,14 @@ class NumpyOps:
         return np.concatenate(arrays, axis=axis)
 
 
-def for_tensor(tensor: torch.Tensor):
-    """NumpyOps for a CPU float32/float64 tensor outside autograd, else TorchOps."""
-    if tensor.device.type == "cpu" and tensor.dtype in (torch.float32, torch.float64) and not tensor.requires_grad:
-        return NumpyOps
-    return TorchOps
+def for_tensors(*tensors: torch.Tensor):
+    """NumpyOps when every tensor is on the CPU and outside autograd, and every float one is
+    float32 or float64 (bool and integer tensors go along as they are); else TorchOps."""
+    for tensor in tensors:
+        if tensor.device.type != "cpu" or tensor.requires_grad or (
+                tensor.is_floating_point() and tensor.dtype not in (torch.float32, torch.float64)):
+            return TorchOps
+    return NumpyOps
 
 
 def to_ops(ops, tensor: torch.Tensor):

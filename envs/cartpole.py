@@ -109,7 +109,7 @@ class CartPoleBalance(Scenario):
         u = self.control(actions)
         # One pass over the arrays of the cheapest namespace (envs/array_ops.py): at small
         # batches the cost of this step is the number of calls, not the arithmetic.
-        ops = array_ops.for_tensor(u)
+        ops = array_ops.for_tensors(state.qstate, u)
         qstate, control = array_ops.to_ops(ops, state.qstate), array_ops.to_ops(ops, u)
         with ops.quiet():
             q = stop_at_limit(ops, integrate(ops, qstate, CARTPOLE["gear"] * ops.clip(control, -1.0, 1.0), self.dt,

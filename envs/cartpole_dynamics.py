@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from . import array_ops
-from .array_ops import NumpyOps, TorchOps
+from .array_ops import TorchOps
 
 # Constants as in dm_control cartpole.xml (dm_control/suite/cartpole.xml):
 #   <option timestep="0.01" integrator="RK4">, MuJoCo's default gravity 9.81;
@@ -100,7 +100,7 @@ def cartpole_step(
     """
     check_step_arguments(dt, substeps, integrator)
     force = CARTPOLE["gear"] * action.clamp(-1.0, 1.0).to(state.dtype)
-    ops = array_ops.for_tensor(state) if array_ops.for_tensor(force) is NumpyOps else TorchOps
+    ops = array_ops.for_tensors(state, force)
     with ops.quiet():
         q = integrate(ops, array_ops.to_ops(ops, state), array_ops.to_ops(ops, force), dt, substeps, integrator,
                       slider_damping, hinge_damping)
@@ -163,7 +163,7 @@ SLIDER_LIMIT = 1.8  # m, dm_control cartpole.xml slider range
 def slider_limit(q: Tensor, limit: float = SLIDER_LIMIT) -> Tensor:
     """Hard inelastic stop at |x| = limit: the cart's velocity into the stop is removed and the
     pole gets the impulse that keeps the hinge constraint (d theta_dot = m l cos / J * x_dot)."""
-    ops = array_ops.for_tensor(q)
+    ops = array_ops.for_tensors(q)
     with ops.quiet():
         return array_ops.to_tensor(stop_at_limit(ops, array_ops.to_ops(ops, q), limit))
 

@@ -85,7 +85,7 @@ def dmc_balance_reward(state: Tensor, action: Tensor) -> Tensor:
     unclipped ctrl).
     """
     action = action.to(state.dtype)
-    ops = array_ops.for_tensor(state) if array_ops.for_tensor(action) is not TorchOps else TorchOps
+    ops = array_ops.for_tensors(state, action)
     with ops.quiet():
         return array_ops.to_tensor(balance_reward(ops, array_ops.to_ops(ops, state), array_ops.to_ops(ops, action)))
 

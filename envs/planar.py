@@ -491,7 +491,7 @@ def _arena_half(like, cfg):
 
 
 def _torch_dtype(x) -> torch.dtype:
-    return torch.from_numpy(x[:0]).dtype if isinstance(x, np.ndarray) else x.dtype
+    return getattr(torch, x.dtype.name) if isinstance(x, np.ndarray) else x.dtype
 
 
 def _device(x) -> torch.device:
@@ -522,10 +522,7 @@ def step(state: BodyState, force: Tensor, obstacles: Obstacles | None, cfg: Phys
     CPU float batches run on numpy arrays over the same memory (envs/array_ops.py: at
     small batches the cost is the number of calls); the results are torch's bits.
     """
-    tensors = [*state, force] + ([] if obstacles is None else [*obstacles])
-    floats = [t for t in tensors if t.is_floating_point()]
-    ops = NumpyOps if all(array_ops.for_tensor(t) is NumpyOps for t in floats) and all(
-        t.device.type == "cpu" for t in tensors) else TorchOps
+    ops = array_ops.for_tensors(*state, force, *(obstacles or ()))
     if ops is TorchOps:
         return _step(ops, state, force, obstacles, cfg)
     arrays = BodyState(*(t.numpy() for t in state))

@@ -777,3 +777,25 @@ def test_planar_numpy_path_gives_the_torch_paths_bits(dtype, integrator):
         torch_state = P._step(TorchOps, torch_state, force, boxes, cfg)
         assert torch.equal(numpy_state.pos, torch_state.pos) and torch.equal(numpy_state.vel, torch_state.vel), t
     assert numpy_state.pos.dtype == dtype and not torch.equal(numpy_state.pos, s.pos)
+
+
+def test_tensors_outside_the_numpy_path_keep_the_torch_path():
+    # Autograd and unusual dtypes take the torch namespace: gradients flow, bits are the same.
+    from marl_render.envs.array_ops import NumpyOps, TorchOps, for_tensors
+
+    s = torch.tensor([[0.05, 0.03, 0.01, -0.02], [0.3, -0.5, 0.2, 1.0]], dtype=torch.float64)
+    u = torch.tensor([0.4, -0.7], dtype=torch.float64)
+    assert for_tensors(s, u, torch.ones(2, dtype=torch.bool)) is NumpyOps
+    assert for_tensors(s, u.half()) is TorchOps and for_tensors(s.requires_grad_(False), u.requires_grad_()) is TorchOps
+    stepped = C.cartpole_step(s, u)
+    assert stepped.grad_fn is not None
+    stepped.sum().backward()
+    assert u.grad is not None and torch.isfinite(u.grad).all()
+    assert torch.equal(stepped.detach(), C.cartpole_step(s, u.detach()))
+
+    cfg = P.PhysicsConfig(terms=P.TERM_NAMES, friction=0.1, drag=0.2)
+    bodies = scene(2, 4, speed=1.0)
+    force = torch.ones(2, 4, 2, dtype=torch.float64, requires_grad=True)
+    moved = P.step(bodies, force, None, cfg)
+    assert moved.vel.grad_fn is not None
+    assert torch.equal(moved.pos.detach(), P.step(bodies, force.detach(), None, cfg).pos)

@@ -47,6 +47,17 @@ def _timed_block(function, count: int) -> tuple[float, float]:
     return (time.perf_counter() - start) / count, (time.process_time() - cpu) / count
 
 
+def _timed(function, spent: dict, key: str):
+    """`function`, adding the seconds each call takes to spent[key]."""
+    def timed(*args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return function(*args, **kwargs)
+        finally:
+            spent[key] += time.perf_counter() - start
+    return timed
+
+
 def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds: int, block_seconds: float) -> dict:
     from marl_render.envs import make_env
 
@@ -60,39 +71,22 @@ def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds:
     generator = torch.Generator().manual_seed(0)
     stages = {key: [] for key in STAGES + ("physics", "env")}
 
-    updating = [0.0]
-    update = env.renderer.update
-
-    def timed_update(*args, **kwargs):  # instrumentation of this benchmark only
-        start = time.perf_counter()
-        try:
-            return update(*args, **kwargs)
-        finally:
-            updating[0] += time.perf_counter() - start
-
-    env.renderer.update = timed_update
-    stepping = [0.0]
-    scenario_step = env.scenario.step
-
-    def timed_scenario_step(*args, **kwargs):  # the task's physics and rules (Scenario.step)
-        start = time.perf_counter()
-        try:
-            return scenario_step(*args, **kwargs)
-        finally:
-            stepping[0] += time.perf_counter() - start
-
-    env.scenario.step = timed_scenario_step
+    # Instrumentation of this benchmark only: seconds spent in the renderer's pose updates and
+    # in the task's physics and rules (Scenario.step) during one env step.
+    spent = {"update": 0.0, "physics": 0.0}
+    env.renderer.update = _timed(env.renderer.update, spent, "update")
+    env.scenario.step = _timed(env.scenario.step, spent, "physics")
 
     def env_step():
-        updating[0] = stepping[0] = 0.0
+        spent.update(update=0.0, physics=0.0)
         start = time.perf_counter()
         env.step(env.random_actions(generator))
         total = time.perf_counter() - start
-        timings = dict(env.renderer.last_timings, update=updating[0])
+        timings = dict(env.renderer.last_timings, update=spent["update"])
         for key in STAGES:
             stages[key].append(timings.get(key, 0.0))
-        stages["physics"].append(stepping[0])
-        stages["env"].append(total - stepping[0] - sum(timings.get(key, 0.0) for key in STAGES))
+        stages["physics"].append(spent["physics"])
+        stages["env"].append(total - spent["physics"] - sum(timings.get(key, 0.0) for key in STAGES))
 
     try:
         env.reset(seed=0)
