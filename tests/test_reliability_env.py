@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import multiprocessing
 import re
+import statistics
 import subprocess
 import sys
 import textwrap
@@ -235,10 +236,16 @@ def test_the_estimate_is_within_25_percent_of_the_measured_peak(name, worlds, re
         estimate = memory.renderer_bytes(env.renderer.scene) + env.num_worlds * memory.ENV_WORLD_BYTES
         print("ratio", peak / estimate, "peak", peak)
     """)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
-    ratio = float(re.search(r"ratio ([\d.]+)", out.stdout).group(1))
-    assert 0.75 < ratio < 1.25, f"measured peak / estimate = {ratio:.2f} ({out.stdout.strip()})"
+    # One process's peak varies by up to ~45 MB between identical runs (the allocator's and llvmpipe's
+    # memory come in steps of ~6 MB, taken or not by the time of the peak): the median of three runs.
+    ratios, outputs = [], []
+    for _ in range(3):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+        assert out.returncode == 0, out.stderr[-2000:]
+        ratios.append(float(re.search(r"ratio ([\d.]+)", out.stdout).group(1)))
+        outputs.append(out.stdout.strip())
+    ratio = statistics.median(ratios)
+    assert 0.75 < ratio < 1.25, f"measured peak / estimate = {ratio:.2f}, the median of {outputs}"
 
 
 def test_render_overview_beyond_any_machine_is_a_clear_error_and_keeps_the_old_overview():
