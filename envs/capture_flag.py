@@ -23,6 +23,11 @@
      by the closest; it then follows its carrier (drawn just behind it) until rule 1 or 2.
 * Reward: shared per team and zero-sum: ``capture_reward`` (default 1) to every agent of a
   team per capture it scores in the step, minus the same per capture of the other team.
+  Optional shaping (``shaping`` >= 0, default 0: off; not zero-sum): each team also gets
+  ``shaping x`` the progress its movement made in the step towards its next capture: the
+  decrease of (its nearest agent's distance to the enemy flag at home + the distance between
+  the bases) or, while it carries the enemy flag, of the carrier's distance to its own base.
+  Tags, pick-ups and captures move nothing in it (it is taken over the step's movement only).
 * Episode: truncated after ``max_steps`` = 200; with ``captures_to_win`` > 0 (default 0: off)
   it terminates (every agent) once a team has scored that many captures.
 * action_mask: every action is always valid (all True).
@@ -64,9 +69,11 @@ class CaptureFlagParams:
     capture_reward: float = 1.0
     captures_to_win: int = 0  # 0: the episode only truncates
     k_nearest: int = 4  # teammates / opponents in the state observation
+    shaping: float = 0.0  # weight of the progress towards the next capture (0: off)
 
     def __post_init__(self):
         positive_float("capture_reward", self.capture_reward)
+        positive_float("shaping", self.shaping, allow_zero=True)
         positive_int("captures_to_win", self.captures_to_win, minimum=0)
         positive_int("k_nearest", self.k_nearest)
 
@@ -175,12 +182,28 @@ class CaptureFlag(ArenaScenario):
         captures = before.captures + scores
         net = (scores - scores.flip(1)).float() * self.params.capture_reward  # [W, 2] per team
         reward = net[:, self.team]
+        if self.params.shaping:
+            gain = (self.capture_progress(moved.pos, before.carrier, alive)
+                    - self.capture_progress(before.pos, before.carrier, alive))
+            gain = torch.nan_to_num(gain, nan=0.0, posinf=0.0, neginf=0.0)  # a team with nobody left: none
+            reward = reward + self.params.shaping * gain[:, self.team]
         win = self.params.captures_to_win
         done = (captures >= win).any(-1) if win else torch.zeros_like(captures[:, 0], dtype=torch.bool)
         state = dataclasses.replace(moved, pos=pos, vel=vel, carrier=carrier, captures=captures)
         info = {"captures_red": scores[:, 0], "captures_blue": scores[:, 1], "tags": tagged.sum(-1),
                 "flag_carried": (carrier >= 0).sum(-1)}
         return state, reward, done[:, None].expand_as(alive).clone(), info
+
+    def capture_progress(self, pos, carrier, alive):
+        """[W, 2] per team: minus the way left to its next capture (see the module docstring)."""
+        pos = pos[:, :self.num_agents]
+        to_enemy_flag = (pos[:, :, None] - self.base.flip(0)).norm(dim=-1)  # [W, N, 2 teams]
+        member = (self.team[:, None] == torch.arange(2, device=self.device)) & alive[..., None]
+        nearest = torch.where(member, to_enemy_flag, math.inf).amin(1)  # [W, 2]
+        enemy_carrier = carrier.flip(1)  # [W, 2]: per team, who carries the flag it attacks
+        carrier_pos = pos.gather(1, enemy_carrier.clamp_min(0)[..., None].expand(-1, -1, 2))
+        to_home = (carrier_pos - self.base).norm(dim=-1)
+        return -torch.where(enemy_carrier >= 0, to_home, nearest + 2 * BASE_Y)
 
     def nearest(self, state, alive):
         """Indices [W, N, K_mates] and [W, N, K_opps] of each agent's nearest teammates / opponents."""

@@ -124,7 +124,10 @@ class BatchedEnv:
     autoreset (False, "next_step", "same_step" or True = "same_step"), grayscale (one-channel
     pixels), torch_threads (default 1, at most 1024: torch intra-op threads used *inside* env
     calls, the caller's setting restored on return; None leaves torch's setting alone) and
-    context (a marl_render.GLContext to render on; None: the process's default)), `params`
+    context (a marl_render.GLContext to render on; None: the process's default), and the
+    accuracy knobs multisamples (MSAA samples of the agents' views, colour only), supersample
+    (k x the resolution, box-filtered down) and physics_substeps (planar physics substeps per
+    step; None: the task's own; coarser than the no-tunnelling bound is refused)), `params`
     an instance of the scenario's Params (None: its defaults).
 
     Attributes: scenario, spec (the EnvSpec every front end translates), name, num_worlds (W),
@@ -181,6 +184,8 @@ class BatchedEnv:
         self.context.check_usable()  # in a forked child: ForkedContextError now, not a torch deadlock below
 
         self.scenario = scenario(params, Layout(self.num_worlds, self.num_agents, self.continuous, self.device))
+        if options.physics_substeps is not None:
+            self.scenario.physics = check.physics_substeps(options.physics_substeps, self.scenario)
         self._describe(self.scenario)
         self.sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
         self._check_scenario()
@@ -194,7 +199,8 @@ class BatchedEnv:
         with limited_threads(self.torch_threads):
             self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=effects,
                                      shadows=self.shadows, grayscale=self.grayscale, context=self.context,
-                                     device=self.device)
+                                     device=self.device, multisamples=options.multisamples,
+                                     supersample=options.supersample)
         self.renderer = self.views.renderer
         self._closed = False
 

@@ -40,6 +40,11 @@ class EnvOptions:
     torch_threads: int | None = 1
     grayscale: bool = False
     context: object = None  # a marl_render.GLContext, or None for the process's default
+    # Accuracy knobs (what they cost: docs/accuracy/): anti-aliasing of the agents' views and the
+    # planar physics' substeps per step (None: the task's own).
+    multisamples: int = 0  # MSAA samples (colour only: not with depth)
+    supersample: int = 1  # render k x the resolution and box-filter it down
+    physics_substeps: int | None = None
 
 
 OPTION_NAMES = frozenset(field.name for field in dataclasses.fields(EnvOptions))
@@ -117,6 +122,19 @@ def resolution(value, scenario, gl_limit: int) -> tuple:
     if max(hw) > gl_limit:
         raise ValueError(f"resolution must be at most {gl_limit} pixels per side (GL limit), got {hw}")
     return hw
+
+
+def physics_substeps(value, scenario):
+    """The scenario's planar physics (PhysicsConfig) with `value` substeps per step."""
+    if scenario.physics is None:
+        raise ValueError(f"physics_substeps applies to tasks with planar physics (envs/planar.py); "
+                         f"{scenario.name} has none, got physics_substeps={value!r}")
+    substeps = positive_int("physics_substeps", value)
+    try:
+        return dataclasses.replace(scenario.physics, substeps=substeps)
+    except ValueError as exc:  # too coarse: bodies would tunnel through each other
+        raise ValueError(f"physics_substeps={substeps} is too coarse for {scenario.name} "
+                         f"(default {scenario.physics.substeps}): {exc}") from None
 
 
 def max_steps(value, scenario) -> int:

@@ -18,8 +18,9 @@ class EnvRenderer:
     """The agents' views (one renderer, a camera per agent) and the overview (one per world)."""
 
     def __init__(self, scenario, *, resolution: tuple, effects: tuple, shadows, grayscale: bool,
-                 context: mr.GLContext, device: torch.device):
+                 context: mr.GLContext, device: torch.device, multisamples: int = 0, supersample: int = 1):
         self.scenario, self.resolution, self.shadows = scenario, resolution, shadows
+        self.multisamples, self.supersample = multisamples, supersample  # the agents' views only
         self.grayscale, self.context, self.device = grayscale, context, device
         self.overview_renderer = None
         self.renderer = None
@@ -82,9 +83,13 @@ class EnvRenderer:
         return scene
 
     def _renderer(self, scene: mr.Scene, overview: bool) -> mr.BatchRenderer:
+        antialias = {} if overview else dict(multisamples=self.multisamples, supersample=self.supersample)
         renderer = mr.BatchRenderer(scene, color="gray" if self.grayscale and not overview else "rgb",
-                                    context=self.context)
+                                    context=self.context, **antialias)
         try:
+            if not overview and renderer.granted_multisamples < self.multisamples:
+                raise ValueError(f"multisamples={self.multisamples} was asked for but the GL "
+                                 f"({mr.backend.gl_info().renderer}) gave {renderer.granted_multisamples}")
             self.scenario.place_cameras(renderer, overview)
         except BaseException:
             renderer.close()

@@ -32,7 +32,8 @@ variant) find their way back.
 * Reward, shared by all agents: ``+found_reward`` (default 1) in the step where any agent
   first reaches the goal; with ``return_home=True`` another ``+found_reward`` in the step
   where an agent that has reached the goal is first back inside the home room;
-  ``-step_penalty`` (default 0) every step.
+  ``-step_penalty`` (default 0) every step; ``+explore_reward`` (default 0: off) per room that
+  an agent enters for the first time in the episode (a denser signal for learners).
 * Episode: terminates (every agent) when the goal is found, or with ``return_home=True``
   when an agent that reached it is back home; truncated after ``max_steps`` = 300.
 * action_mask: every action is always valid (all True).
@@ -122,6 +123,7 @@ class RoomsParams:
     open_wall: float = 0.2  # probability that a wall slot has no wall
     found_reward: float = 1.0
     step_penalty: float = 0.0
+    explore_reward: float = 0.0  # per room first entered this episode (0: off)
 
     def __post_init__(self):
         boolean("return_home", self.return_home)
@@ -129,6 +131,7 @@ class RoomsParams:
             raise ValueError(f"open_wall must be a probability in [0, 1], got {self.open_wall}")
         positive_float("found_reward", self.found_reward)
         positive_float("step_penalty", self.step_penalty, allow_zero=True)
+        positive_float("explore_reward", self.explore_reward, allow_zero=True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,7 +215,10 @@ class Rooms(ArenaScenario):
         returned_now = back & ~before.returned
         returned = before.returned | back
         events = found_now.to(torch.float32) + returned_now.to(torch.float32)
-        reward = (self.params.found_reward * events - self.params.step_penalty)[:, None].expand(-1, self.num_agents)
+        shared = self.params.found_reward * events - self.params.step_penalty
+        if self.params.explore_reward:
+            shared = shared + self.params.explore_reward * (visited & ~before.visited).sum(1).to(torch.float32)
+        reward = shared[:, None].expand(-1, self.num_agents)
         done = returned if self.params.return_home else finder.any(1)
         state = dataclasses.replace(moved, visited=visited, finder=finder, returned=returned)
         info = {"found": finder.any(1).long(), "returned": returned.long(), "rooms_visited": visited.sum(1)}

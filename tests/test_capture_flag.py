@@ -1,5 +1,7 @@
 """Tests for envs/capture_flag.py: two teams capture each other's flag."""
 
+import math
+
 import pytest
 import torch
 
@@ -60,6 +62,7 @@ def test_bad_arguments_name_themselves():
     for kwargs, word in [({"num_agents": 5}, "num_agents"), ({"num_agents": 66}, "num_agents"),
                          ({"num_agents": 2}, "num_agents"), ({"captures_to_win": -1}, "captures_to_win"),
                          ({"k_nearest": 0}, "k_nearest"), ({"capture_reward": -1.0}, "capture_reward"),
+                         ({"shaping": -0.5}, "shaping"),
                          ({"flags": 3}, "flags")]:
         with pytest.raises((TypeError, ValueError), match=word):
             make(**kwargs)
@@ -99,6 +102,31 @@ def test_capture_scores_zero_sum_and_can_end_the_episode():
     _, reward, terminated, _, _ = noop(env)
     assert terminated.all() and env.sim.captures.tolist() == [[2, 0]] * W
     env.close()
+
+
+def test_shaping_rewards_progress_towards_the_next_capture():
+    env, plain = make(shaping=0.5), make()
+    for e in (env, plain):
+        e.reset()
+    forward = torch.tensor([[1, 0, 0, 0]] * W)  # red_0 drives, the others stand still
+    # red_0 (yaw 0 faces +y) is red's nearest agent to blue's flag and drives towards it.
+    pos = [[0.0, -1.0], [-2.0, -2.0], [2.0, 1.0], [2.0, 2.0]]
+    place(env, pos, yaw=[0.0, 0.0, 0.0, 0.0])
+    place(plain, pos, yaw=[0.0, 0.0, 0.0, 0.0])
+    _, reward, _, _, _ = env.step(forward)
+    _, unshaped, _, _, _ = plain.step(forward)
+    gain = env.sim.pos[:, RED0, 1] - (-1.0)  # red_0 drove straight at blue's flag on x = 0
+    assert (unshaped == 0).all() and (gain > 0).all()
+    assert torch.allclose(reward[:, :2], (0.5 * gain)[:, None].expand(-1, 2), atol=1e-5)
+    assert (reward[:, 2:] == 0).all()  # blue did not move
+    # Carrying blue's flag, red_0 gains by heading home (yaw pi faces -y) and loses going away.
+    place(env, [[0.0, 1.0], *pos[1:]], yaw=[math.pi, 0.0, 0.0, 0.0], carrier=(-1, RED0))
+    _, reward, _, _, _ = env.step(forward)
+    assert (reward[:, :2] > 0).all()
+    place(env, [[0.0, 1.0], *pos[1:]], yaw=[0.0, 0.0, 0.0, 0.0], carrier=(-1, RED0))
+    _, reward, _, _, _ = env.step(forward)
+    assert (reward[:, :2] < 0).all()
+    env.close(), plain.close()
 
 
 def test_closest_opponent_picks_up_a_flag_at_home_and_it_follows():

@@ -725,3 +725,65 @@ def test_random_actions_are_valid_and_seeded(name, continuous):
         assert ((a >= 0) & (a < env.num_actions)).all()
     assert torch.equal(env.check_actions(a), a.to(env.check_actions(a).dtype))
     env.close()
+
+
+# ---------------------------------------------------------------------- accuracy options
+def edges(pixels):
+    """[..., H, W] bool: pixels with a 4-neighbour of another colour."""
+    edge = torch.zeros(pixels.shape[:-1], dtype=torch.bool)
+    step = (pixels[..., 1:, :, :] != pixels[..., :-1, :, :]).any(-1)
+    edge[..., 1:, :] |= step
+    edge[..., :-1, :] |= step
+    step = (pixels[..., :, 1:, :] != pixels[..., :, :-1, :]).any(-1)
+    edge[..., :, 1:] |= step
+    edge[..., :, :-1] |= step
+    return edge
+
+
+def test_multisamples_smooth_edges_of_the_same_scene():
+    plain, msaa = make("spread"), make("spread", multisamples=4)
+    a, b = plain.reset()["pixels"], msaa.reset()["pixels"]
+    assert b.shape == a.shape and b.dtype == torch.uint8
+    assert msaa.renderer.granted_multisamples == 4 and plain.renderer.granted_multisamples == 0
+    differ = (a != b).any(-1)
+    # Only pixels at edges change (a sub-pixel object that only the extra samples hit makes an edge
+    # in the MSAA image): a small share, each with a neighbour of another colour in one of the two.
+    assert 0 < differ.float().mean() < 0.2
+    assert bool((differ <= (edges(a) | edges(b))).all())
+    plain.close(), msaa.close()
+
+
+def test_supersample_keeps_shapes_and_changes_only_edges():
+    plain, ss = make("forage"), make("forage", supersample=2)
+    a, b = plain.reset()["pixels"], ss.reset()["pixels"]
+    assert b.shape == a.shape and b.dtype == torch.uint8
+    assert 0 < (a != b).any(-1).float().mean() < 0.3
+    plain.close(), ss.close()
+
+
+def test_physics_substeps_change_the_dynamics_not_the_rest():
+    default, fine = make("spread"), make("spread", physics_substeps=8)
+    assert (default.physics.substeps, fine.physics.substeps) == (2, 8)
+    assert fine.physics.dt == default.physics.dt
+    default.reset(), fine.reset()
+    assert_state_equal(default.get_state(), fine.get_state())  # the same episode starts
+    for _ in range(5):
+        actions = random_actions(default)
+        default.step(actions), fine.step(actions)
+    pos_a, pos_b = default.get_state()["pos"], fine.get_state()["pos"]
+    assert not torch.equal(pos_a, pos_b) and float((pos_a - pos_b).abs().max()) < 0.05
+    default.close(), fine.close()
+
+
+@pytest.mark.parametrize(("name", "kwargs", "error", "words"), [
+    ("spread", dict(physics_substeps=1), ValueError, "physics_substeps=1 is too coarse for spread"),
+    ("spread", dict(physics_substeps=0), ValueError, "physics_substeps must be an int >= 1, got 0"),
+    ("spread", dict(physics_substeps=2.0), TypeError, "physics_substeps"),
+    ("cartpole", dict(physics_substeps=4), ValueError, "cartpole has none"),
+    ("spread", dict(multisamples=4, depth=True), ValueError, "multisamples cannot be combined with the depth"),
+    ("spread", dict(multisamples=-1), ValueError, "multisamples must be an int >= 0"),
+    ("spread", dict(supersample=0), ValueError, "supersample"),
+])
+def test_accuracy_options_refuse_bad_values(name, kwargs, error, words):
+    with pytest.raises(error, match=re.escape(words)):
+        make(name, **kwargs)

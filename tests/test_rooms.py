@@ -57,6 +57,7 @@ def test_defaults_info_and_bad_keywords():
                                 ({"return_home": 1}, TypeError, "return_home"),
                                 ({"found_reward": 0.0}, ValueError, "found_reward"),
                                 ({"step_penalty": -0.1}, ValueError, "step_penalty"),
+                                ({"explore_reward": -0.1}, ValueError, "explore_reward"),
                                 ({"num_agents": 5}, ValueError, "num_agents"), ({"doors": 2}, TypeError, "doors")]:
         with pytest.raises(error, match=name):
             make(**kwargs)
@@ -142,6 +143,24 @@ def test_finding_the_goal_rewards_everyone_once_and_terminates():
     flags = env.state_observation()[..., 42:44]  # (this agent reached the goal, some agent did)
     assert flags.tolist() == [[[1.0, 1.0], [0.0, 1.0]], [[0.0, 0.0], [0.0, 0.0]]]
     assert info["rooms_visited"].tolist() == [2, 2]  # home and the goal's room
+    env.close()
+
+
+def test_explore_reward_counts_rooms_entered_for_the_first_time():
+    env = make(explore_reward=0.25, num_worlds=1)
+    env.reset(seed=1)
+    s = env.sim
+    others = [room for room in range(9) if room != int(s.home[0]) and room != int(rooms.room_of(s.goal[:, 0])[0])]
+    # Both agents jump into two new rooms: +0.25 each, shared; then staying there earns nothing.
+    edit(env, pos=ROOM_CENTRE[others[:2]][None])
+    _, reward, _, _, info = env.step(actions(env, NOOP))
+    assert reward.tolist() == [[0.5, 0.5]] and info["rooms_visited"].tolist() == [3]
+    _, reward, _, _, _ = env.step(actions(env, NOOP))
+    assert reward.tolist() == [[0.0, 0.0]]
+    # Back to the home room (visited from the start): nothing either.
+    edit(env, pos=ROOM_CENTRE[s.home].expand(1, 2, 2) + torch.tensor([[-0.4, 0.0], [0.4, 0.0]]))
+    _, reward, _, _, _ = env.step(actions(env, NOOP))
+    assert reward.tolist() == [[0.0, 0.0]]
     env.close()
 
 

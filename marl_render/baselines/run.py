@@ -12,6 +12,12 @@ heuristic are each evaluated on --episodes episodes (one per world, the same see
 evaluated agents, averaged over them; opponents (tag's prey, push's and capture_flag's second
 team) play random actions in training and in every evaluation.
 
+Env keywords: ``--env-option KEY=VALUE`` goes to the training and every evaluation env (a
+task's keyword or an accuracy knob: ``multisamples=4``, ``physics_substeps=4``);
+``--train-option KEY=VALUE`` to the training env only (a shaped reward such as push's
+``shaping=1``: the evaluations keep the task's own reward, so the table compares like with like).
+VALUE is a Python literal (``1``, ``0.5``, ``True``, ``'x'``).
+
 Writes OUT/result.json (env, seeds, versions, env steps, wall-clock, hyperparameters, the
 training curve, the evaluations), OUT/curve.png and OUT/actor.pt (the actor's state_dict).
 Options left out take the task's default (marl_render/baselines/settings.py).
@@ -19,6 +25,7 @@ Options left out take the task's default (marl_render/baselines/settings.py).
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
 import json
 import os
@@ -55,6 +62,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--eval-seed", type=int, default=1000, help="seed of the evaluation episodes")
     parser.add_argument("--episodes", type=int, default=32, help="evaluation episodes per policy")
     parser.add_argument("--budget-minutes", type=float, default=15.0, help="wall-clock budget of the whole run")
+    parser.add_argument("--env-option", action="append", default=[], metavar="KEY=VALUE", type=env_option,
+                        help="env keyword for training and evaluation (repeatable)")
+    parser.add_argument("--train-option", action="append", default=[], metavar="KEY=VALUE", type=env_option,
+                        help="env keyword for the training env only, e.g. a shaped reward (repeatable)")
     hp = parser.add_argument_group("hyperparameters (default: the task's, see settings.py)")
     for name, kind in (("worlds", int), ("resolution", int), ("frames", int), ("action-repeat", int),
                        ("rollout", int), ("epochs", int), ("minibatches", int), ("lr", float), ("gamma", float),
@@ -70,9 +81,25 @@ def parse_args(argv=None) -> argparse.Namespace:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {value}")
     if args.budget_minutes <= 0:
         parser.error(f"--budget-minutes must be > 0, got {args.budget_minutes}")
+    reserved = {"num_worlds", "resolution", "grayscale", "state_obs", "seed"}  # set from the hyperparameters
+    for key, _ in args.env_option + args.train_option:
+        if key in reserved:
+            parser.error(f"--env-option / --train-option {key}: set it with the learner's own option instead")
     if args.out is None:
         args.out = os.path.join("out", "baselines", args.env if args.obs == "pixels" else f"{args.env}-state")
     return args
+
+
+def env_option(text: str) -> tuple:
+    """KEY=VALUE -> (KEY, the Python literal VALUE)."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.isidentifier():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE (e.g. shaping=1.0), got {text!r}")
+    try:
+        return key, ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        raise argparse.ArgumentTypeError(f"VALUE of {key} must be a Python literal (1, 0.5, True, 'x'), "
+                                         f"got {value!r}") from None
 
 
 def versions() -> dict:
@@ -94,9 +121,10 @@ def main(argv=None) -> int:
     load_start = os.getloadavg()[0]
     print(f"{args.env}: MAPPO from {args.obs}, budget {args.budget_minutes:g} min, {hp}", flush=True)
 
-    trainer = MAPPO(args.env, hp, args.obs, args.seed, {})
+    env_options, train_options = dict(args.env_option), dict(args.train_option)
+    trainer = MAPPO(args.env, hp, args.obs, args.seed, {**env_options, **train_options})
     eval_kwargs = dict(episodes=args.episodes, seed=args.eval_seed, resolution=hp.resolution,
-                       grayscale=hp.grayscale, state_obs=args.obs == "state")
+                       grayscale=hp.grayscale, state_obs=args.obs == "state", **env_options)
     before = time.perf_counter()
     references = {name: evaluate(args.env, policy, **eval_kwargs)
                   for name, policy in (("random", random_policy), ("heuristic", heuristic_policy))}
@@ -152,6 +180,7 @@ def main(argv=None) -> int:
         "evaluation_seconds": evaluation_seconds,
         "env_steps": trainer.env_steps, "updates": updates,
         "hyperparameters": dataclasses.asdict(hp),
+        "env_options": env_options, "train_options": train_options,
         "trained_agents": [n for n, t in zip(trainer.env.agent_names, trainer.trained.tolist(), strict=True) if t],
         "evaluation": {"policy": policy, **references,
                        "return": "sum of the evaluated agents' rewards over an episode, averaged over them; "
