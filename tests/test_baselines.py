@@ -129,3 +129,51 @@ def test_frame_stack_keeps_the_last_frames_and_restarts_worlds():
     assert stack.stack.tolist() == [[[0, 1, 2]], [[0, 1, 2]]]
     stack.restart(torch.full((2, 1, 1), 5.0), torch.tensor([False, True]))
     assert stack.stack.tolist() == [[[0, 1, 2]], [[5, 5, 5]]]
+
+
+def test_learning_accuracy_study_runs_and_reports(tmp_path):
+    """Two settings, two seeds, a tiny budget: every run's files, the report's json, table and plot."""
+    from marl_render.baselines import learning_accuracy
+
+    out = tmp_path / "learning"
+    argv = ["--minutes", "0.03", "--seeds", "0", "1", "--settings", "32px", "32px-msaa4", "--episodes", "2",
+            "--jobs", "2", "--out", str(out), "--worlds", "2", "--rollout", "4"]
+    assert learning_accuracy.main(argv) == 0
+    for setting in ("32px", "32px-msaa4"):
+        for seed in (0, 1):
+            result = json.loads((out / f"{setting}-seed{seed}" / "result.json").read_text())
+            assert result["seeds"]["train"] == seed and result["hyperparameters"]["worlds"] == 2
+    msaa = json.loads((out / "32px-msaa4-seed0" / "result.json").read_text())
+    assert msaa["env_options"] == {"multisamples": 4} and msaa["hyperparameters"]["resolution"] == 32
+    summary = json.loads((tmp_path / "learning.json").read_text())
+    assert summary["seeds"] == [0, 1] and set(summary["settings"]) == {"32px", "32px-msaa4"}
+    for entry in summary["settings"].values():
+        assert entry["seeds"] == 2 and [r["seed"] for r in entry["runs"]] == [0, 1]
+        assert entry["env_steps_per_second_mean"] > 0
+    text = (tmp_path / "learning.md").read_text()
+    assert "| 32px-msaa4: MSAA 4 samples |" in text and "1.00x |" in text
+    assert (tmp_path / "learning.png").stat().st_size > 10_000
+    # A second call keeps the finished runs and only rewrites the report.
+    before = (out / "32px-seed0" / "result.json").stat().st_mtime_ns
+    assert learning_accuracy.main(argv) == 0
+    assert (out / "32px-seed0" / "result.json").stat().st_mtime_ns == before
+
+
+def test_env_and_train_options_reach_the_envs(tmp_path):
+    out = tmp_path / "push"
+    assert run.main(["--env", "push", "--out", str(out), *TINY, "--train-option", "shaping=0.5",
+                     "--env-option", "max_steps=20"]) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["env_options"] == {"max_steps": 20} and result["train_options"] == {"shaping": 0.5}
+    assert "--train-option shaping=0.5" in result["command"]
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--train-option", "shaping"], "expected KEY=VALUE"),
+    (["--env-option", "max_steps=twenty"], "must be a Python literal"),
+    (["--env-option", "resolution=16"], "set it with the learner's own option"),
+])
+def test_bad_env_options_are_named(args, message, capsys):
+    with pytest.raises(SystemExit):
+        run.parse_args(["--env", "push", *args])
+    assert message in capsys.readouterr().err
