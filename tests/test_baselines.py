@@ -84,6 +84,31 @@ def test_report_tables_every_task(runs, tmp_path):
     assert "| tag |" in readme_text
 
 
+def test_report_lists_every_seed_and_the_options(runs, tmp_path):
+    """A second seed of a run (its result.json copied with another seed and return) joins the row;
+    env and train options are spelled out in the reproducing command."""
+    import shutil
+
+    results = tmp_path / "results"
+    shutil.copytree(runs / "spread", results / "spread")
+    first = json.loads((results / "spread" / "result.json").read_text())
+    second = {**first, "seeds": {**first["seeds"], "train": 1}, "train_options": {"shaping": 0.5}}
+    second["evaluation"] = {**first["evaluation"], "policy": {**first["evaluation"]["policy"], "mean": -20.0}}
+    (results / "spread-seed1").mkdir()
+    (results / "spread-seed1" / "result.json").write_text(json.dumps(second))
+    out = tmp_path / "baselines.md"
+    assert report.main(["--results", str(results), "--out", str(out), "--readme", ""]) == 0
+    text = out.read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| spread |"))
+    assert report.mean_std(first["evaluation"]["policy"]) in row  # the row's run is seed 0
+    mean = first["evaluation"]["policy"]["mean"]
+    digits = 0 if abs(mean) >= 100 else 1  # as many as the largest mean needs
+    assert f"seeds 0/1: {mean:.{digits}f} / {-20.0:.{digits}f}" in row
+    assert "### spread from pixels, seed 0" in text and "### spread from pixels, seed 1" in text
+    assert "--train-option shaping=0.5 --out docs/baselines/spread-seed1" in text
+    assert "shaping=0.5 (training only)" in text
+
+
 def test_report_refuses_a_readme_without_markers(runs, tmp_path):
     readme = tmp_path / "README.md"
     readme.write_text("no markers\n")

@@ -16,6 +16,7 @@ import argparse
 import dataclasses
 import json
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -28,12 +29,16 @@ DEFAULTS = dataclasses.asdict(Hyperparameters())
 
 
 def load_results(folder: Path) -> dict:
-    """{env: {"pixels": result, "state": result}} of the result.json files under `folder`."""
+    """{env: {"pixels": [results], "state": [results]}} of the result.json files under `folder`,
+    each list ordered by training seed (the first is the row's run; the others are its seeds)."""
     runs: dict = {}
     for path in sorted(folder.glob("*/result.json")):
         result = json.loads(path.read_text())
         result["folder"] = path.parent
-        runs.setdefault(result["env"], {})[result["obs"]] = result
+        runs.setdefault(result["env"], {}).setdefault(result["obs"], []).append(result)
+    for pair in runs.values():
+        for results in pair.values():
+            results.sort(key=lambda r: r["seeds"]["train"])
     return runs
 
 
@@ -46,20 +51,28 @@ def mean_std(r: dict | None) -> str:
     return f"{r['mean']:.{digits}f} ± {r['std']:.{digits}f}"
 
 
-def _learned(run: dict | None) -> str:
-    """The greedy policy's return, marked where it does not beat random by a standard error."""
-    if run is None:
+def _learned(results: list | None) -> str:
+    """The greedy policy's return, marked where it does not beat random by a standard error; with
+    several seeds, every seed's mean after it."""
+    if not results:
         return "–"
-    e = run["evaluation"]
+    e = results[0]["evaluation"]
     policy, random = e["policy"], e["random"]
     margin = (policy["std"] ** 2 / policy["episodes"] + random["std"] ** 2 / random["episodes"]) ** 0.5
     flag = "" if policy["mean"] > random["mean"] + margin else " (not above random)"
-    return mean_std(policy) + flag
+    text = mean_std(policy) + flag
+    if len(results) > 1:
+        means = [r["evaluation"]["policy"]["mean"] for r in results]
+        digits = 0 if max(abs(m) for m in means) >= 100 else 1
+        text += (f"; seeds {'/'.join(str(r['seeds']['train']) for r in results)}: "
+                 + " / ".join(f"{m:.{digits}f}" for m in means))
+    return text
 
 
-def _cost(run: dict | None) -> str:
-    if run is None:
+def _cost(results: list | None) -> str:
+    if not results:
         return "–"
+    run = results[0]
     return f"{run['wall_clock_seconds'] / 60:.1f} min, {run['env_steps'] / 1e6:.2f} M"
 
 
@@ -74,7 +87,7 @@ def table(runs: dict, short: bool = False) -> str:
         pair = runs.get(env, {})
         pixels, state = pair.get("pixels"), pair.get("state")
         any_run = pixels or state
-        e = any_run["evaluation"] if any_run else None
+        e = any_run[0]["evaluation"] if any_run else None
         row = (f"| {env} | {mean_std(e and e['random'])} | {mean_std(e and e['heuristic'])} | {_learned(pixels)} | "
                f"{_learned(state)} |")
         if not short:
@@ -97,6 +110,9 @@ def reproducing_command(run: dict) -> str:
             parts += [flag] if value else []
         else:
             parts.append(f"{flag} {value:g}" if isinstance(value, float) else f"{flag} {value}")
+    for flag in ("env", "train"):
+        options = run.get(f"{flag}_options", {})
+        parts += [f"--{flag}-option {shlex.quote(f'{key}={value!r}')}" for key, value in options.items()]
     parts.append(f"--out docs/baselines/{run['folder'].name}")
     return " ".join(parts)
 
@@ -106,8 +122,10 @@ def details(env: str, run: dict, docs: Path) -> str:
     changed = ", ".join(f"{k}={v}" for k, v in hp.items() if DEFAULTS.get(k) != v) or "none"
     curve = os.path.relpath(run["folder"] / "curve.png", docs)
     e = run["evaluation"]
+    options = ", ".join([f"{k}={v!r} (training and evaluation)" for k, v in run.get("env_options", {}).items()]
+                        + [f"{k}={v!r} (training only)" for k, v in run.get("train_options", {}).items()])
     return "\n".join([
-        f"### {env} from {run['obs']}",
+        f"### {env} from {run['obs']}, seed {run['seeds']['train']}",
         "",
         f"`{reproducing_command(run)}`",
         "",
@@ -118,6 +136,7 @@ def details(env: str, run: dict, docs: Path) -> str:
         f"{run['training_seconds'] / 60:.1f} min, of which env steps {run['env_seconds_in_training'] / 60:.1f}), "
         f"{run['env_steps']:,} env steps, {run['updates']} updates, seed {run['seeds']['train']}",
         f"- hyperparameters that differ from the defaults: {changed}",
+        f"- env options: {options or 'none (the task as registered)'}",
         "- versions: " + ", ".join(f"{k} {v}" for k, v in run["versions"].items()),
         "",
         f"![{env} {run['obs']}]({curve})",
@@ -150,8 +169,7 @@ def document(runs: dict, docs: Path, notes: str = "") -> str:
     ]
     for env in list_envs():
         for obs in ("pixels", "state"):
-            run = runs.get(env, {}).get(obs)
-            if run is not None:
+            for run in runs.get(env, {}).get(obs, []):
                 parts.append(details(env, run, docs))
     if notes:
         parts += ["## Findings", "", notes.strip(), ""]
