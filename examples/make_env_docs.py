@@ -53,13 +53,15 @@ SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
     "speaker_listener": ("shared: -0.1 x the listener's distance to the goal per step, +1 when it reaches the goal",
                          "the listener reaching the goal terminates both agents; truncated at max_steps"),
     "rooms": ("shared: +found_reward (1) when any agent first reaches the goal; with return_home another "
-              "+found_reward when an agent that reached it is first back in the home room; -step_penalty (0) per step",
+              "+found_reward when an agent that reached it is first back in the home room; -step_penalty (0) per step; "
+              "optional +explore_reward per room first entered",
               "the goal found (with return_home: a finder back home) terminates every agent; truncated at max_steps"),
     "commons": ("per agent: +1 per apple it collects; apples regrow only next to present ones; zapping "
                 "tags another agent out for tag_timeout (25) steps",
                 "never terminates; truncated at max_steps"),
     "capture_flag": ("shared per team, zero-sum: +capture_reward (1) to every agent of a team per capture it "
-                     "scores, -capture_reward per capture of the other team",
+                     "scores, -capture_reward per capture of the other team; optional shaping by the progress towards "
+                     "the next capture",
                      "with captures_to_win > 0, every agent terminates once a team has that many captures; "
                      "truncated at max_steps"),
 }
@@ -255,7 +257,8 @@ def page(seed: int | None, picture_dir: str | None) -> str:
              "`make_torchrl_env(name, num_worlds=W)` for TorchRL. Common keyword arguments: `num_worlds`, "
              "`num_agents`, `resolution` (int or (height, width)), `max_steps`, `continuous`, `state_obs`, `depth`, "
              "`shadows` (False, True: the arena's shadows, or a `marl_render.Shadows`), `device`, `seed`, "
-             "`autoreset`. Agents that leave an episode (caught prey) stay in every tensor: "
+             "`autoreset`, `grayscale`, and the accuracy knobs `multisamples`, `supersample` and `physics_substeps` "
+             "(what they cost: docs/accuracy/). Agents that leave an episode (caught prey) stay in every tensor: "
              "reward 0, reported terminated, actions ignored (they must still be valid, e.g. 0), until their "
              "world is reset. `truncated` is True for the agents still in the episode when the world reaches "
              "`max_steps`.", ""]
