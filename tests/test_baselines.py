@@ -74,9 +74,12 @@ def test_report_tables_every_task(runs, tmp_path):
     rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")}
     from marl_render.envs import list_envs
     assert set(list_envs()) <= set(rows)
-    assert rows["cartpole"].count("–") == 6  # no run: every learned and cost cell empty
+    assert rows["cartpole"].count("–") == 7  # no run: every learned, gap and cost cell empty
     spread = json.loads((runs / "spread" / "result.json").read_text())
     assert f"| {report.mean_std(spread['evaluation']['random'])} |" in rows["spread"]
+    e = spread["evaluation"]
+    gap = (e["policy"]["mean"] - e["random"]["mean"]) / (e["heuristic"]["mean"] - e["random"]["mean"])
+    assert f"| {100 * gap:.0f}% |" in rows["spread"]
     assert "python -m marl_render.baselines --env spread" in text and "spread/curve.png" in text
     assert text.rstrip().endswith("## Findings\n\na finding written by hand")
     readme_text = readme.read_text()
