@@ -20,6 +20,7 @@ import marl_render as mr
 from marl_render.validation import describe, positive_int, resolution_hw
 
 AUTORESET_MODES = ("next_step", "same_step")
+MAX_SUBSTEPS = 1024  # physics_substeps: 64 already resolves spread's motion to 0.1 mm (docs/accuracy)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,6 +131,8 @@ def physics_substeps(value, scenario):
         raise ValueError(f"physics_substeps applies to tasks with planar physics (envs/planar.py); "
                          f"{scenario.name} has none, got physics_substeps={value!r}")
     substeps = positive_int("physics_substeps", value)
+    if substeps > MAX_SUBSTEPS:  # each substep is a pass of Python calls: a huge count would hang every step
+        raise ValueError(f"physics_substeps must be an int in [1, {MAX_SUBSTEPS}], got {substeps}")
     try:
         return dataclasses.replace(scenario.physics, substeps=substeps)
     except ValueError as exc:  # too coarse: bodies would tunnel through each other

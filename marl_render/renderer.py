@@ -262,9 +262,10 @@ class BatchRenderer:
             ctx.pipe, "marl_render", 0, props, WindowProperties.size(width, height),
             GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
         if buffer is None:
+            samples = f" and {self.multisamples} MSAA samples (multisamples)" if self.multisamples else ""
             raise backend.GLUnavailableError(
-                f"could not create a {width}x{height} offscreen framebuffer with {len(aux_names)} aux targets; "
-                "lower resolution / num views or max_framebuffer_size")
+                f"could not create a {width}x{height} offscreen framebuffer with {len(aux_names)} aux targets"
+                f"{samples}; lower resolution / num views{', multisamples' if samples else ''} or max_framebuffer_size")
         # Render into textures that stay in GL; readback.py reads them once all passes are drawn.
         color = Texture("color")
         buffer.add_render_texture(color, GraphicsOutput.RTM_bind_or_copy, GraphicsOutput.RTP_color)

@@ -779,6 +779,8 @@ def test_physics_substeps_change_the_dynamics_not_the_rest():
     ("spread", dict(physics_substeps=1), ValueError, "physics_substeps=1 is too coarse for spread"),
     ("spread", dict(physics_substeps=0), ValueError, "physics_substeps must be an int >= 1, got 0"),
     ("spread", dict(physics_substeps=2.0), TypeError, "physics_substeps"),
+    ("spread", dict(physics_substeps=10 ** 9), ValueError, "physics_substeps must be an int in [1, 1024], got"),
+    ("spread", dict(multisamples=64), mr.backend.GLUnavailableError, "and 64 MSAA samples (multisamples"),
     ("cartpole", dict(physics_substeps=4), ValueError, "cartpole has none"),
     ("spread", dict(multisamples=4, depth=True), ValueError, "multisamples cannot be combined with the depth"),
     ("spread", dict(multisamples=-1), ValueError, "multisamples must be an int >= 0"),
