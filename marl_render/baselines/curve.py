@@ -11,13 +11,15 @@ def plot_curve(result: dict, path: str) -> None:
     import matplotlib.pyplot as plt
 
     points = [p for p in result["curve"] if p["episode_return"] is not None]
+    shaped = ", ".join(f"{k}={v}" for k, v in result.get("train_options", {}).items())
+    training = "training episodes (sampled actions)" + (f"\nwith the training reward: {shaped}" if shaped else "")
     evaluation = result["evaluation"]
     levels = (("random", "grey", "--"), ("heuristic", "orange", "-."), ("policy", "green", ":"))
     figure, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
     for ax, key, scale, label in ((axes[0], "env_steps", 1e-6, "million env steps (all worlds)"),
                                   (axes[1], "seconds", 1 / 60, "wall-clock minutes of training (2 CPU cores)")):
         ax.plot([p[key] * scale for p in points], [p["episode_return"] for p in points], marker=".",
-                label="training episodes (sampled actions)")
+                label=training)
         for name, color, style in levels:
             r = evaluation[name]
             shown = "learned, greedy" if name == "policy" else name
