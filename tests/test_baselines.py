@@ -205,3 +205,12 @@ def test_bad_env_options_are_named(args, message, capsys):
     with pytest.raises(SystemExit):
         run.parse_args(["--env", "push", *args])
     assert message in capsys.readouterr().err
+
+
+def test_learning_accuracy_checks_the_learner_options_before_running(tmp_path, capsys):
+    from marl_render.baselines import learning_accuracy
+
+    with pytest.raises(SystemExit):
+        learning_accuracy.main(["--out", str(tmp_path / "runs"), "--worlds", "0"])
+    assert "--worlds must be >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()

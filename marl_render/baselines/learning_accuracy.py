@@ -3,8 +3,8 @@
     python -m marl_render.baselines.learning_accuracy                  # runs + report, ~70 min
     python -m marl_render.baselines.learning_accuracy --report-only    # report from the runs there
 
-Each setting changes one thing against the reference (the baseline's spread: 32 px RGB, no
-anti-aliasing, the task's 2 physics substeps): the resolution (48, 64 px), MSAA 4, finer
+Each setting changes one thing against the reference (the baseline's defaults: 32 px RGB, no
+anti-aliasing, the task's own physics substeps, 2 for spread): the resolution (48, 64 px), MSAA 4, finer
 physics (4, 8 substeps; coarser than 2 is refused by spread's no-tunnelling bound) and
 grayscale pixels. Every run is ``python -m marl_render.baselines`` with the same budget and
 the settings' options (``--env-option``: the training and evaluation envs both use the
@@ -31,7 +31,7 @@ from pathlib import Path
 
 # name -> (what changes, the baselines CLI options that make it)
 SETTINGS: dict = {
-    "32px": ("reference: 32 px RGB, no AA, 2 substeps", ["--resolution", "32"]),
+    "32px": ("reference: 32 px RGB, no AA, the task's substeps", ["--resolution", "32"]),
     "48px": ("resolution 48", ["--resolution", "48"]),
     "64px": ("resolution 64", ["--resolution", "64"]),
     "32px-msaa4": ("MSAA 4 samples", ["--resolution", "32", "--env-option", "multisamples=4"]),
@@ -60,6 +60,10 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error(f"--minutes must be > 0, got {args.minutes}")
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    from .run import parse_args as learner_args  # the learner's own checks, before any run starts
+
+    for setting in args.settings:
+        learner_args(command(args, setting, args.seeds[0])[3:])
     return args
 
 
