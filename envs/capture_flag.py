@@ -24,10 +24,12 @@
 * Reward: shared per team and zero-sum: ``capture_reward`` (default 1) to every agent of a
   team per capture it scores in the step, minus the same per capture of the other team.
   Optional shaping (``shaping`` >= 0, default 0: off; not zero-sum): each team also gets
-  ``shaping x`` the progress its movement made in the step towards its next capture: the
-  decrease of (its nearest agent's distance to the enemy flag at home + the distance between
-  the bases) or, while it carries the enemy flag, of the carrier's distance to its own base.
-  Tags, pick-ups and captures move nothing in it (it is taken over the step's movement only).
+  ``shaping x`` the progress it made in the step towards its next capture: the decrease of
+  (its nearest agent's distance to the enemy flag at home + the distance between the bases)
+  or, while it carries the enemy flag, of the carrier's distance to its own base. Tags count
+  (a tagged carrier or attacker loses the progress the tag undoes, so running into defenders
+  does not pay); in a step where the team captures, only its movement counts (the restart
+  after a capture is not a loss).
 * Episode: truncated after ``max_steps`` = 200; with ``captures_to_win`` > 0 (default 0: off)
   it terminates (every agent) once a team has scored that many captures.
 * action_mask: every action is always valid (all True).
@@ -183,8 +185,11 @@ class CaptureFlag(ArenaScenario):
         net = (scores - scores.flip(1)).float() * self.params.capture_reward  # [W, 2] per team
         reward = net[:, self.team]
         if self.params.shaping:
-            gain = (self.capture_progress(moved.pos, before.carrier, alive)
-                    - self.capture_progress(before.pos, before.carrier, alive))
+            # Tags and pick-ups count (a tag undoes progress: running into defenders must not pay);
+            # a team that scored is credited its movement only, not the restart after the capture.
+            after = torch.where(scores > 0, self.capture_progress(moved.pos, before.carrier, alive),
+                                self.capture_progress(pos, carrier, alive))
+            gain = after - self.capture_progress(before.pos, before.carrier, alive)
             gain = torch.nan_to_num(gain, nan=0.0, posinf=0.0, neginf=0.0)  # a team with nobody left: none
             reward = reward + self.params.shaping * gain[:, self.team]
         win = self.params.captures_to_win

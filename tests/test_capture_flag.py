@@ -126,6 +126,20 @@ def test_shaping_rewards_progress_towards_the_next_capture():
     place(env, [[0.0, 1.0], *pos[1:]], yaw=[0.0, 0.0, 0.0, 0.0], carrier=(-1, RED0))
     _, reward, _, _, _ = env.step(forward)
     assert (reward[:, :2] < 0).all()
+    # A tag undoes progress: red_0, carrying in blue's half, is tagged and loses what it had made
+    # (so running into defenders and being sent home cannot be farmed for shaping reward).
+    place(env, [[0.0, 0.5], [-2.0, -2.0], [0.0, 0.83], [2.0, 2.0]], carrier=(-1, RED0))
+    _, reward, _, _, info = noop(env)
+    assert info["tags"].tolist() == [1, 1]
+    # Before: the carrier 3.5 m from red's base; after: blue's flag is home and red's nearest agent
+    # to it is red_1 at (-2, -2), sqrt(29) m away, plus the 6 m between the bases.
+    lost = 0.5 * ((math.sqrt(29.0) + 2 * BASE_Y) - 3.5)
+    assert torch.allclose(reward[:, :2], torch.full((W, 2), -lost), atol=1e-4)
+    # A capture is credited its movement only (none here): no loss for the flag's return home.
+    place(env, [[0.0, -BASE_Y + 0.3], [-2.0, -2.0], [2.0, 1.0], [2.0, 2.0]], carrier=(-1, RED0))
+    _, reward, _, _, info = noop(env)
+    assert info["captures_red"].tolist() == [1, 1]
+    assert reward.tolist() == [[1.0, 1.0, -1.0, -1.0]] * W
     env.close(), plain.close()
 
 
