@@ -213,7 +213,8 @@ def main(argv=None) -> int:
     out.write_text(document(runs, out.parent, notes.read_text() if notes.is_file() else ""))
     if args.readme:
         update_readme(Path(args.readme), runs)
-    print(f"wrote {out} ({sum(len(results) for pair in runs.values() for results in pair.values())} runs)" + (f" and {args.readme}" if args.readme else ""))
+    count = sum(len(results) for pair in runs.values() for results in pair.values())
+    print(f"wrote {out} ({count} runs)" + (f" and {args.readme}" if args.readme else ""))
     return 0
 
 
