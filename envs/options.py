@@ -20,7 +20,7 @@ import marl_render as mr
 from marl_render.validation import describe, positive_int, resolution_hw
 
 AUTORESET_MODES = ("next_step", "same_step")
-MAX_SUBSTEPS = 1024  # physics_substeps: 64 already resolves spread's motion to 0.1 mm (docs/accuracy)
+MAX_SUBSTEPS = 1024  # physics_substeps; docs/accuracy takes 64 substeps as its reference already
 
 
 @dataclasses.dataclass(frozen=True)
