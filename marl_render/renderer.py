@@ -266,6 +266,12 @@ class BatchRenderer:
             raise backend.GLUnavailableError(
                 f"could not create a {width}x{height} offscreen framebuffer with {len(aux_names)} aux targets"
                 f"{samples}; lower resolution / num views{', multisamples' if samples else ''} or max_framebuffer_size")
+        granted = buffer.get_fb_properties().get_multisamples()
+        if granted < self.multisamples:  # the GL may hand out fewer samples without failing: refuse, not alias
+            ctx.engine.remove_window(buffer)
+            raise backend.GLUnavailableError(
+                f"multisamples={self.multisamples} was asked for but the GL ({ctx.gsg.get_driver_renderer()}) "
+                f"gave {granted}; lower multisamples (or use supersample)")
         # Render into textures that stay in GL; readback.py reads them once all passes are drawn.
         color = Texture("color")
         buffer.add_render_texture(color, GraphicsOutput.RTM_bind_or_copy, GraphicsOutput.RTP_color)
@@ -553,7 +559,7 @@ class BatchRenderer:
 
     @property
     def granted_multisamples(self) -> int:
-        """MSAA samples the GL gave the framebuffers (it may give fewer than asked)."""
+        """MSAA samples the GL gave the framebuffers (never fewer than asked: the constructor refuses that)."""
         self._check_open()
         return min(p.buffer.get_fb_properties().get_multisamples() for p in self._passes)
 
