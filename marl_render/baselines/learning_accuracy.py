@@ -29,6 +29,8 @@ import sys
 import time
 from pathlib import Path
 
+from .run import parse_args as learner_args
+
 # name -> (what changes, the baselines CLI options that make it)
 SETTINGS: dict = {
     "32px": ("reference: 32 px RGB, no AA, the task's substeps", ["--resolution", "32"]),
@@ -60,9 +62,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error(f"--minutes must be > 0, got {args.minutes}")
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    from .run import parse_args as learner_args  # the learner's own checks, before any run starts
-
-    for setting in args.settings:
+    for setting in args.settings:  # the learner's own checks, before any run starts
         learner_args(command(args, setting, args.seeds[0])[3:])
     return args
 

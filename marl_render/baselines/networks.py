@@ -13,6 +13,15 @@ from torch import nn
 MASKED_LOGIT = -1e9  # logit of an action the mask forbids: probability 0, finite entropy terms
 
 
+def merge_moments(count, mean, var, batch_count, batch_mean, batch_var):
+    """Chan et al.'s merge of running moments with a batch's: (total count, the increment of the
+    mean, the merged variance). Tensors or floats."""
+    total = count + batch_count
+    delta = batch_mean - mean
+    return total, delta * batch_count / total, (var * count + batch_var * batch_count
+                                               + delta ** 2 * count * batch_count / total) / total
+
+
 class RunningNorm(nn.Module):
     """Standardises features with running mean and variance (updated by `update`, during
     collection only), clipped to +-5: state observations of very different scales (positions,
@@ -27,11 +36,10 @@ class RunningNorm(nn.Module):
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:
         x = x.reshape(-1, x.shape[-1]).to(torch.float64)
-        count, mean, var = x.shape[0], x.mean(0), x.var(0, unbiased=False)
-        total = self.count + count
-        delta = mean - self.mean
-        self.mean += (delta * count / total).to(self.mean.dtype)
-        self.var.copy_((self.var * self.count + var * count + delta ** 2 * self.count * count / total) / total)
+        total, step, var = merge_moments(self.count, self.mean, self.var, x.shape[0], x.mean(0),
+                                         x.var(0, unbiased=False))
+        self.mean += step.to(self.mean.dtype)
+        self.var.copy_(var)
         self.count.copy_(total)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -25,7 +25,7 @@ from torchrl.objectives.value.functional import generalized_advantage_estimate
 from marl_render.envs import make_env
 from marl_render.envs.evaluation import opponent_mask, random_policy
 
-from .networks import Actor, CentralCritic
+from .networks import Actor, CentralCritic, merge_moments
 from .settings import Hyperparameters
 
 
@@ -64,11 +64,9 @@ class RewardScale:
     def __call__(self, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
         self.ret = self.ret * self.gamma + reward
         x = self.ret.flatten()
-        count, mean, var = x.numel(), float(x.mean()), float(x.var(unbiased=False))
-        total = self.count + count
-        delta = mean - self.mean
-        self.var = (self.var * self.count + var * count + delta ** 2 * self.count * count / total) / total
-        self.mean, self.count = self.mean + delta * count / total, total
+        self.count, step, self.var = merge_moments(self.count, self.mean, self.var, x.numel(), float(x.mean()),
+                                                   float(x.var(unbiased=False)))
+        self.mean += step
         self.ret = torch.where(done, 0.0, self.ret)
         return reward / (self.var ** 0.5 + 1e-8)
 
