@@ -271,13 +271,12 @@ class BatchedEnv:
         alive_before = self.alive & ~restart[:, None]
         result = self.scenario.step(self.sim, actions, alive_before, self.generator)
         self.sim, reward, terminated, info = self._checked_step(result)
+        reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         self.alive = alive_before & ~terminated
         self.step_count = self.step_count + 1
         restarted = bool(restart.any())
         if restarted:
             self._reset_masked(restart)  # alive again, step_count 0: not terminated, not truncated
-        self._draw(full=restarted)  # the GL driver rasterises while rewards and episode ends are worked out
-        reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         terminated = ~self.alive
         truncated = (self.step_count >= self.max_steps)[:, None] & self.alive
         done_worlds = (terminated | truncated).all(dim=1)
@@ -285,9 +284,9 @@ class BatchedEnv:
         if self.autoreset == "next_step":
             info["autoreset_worlds"] = restart
         if self.autoreset != "same_step":
-            return self._observation(), reward, terminated, truncated, info
+            return self._observe(full=restarted), reward, terminated, truncated, info
         # same_step: the final frame of the ended episodes, then the reset and the new frame.
-        obs = self._observation()
+        obs = self._observe(full=False)
         info["final_obs"] = dict(obs)
         info["autoreset_worlds"] = done_worlds.clone()
         if bool(done_worlds.any()):
@@ -513,32 +512,19 @@ class BatchedEnv:
         self.alive = self.alive | mask[:, None]
 
     def _observe(self, full: bool) -> dict:
-        self._draw(full)
-        return self._observation()
-
-    def _draw(self, full: bool) -> None:
-        """Start drawing the current state; _observation() reads it. Work between the two that
-        needs no pixels runs while llvmpipe rasterises."""
         self.views.sync(self.sim, full)
-        self.views.submit()
-
-    def _observation(self) -> dict:
-        """The observation dict of the drawn state (the state must not change after _draw)."""
-        W, A, s = self.num_worlds, self.num_agents, type(self.scenario).__name__
-        state = mask = None
-        if self.state_obs:
-            state = self.scenario.observation(self.sim, self.alive)
-            _check_tensor(f"{s}.observation", state, (W, A, self.state_dim), "float", self.device)
-        if not self.continuous:
-            mask = self.scenario.action_mask(self.sim, self.alive)
-            _check_tensor(f"{s}.action_mask", mask, (W, A, self.num_actions), "bool", self.device)
-        frame = self.views.collect()
+        frame = self.views.render()
         obs = {"pixels": frame.rgb.to(self.device)}
         if self.depth:
             obs["depth"] = frame.depth.clamp_(max=self.far).to(self.device)
-        if state is not None:
+        W, A, s = self.num_worlds, self.num_agents, type(self.scenario).__name__
+        if self.state_obs:
+            state = self.scenario.observation(self.sim, self.alive)
+            _check_tensor(f"{s}.observation", state, (W, A, self.state_dim), "float", self.device)
             obs["state"] = state.to(torch.float32)
-        if mask is not None:
+        if not self.continuous:
+            mask = self.scenario.action_mask(self.sim, self.alive)
+            _check_tensor(f"{s}.action_mask", mask, (W, A, self.num_actions), "bool", self.device)
             obs["action_mask"] = mask
         return obs
 

@@ -44,12 +44,8 @@ class EnvRenderer:
         """The state is about to change beyond poses: the next sync sends everything."""
         self._needs_full = True
 
-    def submit(self) -> None:
-        """Start drawing the agents' views of the last sync; collect() reads them."""
-        self.renderer.submit()
-
-    def collect(self) -> mr.Frame:
-        return self.renderer.collect()
+    def render(self) -> mr.Frame:
+        return self.renderer.render()
 
     def overview(self, state, resolution=None) -> torch.Tensor:
         """uint8 [W, H2, W2, 3] of `state` from the overview camera of every world; the overview

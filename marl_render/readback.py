@@ -49,7 +49,6 @@ def _gl():
             "glPixelStorei": (None, [uint, sint]),
             "glBindBuffer": (None, [uint, uint]),
             "glGetError": (uint, []),
-            "glFlush": (None, []),
         }
         functions = {}
         for function, (restype, argtypes) in signatures.items():
@@ -74,12 +73,6 @@ def _get_integer(functions, name: int) -> int:
     value = ctypes.c_int()
     functions["glGetIntegerv"](name, ctypes.byref(value))
     return value.value
-
-
-def flush() -> None:
-    """Hand the GL commands issued so far to the driver; llvmpipe starts rasterising them on its
-    threads and the caller goes on (a read would otherwise start the work and wait for it)."""
-    _gl()["glFlush"]()
 
 
 def read_texture(name: int, width: int, height: int, components: int, destination: torch.Tensor) -> None:

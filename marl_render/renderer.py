@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import os
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,7 +143,6 @@ class BatchRenderer:
         self.channels_first = bool(channels_first)
         self.last_timings: dict[str, float] = {}  # seconds per stage of the last render()
         self._closed = False
-        self._submitted = False  # a frame was submitted and not yet collected
         if context is None:
             context = backend.context(egl_device_index)
         elif not isinstance(context, backend.GLContext):
@@ -400,47 +398,17 @@ class BatchRenderer:
     def render(self) -> Frame:
         """Draw all views; returns tensors the caller owns. Any thread may call it (one at a
         time per renderer): the GL context is made current in the calling thread, for the
-        frame and the GL reads that follow it. The same as submit() then collect()."""
-        self.submit()
-        return self.collect()
-
-    @one_thread
-    def submit(self) -> None:
-        """The first half of render(): pack the frame, draw it and hand it to the GL driver
-        without waiting. llvmpipe rasterises on its own threads meanwhile, so work the caller
-        does before collect() that needs no pixels (rewards, counters, masks) costs no time
-        of its own. Changes made after submit() show in the next frame, not in this one."""
+        frame and the GL reads that follow it."""
         self._check_open()
-        self._submitted = False
         with self._context.current():  # raises in a forked child
             self._prepare()
             self.last_timings.update(gl=0.0, copy=0.0)
-            started = time.perf_counter()
-            with self._panda_failures():
-                self._draw()
-            readback.flush()  # start rasterising now, not at the first read
-            self.last_timings["gl"] = time.perf_counter() - started
-        self._submitted = True
-
-    @one_thread
-    def collect(self) -> Frame:
-        """The second half of render(): the frame of the last submit(), read back into new
-        tensors (waits for the GL driver where it has not finished)."""
-        self._check_open()
-        if not self._submitted:
-            raise RuntimeError("collect() reads the frame of the last submit(): call submit() first, or render()")
-        self._submitted = False
-        with self._context.current(), self._panda_failures():
-            return self._read()
-
-    @contextmanager
-    def _panda_failures(self):
-        try:
-            yield
-        except AssertionError as error:  # Panda3D's C++ assertions (e.g. an input it could not bind)
-            # The variants of this draw may be left unusable: never hand them out again.
-            shaders.forget_compiled()
-            raise backend.ShaderCompileError(f"the frame failed in Panda3D: {error}".strip()) from error
+            try:
+                return self._draw_and_read()
+            except AssertionError as error:  # Panda3D's C++ assertions (e.g. an input it could not bind)
+                # The variants of this draw may be left unusable: never hand them out again.
+                shaders.forget_compiled()
+                raise backend.ShaderCompileError(f"the frame failed in Panda3D: {error}".strip()) from error
 
     def _prepare(self) -> list[str]:
         """Pack the frame into the buffer textures (packing.py) and bring the shadow atlas up
@@ -452,7 +420,16 @@ class BatchRenderer:
         self.last_timings = timings
         return packed_groups
 
-    def _draw(self) -> None:
+    def _draw_and_read(self) -> Frame:
+        s = self.scene
+        W, A = s.num_worlds, s.agents_per_world
+        height, width = s.resolution
+        C = self.channels
+        rgb_shape = (W * A, C, height, width) if self.channels_first else (W * A, height, width, C)
+        rgb = torch.empty(rgb_shape, dtype=torch.uint8)
+        depth = torch.empty(W * A, height, width, dtype=torch.float32) if "depth" in self.effects else None
+        segmentation = torch.empty(W * A, height, width, dtype=torch.int32) if "segmentation" in self.effects else None
+        started = time.perf_counter()
         for index in range(len(self._passes)):
             for name, draw in self._groups.items():
                 first, count = self.packer.groups[name].pass_ranges[index]
@@ -484,22 +461,11 @@ class BatchRenderer:
                 render_pass.buffer.set_active(False)
             if self.shadow_pass is not None:
                 self.shadow_pass.set_active(False)
-
-    def _read(self) -> Frame:
-        s = self.scene
-        W, A = s.num_worlds, s.agents_per_world
-        height, width = s.resolution
-        C = self.channels
-        rgb_shape = (W * A, C, height, width) if self.channels_first else (W * A, height, width, C)
-        rgb = torch.empty(rgb_shape, dtype=torch.uint8)
-        depth = torch.empty(W * A, height, width, dtype=torch.float32) if "depth" in self.effects else None
-        segmentation = torch.empty(W * A, height, width, dtype=torch.int32) if "segmentation" in self.effects else None
-        started = time.perf_counter()
         copy_seconds = 0.0
         for render_pass in self._passes:
             copy_seconds += self._read_pass(render_pass, rgb, depth, segmentation)
         self._check_shaders()  # after the reads: Panda3D reports some failures of the frame only then
-        self.last_timings["gl"] += time.perf_counter() - started - copy_seconds
+        self.last_timings["gl"] = time.perf_counter() - started - copy_seconds
         self.last_timings["copy"] = copy_seconds
         rgb = rgb.view((W, A) + rgb_shape[1:])
         return Frame(rgb, None if depth is None else depth.view(W, A, height, width),

@@ -310,28 +310,6 @@ def test_returned_frames_are_owned_by_the_caller():
     assert not torch.equal(first, second)
 
 
-def test_submit_then_collect_reads_the_frame_of_the_submit():
-    """A frame is drawn at submit() and read at collect(): changes in between show in the next
-    frame, never half in this one, and collect() needs a submit() before it."""
-    scene = box_scene(worlds=2, agents=2, effects=("depth", "segmentation"))
-    with mr.BatchRenderer(scene) as renderer:
-        cameras_at_origin(renderer, 2, 2)
-        renderer.update("boxes", position=torch.tensor([0.0, 3.0, 0.0]).expand(2, 1, 3),
-                        active=torch.ones(2, 1, dtype=torch.bool), color=[[[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]])
-        red_green = renderer.render()
-        renderer.update("boxes", color=torch.tensor([0.0, 0.0, 1.0]).expand(2, 1, 3))
-        renderer.submit()
-        renderer.update("boxes", position=torch.tensor([5.0, 3.0, 0.0]).expand(2, 1, 3))  # out of view
-        blue = renderer.collect()
-        centre = blue.rgb[:, :, 24, 32]
-        assert centre.tolist() == [[[0, 0, 255]] * 2] * 2
-        assert torch.equal(blue.depth, red_green.depth) and torch.equal(blue.segmentation, red_green.segmentation)
-        with pytest.raises(RuntimeError, match=r"collect\(\) reads the frame of the last submit\(\)"):
-            renderer.collect()  # that frame was read already
-        moved = renderer.render()
-        assert is_background(moved.rgb).all()
-
-
 def test_only_changed_groups_are_uploaded_again():
     scene = mr.Scene(num_worlds=2, agents_per_world=2, resolution=16, effects=())
     scene.add_group("a", "box", capacity=2)
