@@ -21,6 +21,7 @@ One agent per world pushes a cart along a rail to keep a pole upright.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import torch
@@ -29,6 +30,7 @@ import marl_render as mr
 
 from . import array_ops
 from .cartpole_dynamics import CARTPOLE, integrate, stop_at_limit
+from .compiled import compile_kernel
 from .dmc_rewards import balance_reward
 from .scenario import Scenario, Step
 
@@ -46,6 +48,15 @@ FLOOR_COLOR = (0.15, 0.25, 0.35)
 SKY_COLOR = (0.4, 0.6, 0.8)
 # The heuristic's feedback gains on (x, theta, x_dot, theta_dot): push the cart under the pole.
 HEURISTIC_GAINS = (0.5, 8.0, 1.0, 1.5)
+
+
+def advance(ops, qstate, control, dt: float):
+    """One env step of every world on the arrays of `ops`: the new (x, theta, x_dot, theta_dot)
+    after one RK4 step and the slider stop, and the balance reward [W]."""
+    force = CARTPOLE["gear"] * ops.clip(control, -1.0, 1.0)
+    q = stop_at_limit(ops, integrate(ops, qstate, force, dt, 1, "rk4", CARTPOLE["slider_damping"],
+                                     CARTPOLE["hinge_damping"]))
+    return q, balance_reward(ops, q, control)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,6 +98,7 @@ class CartPoleBalance(Scenario):
         self._position[:, :, 2] = CART_HEIGHT
         self._rotation = torch.zeros(W, 2, 4)
         self._rotation[:, :, 0] = 1.0
+        self._kernel = None  # the compiled advance() (compile_physics), else the default path
 
     def initial_state(self):
         W = self.num_worlds
@@ -107,16 +119,24 @@ class CartPoleBalance(Scenario):
 
     def step(self, state, actions, alive, generator):
         u = self.control(actions)
-        # One pass over the arrays of the cheapest namespace (envs/array_ops.py): at small
-        # batches the cost of this step is the number of calls, not the arithmetic.
-        ops = array_ops.for_tensors(state.qstate, u)
-        qstate, control = array_ops.to_ops(ops, state.qstate), array_ops.to_ops(ops, u)
-        with ops.quiet():
-            q = stop_at_limit(ops, integrate(ops, qstate, CARTPOLE["gear"] * ops.clip(control, -1.0, 1.0), self.dt,
-                                             1, "rk4", CARTPOLE["slider_damping"], CARTPOLE["hinge_damping"]))
-            reward = balance_reward(ops, q, control)
-        return Step(CartPoleState(qstate=array_ops.to_tensor(q), last_control=u),
-                    array_ops.to_tensor(reward)[:, None], self._never_terminated, {})
+        if self._kernel is not None:
+            q, reward = self._kernel(state.qstate, u)
+        else:
+            # One pass over the arrays of the cheapest namespace (envs/array_ops.py): at small
+            # batches the cost of this step is the number of calls, not the arithmetic.
+            ops = array_ops.for_tensors(state.qstate, u)
+            with ops.quiet():
+                q, reward = advance(ops, array_ops.to_ops(ops, state.qstate), array_ops.to_ops(ops, u), self.dt)
+            q, reward = array_ops.to_tensor(q), array_ops.to_tensor(reward)
+        return Step(CartPoleState(qstate=q, last_control=u), reward[:, None], self._never_terminated, {})
+
+    def compile_physics(self) -> bool:
+        W = self.num_worlds
+        example = (torch.zeros(W, 4, dtype=torch.float64, device=self.device),
+                   torch.zeros(W, dtype=torch.float64, device=self.device))
+        self._kernel = compile_kernel(functools.partial(advance, array_ops.TorchOps, dt=self.dt), example,
+                                      f"cartpole physics for {W} worlds")
+        return self._kernel is not None
 
     def observation(self, state, alive):
         x, theta, xdot, thetadot = state.qstate.unbind(-1)

@@ -46,6 +46,8 @@ class EnvOptions:
     multisamples: int = 0  # MSAA samples (colour only: not with depth)
     supersample: int = 1  # render k x the resolution and box-filter it down
     physics_substeps: int | None = None
+    # torch.compile the task's physics kernel (cartpole): envs/compiled.py.
+    compile_physics: bool = False
 
 
 OPTION_NAMES = frozenset(field.name for field in dataclasses.fields(EnvOptions))

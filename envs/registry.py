@@ -94,6 +94,11 @@ def env_class(name) -> type[Scenario]:
     return entry
 
 
+def has_compiled_physics(name) -> bool:
+    """Whether the task has a compiled physics kernel (make_env(..., compile_physics=True))."""
+    return env_class(name).compile_physics is not Scenario.compile_physics
+
+
 def split_kwargs(scenario: type[Scenario], kwargs: dict) -> tuple:
     """(EnvOptions, scenario.Params) from make_env's keywords; unknown keywords are a TypeError
     naming them and listing the accepted ones."""

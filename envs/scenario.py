@@ -174,6 +174,12 @@ class Scenario(abc.ABC):
         """Actions of a scripted policy that reads the state: a reference that beats random."""
         raise NotImplementedError(f"{type(self).__name__} has no scripted heuristic")
 
+    def compile_physics(self) -> bool:
+        """Switch step() to a compiled kernel (EnvOptions.compile_physics, envs/compiled.py) that
+        gives the same results bit for bit; returns whether compiling succeeded (False: the
+        default path stays). A task that has such a kernel overrides this."""
+        raise ValueError(f"compile_physics applies to tasks with a compiled physics kernel; {self.name} has none")
+
     # ------------------------------------------------------------------ scene binding
     @abc.abstractmethod
     def build_scene(self, scene, overview: bool) -> None:

@@ -35,6 +35,8 @@ def add_arguments(parser):
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--rounds", type=int, default=5, help="alternating env/floor blocks per size")
     parser.add_argument("--block-seconds", type=float, default=0.4, help="about how long one timed block runs")
+    parser.add_argument("--compile-physics", action="store_true",
+                        help="make_env(compile_physics=True) for the tasks that have a compiled kernel (cartpole)")
     parser.add_argument("--out", default=None, help="also write DIR/floor.json")
 
 
@@ -58,14 +60,17 @@ def _timed(function, spent: dict, key: str):
     return timed
 
 
-def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds: int, block_seconds: float) -> dict:
-    from marl_render.envs import make_env
+def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds: int, block_seconds: float,
+            compile_physics: bool = False) -> dict:
+    from marl_render.envs import make_env, registry
 
     from .floor_gl import from_env
 
     kwargs = dict(num_worlds=worlds, resolution=resolution, seed=0, autoreset="next_step")
     if agents is not None:
         kwargs["num_agents"] = agents
+    if compile_physics and registry.has_compiled_physics(name):
+        kwargs["compile_physics"] = True
     env = make_env(name, **kwargs)
     floors = {}
     generator = torch.Generator().manual_seed(0)
@@ -117,6 +122,7 @@ def measure(name: str, worlds: int, agents: int | None, resolution: int, rounds:
     floor_seconds = floor_by_cull[cull]
     floor_cpu = statistics.median(t[1] for t in floor_times[cull])
     return {"env": name, "worlds": worlds, "agents": env.num_agents, "resolution": resolution,
+            "physics_compiled": env.physics_compiled,
             "steps_per_block": count, "rounds": rounds,
             "env_steps_per_s": worlds / env_seconds, "floor_frames_per_s": worlds / floor_seconds,
             "ratio": floor_seconds / env_seconds, "env_ms_per_step": 1e3 * env_seconds,
@@ -138,7 +144,7 @@ def run(args) -> dict:
             name, _, agents = spec.partition(":")
             progress(f"floor: {spec}, {worlds} worlds at {args.resolution}px")
             rows.append(measure(name, worlds, int(agents) if agents else None, args.resolution, args.rounds,
-                                args.block_seconds))
+                                args.block_seconds, args.compile_physics))
     result = {"benchmark": "floor", "machine": machine(), "results": rows}
     if args.out:
         write_report(args.out, "floor", result, markdown(rows))
@@ -149,7 +155,8 @@ def markdown(rows: list[dict]) -> list[str]:
     """The ratio table and the per-step stage table of a run."""
     lines = ["| env | agents | worlds | env-steps/s | floor frames/s | ratio | ratio of best blocks | CPU-time ratio |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    lines += [f"| {r['env']} | {r['agents']} | {r['worlds']} | {r['env_steps_per_s']:,.0f} | "
+    lines += [f"| {r['env']}{' (compiled physics)' if r.get('physics_compiled') else ''} | {r['agents']} | "
+              f"{r['worlds']} | {r['env_steps_per_s']:,.0f} | "
               f"{r['floor_frames_per_s']:,.0f} | **{r['ratio']:.2f}** | {r['best_ratio']:.2f} | {r['cpu_ratio']:.2f} |"
               for r in rows]
     lines += ["", "| env | agents | worlds | ms/step | " + " | ".join(STAGES + ("physics", "env")) + " |",

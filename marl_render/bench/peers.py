@@ -69,6 +69,8 @@ def add_arguments(parser):
     for comparison, (dest, default, target) in VENVS.items():
         parser.add_argument("--" + dest.replace("_", "-"), default=default,
                             help=f"venv of the {comparison} peer (built by `make {target}`)")
+    parser.add_argument("--compile-physics", action="store_true",
+                        help="also run marl-render's cartpole with compile_physics=True against PyBatchRender")
     parser.add_argument("--lp-num-threads", type=int, default=None,
                         help="LP_NUM_THREADS (llvmpipe's rasteriser threads) of every worker; default: each "
                              "system's own (marl-render: 2 per core; llvmpipe's: 1 per core)")
@@ -272,15 +274,17 @@ def compare_mpe(args, log_dir: str) -> dict:
 def compare_pybatchrender(args, log_dir: str) -> dict:
     python = venv_python(args, "pybatchrender")
     specs = []
+    ours = ["marl_render_core"] + (["marl_render_core_compiled"] if args.compile_physics else [])
     for w in args.pbr_worlds:
         specs += [(f"pybatchrender_{w}", python, "pybatchrender",
-                   {"env": "CartPole-v0", "worlds": w, "resolution": 64}),
-                  (f"marl_render_core_{w}", sys.executable, "marl_render_core",
-                   {"env": "cartpole", "worlds": w, "resolution": 64})]
+                   {"env": "CartPole-v0", "worlds": w, "resolution": 64})]
+        specs += [(f"{label}_{w}", sys.executable, "marl_render_core",
+                   {"env": "cartpole", "worlds": w, "resolution": 64,
+                    "compile_physics": label == "marl_render_core_compiled"}) for label in ours]
     systems = run_group(specs, args, reset=False, log_dir=log_dir)
-    return {"systems": systems, "ratios": {f"marl_render_core_{w}/pybatchrender_{w}": ratios(
-        systems[f"marl_render_core_{w}"]["summary"], systems[f"pybatchrender_{w}"]["summary"])
-        for w in args.pbr_worlds}}
+    return {"systems": systems, "ratios": {f"{label}_{w}/pybatchrender_{w}": ratios(
+        systems[f"{label}_{w}"]["summary"], systems[f"pybatchrender_{w}"]["summary"])
+        for w in args.pbr_worlds for label in ours}}
 
 
 RUNNERS = {"meltingpot": compare_meltingpot, "mpe": compare_mpe, "pybatchrender": compare_pybatchrender}
@@ -333,7 +337,9 @@ NOTES = """\
 * **pybatchrender**: PyBatchRender (git, branch clawding, commit in the Makefile) `CartPole-v0`,
   64x64, stepped as its own `clawding/tests/benchmark_one_env.py` steps it; marl-render
   `cartpole` stepped as `python -m marl_render.bench env --env cartpole --worlds W` steps it.
-  Both reset finished worlds inside `step`. Its own benchmark, to cross-check:
+  Both reset finished worlds inside `step`. With `--compile-physics`, rows
+  `marl_render_core_compiled_W` add marl-render's cartpole with `compile_physics=True` (its
+  physics kernel through torch.compile; compiled before the timed blocks). Its own benchmark, to cross-check:
   `cd .venv-pybatchrender/src/pybatchrender && ../../bin/python -m clawding.tests.benchmark_one_env
   --env CartPole-v0 --num-scenes 16 --steps 200` (its "fps" is env-steps/s). Its
   `examples/scripts/cartpole_benchmark.py` needs Python >= 3.12 (nested quotes in an f-string);

@@ -166,13 +166,14 @@ class MarlRenderCore:
     ACTION_BATCHES = 64  # pre-drawn random action batches, used in turn
 
     def __init__(self, env: str, worlds: int, agents: int | None = None, resolution: int = 64,
-                 max_steps: int | None = None, seed: int = 0):
+                 max_steps: int | None = None, seed: int = 0, compile_physics: bool = False):
         import torch
 
         import marl_render.envs as envs
         from marl_render.bench.env import draw_actions
 
-        kwargs = {"num_worlds": worlds, "resolution": resolution, "seed": seed, "autoreset": "next_step"}
+        kwargs = {"num_worlds": worlds, "resolution": resolution, "seed": seed, "autoreset": "next_step",
+                  "compile_physics": compile_physics}
         if agents is not None:
             kwargs["num_agents"] = agents
         if max_steps is not None:
@@ -185,6 +186,7 @@ class MarlRenderCore:
         self.count = 0
         self.info = {"system": "marl_render", "api": "core", "env": env, "agents": core.num_agents,
                      "worlds": core.num_worlds, "agent_view": [*core.resolution, 3], "episode_steps": core.max_steps,
+                     "physics_compiled": core.physics_compiled,
                      "versions": {"marl-render": _version("marl-render")},
                      "lp_num_threads": os.environ.get("LP_NUM_THREADS")}
 
