@@ -103,3 +103,18 @@ def test_floor_refuses_skinned_groups():
     scene.add_group("walkers", mr.skinned_limb(), capacity=1)
     with pytest.raises(ValueError, match=r"FloorGL has no skinning; groups \['walkers'\]"):
         FloorGL(scene)
+
+
+def test_bench_floor_measures_an_env_against_the_floor_with_its_stages():
+    from marl_render.bench import floor
+    from marl_render.envs import registry
+
+    row = floor.measure("spread", 2, 3, 16, rounds=1, block_seconds=0.01, compile_physics=True)
+    assert not row["physics_compiled"]  # spread has no compiled kernel: the flag passes it by
+    assert (row["env"], row["worlds"], row["agents"], row["resolution"]) == ("spread", 2, 3, 16)
+    assert set(row["stages_ms"]) == {"update", "pack", "cull", "gl", "copy", "physics", "env"}
+    assert row["env_ms_per_step"] > 0 and row["floor_ms_per_frame"] > 0
+    assert row["ratio"] == row["floor_ms_per_frame"] / row["env_ms_per_step"]
+    assert registry.has_compiled_physics("cartpole") and not registry.has_compiled_physics("spread")
+    lines = floor.markdown([row, {**row, "env": "cartpole", "physics_compiled": True}])
+    assert lines[2].startswith("| spread | 3 | 2 |") and lines[3].startswith("| cartpole (compiled physics) | 3 | 2 |")

@@ -155,12 +155,15 @@ def markdown(rows: list[dict]) -> list[str]:
     """The ratio table and the per-step stage table of a run."""
     lines = ["| env | agents | worlds | env-steps/s | floor frames/s | ratio | ratio of best blocks | CPU-time ratio |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    lines += [f"| {r['env']}{' (compiled physics)' if r.get('physics_compiled') else ''} | {r['agents']} | "
-              f"{r['worlds']} | {r['env_steps_per_s']:,.0f} | "
+    lines += [f"| {_label(r)} | {r['agents']} | {r['worlds']} | {r['env_steps_per_s']:,.0f} | "
               f"{r['floor_frames_per_s']:,.0f} | **{r['ratio']:.2f}** | {r['best_ratio']:.2f} | {r['cpu_ratio']:.2f} |"
               for r in rows]
     lines += ["", "| env | agents | worlds | ms/step | " + " | ".join(STAGES + ("physics", "env")) + " |",
               "|---|---:|---:|---:|" + "---:|" * (len(STAGES) + 2)]
-    lines += [f"| {r['env']} | {r['agents']} | {r['worlds']} | {r['env_ms_per_step']:.2f} | "
+    lines += [f"| {_label(r)} | {r['agents']} | {r['worlds']} | {r['env_ms_per_step']:.2f} | "
               + " | ".join(f"{r['stages_ms'][k]:.2f}" for k in STAGES + ("physics", "env")) + " |" for r in rows]
     return lines
+
+
+def _label(row: dict) -> str:
+    return row["env"] + (" (compiled physics)" if row.get("physics_compiled") else "")
