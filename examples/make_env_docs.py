@@ -257,8 +257,10 @@ def page(seed: int | None, picture_dir: str | None) -> str:
              "`make_torchrl_env(name, num_worlds=W)` for TorchRL. Common keyword arguments: `num_worlds`, "
              "`num_agents`, `resolution` (int or (height, width)), `max_steps`, `continuous`, `state_obs`, `depth`, "
              "`shadows` (False, True: the arena's shadows, or a `marl_render.Shadows`), `device`, `seed`, "
-             "`autoreset`, `grayscale`, and the accuracy knobs `multisamples`, `supersample` and `physics_substeps` "
-             "(what they cost: docs/accuracy/). Agents that leave an episode (caught prey) stay in every tensor: "
+             "`autoreset`, `grayscale`, the accuracy knobs `multisamples`, `supersample` and `physics_substeps` "
+             "(what they cost: docs/accuracy/), and `compile_physics` (cartpole: its physics kernel through "
+             "`torch.compile`, within 1e-12 of the default path; README, \"Compiled physics\"). "
+             "Agents that leave an episode (caught prey) stay in every tensor: "
              "reward 0, reported terminated, actions ignored (they must still be valid, e.g. 0), until their "
              "world is reset. `truncated` is True for the agents still in the episode when the world reaches "
              "`max_steps`.", ""]
