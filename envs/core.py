@@ -129,7 +129,7 @@ class BatchedEnv:
     (k x the resolution, box-filtered down) and physics_substeps (planar physics substeps per
     step; None: the task's own; coarser than the no-tunnelling bound is refused)), and
     compile_physics (torch.compile the task's physics kernel where it has one (cartpole):
-    the same results bit for bit, faster at small batches; seconds to compile at construction;
+    within 1e-12 of the default path, faster at small batches; seconds to compile at construction;
     a RuntimeWarning and the default path where compiling fails), `params` an instance of the
     scenario's Params (None: its defaults).
 

@@ -175,9 +175,9 @@ class Scenario(abc.ABC):
         raise NotImplementedError(f"{type(self).__name__} has no scripted heuristic")
 
     def compile_physics(self) -> bool:
-        """Switch step() to a compiled kernel (EnvOptions.compile_physics, envs/compiled.py) that
-        gives the same results bit for bit; returns whether compiling succeeded (False: the
-        default path stays). A task that has such a kernel overrides this."""
+        """Switch step() to a compiled kernel (EnvOptions.compile_physics, envs/compiled.py) whose
+        results stay within 1e-12 of the default path's; returns whether compiling succeeded
+        (False: the default path stays). A task that has such a kernel overrides this."""
         raise ValueError(f"compile_physics applies to tasks with a compiled physics kernel; {self.name} has none")
 
     # ------------------------------------------------------------------ scene binding
