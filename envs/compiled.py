@@ -21,13 +21,15 @@ import torch
 def compile_kernel(function, example_args: tuple, what: str):
     """torch.compile(function) as one graph, compiled now on `example_args` (its results are
     discarded), or None with a RuntimeWarning where compiling fails (no C++ compiler, a
-    device inductor cannot build for, ...): the caller then keeps its default path."""
+    device inductor cannot build for, torch's limit of 8 compiled shapes per function reached
+    by envs of as many sizes in one process, ...): the caller then keeps its default path."""
     print(f"marl_render: compiling {what} with torch.compile (seconds the first time, cached after)",
           file=sys.stderr, flush=True)
     started = time.perf_counter()
     try:
         kernel = torch.compile(function, dynamic=False, fullgraph=True)
-        kernel(*example_args)
+        with torch.no_grad():  # as env steps run: a graph compiled with grad on would be compiled again
+            kernel(*example_args)
     except Exception as error:  # inductor's failures have many types; none may stop the env
         reason = str(error).strip().splitlines()[0] if str(error).strip() else ""
         warnings.warn(f"compile_physics: {what} could not be compiled ({type(error).__name__}: {reason}); "
