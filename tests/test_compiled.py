@@ -39,9 +39,13 @@ def run(env, steps: int, seed: int = 1):
 @pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
                     reason="torch.compile's CPU backend needs a C++ compiler; the fallback is tested below")
 def test_compiled_cartpole_follows_the_default_path():
+    from torch._dynamo.utils import counters
+
+    graphs = counters["stats"]["unique_graphs"]
     with cartpole(compile_physics=True) as compiled, cartpole() as default:
         assert compiled.physics_compiled and not default.physics_compiled
         states, rewards = run(compiled, 600)
+        assert counters["stats"]["unique_graphs"] == graphs + 1  # compiled once, as steps call it (no_grad)
         expected_states, expected_rewards = run(default, 600)
         # inductor's C++ rounds some sin/cos results differently from torch's kernels (the last
         # bit of ~0.1% of them): trajectories stay within 1e-12 (MuJoCo match of the default
