@@ -274,13 +274,15 @@ def compare_mpe(args, log_dir: str) -> dict:
 def compare_pybatchrender(args, log_dir: str) -> dict:
     python = venv_python(args, "pybatchrender")
     specs = []
-    ours = ["marl_render_core"] + (["marl_render_core_compiled"] if args.compile_physics else [])
+    ours = {"marl_render_core": False}  # label -> compile_physics
+    if args.compile_physics:
+        ours["marl_render_core_compiled"] = True
     for w in args.pbr_worlds:
         specs += [(f"pybatchrender_{w}", python, "pybatchrender",
                    {"env": "CartPole-v0", "worlds": w, "resolution": 64})]
         specs += [(f"{label}_{w}", sys.executable, "marl_render_core",
-                   {"env": "cartpole", "worlds": w, "resolution": 64,
-                    "compile_physics": label == "marl_render_core_compiled"}) for label in ours]
+                   {"env": "cartpole", "worlds": w, "resolution": 64, "compile_physics": compiled})
+                  for label, compiled in ours.items()]
     systems = run_group(specs, args, reset=False, log_dir=log_dir)
     return {"systems": systems, "ratios": {f"{label}_{w}/pybatchrender_{w}": ratios(
         systems[f"{label}_{w}"]["summary"], systems[f"pybatchrender_{w}"]["summary"])
