@@ -1,191 +1,412 @@
-"""docs/baselines.md (and README's summary table) from the committed runs' result.json files.
+"""docs/baselines.md (and README's summary table) from the runs' result.json files.
 
-    python -m marl_render.baselines.report                # reads docs/baselines/*/result.json
+    python -m marl_render.baselines.report      # reads docs/baselines/<task>[-state]/seed<k>/result.json
 
-One table over every task: the uniform random policy, the scripted heuristic, the greedy
-policy learned from pixels and the one learned from the state (where a run exists), the
-wall-clock and the env steps of each run; then per task the hyperparameters, the command
-that reproduces the run and its curve; then RESULTS/notes.md (hand-written findings), if there
-is one. A task with no run has a row of dashes. README.md's
-table between the markers ``<!-- baselines:start -->`` and ``<!-- baselines:end -->`` is
-rewritten too (--readme '' leaves README alone).
+One row per task: the uniform random policy, the scripted heuristic and the greedy policies
+learned from pixels and from the state, each the mean over training seeds with its 95%
+stratified bootstrap interval (marl_render.baselines.stats, rliable's method) and every seed's
+value; the evaluation worlds every number was scored on; the step budget and the wall-clock.
+Then the normalised scores across tasks, and per task and observation the commands, each seed's
+run, the greedy checkpoints along training and a picture of the curves across seeds. Also
+writes RESULTS/<task>[-state]/curves.png, RESULTS/aggregate.png, RESULTS/marl_eval.json (the
+runs in marl-eval's layout) and, between the markers ``<!-- baselines:start -->`` and
+``<!-- baselines:end -->``, README.md's table (--readme '' leaves README alone).
+
+Runs from before the step budgets (RESULTS/<task>[-state|-seedK]/result.json) are read where a
+task and observation has no run in seed folders yet.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import json
+import math
 import os
 import shlex
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from marl_render.envs import list_envs
 
+from . import figures, marl_eval, stats
+from .published import BUDGET_FLAG, EVALUATION_SET_FLAG, OBSERVATIONS, ROOT, folder, learner_argv
 from .settings import Hyperparameters
 
 START, END = "<!-- baselines:start -->", "<!-- baselines:end -->"
 DEFAULTS = dataclasses.asdict(Hyperparameters())
+REQUIRED = (("env",), ("obs",), ("seeds", "train"), ("env_steps",), ("evaluation", "policy", "mean"),
+            ("evaluation", "random", "mean"), ("evaluation", "heuristic", "mean"))
+LEGACY = "before step budgets"
 
 
-def load_results(folder: Path) -> dict:
-    """{env: {"pixels": [results], "state": [results]}} of the result.json files under `folder`,
-    each list ordered by training seed (the first is the row's run; the others are its seeds)."""
-    runs: dict = {}
-    for path in sorted(folder.glob("*/result.json")):
+# --- reading the runs ---------------------------------------------------------------------------
+
+def read_result(path: Path) -> dict:
+    """One result.json, checked for the fields the report reads; ValueError naming the file."""
+    try:
         result = json.loads(path.read_text())
-        result["folder"] = path.parent
-        runs.setdefault(result["env"], {}).setdefault(result["obs"], []).append(result)
-    for pair in runs.values():
-        for results in pair.values():
-            results.sort(key=lambda r: r["seeds"]["train"])
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable result.json ({exc})") from None
+    for keys in REQUIRED:
+        value = result
+        for key in keys:
+            if not isinstance(value, dict) or key not in value:
+                raise ValueError(f"{path}: result.json has no {'.'.join(keys)}")
+            value = value[key]
+        if keys[-1] == "mean" and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                   or not math.isfinite(value)):
+            raise ValueError(f"{path}: {'.'.join(keys)} must be a finite number, got {value!r}")
+    if result["obs"] not in OBSERVATIONS:
+        raise ValueError(f"{path}: obs must be one of {OBSERVATIONS}, got {result['obs']!r}")
+    result["folder"] = path.parent
+    # Runs before the split into development and publication worlds were scored on the worlds
+    # every development choice used.
+    result.setdefault("evaluation_set", "development")
+    return result
+
+
+def load_results(folder_: Path) -> dict:
+    """{env: {obs: [results ordered by training seed]}} of the runs under `folder_`: the seed
+    folders' runs, or the older flat folders' where a task and observation has none."""
+    layouts = {}
+    for name, pattern in (("seeds", "*/seed*/result.json"), (LEGACY, "*/result.json")):
+        grouped: dict = {}
+        for path in sorted(Path(folder_).glob(pattern)):
+            result = read_result(path)
+            result["layout"], result["relative"] = name, path.parent.relative_to(folder_)
+            runs = grouped.setdefault((result["env"], result["obs"]), {})
+            seed = result["seeds"]["train"]
+            if seed in runs:
+                raise ValueError(f"two runs of {result['env']} from {result['obs']} with training seed {seed}: "
+                                 f"{runs[seed]['folder']} and {path.parent}")
+            runs[seed] = result
+        layouts[name] = grouped
+    runs: dict = {}
+    for (env, obs), by_seed in {**layouts[LEGACY], **layouts["seeds"]}.items():
+        runs.setdefault(env, {})[obs] = [by_seed[seed] for seed in sorted(by_seed)]
     return runs
 
 
-def mean_std(r: dict | None) -> str:
-    """"mean ± std" of an evaluation, digits by its size; a dash for none."""
-    if r is None:
-        return "–"
-    size = max(abs(r["mean"]), r["std"])
-    digits = 2 if size < 10 else 1 if size < 100 else 0
-    return f"{r['mean']:.{digits}f} ± {r['std']:.{digits}f}"
+def tasks(runs: dict) -> list[str]:
+    """Every registered task, then any other task that has runs."""
+    return list_envs() + sorted(set(runs) - set(list_envs()))
 
 
-def _learned(results: list | None) -> str:
-    """The greedy policy's return, marked where it does not beat random by a standard error; with
-    several seeds, every seed's mean after it."""
+# --- numbers and cells ----------------------------------------------------------------------------
+
+def digits(*values: float) -> int:
+    size = max((abs(v) for v in values), default=0.0)
+    return 2 if size < 10 else 1 if size < 100 else 0
+
+
+def number(value: float, places: int) -> str:
+    return f"{value:.{places}f}"
+
+
+def scores(results: list, policy: str = "policy") -> np.ndarray:
+    """Each run's mean return of `policy` ("policy", "random" or "heuristic")."""
+    return np.array([r["evaluation"][policy]["mean"] for r in results], dtype=np.float64)
+
+
+def across_seeds(values: np.ndarray) -> stats.Estimate:
+    """The mean over runs with its 95% stratified bootstrap interval (one task: runs resampled)."""
+    return stats.stratified_bootstrap(values[:, None], stats.mean)
+
+
+def interval(e: stats.Estimate, places: int, scale: float = 1, unit: str = "") -> str:
+    """"point [low, high]"."""
+    point, low, high = (number(v * scale, places) + unit for v in (e.point, e.low, e.high))
+    return f"{point} [{low}, {high}]"
+
+
+def estimate_cell(values: np.ndarray, seeds: list, percent: bool = False) -> str:
+    """"mean [low, high]; seeds a/b/c: x / y / z" (one value where every run gives the same)."""
+    scale, unit, places = (100, "%", 0) if percent else (1, "", digits(*values))
+    if np.all(values == values[0]):
+        return number(values[0] * scale, places) + unit
+    return (interval(across_seeds(values), places, scale, unit) + f"; seeds {'/'.join(map(str, seeds))}: "
+            + " / ".join(number(v * scale, places) + unit for v in values))
+
+
+def learned_cell(results: list | None, short: bool = False) -> str:
     if not results:
         return "–"
-    e = results[0]["evaluation"]
-    policy, random = e["policy"], e["random"]
-    margin = (policy["std"] ** 2 / policy["episodes"] + random["std"] ** 2 / random["episodes"]) ** 0.5
-    flag = "" if policy["mean"] > random["mean"] + margin else " (not above random)"
-    text = mean_std(policy) + flag
-    if len(results) > 1:
-        means = [r["evaluation"]["policy"]["mean"] for r in results]
-        digits = 0 if max(abs(m) for m in means) >= 100 else 1
-        text += (f"; seeds {'/'.join(str(r['seeds']['train']) for r in results)}: "
-                 + " / ".join(f"{m:.{digits}f}" for m in means))
-    return text
+    values, seeds = scores(results), [r["seeds"]["train"] for r in results]
+    if len(results) == 1:
+        return f"{number(values[0], digits(values[0]))} (seed {seeds[0]} only)"
+    return interval(across_seeds(values), digits(*values)) if short else estimate_cell(values, seeds)
 
 
-def _cost(results: list | None) -> str:
+def above_random(results: list | None) -> stats.Estimate | None:
+    """The learned minus random return, run by run (both scored on the run's evaluation worlds),
+    mean over runs with its interval; None for fewer than 2 runs."""
+    if not results or len(results) < 2:
+        return None
+    return across_seeds(scores(results) - scores(results, "random"))
+
+
+def verdict(results: list | None) -> str:
     if not results:
         return "–"
-    run = results[0]
-    return f"{run['wall_clock_seconds'] / 60:.1f} min, {run['env_steps'] / 1e6:.2f} M"
+    difference = above_random(results)
+    if difference is None:
+        return "not judged (1 seed)"
+    return "yes" if difference.low > 0 else "no"
 
 
-def _gap_closed(results: list | None) -> str:
-    """How far the learned policy got from random towards the heuristic: (learned - random) /
-    (heuristic - random), in percent (100%: as good as the heuristic)."""
+def reference_cell(by_obs: dict, policy: str) -> str:
+    """Random's or the heuristic's return, from the pixel runs where there are some."""
+    results = by_obs.get("pixels") or by_obs.get("state")
     if not results:
         return "–"
-    e = results[0]["evaluation"]
-    span = e["heuristic"]["mean"] - e["random"]["mean"]
-    if span <= 0:
-        return "–"
-    return f"{100 * (e['policy']['mean'] - e['random']['mean']) / span:.0f}%"
+    return estimate_cell(scores(results, policy), [r["seeds"]["train"] for r in results])
 
+
+def normalised(results: list) -> np.ndarray | None:
+    """Each run's (learned - random) / (heuristic - random): 0 is random, 1 the heuristic; None
+    where the heuristic does not beat random."""
+    random, heuristic = scores(results, "random"), scores(results, "heuristic")
+    if np.any(heuristic <= random):
+        return None
+    return (scores(results) - random) / (heuristic - random)
+
+
+def normalised_cell(results: list | None) -> str:
+    values = normalised(results) if results else None
+    if values is None:
+        return "–"
+    return estimate_cell(values, [r["seeds"]["train"] for r in results], percent=True)
+
+
+def scored_on(by_obs: dict) -> str:
+    sets = {obs: sorted({f"{r['evaluation_set']} (seed {r['seeds']['evaluation']})" for r in results})
+            for obs, results in by_obs.items() if results}
+    unique = {", ".join(s) for s in sets.values()}
+    if len(unique) <= 1:
+        return unique.pop() if unique else "–"
+    return "; ".join(f"{obs}: {', '.join(s)}" for obs, s in sets.items())
+
+
+def cost_cell(results: list | None) -> str:
+    """The step budget (or the old wall-clock budget) and the wall-clock, mean (min-max) over runs."""
+    if not results:
+        return "–"
+    minutes = np.array([r.get("wall_clock_seconds", r.get("training_seconds", 0.0)) for r in results]) / 60
+    clock = f"{minutes.mean():.1f} min" + (f" ({minutes.min():.1f}-{minutes.max():.1f})" if len(results) > 1 else "")
+    if "budget" in results[0]:
+        budgets = sorted({r["budget"]["env_steps"] for r in results})
+        return f"{' / '.join(f'{b:,}' for b in budgets)} steps; {clock}"
+    steps = sorted({r["env_steps"] for r in results})
+    reached = f"{steps[0]:,}" + (f"-{steps[-1]:,}" if len(steps) > 1 else "")
+    return f"{results[0]['budget_minutes']:g} min wall-clock budget: {reached} steps; {clock}"
+
+
+# --- the tables -----------------------------------------------------------------------------------
 
 def table(runs: dict, short: bool = False) -> str:
     head = "| task | random | heuristic | learned from pixels | learned from state |"
     rule = "|---|---:|---:|---:|---:|"
-    if not short:
-        head += (" pixels: random-to-heuristic gap closed | pixels run: wall-clock, env steps "
-                 "| state run: wall-clock, env steps |")
-        rule += "---:|---:|---:|"
+    if short:
+        head += " above random (pixels; state) |"
+        rule += "---|"
+    else:
+        head += (" above random (pixels; state) | pixels normalised (random 0%, heuristic 100%) | scored on "
+                 "| pixels: budget, wall-clock | state: budget, wall-clock |")
+        rule += "---|---:|---|---:|---:|"
     rows = [head, rule]
-    for env in list_envs():
-        pair = runs.get(env, {})
-        pixels, state = pair.get("pixels"), pair.get("state")
-        any_run = pixels or state
-        e = any_run[0]["evaluation"] if any_run else None
-        row = (f"| {env} | {mean_std(e and e['random'])} | {mean_std(e and e['heuristic'])} | {_learned(pixels)} | "
-               f"{_learned(state)} |")
+    for env in tasks(runs):
+        by_obs = runs.get(env, {})
+        pixels, state = by_obs.get("pixels"), by_obs.get("state")
+        row = (f"| {env} | {reference_cell(by_obs, 'random')} | {reference_cell(by_obs, 'heuristic')} "
+               f"| {learned_cell(pixels, short)} | {learned_cell(state, short)} "
+               f"| {verdict(pixels)}; {verdict(state)} |")
         if not short:
-            row += f" {_gap_closed(pixels)} | {_cost(pixels)} | {_cost(state)} |"
+            row += f" {normalised_cell(pixels)} | {scored_on(by_obs)} | {cost_cell(pixels)} | {cost_cell(state)} |"
         rows.append(row)
     return "\n".join(rows)
+
+
+def aggregate_scores(runs: dict, obs: str) -> tuple[np.ndarray | None, list[str], str]:
+    """The (runs, tasks) normalised scores of every task learned from `obs` whose heuristic beats
+    random, the tasks, and why there is no matrix (or what was left out)."""
+    columns, names, left_out = [], [], []
+    for env in tasks(runs):
+        results = runs.get(env, {}).get(obs)
+        values = normalised(results) if results else None
+        if values is None:
+            left_out.append(env)
+        else:
+            columns.append(values)
+            names.append(env)
+    note = f"left out (no run, or a heuristic that does not beat random): {', '.join(left_out)}" if left_out else ""
+    counts = {len(c) for c in columns}
+    if not columns:
+        return None, names, "no task has runs"
+    if len(counts) > 1 or counts == {1}:
+        have = ", ".join(f"{n} {len(c)}" for n, c in zip(names, columns, strict=True))
+        return None, names, f"needs at least 2 seeds, the same number on every task (have: {have})"
+    return np.stack(columns, axis=1), names, note
+
+
+def aggregate_section(runs: dict, results_root: Path, docs: Path) -> list[str]:
+    parts = ["## Across tasks", "",
+             "Normalised score of a run: (learned - random) / (heuristic - random), from that run's own evaluations "
+             "(0 is random, 1 the heuristic). Aggregates over every run of every task, with 95% stratified bootstrap "
+             "intervals (runs resampled within each task; rliable's IQM, mean, median and optimality gap at 1). "
+             "The profile: the fraction of all runs whose score exceeds each threshold.", ""]
+    matrices, estimates, profiles = {}, {}, {}
+    for obs in OBSERVATIONS:
+        matrix, names, note = aggregate_scores(runs, obs)
+        if matrix is None:
+            parts += [f"- from {obs}: no aggregate, {note}.", ""]
+            continue
+        matrices[obs] = matrix
+        estimates[obs] = {name: stats.stratified_bootstrap(matrix, f) for name, f in stats.AGGREGATES.items()}
+        cells = ", ".join(f"{name} {interval(e, 2)}" for name, e in estimates[obs].items())
+        parts += [f"- from {obs}, {matrix.shape[0]} seeds x {matrix.shape[1]} tasks ({', '.join(names)}): {cells}"
+                  + (f"; {note}" if note else "") + ".", ""]
+    if matrices:  # one set of thresholds for every profile, from the lowest score to past the heuristic
+        every = np.concatenate([m.ravel() for m in matrices.values()])
+        thresholds = np.linspace(min(0.0, every.min()), max(1.5, every.max()), 101)
+        profiles = {obs: (thresholds, *stats.performance_profile(m, thresholds)) for obs, m in matrices.items()}
+    if estimates:
+        figures.plot_aggregate(estimates, profiles, results_root / "aggregate.png")
+        parts += [f"![normalised scores across tasks]({os.path.relpath(results_root / 'aggregate.png', docs)})", ""]
+    return parts
+
+
+# --- per task -------------------------------------------------------------------------------------
+
+def mean_std(r: dict) -> str:
+    """"mean ± std" of an evaluation over its episodes, digits by its size."""
+    places = digits(r["mean"], r["std"]) if "std" in r else digits(r["mean"])
+    return f"{number(r['mean'], places)}" + (f" ± {number(r['std'], places)}" if "std" in r else "")
 
 
 def reproducing_command(run: dict) -> str:
     """The run's command with every hyperparameter spelled out, so that it still reproduces the
     run after a task's defaults change."""
-    parts = ["python -m marl_render.baselines", f"--env {run['env']}"]
-    if run["obs"] != "pixels":
-        parts.append(f"--obs {run['obs']}")
-    parts += [f"--seed {run['seeds']['train']}", f"--eval-seed {run['seeds']['evaluation']}",
-              f"--episodes {run['evaluation']['policy']['episodes']}", f"--budget-minutes {run['budget_minutes']:g}"]
-    for name, value in run["hyperparameters"].items():
-        flag = "--" + name.replace("_", "-")
-        if isinstance(value, bool):
-            parts += [flag] if value else []
-        else:
-            parts.append(f"{flag} {value:g}" if isinstance(value, float) else f"{flag} {value}")
-    for flag in ("env", "train"):
-        options = run.get(f"{flag}_options", {})
-        parts += [f"--{flag}-option {shlex.quote(f'{key}={value!r}')}" for key, value in options.items()]
-    parts.append(f"--out docs/baselines/{run['folder'].name}")
-    return " ".join(parts)
+    if "budget" in run:
+        budget = [BUDGET_FLAG, str(run["budget"]["env_steps"])]
+        evaluation = [EVALUATION_SET_FLAG, run["evaluation_set"]]
+    else:  # the wall-clock budget and the evaluation seed of the runs before step budgets
+        budget = ["--budget-minutes", f"{run['budget_minutes']:g}"]
+        evaluation = ["--eval-seed", str(run["seeds"]["evaluation"])]
+    argv = learner_argv(run["env"], run["obs"], run["seeds"]["train"], budget=budget, evaluation=evaluation,
+                        episodes=run["evaluation"]["policy"]["episodes"], hyperparameters=run["hyperparameters"],
+                        env_options=run.get("env_options", {}), train_options=run.get("train_options", {}),
+                        out=Path(ROOT) / run["relative"])
+    return "python -m marl_render.baselines " + shlex.join(argv)
 
 
-def details(env: str, run: dict, docs: Path) -> str:
-    hp = run["hyperparameters"]
-    changed = ", ".join(f"{k}={v}" for k, v in hp.items() if DEFAULTS.get(k) != v) or "none"
-    curve = os.path.relpath(run["folder"] / "curve.png", docs)
-    e = run["evaluation"]
-    options = ", ".join([f"{k}={v!r} (training and evaluation)" for k, v in run.get("env_options", {}).items()]
-                        + [f"{k}={v!r} (training only)" for k, v in run.get("train_options", {}).items()])
-    return "\n".join([
-        f"### {env} from {run['obs']}, seed {run['seeds']['train']}",
-        "",
-        f"`{reproducing_command(run)}`",
-        "",
-        f"- greedy policy {mean_std(e['policy'])} over {e['policy']['episodes']} episodes "
-        f"(random {mean_std(e['random'])}, heuristic {mean_std(e['heuristic'])}), "
-        f"evaluation seed {run['seeds']['evaluation']}",
-        f"- {run['wall_clock_seconds'] / 60:.1f} min wall-clock (budget {run['budget_minutes']:g}; training "
-        f"{run['training_seconds'] / 60:.1f} min, of which env steps {run['env_seconds_in_training'] / 60:.1f}), "
-        f"{run['env_steps']:,} env steps, {run['updates']} updates, seed {run['seeds']['train']}",
-        f"- hyperparameters that differ from the defaults: {changed}",
-        f"- env options: {options or 'none (the task as registered)'}",
-        "- versions: " + ", ".join(f"{k} {v}" for k, v in run["versions"].items()),
-        "",
-        f"![{env} {run['obs']}]({curve})",
-        "",
-    ])
+def seeds_table(results: list) -> list[str]:
+    rows = ["| seed | final greedy policy (episodes) | random | heuristic | scored on | env steps | updates "
+            "| wall-clock | training (env) |", "|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
+    for r in results:
+        e = r["evaluation"]
+        rows.append(f"| {r['seeds']['train']} | {mean_std(e['policy'])} ({e['policy']['episodes']}) "
+                    f"| {mean_std(e['random'])} | {mean_std(e['heuristic'])} "
+                    f"| {r['evaluation_set']} (seed {r['seeds']['evaluation']}) | {r['env_steps']:,} "
+                    f"| {r.get('updates', '–')} | {r.get('wall_clock_seconds', 0) / 60:.1f} min "
+                    f"| {r.get('training_seconds', 0) / 60:.1f} ({r.get('env_seconds_in_training', 0) / 60:.1f}) min |")
+    return rows
 
 
-def document(runs: dict, docs: Path, notes: str = "") -> str:
+def checkpoints_table(results: list) -> list[str]:
+    """Greedy returns along training, a row per checkpoint and a column per seed."""
+    by_seed = {r["seeds"]["train"]: {c["env_steps"]: c["mean"] for c in r.get("checkpoints", [])} for r in results}
+    steps = sorted({s for points in by_seed.values() for s in points})
+    if not steps:
+        return [f"No greedy evaluations along training recorded (runs {LEGACY})."]
+    places = digits(*[v for points in by_seed.values() for v in points.values()])
+    rows = ["Greedy returns along training, on the development worlds (the rows are the final policies; no "
+            "checkpoint is ever picked for a row):", "",
+            "| env steps | " + " | ".join(f"seed {s}" for s in by_seed) + " |", "|---:|" + "---:|" * len(by_seed)]
+    for step in steps:
+        rows.append(f"| {step:,} | " + " | ".join(number(points[step], places) if step in points else "–"
+                                                 for points in by_seed.values()) + " |")
+    return rows
+
+
+def details(env: str, obs: str, results: list, results_root: Path, docs: Path) -> list[str]:
+    first = results[0]
+    changed = ", ".join(f"{k}={v}" for k, v in first["hyperparameters"].items() if DEFAULTS.get(k) != v) or "none"
+    options = ", ".join([f"{k}={v!r} (training and evaluation)" for k, v in first.get("env_options", {}).items()]
+                        + [f"{k}={v!r} (training only)" for k, v in first.get("train_options", {}).items()])
+    versions = sorted({", ".join(f"{k} {v}" for k, v in r["versions"].items()) for r in results if "versions" in r})
+    difference = above_random(results)
+    parts = [f"### {env} from {obs}", "", "```", *(reproducing_command(r) for r in results), "```", "",
+             *seeds_table(results), ""]
+    if difference is not None:
+        places = digits(difference.point, difference.low, difference.high)
+        parts += [f"Learned minus random, mean over seeds: {interval(difference, places)} "
+                  f"({'above' if difference.low > 0 else 'not above'} random).", ""]
+    parts += [f"- hyperparameters that differ from the defaults: {changed}",
+              f"- env options: {options or 'none (the task as registered)'}",
+              *(f"- versions: {v}" for v in versions), ""]
+    picture = results_root / folder(env, obs) / "curves.png"
+    picture.parent.mkdir(parents=True, exist_ok=True)
+    figures.plot_task(env, obs, results, picture)
+    parts += [f"![{env} from {obs} across seeds]({os.path.relpath(picture, docs)})", ""]
+    return parts + [*checkpoints_table(results), ""]
+
+
+def document(runs: dict, results_root: Path, docs: Path, notes: str = "", marl_eval_problems=()) -> str:
     defaults = ", ".join(f"{k}={v}" for k, v in DEFAULTS.items())
     parts = [
         "# Reference results: every task learned from pixels",
         "",
-        "Generated by `python -m marl_render.baselines.report` from `docs/baselines/*/result.json`; each run by",
-        "the command shown under its task (`python -m marl_render.baselines --env NAME`), on 2 CPU cores.",
+        "Generated by `python -m marl_render.baselines.report` from `docs/baselines/<task>[-state]/seed<k>/"
+        "result.json`; the runs by `make baselines` (the commands of `python -m marl_render.baselines.published`, "
+        "listed under each task).",
         "",
-        "Returns are those of `marl_render.envs.evaluation.evaluate`: the sum of the evaluated agents' rewards",
-        "over an episode, averaged over them, mean ± std over 32 episodes (seed 1000); opponents (tag's prey,",
-        "push's and capture_flag's second team) play random actions in training and in every row. *Learned*",
-        "is the greedy policy of MAPPO (TorchRL ClipPPOLoss + GAE: one actor shared by the trained agents,",
-        "on each agent's own egocentric pixels or its state observation; a centralised critic on the state",
-        "observations of all agents). \"(not above random)\" marks a learned return that does not exceed",
-        "random's by one standard error of the difference. *Gap closed*: (learned - random) / (heuristic -",
-        "random) of the pixel run, how close pixels get to the scripted heuristic (which reads the state).",
-        "Env steps are summed over worlds.",
+        "Returns are those of `marl_render.envs.evaluation.evaluate`: the sum of the evaluated agents' rewards over "
+        "an episode, averaged over them and over the evaluation episodes; opponents (tag's prey, push's and "
+        "capture_flag's second team) play random actions in training and in every row. *Learned* is the greedy "
+        "policy of MAPPO (TorchRL ClipPPOLoss + GAE: one actor shared by the trained agents, on each agent's own "
+        "egocentric pixels or its state observation; a centralised critic on the state observations of all agents).",
+        "",
+        "- **Rows are the final policy only**: each run's greedy policy when its budget ends. The greedy "
+        "evaluations along training (under each task) show how stable it is; none is ever picked for a row.",
+        "- **Across seeds**: each learned cell is the mean over training seeds, its 95% stratified bootstrap "
+        "interval in brackets (50,000 resamples of the seeds, percentile method, fixed random seed: rliable's "
+        "method, `marl_render.baselines.stats`), then every seed's value. With 3 seeds that interval of the mean "
+        "is exactly the lowest to the highest seed (a resample of three copies of one seed has probability "
+        "1/27 > 2.5%).",
+        "- **Above random** is judged across seeds on the run-by-run difference learned - random (both scored on "
+        "the same worlds): *yes* when the lower end of its 95% interval is above 0, which with 3 seeds means every "
+        "seed beats random. One seed is not judged.",
+        "- **Scored on**: the evaluation worlds of each number. *development* worlds served every development "
+        "choice (shaping, hyperparameters, tries); *publication* worlds were never used before the published runs.",
+        "- **Budgets** are env steps summed over worlds; the wall-clock (mean, min-max over seeds) is what they took "
+        "on the machine of the run. Runs from before the step budgets were stopped by a wall-clock budget instead, "
+        "so their env steps depend on the machine's speed and load.",
         "",
         table(runs),
         "",
         f"Default hyperparameters: {defaults}.",
         "",
+        *aggregate_section(runs, results_root, docs),
+        "## marl-eval and BenchMARL",
+        "",
+        f"[marl_eval.json]({os.path.relpath(results_root / 'marl_eval.json', docs)}) holds the runs in marl-eval's "
+        "JSON layout (the one BenchMARL writes): environment `marl_render`, algorithms `mappo_pixels` and "
+        "`mappo_state`, runs `seed_K`, the greedy checkpoints as steps and the final policy's episode returns as "
+        "`absolute_metrics` (`marl_render/baselines/marl_eval.py`).",
+        "",
+        *([f"marl-eval's tools need the same runs and steps on every task; not yet: {p}." for p in marl_eval_problems]
+          or ["Every task has the same algorithms, runs and steps, as marl-eval's tools need."]),
+        "",
         "## Runs",
         "",
     ]
-    for env in list_envs():
-        for obs in ("pixels", "state"):
-            for run in runs.get(env, {}).get(obs, []):
-                parts.append(details(env, run, docs))
+    for env in tasks(runs):
+        for obs in OBSERVATIONS:
+            results = runs.get(env, {}).get(obs)
+            if results:
+                parts += details(env, obs, results, results_root, docs)
     if notes:
         parts += ["## Findings", "", notes.strip(), ""]
     return "\n".join(parts)
@@ -207,14 +428,23 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="docs/baselines.md", help="the document to write")
     parser.add_argument("--readme", default="README.md", help="README whose table to rewrite ('' for none)")
     args = parser.parse_args(argv)
-    runs = load_results(Path(args.results))
-    notes = Path(args.results) / "notes.md"
-    out = Path(args.out)
-    out.write_text(document(runs, out.parent, notes.read_text() if notes.is_file() else ""))
+    results_root, out = Path(args.results), Path(args.out)
+    if not results_root.is_dir():
+        raise ValueError(f"--results must be a folder of runs, got {str(results_root)!r} (no such folder)")
+    runs = load_results(results_root)
+    if args.readme:  # refused before anything is written when README has no markers
+        readme_text = Path(args.readme).read_text()
+        if START not in readme_text or END not in readme_text:
+            raise ValueError(f"{args.readme} has no {START} ... {END} markers to put the table between")
+    layout = marl_eval.write(runs, results_root / "marl_eval.json")
+    notes = results_root / "notes.md"
+    out.write_text(document(runs, results_root, out.parent, notes.read_text() if notes.is_file() else "",
+                            marl_eval.problems(layout)))
     if args.readme:
         update_readme(Path(args.readme), runs)
-    count = sum(len(results) for pair in runs.values() for results in pair.values())
-    print(f"wrote {out} ({count} runs)" + (f" and {args.readme}" if args.readme else ""))
+    count = sum(len(results) for by_obs in runs.values() for results in by_obs.values())
+    print(f"wrote {out}, {results_root / 'marl_eval.json'} and the pictures ({count} runs)"
+          + (f" and {args.readme}" if args.readme else ""))
     return 0
 
 

@@ -1,0 +1,155 @@
+"""The published reference runs, as data: one entry per task and observation.
+
+    python -m marl_render.baselines.published               # every published command, one a line
+    python -m marl_render.baselines.published --run         # runs them one at a time (hours), then the report
+    make baselines                                          # the same as --run
+
+Every row of docs/baselines.md is ``SEEDS`` training seeds of one entry, each stopped by the
+entry's budget in env steps (summed over worlds) and scored on the ``publication`` evaluation
+worlds, which no development choice (shaping, hyperparameters, tries) ever used. Run k writes
+docs/baselines/<task>[-state]/seed<k>/. An entry holds the step budget, the env options (training
+and evaluation), the training-only options (a shaped reward; the evaluations keep the task's own
+reward) and the hyperparameters that differ from the task's defaults (settings.py).
+
+``--run`` keeps a run whose result.json exists, so an interrupted batch resumes; delete a run's
+folder to redo it.
+
+PLACEHOLDER budgets: the env steps below are those the wall-clock-budgeted runs of seed 0 reached
+on 2 CPU cores before the step budgets (docs/baselines/*/result.json as of the switch). The
+coordinator sets the published budgets once the faster trainer has landed.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shlex
+import subprocess
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from types import MappingProxyType
+
+from marl_render.envs import list_envs
+
+SEEDS = (0, 1, 2)
+EVALUATION_SET = "publication"
+EPISODES = 32
+OBSERVATIONS = ("pixels", "state")
+# The learner's options for what the step-budget trainer added (run.py owns the names).
+BUDGET_FLAG = "--env-steps"
+EVALUATION_SET_FLAG = "--evaluation-set"
+ROOT = "docs/baselines"
+
+
+@dataclasses.dataclass(frozen=True)
+class Published:
+    """One published row's settings (read-only)."""
+    env_steps: int
+    env_options: Mapping = dataclasses.field(default_factory=dict)
+    train_options: Mapping = dataclasses.field(default_factory=dict)
+    hyperparameters: Mapping = dataclasses.field(default_factory=dict)  # the overrides of the task's defaults
+
+    def __post_init__(self):
+        if isinstance(self.env_steps, bool) or not isinstance(self.env_steps, int) or self.env_steps < 1:
+            raise ValueError(f"env_steps must be an int >= 1, got {self.env_steps!r}")
+        for name in ("env_options", "train_options", "hyperparameters"):
+            object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
+
+
+def _entry(env_steps: int, state_steps: int, *, state_resolution: int = 8, **options) -> dict:
+    """A task's pixels and state entries: the same options; the state run renders tiny views
+    (its actor never sees them)."""
+    return {"pixels": Published(env_steps, **options),
+            "state": Published(state_steps, **options, hyperparameters={"resolution": state_resolution})}
+
+
+RUNS: dict[str, dict[str, Published]] = {  # PLACEHOLDER env steps, see the module's docstring
+    "capture_flag": _entry(951_296, 966_656, env_options={"num_agents": 4}, train_options={"shaping": 0.5}),
+    "cartpole": _entry(5_226_496, 2_490_368, state_resolution=16),
+    "commons": _entry(92_160, 403_456),
+    "forage": _entry(179_200, 1_013_760),
+    "push": _entry(763_904, 939_008, train_options={"shaping": 1.0}),
+    "rooms": _entry(880_640, 794_624, train_options={"explore_reward": 0.1}),
+    "speaker_listener": _entry(167_936, 1_039_360),
+    "spread": _entry(573_440, 1_047_552),
+    "tag": _entry(542_720, 702_464, train_options={"shaping": 0.05}),
+}
+
+
+def folder(env: str, obs: str) -> str:
+    """The folder of a task's runs from one observation, under docs/baselines/."""
+    return env if obs == "pixels" else f"{env}-state"
+
+
+def run_folder(root, env: str, obs: str, seed: int) -> Path:
+    return Path(root) / folder(env, obs) / f"seed{seed}"
+
+
+def _value(value) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def learner_argv(env: str, obs: str, seed: int, *, budget: list[str], evaluation: list[str], episodes: int,
+                 hyperparameters: Mapping, env_options: Mapping, train_options: Mapping, out) -> list[str]:
+    """The arguments of ``python -m marl_render.baselines`` for one run. `budget` and `evaluation`
+    are the options that stop the run and choose its evaluation worlds."""
+    argv = ["--env", env] + (["--obs", obs] if obs != "pixels" else []) + ["--seed", str(seed), *budget, *evaluation,
+                                                                            "--episodes", str(episodes)]
+    for name, value in hyperparameters.items():
+        flag = "--" + name.replace("_", "-")
+        argv += ([flag] if value else []) if isinstance(value, bool) else [flag, _value(value)]
+    for kind, options in (("env", env_options), ("train", train_options)):
+        for key, value in options.items():
+            argv += [f"--{kind}-option", f"{key}={value!r}"]
+    return argv + ["--out", str(out)]
+
+
+def run_argv(env: str, obs: str, seed: int, root=ROOT) -> list[str]:
+    """The arguments of the published run of `env` from `obs` with training seed `seed`."""
+    entry = RUNS[env][obs]
+    return learner_argv(env, obs, seed, budget=[BUDGET_FLAG, str(entry.env_steps)],
+                        evaluation=[EVALUATION_SET_FLAG, EVALUATION_SET], episodes=EPISODES,
+                        hyperparameters=entry.hyperparameters, env_options=entry.env_options,
+                        train_options=entry.train_options, out=run_folder(root, env, obs, seed))
+
+
+def commands(root=ROOT) -> list[str]:
+    """Every published command, task by task, pixels then state, seed by seed."""
+    return ["python -m marl_render.baselines " + shlex.join(run_argv(env, obs, seed, root))
+            for env in RUNS for obs in OBSERVATIONS for seed in SEEDS]
+
+
+def check_complete() -> None:
+    """Every registered task has a pixels and a state entry, and nothing else is listed."""
+    missing = [f"{env}/{obs}" for env in list_envs() for obs in OBSERVATIONS if obs not in RUNS.get(env, {})]
+    unknown = sorted(set(RUNS) - set(list_envs()))
+    if missing or unknown:
+        raise ValueError(f"published.RUNS must list every task from pixels and state: missing {missing}, "
+                         f"unknown tasks {unknown}")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m marl_render.baselines.published", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run", action="store_true", help="run every command whose result.json is missing, "
+                                                           "then write the report")
+    parser.add_argument("--root", default=ROOT, help="folder of the runs (default: %(default)s)")
+    args = parser.parse_args(argv)
+    check_complete()
+    if not args.run:
+        print("\n".join(commands(args.root)))
+        return 0
+    for env in RUNS:
+        for obs in OBSERVATIONS:
+            for seed in SEEDS:
+                if (run_folder(args.root, env, obs, seed) / "result.json").is_file():
+                    print(f"kept {run_folder(args.root, env, obs, seed)}", flush=True)
+                    continue
+                subprocess.run([sys.executable, "-m", "marl_render.baselines", *run_argv(env, obs, seed, args.root)],
+                               check=True)
+    return subprocess.run([sys.executable, "-m", "marl_render.baselines.report", "--results", args.root],
+                          check=False).returncode
+
+
+if __name__ == "__main__":
+    sys.exit(main())

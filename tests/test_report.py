@@ -1,0 +1,245 @@
+"""The baselines report (docs/baselines.md, the pictures, marl_eval.json) on synthetic result.json
+files of the step-budget schema written here, the runs' folders, and the published commands."""
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from marl_render.baselines import marl_eval, published, report, run, stats
+from marl_render.envs import list_envs
+
+BUDGET = 100_000
+CHECKPOINTS = (25_000, 50_000, 100_000)
+RANDOM, HEURISTIC = [-3.0, -1.0], [6.0, 8.0]  # per-episode returns: means -2 and 7
+# (task, obs) -> each seed's per-episode returns of the final greedy policy
+POLICIES = {
+    ("spread", "pixels"): [[4.0, 6.0], [1.0, 2.0], [5.0, 6.0]],  # means 5, 1.5, 5.5: every seed above random
+    ("spread", "state"): [[6.0, 7.0], [6.0, 8.0], [5.0, 6.0]],
+    ("commons", "pixels"): [[0.0, 2.0], [-4.0, -2.0], [3.0, 5.0]],  # seed 1 (-3) below random (-2)
+}
+
+
+def evaluation(returns: list) -> dict:
+    return {"mean": float(np.mean(returns)), "std": float(np.std(returns)), "min": min(returns), "max": max(returns),
+            "episodes": len(returns), "per_episode": returns}
+
+
+def synthetic_result(env: str, obs: str, seed: int, returns: list) -> dict:
+    """A result.json of the step-budget trainer's schema with made-up numbers."""
+    steps = np.linspace(BUDGET / 10, BUDGET, 10).astype(int).tolist()
+    return {
+        "env": env, "obs": obs, "seeds": {"train": seed, "evaluation": 2000}, "evaluation_set": "publication",
+        "budget": {"env_steps": BUDGET}, "env_steps": BUDGET, "updates": 10, "wall_clock_seconds": 60.0 + seed,
+        "training_seconds": 50.0 + seed, "env_seconds_in_training": 20.0, "stage_seconds": {"env": 20.0},
+        "curve": [{"env_steps": s, "seconds": 5.0 * (i + 1) + seed, "episode_return": None if i == 0 else i + seed}
+                  for i, s in enumerate(steps)],
+        "checkpoints": [{"env_steps": s, "seconds": s / 2000, "mean": i + 0.5 * seed, "std": 0.1, "episodes": 2}
+                        for i, s in enumerate(CHECKPOINTS)],
+        "evaluation": {"policy": evaluation(returns), "random": evaluation(RANDOM), "heuristic": evaluation(HEURISTIC)},
+        "hyperparameters": {**report.DEFAULTS, "worlds": 4}, "env_options": {}, "train_options": {"shaping": 0.5},
+        "command": "python -m marl_render.baselines ...", "versions": {"torch": "2.13.0+cpu"},
+    }
+
+
+def write_runs(root, policies=POLICIES):
+    for (env, obs), per_seed in policies.items():
+        for seed, returns in enumerate(per_seed):
+            path = published.run_folder(root, env, obs, seed) / "result.json"
+            path.parent.mkdir(parents=True)
+            path.write_text(json.dumps(synthetic_result(env, obs, seed, returns)))
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    root = tmp_path_factory.mktemp("report")
+    results = root / "docs" / "baselines"
+    write_runs(results)
+    readme = root / "README.md"
+    readme.write_text(f"intro\n{report.START}\nold table\n{report.END}\nrest\n")
+    out = root / "docs" / "baselines.md"
+    assert report.main(["--results", str(results), "--out", str(out), "--readme", str(readme)]) == 0
+    rows = {line.split("|")[1].strip(): line.split("|")[2:-1] for line in out.read_text().splitlines()
+            if line.startswith("| ") and not line.startswith("| seed") and not line.startswith("| env steps")}
+    return {"results": results, "text": out.read_text(), "rows": rows, "readme": readme.read_text()}
+
+
+def test_rows_show_the_mean_its_interval_and_every_seed(written):
+    rows = written["rows"]
+    assert set(list_envs()) <= set(rows)
+    random, heuristic, pixels, state, above, normalised, scored_on, pixel_cost, state_cost = rows["spread"]
+    assert (random.strip(), heuristic.strip()) == ("-2.00", "7.00")
+    # 3 seeds: the interval of the mean is exactly [lowest, highest] seed
+    assert pixels.strip() == "4.00 [1.50, 5.50]; seeds 0/1/2: 5.00 / 1.50 / 5.50"
+    assert state.strip() == "6.33 [5.50, 7.00]; seeds 0/1/2: 6.50 / 7.00 / 5.50"
+    assert above.strip() == "yes; yes"
+    seed_scores = (np.array([5.0, 1.5, 5.5]) + 2) / 9 * 100
+    assert normalised.strip() == (f"{seed_scores.mean():.0f}% [{seed_scores.min():.0f}%, {seed_scores.max():.0f}%]; "
+                                  "seeds 0/1/2: " + " / ".join(f"{v:.0f}%" for v in seed_scores))
+    assert scored_on.strip() == "publication (seed 2000)"
+    assert pixel_cost.strip() == "100,000 steps; 1.0 min (1.0-1.0)"
+    commons = rows["commons"]
+    assert commons[3].strip() == "–" and commons[4].strip() == "no; –"  # seed 1 below random; no state runs
+    assert [cell.strip() for cell in rows["cartpole"]] == ["–"] * 4 + ["–; –"] + ["–"] * 4
+
+
+def test_document_says_final_policy_and_lists_commands_and_checkpoints(written):
+    text = written["text"]
+    assert "**Rows are the final policy only**" in text and "none is ever picked for a row" in text
+    assert ("python -m marl_render.baselines --env spread --seed 1 --env-steps 100000 --evaluation-set publication "
+            "--episodes 2 --worlds 4") in text
+    assert "--train-option shaping=0.5 --out docs/baselines/spread/seed1" in text
+    assert "--obs state --seed 2" in text and "--out docs/baselines/spread-state/seed2" in text
+    section = text.split("### spread from pixels")[1].split("###")[0]
+    assert "| env steps | seed 0 | seed 1 | seed 2 |" in section
+    for i, step in enumerate(CHECKPOINTS):  # checkpoint i of seed k returned i + k / 2
+        assert f"| {step:,} | {i:.2f} | {i + 0.5:.2f} | {i + 1:.2f} |" in section
+    assert "Learned minus random, mean over seeds: 6.00 [3.50, 7.50] (above random)." in section
+    assert "| 1 | 1.50 ± 0.50 (2) | -2.00 ± 1.00 | 7.00 ± 1.00 | publication (seed 2000) | 100,000 |" in section
+
+
+def test_aggregate_across_tasks_matches_stats(written):
+    normalised = {env: (np.array([np.mean(r) for r in POLICIES[(env, "pixels")]]) + 2) / 9
+                  for env in ("commons", "spread")}
+    matrix = np.stack([normalised["commons"], normalised["spread"]], axis=1)  # tasks in list_envs() order
+    iqm = stats.stratified_bootstrap(matrix, stats.iqm)
+    assert (f"from pixels, 3 seeds x 2 tasks (commons, spread): IQM {iqm.point:.2f} [{iqm.low:.2f}, {iqm.high:.2f}]"
+            in written["text"])
+    assert "from state, 3 seeds x 1 tasks (spread)" in written["text"]
+    assert "![normalised scores across tasks](baselines/aggregate.png)" in written["text"]
+
+
+@pytest.mark.parametrize("picture", ["spread/curves.png", "spread-state/curves.png", "commons/curves.png",
+                                     "aggregate.png"])
+def test_pictures_are_drawn(written, picture):
+    with Image.open(written["results"] / picture) as image:
+        pixels = np.asarray(image.convert("L"))
+    assert pixels.shape[0] >= 380 and pixels.shape[1] >= 1000
+    assert pixels.min() < 100 < pixels.max()  # lines drawn on a light background
+
+
+def test_readme_table_is_rewritten_short(written):
+    readme = written["readme"]
+    assert readme.startswith("intro\n") and readme.endswith("\nrest\n") and "old table" not in readme
+    row = next(line for line in readme.splitlines() if line.startswith("| spread |"))
+    assert row == "| spread | -2.00 | 7.00 | 4.00 [1.50, 5.50] | 6.33 [5.50, 7.00] | yes; yes |"
+
+
+def test_marl_eval_layout(written):
+    data = json.loads((written["results"] / "marl_eval.json").read_text())
+    assert list(data) == ["marl_render"] and set(data["marl_render"]) == {"spread", "commons"}
+    assert set(data["marl_render"]["spread"]) == {"mappo_pixels", "mappo_state"}
+    runs = data["marl_render"]["spread"]["mappo_pixels"]
+    assert list(runs) == ["seed_0", "seed_1", "seed_2"]
+    seed1 = runs["seed_1"]
+    assert list(seed1) == ["step_0", "step_1", "step_2", "absolute_metrics"]
+    assert [seed1[f"step_{i}"] for i in range(3)] == [{"step_count": s, "return": [i + 0.5]}
+                                                      for i, s in enumerate(CHECKPOINTS)]
+    assert seed1["absolute_metrics"] == {"return": POLICIES[("spread", "pixels")][1]}
+    # commons has no state runs: marl-eval's tools would refuse the file, and the report says so
+    problems = marl_eval.problems(data)
+    assert problems == ["marl_render: tasks differ in algorithms (commons: mappo_pixels; spread: mappo_pixels, "
+                        "mappo_state)"]
+    assert problems[0] in written["text"]
+
+
+def test_marl_eval_same_shape_everywhere_has_no_problems(tmp_path):
+    write_runs(tmp_path, {key: value for key, value in POLICIES.items() if key[1] == "pixels"})
+    data = marl_eval.layout(report.load_results(tmp_path))
+    assert marl_eval.problems(data) == []
+    del data["marl_render"]["spread"]["mappo_pixels"]["seed_2"]["step_2"]
+    assert marl_eval.problems(data) == ["marl_render: runs or steps differ (seed_0, seed_1, seed_2 with 3 steps: "
+                                        "commons/mappo_pixels; seed_0, seed_1, seed_2 with 2/3 steps: "
+                                        "spread/mappo_pixels)"]
+
+
+def test_older_flat_runs_are_read_only_where_no_seed_folders_exist(tmp_path):
+    write_runs(tmp_path, {("spread", "pixels"): POLICIES[("spread", "pixels")]})
+    old = synthetic_result("spread", "pixels", 0, [-100.0, -100.0])  # replaced by the seed folders
+    older = {k: v for k, v in synthetic_result("tag", "state", 0, [1.0, 3.0]).items()
+             if k not in ("evaluation_set", "budget", "checkpoints")}
+    for name, result in (("spread", old), ("tag-state", {**older, "budget_minutes": 5.0})):
+        (tmp_path / name).mkdir(exist_ok=True)
+        (tmp_path / name / "result.json").write_text(json.dumps(result))
+    runs = report.load_results(tmp_path)
+    assert [r["evaluation"]["policy"]["mean"] for r in runs["spread"]["pixels"]] == [5.0, 1.5, 5.5]
+    tag = runs["tag"]["state"]
+    assert len(tag) == 1 and tag[0]["evaluation_set"] == "development"
+    row = next(line for line in report.table(runs).splitlines() if line.startswith("| tag |"))
+    assert "| 2.00 (seed 0 only) | –; not judged (1 seed) |" in row
+    assert "| development (seed 2000) | – | 5 min wall-clock budget: 100,000 steps; 1.0 min |" in row
+    assert "--budget-minutes 5 --eval-seed 2000" in report.reproducing_command(tag[0])
+
+
+@pytest.mark.parametrize("content, message", [
+    ('{"env": "spread", "obs": "pix', "not a readable result.json"),
+    (json.dumps({"env": "spread", "obs": "pixels", "seeds": {"train": 0}, "env_steps": 5}),
+     "result.json has no evaluation.policy.mean"),
+    (json.dumps({**synthetic_result("spread", "pixels", 0, [1.0]), "obs": "rgb"}), "obs must be one of"),
+])
+def test_bad_result_files_are_named(tmp_path, content, message):
+    path = tmp_path / "spread" / "seed0" / "result.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(content)
+    with pytest.raises(ValueError, match=message) as error:
+        report.load_results(tmp_path)
+    assert str(path) in str(error.value)
+
+
+def test_bad_policy_mean_is_named(tmp_path):
+    result = synthetic_result("spread", "pixels", 0, [1.0])
+    result["evaluation"]["policy"]["mean"] = float("nan")
+    (tmp_path / "spread" / "seed0").mkdir(parents=True)
+    (tmp_path / "spread" / "seed0" / "result.json").write_text(json.dumps(result))
+    with pytest.raises(ValueError, match="evaluation.policy.mean must be a finite number, got nan"):
+        report.load_results(tmp_path)
+
+
+def test_two_runs_of_one_seed_are_refused(tmp_path):
+    write_runs(tmp_path, {("spread", "pixels"): [[1.0]]})
+    copy = tmp_path / "spread" / "seed7" / "result.json"  # a seed-0 run in another seed's folder
+    copy.parent.mkdir()
+    copy.write_text((tmp_path / "spread" / "seed0" / "result.json").read_text())
+    with pytest.raises(ValueError, match="two runs of spread from pixels with training seed 0"):
+        report.load_results(tmp_path)
+
+
+def test_readme_without_markers_is_refused_before_writing(tmp_path):
+    write_runs(tmp_path / "runs", {("spread", "pixels"): [[1.0]]})
+    readme, out = tmp_path / "README.md", tmp_path / "baselines.md"
+    readme.write_text("no markers\n")
+    with pytest.raises(ValueError, match="markers"):
+        report.main(["--results", str(tmp_path / "runs"), "--out", str(out), "--readme", str(readme)])
+    assert readme.read_text() == "no markers\n" and not out.exists()
+    assert not (tmp_path / "runs" / "marl_eval.json").exists()
+    with pytest.raises(ValueError, match="--results must be a folder of runs"):
+        report.main(["--results", str(tmp_path / "nothing"), "--out", str(out), "--readme", ""])
+
+
+def test_published_commands_cover_every_task_and_seed():
+    published.check_complete()
+    commands = published.commands()
+    assert len(commands) == len(list_envs()) * 2 * len(published.SEEDS) and len(published.SEEDS) >= 3
+    for env in list_envs():
+        for obs in published.OBSERVATIONS:
+            entry = published.RUNS[env][obs]
+            for seed in published.SEEDS:
+                argv = published.run_argv(env, obs, seed)
+                line = " ".join(argv)
+                assert f"--seed {seed} --env-steps {entry.env_steps} --evaluation-set publication" in line
+                assert line.endswith(f"--out docs/baselines/{published.folder(env, obs)}/seed{seed}")
+                # Everything but the step budget and the evaluation set is an option the learner has today.
+                i = argv.index(published.BUDGET_FLAG)
+                args = run.parse_args(argv[:i] + argv[i + 4:])
+                assert (args.env, args.obs, args.seed) == (env, obs, seed)
+                assert dict(args.env_option) == dict(entry.env_options)
+                assert dict(args.train_option) == dict(entry.train_options)
+                assert all(getattr(args, k) == v for k, v in entry.hyperparameters.items())
+
+
+def test_published_entries_are_checked_and_read_only():
+    with pytest.raises(ValueError, match="env_steps must be an int >= 1, got 0"):
+        published.Published(0)
+    with pytest.raises(TypeError):
+        published.RUNS["push"]["pixels"].train_options["shaping"] = 2.0
+    assert published.RUNS["push"]["pixels"].train_options["shaping"] == 1.0
