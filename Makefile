@@ -27,7 +27,7 @@ PYBATCHRENDER_GIT ?= https://github.com/dolphin-in-a-coma/pybatchrender
 PYBATCHRENDER_COMMIT := 3ef046acc65c7d0c49495fa0f354ccc24e8c949f
 PEERS_PIP := pip install --quiet --disable-pip-version-check
 
-.PHONY: demo test test-benchmarl test-rllib bench bench-peers peers-venvs meltingpot-venv mpe-venv \
+.PHONY: demo test test-benchmarl test-rllib bench baselines bench-peers peers-venvs meltingpot-venv mpe-venv \
 	pybatchrender-venv clean
 
 $(STAMP): pyproject.toml constraints.txt
@@ -70,6 +70,13 @@ test-rllib: $(RLLIB_STAMP)
 
 bench: $(STAMP)
 	$(PY) -m marl_render.bench render --json
+
+# Every published reference run (marl_render/baselines/published.py: each task from pixels and from
+# the state, 3 seeds, step budgets, publication evaluation worlds), one at a time, then docs/baselines.md.
+# Hours on 2 cores; a run whose result.json exists is kept. `python -m marl_render.baselines.published`
+# lists the commands.
+baselines: $(STAMP)
+	$(PY) -m marl_render.baselines.published --run
 
 # Melting Pot from its sdist: its build_py downloads bot models from storage.googleapis.com,
 # replaced here by an empty assets folder (substrates need no bots; scenarios do and fail).

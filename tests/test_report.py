@@ -243,3 +243,20 @@ def test_published_entries_are_checked_and_read_only():
     with pytest.raises(TypeError):
         published.RUNS["push"]["pixels"].train_options["shaping"] = 2.0
     assert published.RUNS["push"]["pixels"].train_options["shaping"] == 1.0
+
+
+def test_published_main_lists_and_runs_what_is_missing(tmp_path, monkeypatch, capsys):
+    assert published.main(["--root", "runs"]) == 0
+    assert capsys.readouterr().out.splitlines() == published.commands("runs")
+    kept = published.run_folder(tmp_path, "spread", "state", 1)
+    kept.mkdir(parents=True)
+    (kept / "result.json").write_text("{}")
+    calls = []
+    monkeypatch.setattr(published.subprocess, "run",
+                        lambda argv, check: calls.append(argv) or published.subprocess.CompletedProcess(argv, 0))
+    assert published.main(["--run", "--root", str(tmp_path)]) == 0
+    learner = [argv[3:] for argv in calls if argv[2] == "marl_render.baselines"]
+    expected = [published.run_argv(env, obs, seed, tmp_path) for env in published.RUNS for obs in published.OBSERVATIONS
+                for seed in published.SEEDS if (env, obs, seed) != ("spread", "state", 1)]
+    assert learner == expected
+    assert calls[-1][2:] == ["marl_render.baselines.report", "--results", str(tmp_path)]

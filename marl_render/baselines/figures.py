@@ -57,9 +57,12 @@ def plot_task(env: str, obs: str, results: list, path) -> None:
         spread = band([training_curve(r, key) for r in results])
         if spread is not None:
             grid, mean, low, high = spread
-            ax.fill_between(grid * scale, low, high, alpha=0.25, color="tab:blue",
-                            label=f"training episodes, min-max over {len(results)} seeds" if named else None)
-            ax.plot(grid * scale, mean, color="tab:blue", label="training episodes, mean over seeds" if named else None)
+            several = len(results) > 1
+            if several:
+                ax.fill_between(grid * scale, low, high, alpha=0.25, color="tab:blue",
+                                label=f"training episodes, min-max over {len(results)} seeds" if named else None)
+            ax.plot(grid * scale, mean, color="tab:blue",
+                    label=f"training episodes{', mean over seeds' if several else ''}" if named else None)
         for name, color, style in LEVELS:
             level = np.mean([r["evaluation"][name]["mean"] for r in results])
             ax.axhline(level, color=color, linestyle=style, label=f"{name}: {level:.4g}" if named else None)
@@ -75,7 +78,8 @@ def plot_task(env: str, obs: str, results: list, path) -> None:
     axes[0].set_ylabel("episode return (mean over evaluated agents)")
     for ax in axes:
         ax.legend(fontsize=7, loc="best")
-    figure.suptitle(f"MAPPO on {env} from {obs}: seeds {', '.join(map(str, seeds))}", fontsize=10)
+    figure.suptitle(f"MAPPO on {env} from {obs}: seed{'s' if len(seeds) > 1 else ''} "
+                    f"{', '.join(map(str, seeds))}", fontsize=10)
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)
