@@ -2,6 +2,7 @@
 
     python -m marl_render.baselines --env spread                  # 15 minutes, writes out/baselines/spread/
     python -m marl_render.baselines --env cartpole --budget-minutes 30 --out docs/baselines/cartpole
+    python -m marl_render.baselines.published                     # every published command (make baselines runs them)
     python -m marl_render.baselines.report                        # docs/baselines.md from docs/baselines/*/
 
 The learner is MAPPO (PPO with a centralised critic) written with TorchRL's ClipPPOLoss and
@@ -13,7 +14,10 @@ scripted heuristic policies (docs/reference_returns.json).
 
 Modules: settings (hyperparameters and their per-task defaults), networks (actor and critic),
 ppo (rollouts and updates), policy (the greedy policy handed to evaluate), curve (curve.png),
-run (the command line and result.json), report (docs/baselines.md).
+run (the command line and result.json), published (the published runs as data, ``make
+baselines``), stats (interquartile mean and stratified bootstrap intervals across seeds, as
+rliable), report (docs/baselines.md) with figures (its pictures) and marl_eval (the runs in
+marl-eval's JSON layout, as BenchMARL writes them).
 """
 from .settings import TASK_DEFAULTS, Hyperparameters, task_hyperparameters
 
