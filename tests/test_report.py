@@ -30,12 +30,14 @@ def synthetic_result(env: str, obs: str, seed: int, returns: list) -> dict:
     steps = np.linspace(BUDGET / 10, BUDGET, 10).astype(int).tolist()
     return {
         "env": env, "obs": obs, "seeds": {"train": seed, "evaluation": 2000}, "evaluation_set": "publication",
-        "budget": {"env_steps": BUDGET}, "env_steps": BUDGET, "updates": 10, "wall_clock_seconds": 60.0 + seed,
+        "budget": {"env_steps": BUDGET, "updates": None, "max_minutes": None}, "budget_minutes": None,
+        "truncated": False, "env_steps": BUDGET, "updates": 10, "wall_clock_seconds": 60.0 + seed,
         "training_seconds": 50.0 + seed, "env_seconds_in_training": 20.0, "stage_seconds": {"env": 20.0},
         "curve": [{"env_steps": s, "seconds": 5.0 * (i + 1) + seed, "episode_return": None if i == 0 else i + seed}
                   for i, s in enumerate(steps)],
-        "checkpoints": [{"env_steps": s, "seconds": s / 2000, "mean": i + 0.5 * seed, "std": 0.1, "episodes": 2}
-                        for i, s in enumerate(CHECKPOINTS)],
+        "checkpoints": [{"env_steps": s, "updates": i, "seconds": s / 2000, "mean": i + 0.5 * seed, "std": 0.0,
+                         "min": i + 0.5 * seed, "max": i + 0.5 * seed, "episodes": 2,
+                         "per_episode": [i + 0.5 * seed] * 2} for i, s in enumerate(CHECKPOINTS)],
         "evaluation": {"policy": evaluation(returns), "random": evaluation(RANDOM), "heuristic": evaluation(HEURISTIC)},
         "hyperparameters": {**report.DEFAULTS, "worlds": 4}, "env_options": {}, "train_options": {"shaping": 0.5},
         "command": "python -m marl_render.baselines ...", "versions": {"torch": "2.13.0+cpu"},
@@ -86,7 +88,7 @@ def test_rows_show_the_mean_its_interval_and_every_seed(written):
 def test_document_says_final_policy_and_lists_commands_and_checkpoints(written):
     text = written["text"]
     assert "**Rows are the final policy only**" in text and "none is ever picked for a row" in text
-    assert ("python -m marl_render.baselines --env spread --seed 1 --env-steps 100000 --evaluation-set publication "
+    assert ("python -m marl_render.baselines --env spread --seed 1 --env-steps 100000 --eval-set publication "
             "--episodes 2 --worlds 4") in text
     assert "--train-option shaping=0.5 --out docs/baselines/spread/seed1" in text
     assert "--obs state --seed 2" in text and "--out docs/baselines/spread-state/seed2" in text
@@ -133,7 +135,7 @@ def test_marl_eval_layout(written):
     assert list(runs) == ["seed_0", "seed_1", "seed_2"]
     seed1 = runs["seed_1"]
     assert list(seed1) == ["step_0", "step_1", "step_2", "absolute_metrics"]
-    assert [seed1[f"step_{i}"] for i in range(3)] == [{"step_count": s, "return": [i + 0.5]}
+    assert [seed1[f"step_{i}"] for i in range(3)] == [{"step_count": s, "return": [i + 0.5] * 2}
                                                       for i, s in enumerate(CHECKPOINTS)]
     assert seed1["absolute_metrics"] == {"return": POLICIES[("spread", "pixels")][1]}
     # commons has no state runs: marl-eval's tools would refuse the file, and the report says so
@@ -157,7 +159,7 @@ def test_older_flat_runs_are_read_only_where_no_seed_folders_exist(tmp_path):
     write_runs(tmp_path, {("spread", "pixels"): POLICIES[("spread", "pixels")]})
     old = synthetic_result("spread", "pixels", 0, [-100.0, -100.0])  # replaced by the seed folders
     older = {k: v for k, v in synthetic_result("tag", "state", 0, [1.0, 3.0]).items()
-             if k not in ("evaluation_set", "budget", "checkpoints")}
+             if k not in ("evaluation_set", "budget", "checkpoints", "truncated")}
     for name, result in (("spread", old), ("tag-state", {**older, "budget_minutes": 5.0})):
         (tmp_path / name).mkdir(exist_ok=True)
         (tmp_path / name / "result.json").write_text(json.dumps(result))
@@ -169,6 +171,22 @@ def test_older_flat_runs_are_read_only_where_no_seed_folders_exist(tmp_path):
     assert "| 2.00 (seed 0 only) | –; not judged (1 seed) |" in row
     assert "| development (seed 2000) | – | 5 min wall-clock budget: 100,000 steps; 1.0 min |" in row
     assert "--budget-minutes 5 --eval-seed 2000" in report.reproducing_command(tag[0])
+
+
+def test_update_budgets_truncated_runs_and_other_seeds_are_said(tmp_path):
+    write_runs(tmp_path, {("tag", "pixels"): [[1.0], [2.0]]})
+    path = tmp_path / "tag" / "seed1" / "result.json"
+    result = json.loads(path.read_text())
+    result.update(budget={"env_steps": None, "updates": 40, "max_minutes": 2.0}, truncated=True,
+                  evaluation_set="seed 5", seeds={"train": 1, "evaluation": 5})
+    path.write_text(json.dumps(result))
+    runs = report.load_results(tmp_path)
+    assert report.cost_cell(runs["tag"]["pixels"]) == ("100,000 steps / 40 updates; 1.0 min (1.0-1.0); 1 of 2 "
+                                                       "truncated by --max-minutes")
+    assert report.scored_on(runs["tag"]) == "publication (seed 2000), seed 5"
+    assert "--seed 1 --updates 40 --max-minutes 2 --eval-seed 5 --episodes 1" in report.reproducing_command(
+        runs["tag"]["pixels"][1])
+    assert "| seed 5 | 100,000 (truncated) |" in "\n".join(report.seeds_table(runs["tag"]["pixels"]))
 
 
 @pytest.mark.parametrize("content, message", [
@@ -226,7 +244,7 @@ def test_published_commands_cover_every_task_and_seed():
             for seed in published.SEEDS:
                 argv = published.run_argv(env, obs, seed)
                 line = " ".join(argv)
-                assert f"--seed {seed} --env-steps {entry.env_steps} --evaluation-set publication" in line
+                assert f"--seed {seed} --env-steps {entry.env_steps} --eval-set publication" in line
                 assert line.endswith(f"--out docs/baselines/{published.folder(env, obs)}/seed{seed}")
                 # Everything but the step budget and the evaluation set is an option the learner has today.
                 i = argv.index(published.BUDGET_FLAG)

@@ -32,12 +32,11 @@ from types import MappingProxyType
 from marl_render.envs import list_envs
 
 SEEDS = (0, 1, 2)
-EVALUATION_SET = "publication"
-EPISODES = 32
+EVALUATION_SET = "publication"  # its env seed and number of episodes are the learner's (run.py)
 OBSERVATIONS = ("pixels", "state")
-# The learner's options for what the step-budget trainer added (run.py owns the names).
+# The learner's options that stop a run and choose its evaluation worlds (run.py owns the names).
 BUDGET_FLAG = "--env-steps"
-EVALUATION_SET_FLAG = "--evaluation-set"
+EVALUATION_SET_FLAG = "--eval-set"
 ROOT = "docs/baselines"
 
 
@@ -89,12 +88,11 @@ def _value(value) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
-def learner_argv(env: str, obs: str, seed: int, *, budget: list[str], evaluation: list[str], episodes: int,
+def learner_argv(env: str, obs: str, seed: int, *, budget: list[str], evaluation: list[str],
                  hyperparameters: Mapping, env_options: Mapping, train_options: Mapping, out) -> list[str]:
     """The arguments of ``python -m marl_render.baselines`` for one run. `budget` and `evaluation`
-    are the options that stop the run and choose its evaluation worlds."""
-    argv = ["--env", env] + (["--obs", obs] if obs != "pixels" else []) + ["--seed", str(seed), *budget, *evaluation,
-                                                                            "--episodes", str(episodes)]
+    are the options that stop the run and choose its evaluation episodes."""
+    argv = ["--env", env] + (["--obs", obs] if obs != "pixels" else []) + ["--seed", str(seed), *budget, *evaluation]
     for name, value in hyperparameters.items():
         flag = "--" + name.replace("_", "-")
         argv += ([flag] if value else []) if isinstance(value, bool) else [flag, _value(value)]
@@ -108,7 +106,7 @@ def run_argv(env: str, obs: str, seed: int, root=ROOT) -> list[str]:
     """The arguments of the published run of `env` from `obs` with training seed `seed`."""
     entry = RUNS[env][obs]
     return learner_argv(env, obs, seed, budget=[BUDGET_FLAG, str(entry.env_steps)],
-                        evaluation=[EVALUATION_SET_FLAG, EVALUATION_SET], episodes=EPISODES,
+                        evaluation=[EVALUATION_SET_FLAG, EVALUATION_SET],
                         hyperparameters=entry.hyperparameters, env_options=entry.env_options,
                         train_options=entry.train_options, out=run_folder(root, env, obs, seed))
 

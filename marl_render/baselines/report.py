@@ -180,8 +180,14 @@ def normalised_cell(results: list | None) -> str:
     return estimate_cell(values, [r["seeds"]["train"] for r in results], percent=True)
 
 
+def evaluation_worlds(result: dict) -> str:
+    """The run's evaluation set and its env seed ("seed N" alone for a seed outside the named sets)."""
+    name, seed = result["evaluation_set"], result["seeds"]["evaluation"]
+    return name if name == f"seed {seed}" else f"{name} (seed {seed})"
+
+
 def scored_on(by_obs: dict) -> str:
-    sets = {obs: sorted({f"{r['evaluation_set']} (seed {r['seeds']['evaluation']})" for r in results})
+    sets = {obs: sorted({evaluation_worlds(r) for r in results})
             for obs, results in by_obs.items() if results}
     unique = {", ".join(s) for s in sets.values()}
     if len(unique) <= 1:
@@ -195,9 +201,13 @@ def cost_cell(results: list | None) -> str:
         return "–"
     minutes = np.array([r.get("wall_clock_seconds", r.get("training_seconds", 0.0)) for r in results]) / 60
     clock = f"{minutes.mean():.1f} min" + (f" ({minutes.min():.1f}-{minutes.max():.1f})" if len(results) > 1 else "")
+    truncated = sum(bool(r.get("truncated")) for r in results)
+    if truncated:  # stopped by the opt-in wall-clock cap before the step budget
+        clock += f"; {truncated} of {len(results)} truncated by --max-minutes"
     if "budget" in results[0]:
-        budgets = sorted({r["budget"]["env_steps"] for r in results})
-        return f"{' / '.join(f'{b:,}' for b in budgets)} steps; {clock}"
+        budgets = sorted({f"{b['env_steps']:,} steps" if b.get("env_steps") else f"{b['updates']:,} updates"
+                          for b in (r["budget"] for r in results)})
+        return f"{' / '.join(budgets)}; {clock}"
     steps = sorted({r["env_steps"] for r in results})
     reached = f"{steps[0]:,}" + (f"-{steps[-1]:,}" if len(steps) > 1 else "")
     return f"{results[0]['budget_minutes']:g} min wall-clock budget: {reached} steps; {clock}"
@@ -289,15 +299,21 @@ def reproducing_command(run: dict) -> str:
     """The run's command with every hyperparameter spelled out, so that it still reproduces the
     run after a task's defaults change."""
     if "budget" in run:
-        budget = [BUDGET_FLAG, str(run["budget"]["env_steps"])]
-        evaluation = [EVALUATION_SET_FLAG, run["evaluation_set"]]
+        budget = run["budget"]
+        flags = [BUDGET_FLAG, str(budget["env_steps"])] if budget.get("env_steps") else [
+            "--updates", str(budget["updates"])]
+        if budget.get("max_minutes"):
+            flags += ["--max-minutes", f"{budget['max_minutes']:g}"]
+        named = run["evaluation_set"] in ("development", "publication")
+        evaluation = [EVALUATION_SET_FLAG, run["evaluation_set"]] if named else [
+            "--eval-seed", str(run["seeds"]["evaluation"])]
     else:  # the wall-clock budget and the evaluation seed of the runs before step budgets
-        budget = ["--budget-minutes", f"{run['budget_minutes']:g}"]
+        flags = ["--budget-minutes", f"{run['budget_minutes']:g}"]
         evaluation = ["--eval-seed", str(run["seeds"]["evaluation"])]
-    argv = learner_argv(run["env"], run["obs"], run["seeds"]["train"], budget=budget, evaluation=evaluation,
-                        episodes=run["evaluation"]["policy"]["episodes"], hyperparameters=run["hyperparameters"],
-                        env_options=run.get("env_options", {}), train_options=run.get("train_options", {}),
-                        out=Path(ROOT) / run["relative"])
+    evaluation += ["--episodes", str(run["evaluation"]["policy"]["episodes"])]
+    argv = learner_argv(run["env"], run["obs"], run["seeds"]["train"], budget=flags, evaluation=evaluation,
+                        hyperparameters=run["hyperparameters"], env_options=run.get("env_options", {}),
+                        train_options=run.get("train_options", {}), out=Path(ROOT) / run["relative"])
     return "python -m marl_render.baselines " + shlex.join(argv)
 
 
@@ -308,7 +324,7 @@ def seeds_table(results: list) -> list[str]:
         e = r["evaluation"]
         rows.append(f"| {r['seeds']['train']} | {mean_std(e['policy'])} ({e['policy']['episodes']}) "
                     f"| {mean_std(e['random'])} | {mean_std(e['heuristic'])} "
-                    f"| {r['evaluation_set']} (seed {r['seeds']['evaluation']}) | {r['env_steps']:,} "
+                    f"| {evaluation_worlds(r)} | {r['env_steps']:,}{' (truncated)' if r.get('truncated') else ''} "
                     f"| {r.get('updates', '–')} | {r.get('wall_clock_seconds', 0) / 60:.1f} min "
                     f"| {r.get('training_seconds', 0) / 60:.1f} ({r.get('env_seconds_in_training', 0) / 60:.1f}) min |")
     return rows
