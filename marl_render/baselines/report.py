@@ -122,9 +122,9 @@ def interval(e: stats.Estimate, places: int, scale: float = 1, unit: str = "") -
 
 
 def estimate_cell(values: np.ndarray, seeds: list, percent: bool = False) -> str:
-    """"mean [low, high]; seeds a/b/c: x / y / z" (one value where every run gives the same)."""
+    """"mean [low, high]; seeds a/b/c: x / y / z"; the value alone for one run."""
     scale, unit, places = (100, "%", 0) if percent else (1, "", digits(*values))
-    if np.all(values == values[0]):
+    if len(values) == 1:
         return number(values[0] * scale, places) + unit
     return (interval(across_seeds(values), places, scale, unit) + f"; seeds {'/'.join(map(str, seeds))}: "
             + " / ".join(number(v * scale, places) + unit for v in values))
@@ -161,7 +161,10 @@ def reference_cell(by_obs: dict, policy: str) -> str:
     results = by_obs.get("pixels") or by_obs.get("state")
     if not results:
         return "–"
-    return estimate_cell(scores(results, policy), [r["seeds"]["train"] for r in results])
+    values = scores(results, policy)
+    if np.all(values == values[0]):  # the same worlds and the same policy give the same return on every run
+        return number(values[0], digits(values[0]))
+    return estimate_cell(values, [r["seeds"]["train"] for r in results])
 
 
 def normalised(results: list) -> np.ndarray | None:
