@@ -194,6 +194,9 @@ def test_update_budgets_truncated_runs_and_other_seeds_are_said(tmp_path):
     (json.dumps({"env": "spread", "obs": "pixels", "seeds": {"train": 0}, "env_steps": 5}),
      "result.json has no evaluation.policy.mean"),
     (json.dumps({**synthetic_result("spread", "pixels", 0, [1.0]), "obs": "rgb"}), "obs must be one of"),
+    (json.dumps({**synthetic_result("spread", "pixels", 0, [1.0]), "seeds": {"train": "0"}}),
+     "seeds.train must be an int, got '0'"),
+    ("[1, 2]", "result.json has no env"),
 ])
 def test_bad_result_files_are_named(tmp_path, content, message):
     path = tmp_path / "spread" / "seed0" / "result.json"

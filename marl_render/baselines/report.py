@@ -60,6 +60,11 @@ def read_result(path: Path) -> dict:
             raise ValueError(f"{path}: {'.'.join(keys)} must be a finite number, got {value!r}")
     if result["obs"] not in OBSERVATIONS:
         raise ValueError(f"{path}: obs must be one of {OBSERVATIONS}, got {result['obs']!r}")
+    if not isinstance(result["env"], str):
+        raise ValueError(f"{path}: env must be a task name, got {result['env']!r}")
+    seed = result["seeds"]["train"]
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"{path}: seeds.train must be an int, got {seed!r}")
     result["folder"] = path.parent
     # Runs before the split into development and publication worlds were scored on the worlds
     # every development choice used.
