@@ -31,8 +31,9 @@ import torch
 from torch import Tensor
 
 import marl_render as mr
+from marl_render.validation import describe
 
-from . import egomotion, planar, scenery
+from . import egomotion, planar, scenery, sight
 from .scenario import Scenario, Step, numbered
 
 __all__ = ["ArenaScenario", "ArenaState", "Prop", "Static", "numbered"]
@@ -193,6 +194,13 @@ class ArenaScenario(Scenario):
         """Static boxes of the physics (none unless the task has some)."""
         return None
 
+    def frozen(self, state: ArenaState) -> Tensor | None:
+        """[W, A] bool: agents held where they are for the coming step, e.g. seekers while hiders hide.
+        A frozen agent neither turns nor moves whatever its action, keeps no velocity, and others bump
+        into it as into a wall; rules still gets its action (mask what it may not do with action_mask).
+        None (the default): nobody is frozen."""
+        return None
+
     # ------------------------------------------------------------------ dynamics
     def bodies(self, state: ArenaState, active: Tensor) -> planar.BodyState:
         """The physics view of `state`, with `active` [W, B] bodies."""
@@ -201,14 +209,98 @@ class ArenaScenario(Scenario):
 
     def step(self, state, actions, alive, generator) -> Step:
         command = actions[..., :2] if self.continuous else self.action_table[actions]
-        yaw, force = egomotion.drive(state.yaw, command, alive, self.thrust, self.physics.dt)
+        frozen = self._frozen(state)
+        moving = alive if frozen is None else alive & ~frozen
+        yaw, force = egomotion.drive(state.yaw, command, moving, self.thrust, self.physics.dt)
         active, extra = alive, self.radius.shape[0] - self.num_agents
         if extra:  # further bodies (push's ball) feel no force and always take part
             force = torch.cat((force, force.new_zeros(self.num_worlds, extra, 2)), 1)
             active = torch.cat((alive, alive.new_ones(self.num_worlds, extra)), 1)
-        bodies = planar.step(self.bodies(state, active), force, self.obstacles(state), self.physics)
+        bodies = self.bodies(state, active)
+        if frozen is not None:  # an immovable body (planar.py: infinite mass) for this step
+            held = torch.cat((frozen, frozen.new_zeros(self.num_worlds, extra)), 1)
+            bodies = bodies._replace(mass=torch.where(held, math.inf, bodies.mass))
+        bodies = planar.step(bodies, force, self.obstacles(state), self.physics)
         moved = dataclasses.replace(state, pos=bodies.pos, vel=bodies.vel, active=bodies.active, yaw=yaw)
         return Step(*self.rules(state, moved, actions, alive, generator))
+
+    def _frozen(self, state) -> Tensor | None:
+        """frozen(state), checked: the hook's mistake is named here, not inside the physics."""
+        frozen = self.frozen(state)
+        W, A = self.num_worlds, self.num_agents
+        if frozen is not None and not (isinstance(frozen, Tensor) and frozen.dtype == torch.bool
+                                       and tuple(frozen.shape) == (W, A) and frozen.device == self.device):
+            raise ValueError(f"{type(self).__name__}.frozen must return None or a bool tensor of shape [{W}, {A}] "
+                             f"on {self.device}, got {describe(frozen)}")
+        return frozen
+
+    # ------------------------------------------------------------------ what agents see
+    def sees(self, state: ArenaState, targets, *, fov: float | None = None, reach: float | None = None) -> Tensor:
+        """[W, A, T] bool: whether each agent sees each target, batched (envs/sight.py): the target lies
+        within the horizontal field of view `fov` (rad) of the agent's heading and `reach` metres of its
+        centre, and no wall, obstacle box (obstacles(state)) or immovable body (a body of infinite mass:
+        a pillar) crosses the line between them. Other agents do not hide a target.
+
+        targets: points [W, T, 2]; the name of a Prop (its instances; inactive ones are never seen); or
+        "agents" (T = A; an agent never sees itself, nor agents that are not taking part or not shown).
+        fov: default the cameras' at a square resolution, horizontal_fov() (90 degrees); reach: default
+        the cameras' far plane. Both are the rules' to choose, independent of the rendering options."""
+        A = self.num_agents
+        fov = self.horizontal_fov() if fov is None else fov
+        reach = self.far if reach is None else reach
+        name = targets if isinstance(targets, str) else None
+        if name is not None:
+            targets, present = self._targets(state, name)
+        elif not (isinstance(targets, Tensor) and targets.ndim == 3 and targets.shape[0] == self.num_worlds
+                  and targets.shape[2] == 2 and targets.is_floating_point()):
+            raise ValueError(f"targets must be float points [{self.num_worlds}, T, 2], 'agents' or a Prop's name, "
+                             f"got {describe(targets)}")
+        bodies = self.bodies(state, state.active)
+        pillars = sight.Circles(bodies.pos, bodies.radius, bodies.active & torch.isinf(bodies.mass))
+        seen = sight.line_of_sight(state.pos[:, :A], state.yaw, targets, fov=fov, reach=reach,
+                                   half_extent=self.arena_half_extent, boxes=self.obstacles(state), circles=pillars)
+        if name is not None:
+            seen = seen & present[:, None]
+        if name == "agents":
+            seen = seen & ~torch.eye(A, dtype=torch.bool, device=self.device)
+        return seen
+
+    def horizontal_fov(self, aspect: float = 1.0) -> float:
+        """The agents' cameras' horizontal field of view (rad) at a view `aspect` = width / height, for
+        points at eye height (envs/sight.py): 90 degrees for the arena's square views."""
+        return sight.horizontal_fov(self.fov_y, aspect, CAMERA_PITCH)
+
+    def lidar(self, state: ArenaState, rays: int, reach: float | None) -> Tensor:
+        """[W, A, rays] in [0, 1] (the "lidar" observation, EnvOptions.lidar): along `rays` rays from each
+        agent's centre, ray 0 along its heading and the others evenly around it counter-clockwise, the
+        distance to the first wall, obstacle box or other body taking part (and shown), divided by
+        `reach` (default: the arena's diagonal) and capped at 1: 1 means nothing within reach."""
+        W, A = self.num_worlds, self.num_agents
+        reach = 2 * math.hypot(*self.arena_half_extent) if reach is None else reach
+        bodies = self.bodies(state, state.active)
+        present = bodies.active.clone()
+        if self.shown is not None:
+            present[:, :A] &= getattr(state, self.shown)
+        bodies = sight.Circles(bodies.pos, bodies.radius, present)
+        own = torch.eye(A, self.radius.shape[0], dtype=torch.bool, device=self.device).expand(W, A, -1)
+        return sight.lidar(state.pos[:, :A], state.yaw, rays=rays, reach=reach, half_extent=self.arena_half_extent,
+                           boxes=self.obstacles(state), circles=bodies, skip=own).to(torch.float32)
+
+    def _targets(self, state, name: str) -> tuple:
+        """(positions [W, T, 2], present [W, T] bool) of the agents or of the Prop called `name`."""
+        A = self.num_agents
+        if name == "agents":
+            present = state.active[:, :A]
+            return state.pos[:, :A], present if self.shown is None else present & getattr(state, self.shown)
+        props = {prop.name: prop for prop in self._declared() if isinstance(prop, Prop)}
+        if name not in props:
+            raise ValueError(f"targets must be points [W, T, 2], 'agents' or the name of a Prop of {self.name} "
+                             f"({sorted(props)}), got {name!r}")
+        prop = props[name]
+        position = _read(state, prop.position)
+        if prop.active is None:
+            return position, torch.ones_like(position[..., 0], dtype=torch.bool)
+        return position, _read(state, prop.active)
 
     # ------------------------------------------------------------------ scene binding
     def build_scene(self, scene: mr.Scene, overview: bool) -> None:

@@ -18,8 +18,12 @@ Data contract (W worlds, A agents, H x Wpx pixels)::
       "depth"        float32 [W, A, H, Wpx]      depth=True (metres along the view axis;
                                                   background = the camera's far plane)
       "state"        float32 [W, A, state_dim]   state_obs=True
+      "lidar"        float32 [W, A, rays]        lidar=rays (arena tasks): distance to the first
+                                                  wall, box or body along each ray / lidar_range,
+                                                  capped at 1 (envs/sight.py)
       "action_mask"  bool    [W, A, num_actions] discrete envs (all True where no action
-                                                  can be invalid)
+                                                  can be invalid); advice unless
+                                                  enforce_action_mask=True (envs/masking.py)
     obs, reward, terminated, truncated, info = env.step(actions)
       actions: discrete  integer [W, A] in [0, num_actions)
                continuous float  [W, A, action_dim] in [-1, 1]
@@ -92,6 +96,7 @@ from marl_render.shadows import atlas_layout
 from marl_render.threads import limited_threads, thread_count
 from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, unpicklable
 
+from . import masking
 from . import options as check
 from . import spec as env_spec
 from . import state as explicit_state
@@ -99,7 +104,7 @@ from .options import EnvOptions
 from .rendering import EnvRenderer, check_memory
 from .scenario import Layout, Scenario
 
-OBS_KEYS = ("pixels", "depth", "state", "action_mask")
+OBS_KEYS = ("pixels", "depth", "state", "lidar", "action_mask")
 
 
 def _from_user(name: str, value):
@@ -130,7 +135,9 @@ class BatchedEnv:
     step; None: the task's own; coarser than the no-tunnelling bound is refused)), and
     compile_physics (torch.compile the task's physics kernel where it has one (cartpole):
     within 1e-12 of the default path, faster at small batches; seconds to compile at construction;
-    a RuntimeWarning and the default path where compiling fails), `params` an instance of the
+    a RuntimeWarning and the default path where compiling fails), lidar (rays of the "lidar"
+    observation, 0: none) and lidar_range (m it is divided by; None: the arena's diagonal), and
+    enforce_action_mask (refuse forbidden actions: envs/masking.py), `params` an instance of the
     scenario's Params (None: its defaults).
 
     Attributes: scenario, spec (the EnvSpec every front end translates), name, num_worlds (W),
@@ -138,6 +145,7 @@ class BatchedEnv:
     (H, W), continuous, num_actions (discrete, else None), action_dim (continuous, else None),
     action_meanings, obs_keys, info_keys, state_dim, max_steps, dt, device, seed, generator,
     renderer, physics (PhysicsConfig or None), physics_compiled (compile_physics took effect),
+    lidar_rays, lidar_range, enforce_action_mask,
     sim (the simulation state), alive [W, A] bool,
     step_count [W] int64; and the scenario's camera settings (background, fov_y, near, far,
     overview_resolution, overview_fov_y, arena_half_extent) and agent_range.
@@ -169,6 +177,11 @@ class BatchedEnv:
         self.depth = check.flag("depth", options.depth)
         self.grayscale = check.flag("grayscale", options.grayscale)
         self.pixel_channels = 1 if self.grayscale else 3
+        self.lidar_rays, self.lidar_range = check.lidar(options.lidar, options.lidar_range, scenario)
+        self.enforce_action_mask = check.flag("enforce_action_mask", options.enforce_action_mask)
+        if self.enforce_action_mask and self.continuous:
+            raise ValueError("enforce_action_mask applies to discrete actions (continuous=False), which have an "
+                             "action mask; got enforce_action_mask=True with continuous=True")
         self.autoreset = check.autoreset_mode(options.autoreset)  # False, "next_step" or "same_step"
         self.device = check.device(options.device)
         torch_threads = options.torch_threads
@@ -198,7 +211,8 @@ class BatchedEnv:
         self.sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
         self._check_scenario()
         self.obs_keys = tuple(k for k, on in (("pixels", True), ("depth", self.depth), ("state", self.state_obs),
-                                              ("action_mask", not self.continuous)) if on)
+                                              ("lidar", self.lidar_rays > 0), ("action_mask", not self.continuous))
+                              if on)
         self.spec = env_spec.build(self)
         W, A = self.num_worlds, self.num_agents
         self.alive = torch.ones(W, A, dtype=torch.bool, device=self.device)
@@ -266,7 +280,10 @@ class BatchedEnv:
         self._check_process()
         self._check_started()
         with limited_threads(self.torch_threads):
-            return self._step(self.check_actions(actions))
+            actions = self.check_actions(actions)
+            if self.enforce_action_mask:
+                self._check_allowed(actions)
+            return self._step(actions)
 
     def _step(self, actions):
         W = self.num_worlds
@@ -313,6 +330,9 @@ class BatchedEnv:
         W, A = self.num_worlds, self.num_agents
         if self.continuous:
             return torch.rand(W, A, self.action_dim, generator=generator) * 2 - 1
+        if self.enforce_action_mask:  # among the allowed actions only (envs/masking.py)
+            with torch.no_grad(), limited_threads(self.torch_threads):
+                return masking.sample_allowed(self._action_mask(), generator)
         return torch.randint(self.num_actions, (W, A), generator=generator)
 
     @torch.no_grad()
@@ -460,6 +480,24 @@ class BatchedEnv:
         """The core's part of the state (get_state / set_state)."""
         return {"step_count": self.step_count, "alive": self.alive}
 
+    def _action_mask(self) -> torch.Tensor:
+        """The scenario's action mask [W, A, num_actions] of the current state, checked."""
+        mask = self.scenario.action_mask(self.sim, self.alive)
+        _check_tensor(f"{type(self.scenario).__name__}.action_mask", mask, (self.num_worlds, self.num_agents,
+                                                                           self.num_actions), "bool", self.device)
+        return mask
+
+    def _check_allowed(self, actions: torch.Tensor) -> None:
+        """enforce_action_mask: a ValueError naming the forbidden actions of the agents this step acts
+        for (those of departed agents and of worlds a next_step autoreset restarts are ignored)."""
+        acting = self.alive
+        if self.autoreset == "next_step":
+            acting = acting & ~self.episode_over()[:, None]
+        mask = self._action_mask()
+        refused = masking.forbidden(mask, actions, acting)
+        if bool(refused.any()):
+            raise masking.refusal(refused, mask, actions, self.agent_names, self.action_meanings)
+
     def _check_scenario(self):
         """A scenario whose setup() left its declarations incomplete fails here, naming the hook."""
         s, A, where = self.scenario, self.num_agents, f"{type(self.scenario).__name__}.setup"
@@ -530,6 +568,8 @@ class BatchedEnv:
             state = self.scenario.observation(self.sim, self.alive)
             _check_tensor(f"{s}.observation", state, (W, A, self.state_dim), "float", self.device)
             obs["state"] = state.to(torch.float32)
+        if self.lidar_rays:
+            obs["lidar"] = self.scenario.lidar(self.sim, self.lidar_rays, self.lidar_range)
         if not self.continuous:
             mask = self.scenario.action_mask(self.sim, self.alive)
             _check_tensor(f"{s}.action_mask", mask, (W, A, self.num_actions), "bool", self.device)

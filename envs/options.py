@@ -17,10 +17,11 @@ import numpy as np
 import torch
 
 import marl_render as mr
-from marl_render.validation import describe, positive_int, resolution_hw
+from marl_render.validation import describe, positive_float, positive_int, resolution_hw
 
 AUTORESET_MODES = ("next_step", "same_step")
 MAX_SUBSTEPS = 1024  # physics_substeps; docs/accuracy takes 64 substeps as its reference already
+MAX_LIDAR_RAYS = 1024  # every ray meets every body and box of its world: W x A x rays x bodies floats a step
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,6 +49,13 @@ class EnvOptions:
     physics_substeps: int | None = None
     # torch.compile the task's physics kernel (cartpole): envs/compiled.py.
     compile_physics: bool = False
+    # Arena tasks: the obs key "lidar", float32 [W, A, lidar] distances along that many rays (0: none),
+    # each divided by lidar_range (m; None: the arena's diagonal) and capped at 1 (envs/sight.py).
+    lidar: int = 0
+    lidar_range: float | None = None
+    # Refuse a step whose actions the action mask forbids (ValueError, nothing changes); default: the
+    # mask is advice that policies may read (envs/masking.py).
+    enforce_action_mask: bool = False
 
 
 OPTION_NAMES = frozenset(field.name for field in dataclasses.fields(EnvOptions))
@@ -140,6 +148,23 @@ def physics_substeps(value, scenario):
     except ValueError as exc:  # too coarse: bodies would tunnel through each other
         raise ValueError(f"physics_substeps={substeps} is too coarse for {scenario.name} "
                          f"(default {scenario.physics.substeps}): {exc}") from None
+
+
+def lidar(rays, reach, scenario) -> tuple:
+    """(rays, reach) of the lidar observation: rays an int in [0, MAX_LIDAR_RAYS] (0: none), reach None
+    (the task's default) or a finite number > 0 of metres, for tasks that have planar geometry."""
+    if isinstance(rays, (bool, np.bool_)) or not isinstance(rays, (int, np.integer)):
+        raise TypeError(f"lidar must be an int in [0, {MAX_LIDAR_RAYS}] (rays; 0: no lidar), got {describe(rays)}")
+    if not 0 <= rays <= MAX_LIDAR_RAYS:
+        raise ValueError(f"lidar must be an int in [0, {MAX_LIDAR_RAYS}] (rays; 0: no lidar), got {rays}")
+    if reach is not None:
+        reach = positive_float("lidar_range", reach)
+        if not rays:
+            raise ValueError(f"lidar_range applies with lidar > 0 (rays), got lidar_range={reach} and lidar=0")
+    if rays and not scenario.has_lidar():
+        raise ValueError(f"lidar applies to arena tasks (ArenaScenario: walls, obstacles and bodies to hit); "
+                         f"{scenario.name} has none, got lidar={rays}")
+    return int(rays), reach
 
 
 def max_steps(value, scenario) -> int:

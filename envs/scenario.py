@@ -174,6 +174,16 @@ class Scenario(abc.ABC):
         """Actions of a scripted policy that reads the state: a reference that beats random."""
         raise NotImplementedError(f"{type(self).__name__} has no scripted heuristic")
 
+    def lidar(self, state, rays: int, reach: float | None) -> torch.Tensor:
+        """[W, A, rays] float in [0, 1]: the "lidar" observation (EnvOptions.lidar), distances to the
+        first hit along `rays` rays divided by `reach`. Arena tasks have it (envs/arena.py)."""
+        raise ValueError(f"lidar applies to tasks with planar geometry (ArenaScenario); {self.name} has none")
+
+    @classmethod
+    def has_lidar(cls) -> bool:
+        """Whether the task can give the lidar observation."""
+        return cls.lidar is not Scenario.lidar
+
     def compile_physics(self) -> bool:
         """Switch step() to a compiled kernel (EnvOptions.compile_physics, envs/compiled.py) whose
         results stay within 1e-12 of the default path's; returns whether compiling succeeded

@@ -76,6 +76,8 @@ def build(env) -> EnvSpec:
         observations["depth"] = ArraySpec((H, Wpx), torch.float32, 0.0, float(env.far))
     if env.state_obs:
         observations["state"] = ArraySpec((env.state_dim,), torch.float32, -float("inf"), float("inf"))
+    if env.lidar_rays:
+        observations["lidar"] = ArraySpec((env.lidar_rays,), torch.float32, 0.0, 1.0)
     if not env.continuous:
         observations["action_mask"] = ArraySpec((env.num_actions,), torch.bool, 0, 1)
     if env.continuous:
