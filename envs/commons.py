@@ -205,8 +205,8 @@ class Commons(ArenaScenario):
     def heuristic(self, state, alive):
         """A sustainable harvester: each agent drives to the nearest present apple with at least three
         present neighbours (so patches keep seeds to regrow from at a high rate), holding still when
-        there is none; it never zaps. Over 32 worlds it collects about 64 apples per episode to a
-        greedy one's 50 (which strips every world bare)."""
+        there is none (and while tagged, as its action mask says); it never zaps. Over 32 worlds it
+        collects about 64 apples per episode to a greedy one's 50 (which strips every world bare)."""
         W, N = self.num_worlds, self.num_agents
         ripe = (state.present.to(torch.float32) @ self.neighbours.to(torch.float32)) >= 3
         dist = torch.cdist(state.pos[:, :N], self.apples.expand(W, -1, -1))  # [W, N, M]
@@ -214,4 +214,6 @@ class Commons(ArenaScenario):
         target = self.apples[dist.argmin(-1)]  # [W, N, 2]
         target = torch.where(torch.isinf(dist.amin(-1))[..., None], state.pos[:, :N], target)
         action = self.steer_to(state, target)
-        return torch.cat((action, torch.zeros_like(action[..., :1])), -1) if self.continuous else action
+        if self.continuous:
+            return torch.cat((action, torch.zeros_like(action[..., :1])), -1)
+        return torch.where(state.timeout > 0, 0, action)  # a tagged agent may only noop (its action mask)
