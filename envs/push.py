@@ -6,11 +6,12 @@ its own camera mounted on its body.
 * Pitch: |x| <= 1.5 m, |y| <= 2.0 m, walls and floor are static geometry. Each end has
   a goal: a coloured area of the floor ``|x| < GOAL_HALF_WIDTH`` (0.5 m), ``|y| > GOAL_LINE``
   (1.7 m) against the end wall, framed by two posts and a crossbar in the defending
-  team's colour. ``team_a`` (red) defends the goal at -y and attacks +y; ``team_b``
-  (blue) defends +y and attacks -y.
+  team's colour. ``red`` defends the goal at -y and attacks +y; ``blue`` defends +y
+  and attacks -y.
 * Agents: ``num_agents`` (even, 2 to 12, default 4 = 2 vs 2); agents ``0 .. N/2 - 1``
-  are ``team_a``, the rest ``team_b``; names ``red_i`` / ``blue_i`` (PettingZoo's
-  ``<name>_<number>``, after the team colours), groups ``{"team_a": [...], "team_b": [...]}``.
+  are team ``red``, the rest team ``blue``; names ``red_i`` / ``blue_i`` (PettingZoo's
+  ``<team>_<number>``), groups ``{"red": [...], "blue": [...]}`` (formerly
+  ``team_a`` / ``team_b``).
   Capsules of radius 0.15 m, mass 1.
   The camera sits at 0.4 m, pitched 0.2 rad down; a dark "nose" box shows which way a
   body faces.
@@ -25,20 +26,20 @@ its own camera mounted on its body.
   Every agent of the scoring team gets ``+goal_reward`` (default 1), every agent of the
   other team ``-goal_reward``, and the episode terminates (every agent terminated):
   one goal per episode. Optional shaping (``shaping`` >= 0, default 0, zero-sum):
-  ``team_a`` additionally gets ``shaping x`` (the ball's progress along +y in the step,
-  metres), ``team_b`` the negative.
+  ``red`` additionally gets ``shaping x`` (the ball's progress along +y in the step,
+  metres), ``blue`` the negative.
 * Episode: truncated after ``max_steps`` = 200 if nobody scores.
-* Reset: ``team_a`` in its own half (y in [-1.6, -0.45]) facing +y, ``team_b`` mirrored,
+* Reset: ``red`` in its own half (y in [-1.6, -0.45]) facing +y, ``blue`` mirrored,
   each yaw jittered by up to 0.5 rad; a team's agents in distinct lanes across the
   pitch (in random order) so nobody overlaps; the ball at rest within (0.3, 0.1) m of
   the centre spot.
 * action_mask: every action is always valid (all True).
-* State obs (10 + 2 (N - 1)), in the agent's **team frame** (``team_b``'s frame is the
+* State obs (10 + 2 (N - 1)), in the agent's **team frame** (``blue``'s frame is the
   world turned by 180 degrees, so every agent attacks +y): own position (2), velocity
   (2), cos/sin yaw (2), ball position relative to the agent (2), ball velocity (2),
   teammates' positions relative to the agent (2 each), then opponents' (2 each), each
   in agent-index order.
-* info: ``"goal"`` int64 [W]: +1 ``team_a`` scored in this step, -1 ``team_b`` scored,
+* info: ``"goal"`` int64 [W]: +1 ``red`` scored in this step, -1 ``blue`` scored,
   0 none.
 """
 from __future__ import annotations
@@ -68,7 +69,6 @@ BALL_COLOR = (0.95, 0.95, 0.92)
 WALL_THICKNESS = 0.1  # scenery.add_arena's default
 POST_SIZE = 0.08
 POST_HEIGHT = 0.6
-TEAM_COLORS = {"team_a": scenery.TEAM_COLORS["red"], "team_b": scenery.TEAM_COLORS["blue"]}
 
 
 def goals() -> list:
@@ -78,8 +78,8 @@ def goals() -> list:
     area_y, frame_y = (GOAL_LINE + hy) / 2, hy + WALL_THICKNESS / 2
     positions, scales, colors = [], [], []
     area_pos, area_scale, area_color = [], [], []
-    for side, team in ((-1.0, "team_a"), (1.0, "team_b")):  # the goal at side * y is team's own
-        color = list(TEAM_COLORS[team])
+    for side, team in ((-1.0, "red"), (1.0, "blue")):  # the goal at side * y is team's own
+        color = list(scenery.TEAM_COLORS[team])
         area_pos.append([0.0, side * area_y, 0.005])
         area_scale.append([2 * GOAL_HALF_WIDTH, depth, 1.0])
         area_color.append([0.5 + 0.5 * c for c in color])  # a lighter shade on the floor
@@ -116,8 +116,7 @@ class Push(ArenaScenario):
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
     info_keys = {"goal": torch.int64}
     arena_half_extent = ARENA
-    team_colors = TEAM_COLORS
-    opponents = ("team_b",)
+    opponents = ("blue",)
 
     def setup(self):
         N = self.num_agents
@@ -125,11 +124,11 @@ class Push(ArenaScenario):
             raise ValueError(f"num_agents must be even for push (two equal teams), got {N}")
         T = N // 2
         # Bodies 0 .. N-1 are the agents, body N is the ball.
-        self.setup_arena({"team_a": numbered("red", T), "team_b": numbered("blue", T)},
+        self.setup_arena({"red": numbered("red", T), "blue": numbered("blue", T)},
                          state_dim=10 + 2 * (N - 1), radius=AGENT_RADIUS, max_speed=3.0, substeps=3,
                          bodies=((BALL_RADIUS, BALL_MASS),))
-        self.is_team_a = torch.arange(N, device=self.device) < T
-        self.side = self.per_agent({"team_a": 1.0, "team_b": -1.0})  # +1: attacks +y (team_a), -1: attacks -y
+        self.is_red = torch.arange(N, device=self.device) < T
+        self.side = self.per_agent({"red": 1.0, "blue": -1.0})  # +1: attacks +y (red), -1: attacks -y
         # Per agent: teammates then opponents, each in index order, [N, N-1].
         self.others = torch.tensor([[j for j in range(N) if j != i and (j < T) == (i < T)]
                                     + [j for j in range(N) if (j < T) != (i < T)] for i in range(N)],
@@ -153,7 +152,7 @@ class Push(ArenaScenario):
         width = 2 * SPAWN_X / T
         x = (lane + 0.5) * width - SPAWN_X + (u[..., 0] * 2 - 1) * max(0.0, width / 2 - AGENT_RADIUS - SPAWN_CLEARANCE)
         y = -self.side * (SPAWN_Y[0] + u[..., 1] * (SPAWN_Y[1] - SPAWN_Y[0]))  # own half
-        yaw = torch.where(self.is_team_a, 0.0, math.pi) + (u[..., 2] * 2 - 1) * SPAWN_YAW_JITTER
+        yaw = torch.where(self.is_red, 0.0, math.pi) + (u[..., 2] * 2 - 1) * SPAWN_YAW_JITTER
         ball = ((torch.rand(W, 1, 2, generator=g) * 2 - 1) * torch.tensor([0.3, 0.1])).to(self.device)
         return self.at_rest(torch.cat((torch.stack((x, y), -1), ball), 1), scenery.wrap_angle(yaw))
 
@@ -168,11 +167,11 @@ class Push(ArenaScenario):
         return moved, reward, terminated, {"goal": goal}
 
     def observation(self, state, alive):
-        s = self.side[None, :, None]  # team frame: team_b's coordinates turned by 180 degrees
+        s = self.side[None, :, None]  # team frame: blue's coordinates turned by 180 degrees
         agents, vel = state.pos[:, :-1], state.vel[:, :-1]
         ball, ball_vel = state.pos[:, -1], state.vel[:, -1]
         W, N = agents.shape[:2]
-        yaw = state.yaw + torch.where(self.is_team_a, 0.0, math.pi)
+        yaw = state.yaw + torch.where(self.is_red, 0.0, math.pi)
         others = self.others_obs(state) * s[..., None]  # [W, N, N-1, 2]
         return torch.cat((agents * s, vel * s, torch.cos(yaw)[..., None], torch.sin(yaw)[..., None],
                           (ball[:, None] - agents) * s, ball_vel[:, None] * s, others.reshape(W, N, -1)), -1)

@@ -87,7 +87,7 @@ INFO = {  # step info key -> meaning
     "tags": "agents tagged in this step (commons: out for a while; capture_flag: sent home)",
     "depleted_at": "step of the episode at which the last apple went; -1 while some remain",
     "team_score": "the team's total reward of the episode so far (sum over agents and steps)",
-    "goal": "+1: team_a scored in this step, -1: team_b scored, 0: no goal",
+    "goal": "+1: red scored in this step, -1: blue scored, 0: no goal",
     "found": "1 once an agent has reached the goal in this episode",
     "returned": "1 once an agent that reached the goal is back in the home room (return_home; else always 0)",
     "rooms_visited": "distinct rooms any agent has been in this episode (the home room included)",
@@ -259,7 +259,11 @@ def page(seed: int | None, picture_dir: str | None) -> str:
              "`shadows` (False, True: the arena's shadows, or a `marl_render.Shadows`), `device`, `seed`, "
              "`autoreset`, `grayscale`, the accuracy knobs `multisamples`, `supersample` and `physics_substeps` "
              "(what they cost: docs/accuracy/), and `compile_physics` (cartpole: its physics kernel through "
-             "`torch.compile`, within 1e-12 of the default path; README, \"Compiled physics\"). "
+             "`torch.compile`, within 1e-12 of the default path; README, \"Compiled physics\"); arena tasks "
+             "also take `lidar` (rays of the obs key `lidar`, float32 [W, A, rays] in [0, 1]) and `lidar_range`, "
+             "and discrete ones `enforce_action_mask` (a step refuses actions the mask forbids; by default the "
+             "mask is advice: docs/authoring.md). Teams are named as their agents are (`red`: red_0, red_1, ...; "
+             "one team of agent_0, agent_1, ... is `agents`). "
              "Agents that leave an episode (caught prey) stay in every tensor: "
              "reward 0, reported terminated, actions ignored (they must still be valid, e.g. 0), until their "
              "world is reset. `truncated` is True for the agents still in the episode when the world reaches "

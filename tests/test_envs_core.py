@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import marl_render as mr
-from marl_render.envs import BatchedEnv, Scenario, list_envs, make_env, register_env, registry
+from marl_render.envs import BatchedEnv, Layout, Scenario, list_envs, make_env, register_env, registry
 
 W = 3
 RES = 32
@@ -43,6 +43,18 @@ def test_registry_lists_and_makes():
     env = make_env("spread", num_worlds=1, resolution=16)
     assert isinstance(env, BatchedEnv) and env.name == "spread"
     env.close()
+
+
+@pytest.mark.parametrize("name", ENVS)
+def test_team_names_are_the_agent_name_prefixes(name):
+    """One naming convention (docs/authoring.md): agents are <team>_<i>, i = 0, 1, ... per team, as
+    TorchRL's VMAS and PettingZoo wrappers group them; a task with one team calls it "agents" (TorchRL's
+    one-group name) and its agents agent_<i>. push's teams were once team_a / team_b."""
+    cls = registry.env_class(name)
+    teams = cls(cls.Params(), Layout(1, cls.default_num_agents, False, torch.device("cpu"))).teams
+    for team, names in teams.items():
+        prefix = "agent" if team == "agents" and len(teams) == 1 else team
+        assert names == [f"{prefix}_{i}" for i in range(len(names))], (team, names)
 
 
 def test_registry_unknown_name_lists_known():

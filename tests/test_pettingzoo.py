@@ -63,7 +63,7 @@ def test_pettingzoo_tests_pass_with_default_arguments(name):
 @pytest.mark.parametrize("name", ENVS)
 def test_aec_env_passes_api_test_with_default_arguments(name):
     """make_aec_env (parallel_to_aec of make_parallel_env) passes PettingZoo's api_test without a
-    warning: agent names follow its <descriptor>_<number> pattern (push's were team_a_0)."""
+    warning: agent names follow its <descriptor>_<number> pattern (push's agents were once team_a_0)."""
     from pettingzoo import AECEnv
 
     from marl_render.envs import make_aec_env

@@ -46,7 +46,7 @@ SIDELINE = [[-1.2, -0.3], [1.2, -0.3], [-1.2, 0.3], [1.2, 0.3]]  # 4 agents out 
 def test_teams_state_size_and_info():
     env = make(state_obs=True)
     N = env.num_agents
-    assert N == 4 and env.groups == {"team_a": ["red_0", "red_1"], "team_b": ["blue_0", "blue_1"]}
+    assert N == 4 and env.groups == {"red": ["red_0", "red_1"], "blue": ["blue_0", "blue_1"]}
     assert env.state_dim == 10 + 2 * (N - 1)
     obs = env.reset(seed=1)
     assert obs["action_mask"].all()
@@ -59,10 +59,10 @@ def test_team_sizes_and_registry():
     assert "push" in list_envs()
     env = make_env("push", num_worlds=1, resolution=8, num_agents=6)
     assert isinstance(env.scenario, push.Push)
-    assert env.groups == {"team_a": [f"red_{i}" for i in range(3)], "team_b": [f"blue_{i}" for i in range(3)]}
+    assert env.groups == {"red": [f"red_{i}" for i in range(3)], "blue": [f"blue_{i}" for i in range(3)]}
     env.close()
     env = make(num_agents=2, resolution=8)
-    assert env.groups == {"team_a": ["red_0"], "team_b": ["blue_0"]}
+    assert env.groups == {"red": ["red_0"], "blue": ["blue_0"]}
     env.close()
     with pytest.raises(ValueError, match="even"):
         make(num_agents=3)
@@ -87,8 +87,8 @@ def test_reset_layout():
 def test_goal_scored_rewards_the_right_team_and_ends_the_episode():
     env = make()
     env.reset(seed=0)
-    # World 0: the ball rolls into team_b's goal (+y): team_a scores. World 1: into team_a's goal
-    # (-y): team_b scores. World 2: into the +y end wall beside the goal mouth: nothing.
+    # World 0: the ball rolls into blue's goal (+y): red scores. World 1: into red's goal
+    # (-y): blue scores. World 2: into the +y end wall beside the goal mouth: nothing.
     ball = torch.tensor([[0.0, 1.62], [0.1, -1.62], [1.0, 1.62]])
     ball_vel = torch.tensor([[0.0, 1.5], [0.0, -1.5], [0.0, 1.5]])
     place(env, SIDELINE, ball, ball_vel)
@@ -120,7 +120,7 @@ def test_ball_is_pushed_by_an_agent():
     env = make(continuous=True)
     env.reset(seed=0)
     agents = torch.tensor(SIDELINE)
-    agents[0] = torch.tensor([0.0, -0.5])  # red_0 (team_a) right behind the ball, facing +y
+    agents[0] = torch.tensor([0.0, -0.5])  # red_0 right behind the ball, facing +y
     place(env, agents, torch.tensor([0.0, -0.2]), yaw=torch.zeros(W, 4))
     actions = torch.zeros(W, 4, 2)
     actions[:, 0, 0] = 1.0
@@ -145,8 +145,8 @@ def test_shaping_is_zero_sum_and_follows_the_ball():
 
 
 def test_state_obs_is_in_the_team_frame():
-    # A configuration symmetric under the 180 degree turn: each team_a agent sees exactly
-    # what its mirrored team_b counterpart sees.
+    # A configuration symmetric under the 180 degree turn: each red agent sees exactly
+    # what its mirrored blue counterpart sees.
     env = make(state_obs=True)
     env.reset(seed=0)
     a = torch.tensor([[-0.7, -0.9], [0.4, -0.3]])
@@ -155,7 +155,7 @@ def test_state_obs_is_in_the_team_frame():
           agent_vel=torch.tensor([[0.2, 0.1], [0.0, -0.3], [-0.2, -0.1], [0.0, 0.3]]))
     state = env.state_observation()
     assert torch.allclose(state[:, :2], state[:, 2:], atol=1e-6)
-    # team_a's own frame is the world frame.
+    # red's own frame is the world frame.
     assert torch.allclose(state[0, 0, :6], torch.tensor([-0.7, -0.9, 0.2, 0.1, math.cos(0.3), math.sin(0.3)]))
     assert torch.allclose(state[0, 0, 6:8], torch.tensor([0.7, 0.9]))  # ball relative to the agent
     assert torch.allclose(state[0, 0, 10:12], torch.tensor([1.1, 0.6]))  # teammate first
