@@ -1,6 +1,7 @@
 """Stable-Baselines3 front end (marl_render/wrappers/sb3.py); skipped without the `sb3` extra."""
 from __future__ import annotations
 
+import gymnasium
 import numpy as np
 import pytest
 import torch
@@ -11,6 +12,7 @@ from stable_baselines3.common.evaluation import evaluate_policy  # noqa: E402
 from stable_baselines3.common.vec_env import VecCheckNan, VecFrameStack, VecMonitor, VecTransposeImage  # noqa: E402
 
 from marl_render.envs import make_env, make_sb3_env  # noqa: E402
+from marl_render.wrappers.sb3 import NATURE_CNN_MIN_SIZE, SmallImageCNN  # noqa: E402
 
 W = 4
 RES = 40  # SB3's NatureCNN needs images of at least 36 x 36
@@ -160,3 +162,44 @@ def test_indices_out_of_range_raise():
         venv.get_attr("num_worlds", indices=[0.5])
     assert not hasattr(venv.venv, "x")
     venv.close()
+
+
+def test_default_cnn_policy_needs_36_pixels_a_side():
+    """What the SB3 docs here say (marl_render/wrappers/sb3.py, README): NatureCNN takes 36 x 36, not 35."""
+    for resolution, fits in ((NATURE_CNN_MIN_SIZE, True), ((48, NATURE_CNN_MIN_SIZE - 1), False)):
+        venv = make_sb3_env("cartpole", num_worlds=1, resolution=resolution)
+        try:
+            if fits:
+                PPO("CnnPolicy", venv, n_steps=8, batch_size=8, device="cpu")
+            else:
+                with pytest.raises(RuntimeError, match="Kernel size can't be greater than actual input size"):
+                    PPO("CnnPolicy", venv, n_steps=8, batch_size=8, device="cpu")
+        finally:
+            venv.close()
+
+
+def test_small_image_cnn_trains_ppo_at_16_pixels():
+    venv = VecMonitor(make_sb3_env("spread", num_worlds=2, resolution=16, max_steps=8, seed=0))
+    model = PPO("CnnPolicy", venv, n_steps=16, batch_size=32, n_epochs=2, seed=0, device="cpu",
+                policy_kwargs={"features_extractor_class": SmallImageCNN,
+                               "features_extractor_kwargs": {"features_dim": 64}})
+    extractor = model.policy.features_extractor
+    assert isinstance(extractor, SmallImageCNN) and extractor.features_dim == 64
+    obs = torch.as_tensor(model.get_env().reset()).float() / 255
+    assert obs.shape == (6, 3, 16, 16) and extractor(obs).shape == (6, 64)
+    before = [p.detach().clone() for p in extractor.parameters()]
+    model.learn(total_timesteps=192)
+    assert model.num_timesteps == 192 and len(model.ep_info_buffer) == 192 // 8
+    assert any(not torch.equal(a, b) for a, b in zip(before, extractor.parameters(), strict=True))  # it learned
+    actions, _ = model.predict(model.get_env().reset())
+    assert actions.shape == (6,)
+    venv.close()
+
+
+def test_small_image_cnn_takes_8_pixels_and_refuses_fewer():
+    image = gymnasium.spaces.Box(0, 255, (3, 8, 8), np.uint8)
+    assert SmallImageCNN(image, features_dim=16)(torch.zeros(2, 3, 8, 8)).shape == (2, 16)
+    with pytest.raises(ValueError, match="at least 8 x 8 pixels, got 7 x 12"):
+        SmallImageCNN(gymnasium.spaces.Box(0, 255, (3, 7, 12), np.uint8))
+    with pytest.raises(ValueError, match="observation_space must be an image Box"):
+        SmallImageCNN(gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32))

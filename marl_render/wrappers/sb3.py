@@ -21,11 +21,23 @@ method once and repeats its result; ``set_attr`` sets it once (indices are check
 ``[0, num_envs)``); ``seed(s)`` (one int) seeds the next reset with ``s`` (the core's one
 generator draws for every world); ``set_options(options)`` passes one options dict (e.g.
 ``{"reset_mask": mask}``) to the next reset, the same for every entry.
+
+Resolution: SB3's ``CnnPolicy`` uses its ``NatureCNN`` (8x8 stride 4, 4x4 stride 2, 3x3 stride 1
+convolutions), which needs at least 36 pixels on each side: below that (e.g. 35 x 35 or 48 x 35) it
+fails with torch's "Kernel size can't be greater than actual input size". For 8 to 48 pixels use
+``SmallImageCNN``, this module's feature extractor::
+
+    model = PPO("CnnPolicy", make_sb3_env("spread", num_worlds=16, resolution=16),
+                policy_kwargs={"features_extractor_class": SmallImageCNN})
 """
 from __future__ import annotations
 
 import numpy as np
+import torch
+from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
+from stable_baselines3.common.preprocessing import is_image_space
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.vec_env import VecEnv
 
 from marl_render.validation import describe, unpicklable
@@ -159,7 +171,45 @@ class MarlRenderSB3VecEnv(VecEnv):
         return [int(index) % n for index in given]
 
 
-__all__ = ["MarlRenderSB3VecEnv", "make_sb3_env"]
+NATURE_CNN_MIN_SIZE = 36  # pixels a side that SB3's NatureCNN (the default CnnPolicy) needs
+SMALL_IMAGE_MIN_SIZE = 8  # SmallImageCNN's two stride-2 convolutions leave 2 x 2 of an 8 x 8 image
+
+
+class SmallImageCNN(BaseFeaturesExtractor):
+    """A feature extractor for images of 8 to 48 pixels a side, where SB3's NatureCNN cannot go (see
+    the module docstring): three 3x3 convolutions (32, 64, 64 channels; strides 1, 2, 2; padding 1;
+    ReLU), then a linear layer to `features_dim` with ReLU. SB3 hands it channel-first images (it
+    adds VecTransposeImage itself), scaled to [0, 1] unless normalize_images=False.
+
+        PPO("CnnPolicy", venv, policy_kwargs={"features_extractor_class": SmallImageCNN,
+                                              "features_extractor_kwargs": {"features_dim": 128}})
+
+    Larger images work too, but the linear layer grows with their area (64 x 64: 16 x 16 x 64 inputs);
+    NatureCNN suits them better."""
+
+    def __init__(self, observation_space: spaces.Box, features_dim: int = 256, normalized_image: bool = False):
+        if not is_image_space(observation_space, check_channels=False, normalized_image=normalized_image):
+            raise ValueError(f"observation_space must be an image Box (channel-first, uint8 unless normalized_image)"
+                             f" as SB3's CnnPolicy gets it, got {observation_space}")
+        channels, height, width = observation_space.shape
+        if min(height, width) < SMALL_IMAGE_MIN_SIZE:
+            raise ValueError(f"SmallImageCNN needs images of at least {SMALL_IMAGE_MIN_SIZE} x {SMALL_IMAGE_MIN_SIZE} "
+                             f"pixels, got {height} x {width}")
+        super().__init__(observation_space, features_dim)
+        self.cnn = torch.nn.Sequential(
+            torch.nn.Conv2d(channels, 32, 3, stride=1, padding=1), torch.nn.ReLU(),
+            torch.nn.Conv2d(32, 64, 3, stride=2, padding=1), torch.nn.ReLU(),
+            torch.nn.Conv2d(64, 64, 3, stride=2, padding=1), torch.nn.ReLU(),
+            torch.nn.Flatten())
+        with torch.no_grad():
+            flat = self.cnn(torch.zeros(1, channels, height, width)).shape[1]
+        self.linear = torch.nn.Sequential(torch.nn.Linear(flat, features_dim), torch.nn.ReLU())
+
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.linear(self.cnn(observations))
+
+
+__all__ = ["MarlRenderSB3VecEnv", "SmallImageCNN", "make_sb3_env"]
 
 
 def _same_options(a: dict, b: dict) -> bool:
