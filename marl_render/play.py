@@ -3,6 +3,7 @@
     python -m marl_render.play spread                            # drive agent 0 in a window
     python -m marl_render.play tag --agent prey_0 --others random
     python -m marl_render.play commons --keys "w w a a 5 d" --frames out/   # scripted, no window needed
+    python -m marl_render.play my_tasks:HideAndSeek              # a task of your own, by module:Class
 
 The window shows the agent's egocentric view (what its policy would see, scaled up) beside the
 overview camera. Keys: w forward, s backward, a turn left, d turn right (for tasks with those
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
 import json
 import os
 import sys
@@ -30,7 +32,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from marl_render.envs import Scenario, make_env
+from marl_render.envs import Scenario, env_class, make_env
 from marl_render.envs.evaluation import random_policy
 from marl_render.wrappers.window import window_unavailable
 
@@ -53,12 +55,13 @@ class Turn:
 
 
 class Player:
-    """One world of task `name` with agent `agent` (index or name) driven by keys: ``frame()`` is
-    what the window shows, ``step(key)`` plays one step. Keyword arguments go to make_env."""
+    """One world of task `name` (a registered name, a Scenario subclass or "module:Class") with agent
+    `agent` (index or name) driven by keys: ``frame()`` is what the window shows, ``step(key)`` plays
+    one step. Keyword arguments go to make_env."""
 
     def __init__(self, name, *, agent=0, others: str | None = None, resolution=64, overview=256, seed=0,
                  **kwargs):
-        self.env = make_env(name, num_worlds=1, resolution=resolution, seed=seed, **kwargs)
+        self.env = make_env(task_class(name), num_worlds=1, resolution=resolution, seed=seed, **kwargs)
         try:
             self.agent = self._agent_index(agent)
             self.others = self._others(others)
@@ -154,6 +157,20 @@ class Player:
         return torch.zeros(1, self.env.num_agents, dtype=torch.int64)
 
 
+def task_class(name):
+    """The task of a registered name, or the Scenario subclass a "module:Class" string names."""
+    if not (isinstance(name, str) and name.count(":") == 1):
+        return env_class(name)
+    module, attribute = name.split(":")
+    try:
+        task = getattr(importlib.import_module(module), attribute)
+    except (ImportError, AttributeError) as exc:
+        raise ValueError(f"task {name!r} names no importable class: {exc}") from None
+    if not (isinstance(task, type) and issubclass(task, Scenario)):
+        raise ValueError(f"task {name!r} must name a Scenario subclass, got {task!r}")
+    return task
+
+
 class KeyboardWindow:
     """A matplotlib window that shows frames and remembers the key held down (None: none)."""
 
@@ -234,7 +251,7 @@ def play_keys(player: Player, keys: list, frames: str | None) -> dict:
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(prog="python -m marl_render.play", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("task", help="a registered task (marl_render.envs.list_envs())")
+    parser.add_argument("task", help="a registered task (marl_render.envs.list_envs()) or module:Class")
     parser.add_argument("--agent", default="0", help="the agent you drive: its index or name (default 0)")
     parser.add_argument("--others", choices=OTHERS, default=None,
                         help="what the other agents play (default: heuristic where the task has one, else random)")

@@ -63,6 +63,8 @@ def test_without_a_display_it_says_so_in_one_line():
     (["spread", "--keys", "w x"], "key 'x' takes no action in spread; keys: ['.', '0', '1', '2', '3', '4', 'a'"),
     (["spread", "--keys", "w", "--agent", "agent_9"], "agent must be an agent's index in [0, 3) or name"),
     (["spread", "--frames", "somewhere"], "--frames needs --keys"),
+    (["no_such_task", "--keys", "w"], "unknown environment 'no_such_task'"),
+    (["no_such_module:Task", "--keys", "w"], "task 'no_such_module:Task' names no importable class"),
 ])
 def test_bad_arguments_are_one_clear_line(argv, words, capsys, monkeypatch):
     monkeypatch.setenv("DISPLAY", ":99")  # past the display check: the argument is the error
@@ -86,3 +88,11 @@ def test_window_tracks_the_key_held_down_and_quits():
         KeyEvent("key_press_event", canvas, "q")._process()
         assert window.closed
         matplotlib.pyplot.close(window.figure)
+
+
+def test_a_task_of_ones_own_plays_by_module_and_class(capsys):
+    # tests/ is on sys.path under pytest: test_sight.Peek is a user's task, never registered.
+    assert main(["test_sight:Peek", "--keys", "d d", "--agent", "hider_0", "--others", "random"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["task"] == "peek" and record["agent"] == "hider_0" and record["actions"] == [3, 3]
+    assert wrapped(record["poses"][2]["yaw"] - record["poses"][0]["yaw"]) == pytest.approx(-2 * TURN, abs=1e-5)
