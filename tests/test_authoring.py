@@ -1,6 +1,7 @@
 """Writing a task: the tutorial in docs/authoring.md runs as written, and a task defined here,
 outside the package, works through every front end once registered."""
 import dataclasses
+import math
 import pathlib
 import pickle
 import re
@@ -32,8 +33,23 @@ from marl_render.envs import (
 DOC = pathlib.Path(__file__).resolve().parents[1] / "docs" / "authoring.md"
 
 
+SECOND_TASK = "## 6. A second task"
+
+
+def python_blocks(text: str) -> list:
+    return re.findall(r"```python\n(.*?)```", text, flags=re.S)
+
+
 def tutorial_blocks() -> list:
-    return re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+    """The blocks of sections 1-5 (rendezvous)."""
+    text = DOC.read_text()
+    assert SECOND_TASK in text
+    return python_blocks(text.split(SECOND_TASK)[0])
+
+
+def second_task_blocks() -> list:
+    """The blocks of section 6 (hide and seek): its definitions, then its use."""
+    return python_blocks(DOC.read_text().split(SECOND_TASK)[1])
 
 
 @pytest.fixture(scope="module")
@@ -45,6 +61,17 @@ def tutorial():
     exec(compile("".join(blocks[:-1]), str(DOC), "exec"), namespace)  # noqa: S102
     yield namespace
     registry._REGISTRY.pop("rendezvous", None)
+
+
+@pytest.fixture(scope="module")
+def hide_and_seek(tutorial):
+    """Section 6's definitions, run as written after the tutorial's (whose imports they use)."""
+    namespace = dict(tutorial)
+    blocks = second_task_blocks()
+    assert len(blocks) == 2
+    exec(compile(blocks[0], str(DOC), "exec"), namespace)  # noqa: S102
+    yield namespace
+    registry._REGISTRY.pop("hide_and_seek", None)
 
 
 def test_tutorial_usage_block_runs_as_written(tutorial):
@@ -64,6 +91,45 @@ def test_tutorial_task_passes_pettingzoo_torchrl_and_gymnasium_checks(tutorial):
     obs, reward, terminated, truncated, info = vec.step(vec.action_space.sample())
     assert obs.shape == (6, 16, 16, 3) and reward.shape == (6,) and reward.dtype == np.float32
     vec.close()
+
+
+def test_second_task_usage_block_runs_as_written(hide_and_seek, capsys):
+    exec(compile(second_task_blocks()[1], str(DOC), "exec"), dict(hide_and_seek))  # noqa: S102
+    printed = capsys.readouterr().out
+    assert "agent 'seeker_0' took 1 ('forward'), allowed: [0 ('noop')]" in printed
+
+
+def test_second_task_freezes_the_seeker_and_rewards_sight(hide_and_seek):
+    env = make_env("hide_and_seek", num_worlds=2, resolution=16, seed=0)
+    obs = env.reset()
+    assert obs["action_mask"][:, 0].tolist() == [[True, False, False, False, False]] * 2  # advice only
+    # The hider (at rest) sits right in front of the frozen seeker: forward for both. The seeker does not
+    # move although its mask is not enforced here and the hider is driven into it.
+    state = env.get_state()
+    state["pos"][:, :2] = torch.tensor([[0.0, -1.2], [0.0, -0.85]])
+    state["yaw"][:] = torch.tensor([0.0, math.pi])
+    env.set_state(state)
+    for _ in range(3):
+        env.step(torch.ones(2, 2, dtype=torch.long))
+    assert torch.equal(env.sim.pos[:, 0], torch.tensor([[0.0, -1.2]] * 2)) and torch.equal(env.sim.yaw[:, 0],
+                                                                                           torch.zeros(2))
+    assert bool((env.sim.vel[:, 0] == 0).all())
+    assert bool((env.sim.pos[:, 1, 1] < -0.85).all()) and bool((env.sim.pos[:, 1, 1] > -1.2 + 0.3 - 0.01).all())
+    # After the hiding phase it turns and moves; it sees the hider in world 0 (in the open), not in
+    # world 1 (behind the wall, turned across the line between them).
+    state = env.get_state()
+    state["clock"][:] = hide_and_seek["HIDE_STEPS"]
+    state["pos"][:, :2] = torch.tensor([[0.0, -1.2], [0.0, 1.2]])
+    state["vel"].zero_()
+    state["yaw"][:] = 0.0
+    state["wall"][:] = torch.tensor([[[1.0, 0.0]], [[0.0, 0.0]]])
+    state["wall_angle"][:] = 0.0
+    env.set_state(state)
+    obs, reward, terminated, truncated, info = env.step(torch.tensor([[2, 0], [2, 0]]))
+    assert env.sim.yaw[:, 0].tolist() == pytest.approx([0.3, 0.3])
+    assert info["seen"].tolist() == [1, 0] and reward.tolist() == [[1.0, -1.0], [0.0, 0.0]]
+    assert terminated.tolist() == [[True, True], [False, False]]
+    env.close()
 
 
 def test_tutorial_rules_reward_gathering(tutorial):
@@ -200,7 +266,14 @@ class WrongSpawn(Beacon):
         return dataclasses.replace(super().spawn(generator), beacon=torch.zeros(self.num_worlds, 2, 2))
 
 
+class WrongFrozen(Beacon):
+    def frozen(self, state):
+        return torch.zeros(self.num_worlds, dtype=torch.bool)  # [W] instead of [W, A]
+
+
 @pytest.mark.parametrize("task, words", [
+    (WrongFrozen, r"WrongFrozen\.frozen must return None or a bool tensor of shape \[2, 2\] on cpu, got tensor of "
+                  r"shape \(2,\)"),
     (WrongRewardShape, r"WrongRewardShape\.step's reward must have shape \[2, 2\].*got shape \[2\]"),
     (WrongInfoDtype, r"WrongInfoDtype\.step's info\['on_beacon'\] must have shape \[2\], torch\.int64"),
     (WrongObservation, r"WrongObservation\.observation must have shape \[2, 2, 8\].*got shape \[2, 2, 5\]"),

@@ -244,3 +244,35 @@ def test_lidar_options_are_checked(kwargs, error, words):
 def test_lidar_is_refused_by_a_task_without_planar_geometry():
     with pytest.raises(ValueError, match="lidar applies to arena tasks .* cartpole has none, got lidar=8"):
         make_env("cartpole", resolution=8, lidar=8)
+
+
+class Pillared(Peek):
+    """Peek with a pillar: a body of infinite mass (what docs/authoring.md says round obstacles are)."""
+
+    name = "pillared"
+
+    def setup(self):
+        self.setup_arena({"seeker": ["seeker_0"], "hider": ["hider_0"]}, state_dim=0, radius=0.15, max_speed=2.0,
+                         bodies=((0.3, math.inf),))
+
+    def initial_state(self):
+        state = super().initial_state()
+        W = self.num_worlds
+        pos = torch.cat((state.pos, torch.tensor([0.0, 0.0]).expand(W, 1, 2)), 1)
+        return self.at_rest(pos, state.yaw, box=state.box, box_angle=state.box_angle, marker=state.marker)
+
+
+def test_a_pillar_is_an_immovable_body_that_hides_and_stops():
+    env = make_env(Pillared, num_worlds=1, resolution=8, seed=0, lidar=4)
+    env.reset()
+    # The seeker at (0, -1.2) faces the pillar (radius 0.3 at the origin); the hider stands behind it.
+    sim = placed(env, pos=[[0.0, -1.2], [0.0, 1.0], [0.0, 0.0]], yaw=[0.0, 0.0], box=[[1.5, 1.3]])
+    assert env.scenario.sees(sim, "agents")[0, 0, 1].item() is False
+    assert env.scenario.sees(sim, torch.tensor([[[0.6, 1.0]]]))[0, 0, 0].item() is True
+    assert env.scenario.lidar(sim, 4, None)[0, 0, 0].item() == pytest.approx(0.9 / 5, abs=1e-6)
+    for _ in range(20):  # the seeker drives into it: it stops there, the pillar does not move
+        obs = env.step(torch.tensor([[1, 0]]))[0]
+    assert env.sim.pos[0, 2].tolist() == [0.0, 0.0] and env.sim.vel[0, 2].tolist() == [0.0, 0.0]
+    assert -0.5 < env.sim.pos[0, 0, 1].item() < -0.44  # touching: centres 0.45 apart
+    assert obs["lidar"][0, 0, 0].item() == pytest.approx(0.15 / 5, abs=0.002)  # from its centre: its own radius
+    env.close()
