@@ -22,13 +22,13 @@ tasks have no yaml file in BenchMARL's own conf folder); BenchMARL's hydra comma
 not know them: use the Python API as above.
 
 What BenchMARL sees, per group: the model inputs are ``pixels`` (uint8 [N, H, W, 3], which
-BenchMARL's CNN reads as images) and ``state`` when ``state_obs=True``; the action mask is
-``action_mask`` (discrete actions); the per-agent ``done`` / ``terminated`` flags are used by
-the losses (agents leave the episode in tag). The episode statistics at ``("info", name)``
-are logged as ``collection/info/<name>``. Evaluation videos show world 0 from the overview
-camera; BenchMARL's loggers write them with torchvision, so without torchvision (no CPU
-wheel on PyPI) ``has_render`` is False and a warning says so. Depth is not a model input here
-(BenchMARL's CNN wants channels-last images).
+BenchMARL's CNN reads as images), ``state`` when ``state_obs=True`` and ``lidar`` with
+``lidar=rays``; the action mask is ``action_mask`` (discrete actions); the per-agent ``done`` /
+``terminated`` flags are used by the losses (agents leave the episode in tag). The episode
+statistics at ``("info", name)`` are logged as ``collection/info/<name>``. Evaluation videos
+show world 0 from the overview camera; BenchMARL's loggers write them with torchvision, so
+without torchvision (no CPU wheel on PyPI) ``has_render`` is False and a warning says so. Depth
+is not a model input here (BenchMARL's CNN wants channels-last images).
 
 Works with the torchrl that BenchMARL pins (``make test-benchmarl`` builds that venv).
 """
@@ -45,7 +45,7 @@ from marl_render.wrappers.torchrl import MarlRenderTorchRLEnv, make_torchrl_env
 
 # Set by BenchMARL through get_env_fun, never by a task's config.
 CHOSEN_BY_BENCHMARL = ("num_worlds", "continuous", "seed", "device", "autoreset")
-MODEL_INPUTS = ("pixels", "state")
+MODEL_INPUTS = ("pixels", "state", "lidar")
 
 
 def _core_env(env) -> MarlRenderTorchRLEnv:

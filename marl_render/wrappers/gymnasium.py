@@ -14,8 +14,8 @@ Entries: ``num_envs = num_worlds x num_agents``; entry ``i`` is agent ``i % A`` 
 Single-agent envs (cartpole) have one entry per world.
 
 Spaces: ``single_observation_space`` is ``Box(0, 255, (H, W, 3), uint8)`` by default. With
-``depth=True``, ``state_obs=True`` or ``action_mask=True`` it is a ``Dict`` with "pixels",
-"depth", "state" and "action_mask" (``MultiBinary(num_actions)``, int8), as in the
+``depth=True``, ``state_obs=True``, ``lidar=rays`` or ``action_mask=True`` it is a ``Dict`` with
+"pixels", "depth", "state", "lidar" and "action_mask" (``MultiBinary(num_actions)``, int8), as in the
 PettingZoo front end. ``single_action_space`` is ``Discrete(num_actions)`` or
 ``Box(-1, 1, (action_dim,), float32)``. ``observation_space`` / ``action_space`` are their
 batches (``gymnasium.vector.utils.batch_space``). Observations are numpy views of the

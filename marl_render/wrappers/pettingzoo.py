@@ -15,9 +15,10 @@ and (through ``parallel_to_aec``) ``render_test``.
 Spaces (the same for every agent):
 
 * observation: ``Box(0, 255, (H, W, 3), uint8)`` (1 channel with ``grayscale=True``) when the core
-  yields only pixels (the default). With ``depth=True``, ``state_obs=True`` or ``action_mask=True`` it is a
-  ``Dict`` with "pixels", "depth" (``Box(0, far, (H, W), float32)``: metres, clamped at the
-  camera's far plane), "state" (``Box(-inf, inf, (state_dim,), float32)``) and
+  yields only pixels (the default). With ``depth=True``, ``state_obs=True``, ``lidar=rays`` or
+  ``action_mask=True`` it is a ``Dict`` with "pixels", "depth" (``Box(0, far, (H, W), float32)``:
+  metres, clamped at the camera's far plane), "state" (``Box(-inf, inf, (state_dim,), float32)``),
+  "lidar" (``Box(0, 1, (rays,), float32)``, arena tasks: envs/sight.py) and
   "action_mask" (``MultiBinary(num_actions)``, int8: the dtype gymnasium's
   ``Discrete.sample(mask=...)`` requires). Discrete cores always compute an action mask;
   it is exposed only when asked for with ``action_mask=True`` so that the common

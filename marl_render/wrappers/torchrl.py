@@ -9,6 +9,7 @@ Layout (batch_size [W], W = num_worlds; a group of N agents):
     (group, "pixels")       uint8   [W, N, H, Wpx, C]  Bounded(0, 255); C = 3, or 1 with grayscale=True
     (group, "depth")        float32 [W, N, H, Wpx]     Bounded(0, far)       depth=True
     (group, "state")        float32 [W, N, state_dim]  Unbounded             state_obs=True
+    (group, "lidar")        float32 [W, N, rays]       Bounded(0, 1)         lidar=rays (arena tasks)
     (group, "action_mask")  bool    [W, N, n]          Categorical(2, bool)  discrete envs
     (group, "done" | "terminated" | "truncated")  bool [W, N, 1]  per-agent flags (observations)
     ("info", name)          [W] of the env's info_keys dtype   episode statistics (observations)
