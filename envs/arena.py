@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 import marl_render as mr
-from marl_render.validation import describe
+from marl_render.validation import describe, positive_float
 
 from . import egomotion, planar, scenery, sight
 from .scenario import Scenario, Step, numbered
@@ -246,8 +246,10 @@ class ArenaScenario(Scenario):
         fov: default the cameras' at a square resolution, horizontal_fov() (90 degrees); reach: default
         the cameras' far plane. Both are the rules' to choose, independent of the rendering options."""
         A = self.num_agents
-        fov = self.horizontal_fov() if fov is None else fov
-        reach = self.far if reach is None else reach
+        fov = self.horizontal_fov() if fov is None else positive_float("fov", fov)
+        reach = self.far if reach is None else positive_float("reach", reach)
+        if fov > 2 * math.pi:
+            raise ValueError(f"fov must be a finite number in (0, 2 pi] (radians), got {fov}")
         name = targets if isinstance(targets, str) else None
         if name is not None:
             targets, present = self._targets(state, name)

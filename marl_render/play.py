@@ -34,6 +34,7 @@ from PIL import Image
 
 from marl_render.envs import Scenario, env_class, make_env
 from marl_render.envs.evaluation import random_policy
+from marl_render.validation import positive_int
 from marl_render.wrappers.window import window_unavailable
 
 # Keys by the meaning of the action they take, where the task's action has that meaning.
@@ -61,6 +62,7 @@ class Player:
 
     def __init__(self, name, *, agent=0, others: str | None = None, resolution=64, overview=256, seed=0,
                  **kwargs):
+        overview = positive_int("overview", overview)  # before the env is built
         self.env = make_env(task_class(name), num_worlds=1, resolution=resolution, seed=seed, **kwargs)
         try:
             self.agent = self._agent_index(agent)

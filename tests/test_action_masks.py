@@ -1,27 +1,19 @@
 """Action masks: advice by default (documented), refused by the driver with enforce_action_mask=True
 (envs/masking.py), through the core, PettingZoo and TorchRL."""
-import dataclasses
-
 import pytest
 import torch
 from pettingzoo.test import parallel_api_test
 from torchrl.envs.utils import check_env_specs
 
-from marl_render.envs import ArenaScenario, ArenaState, make_env, make_parallel_env, make_torchrl_env
+from marl_render.envs import ArenaScenario, make_env, make_parallel_env, make_torchrl_env
 
 FORWARD = 1
-
-
-@dataclasses.dataclass(frozen=True)
-class GateState(ArenaState):
-    pass
 
 
 class Gate(ArenaScenario):
     """Two agents; the mask lets agent 0 ("held_0") only noop and turn left, agent 1 anything."""
 
     name = "gate"
-    State = GateState
     default_num_agents = 2
     agent_range = (2, 2)
     default_max_steps = 3

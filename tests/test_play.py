@@ -64,6 +64,8 @@ def test_without_a_display_it_says_so_in_one_line():
     (["spread", "--keys", "w", "--agent", "agent_9"], "agent must be an agent's index in [0, 3) or name"),
     (["spread", "--frames", "somewhere"], "--frames needs --keys"),
     (["no_such_task", "--keys", "w"], "unknown environment 'no_such_task'"),
+    (["spread", "--keys", "w", "--overview", "0"], "overview must be"),
+    (["spread", "--keys", "w", "--resolution", "0"], "resolution"),
     (["no_such_module:Task", "--keys", "w"], "task 'no_such_module:Task' names no importable class"),
 ])
 def test_bad_arguments_are_one_clear_line(argv, words, capsys, monkeypatch):

@@ -175,6 +175,12 @@ def test_sees_takes_points_props_by_name_and_refuses_other_targets(peek):
         peek.scenario.sees(sim, "lamp")
     with pytest.raises(ValueError, match=r"targets must be float points \[1, T, 2\]"):
         peek.scenario.sees(sim, torch.zeros(1, 2))
+    with pytest.raises(ValueError, match="fov must be a finite number in \\(0, 2 pi\\]"):
+        peek.scenario.sees(sim, "agents", fov=7.0)
+    with pytest.raises(ValueError, match="fov must be a finite number > 0, got nan"):
+        peek.scenario.sees(sim, "agents", fov=float("nan"))
+    with pytest.raises(ValueError, match="reach must be a finite number > 0, got -1.0"):
+        peek.scenario.sees(sim, "agents", reach=-1.0)
 
 
 def test_lidar_distances_are_exact():
