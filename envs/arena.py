@@ -257,10 +257,9 @@ class ArenaScenario(Scenario):
                   and targets.shape[2] == 2 and targets.is_floating_point()):
             raise ValueError(f"targets must be float points [{self.num_worlds}, T, 2], 'agents' or a Prop's name, "
                              f"got {describe(targets)}")
-        bodies = self.bodies(state, state.active)
-        pillars = sight.Circles(bodies.pos, bodies.radius, bodies.active & torch.isinf(bodies.mass))
         seen = sight.line_of_sight(state.pos[:, :A], state.yaw, targets, fov=fov, reach=reach,
-                                   half_extent=self.arena_half_extent, boxes=self.obstacles(state), circles=pillars)
+                                   half_extent=self.arena_half_extent, boxes=self.obstacles(state),
+                                   circles=self._pillars(state))
         if name is not None:
             seen = seen & present[:, None]
         if name == "agents":
@@ -287,6 +286,16 @@ class ArenaScenario(Scenario):
         own = torch.eye(A, self.radius.shape[0], dtype=torch.bool, device=self.device).expand(W, A, -1)
         return sight.lidar(state.pos[:, :A], state.yaw, rays=rays, reach=reach, half_extent=self.arena_half_extent,
                            boxes=self.obstacles(state), circles=bodies, skip=own).to(torch.float32)
+
+    def _pillars(self, state) -> sight.Circles | None:
+        """The immovable bodies (infinite mass) taking part, as occluders; None when the task has none."""
+        if getattr(self, "_pillar_index", None) is None:  # the masses are constants: found once
+            self._pillar_index = torch.isinf(self.mass).nonzero()[:, 0]
+        index = self._pillar_index
+        if not len(index):
+            return None
+        bodies = self.bodies(state, state.active)
+        return sight.Circles(bodies.pos[:, index], bodies.radius[:, index], bodies.active[:, index])
 
     def _targets(self, state, name: str) -> tuple:
         """(positions [W, T, 2], present [W, T] bool) of the agents or of the Prop called `name`."""
