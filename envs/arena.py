@@ -78,6 +78,7 @@ class Prop:
     active: object = None
     moves: bool = True
     hidden_from: int | None = None  # an agent whose camera does not see these objects (all others do)
+    role: str | None = None  # "floor" or "wall": takes each world's floor / wall look (appearance effect)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,6 +90,7 @@ class Static:
     position: object
     scale: object
     color: object
+    role: object = None  # None, "floor", "wall" or one per instance: marl_render.Scene.add_static's role
 
 
 def _from_state(source) -> bool:
@@ -324,9 +326,10 @@ class ArenaScenario(Scenario):
                                 pitch=CAMERA_PITCH)
         for item in self._declared():
             if isinstance(item, Static):
-                scene.add_static(item.name, item.mesh, position=item.position, scale=item.scale, color=item.color)
+                scene.add_static(item.name, item.mesh, position=item.position, scale=item.scale, color=item.color,
+                                 role=item.role)
             else:
-                scene.add_group(item.name, item.mesh, capacity=item.count)
+                scene.add_group(item.name, item.mesh, capacity=item.count, role=item.role)
 
     def instances(self, state, full: bool) -> dict:
         pos = state.pos[:, :self.num_agents].to("cpu", torch.float32)

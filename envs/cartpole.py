@@ -158,7 +158,7 @@ class CartPoleBalance(Scenario):
         scene.add_static("scenery", "box",
                          position=[[0.0, 0.0, -0.1], [0.0, 0.07, CART_HEIGHT], [0.0, -0.07, CART_HEIGHT]],
                          scale=[[8.0, 8.0, 0.1], [4.0, 0.04, 0.04], [4.0, 0.04, 0.04]],
-                         color=[FLOOR_COLOR, DECORATION_COLOR, DECORATION_COLOR])
+                         color=[FLOOR_COLOR, DECORATION_COLOR, DECORATION_COLOR], role=["floor", None, None])
         scene.add_group("cartpole", "box", capacity=2)
 
     def place_cameras(self, renderer: mr.BatchRenderer, overview: bool) -> None:

@@ -136,9 +136,12 @@ class BatchedEnv:
     compile_physics (torch.compile the task's physics kernel where it has one (cartpole):
     within 1e-12 of the default path, faster at small batches; seconds to compile at construction;
     a RuntimeWarning and the default path where compiling fails), lidar (rays of the "lidar"
-    observation, 0: none) and lidar_range (m it is divided by; None: the arena's diagonal), and
-    enforce_action_mask (refuse forbidden actions: envs/masking.py), `params` an instance of the
-    scenario's Params (None: its defaults).
+    observation, 0: none) and lidar_range (m it is divided by; None: the arena's diagonal),
+    enforce_action_mask (refuse forbidden actions: envs/masking.py), and appearance (None: off;
+    "train", "heldout" or a marl_render.Appearance: each world's light, sky, floor and wall colours
+    and patterns, object colour jitter and camera jitter, drawn at every reset of the world from its
+    appearance_ids, see docs/appearance.md), `params` an instance of the scenario's Params (None:
+    its defaults).
 
     Attributes: scenario, spec (the EnvSpec every front end translates), name, num_worlds (W),
     num_agents (A), agent_names, groups (team -> agent names, in agent-index order), resolution
@@ -147,7 +150,8 @@ class BatchedEnv:
     renderer, physics (PhysicsConfig or None), physics_compiled (compile_physics took effect),
     lidar_rays, lidar_range, enforce_action_mask,
     sim (the simulation state), alive [W, A] bool,
-    step_count [W] int64; and the scenario's camera settings (background, fov_y, near, far,
+    step_count [W] int64, appearance (None or the Appearance), appearance_ids ([W] int64 or None); and
+    the scenario's camera settings (background, fov_y, near, far,
     overview_resolution, overview_fov_y, arena_half_extent) and agent_range.
     Methods: reset, reset_worlds, step, check_actions, episode_over, random_actions,
     heuristic_actions, render_overview, state_observation, get_state, set_state, close.
@@ -192,6 +196,8 @@ class BatchedEnv:
         self.shadows = check.shadows(options.shadows, scenario.shadow_bounds)
         effects = ("lighting", "depth") if self.depth else ("lighting",)
         effects += ("shadows",) if self.shadows else ()
+        self.appearance = check.appearance(options.appearance)  # None, or the Appearance of the worlds' looks
+        effects += ("appearance",) if self.appearance is not None else ()
         if self.shadows:  # an atlas GL cannot hold is named as such, not as a memory shortage
             atlas_layout(self.num_worlds, self.shadows.resolution, self.context.info().max_framebuffer_size)
         # Views and pixels alone, before the scenario allocates anything; the whole scene below.
@@ -217,12 +223,15 @@ class BatchedEnv:
         W, A = self.num_worlds, self.num_agents
         self.alive = torch.ones(W, A, dtype=torch.bool, device=self.device)
         self.step_count = torch.zeros(W, dtype=torch.int64, device=self.device)
+        # [W] int64 (CPU): the id each world's look is drawn from (appearance on), from the env's
+        # generator at every reset of the world. It will become the world's level id (issue 27).
+        self.appearance_ids = torch.zeros(W, dtype=torch.int64) if self.appearance is not None else None
         self._needs_reset = True
         with limited_threads(self.torch_threads):
             self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=effects,
                                      shadows=self.shadows, grayscale=self.grayscale, context=self.context,
                                      device=self.device, multisamples=options.multisamples,
-                                     supersample=options.supersample)
+                                     supersample=options.supersample, appearance=self.appearance)
         self.renderer = self.views.renderer
         self._closed = False
 
@@ -406,8 +415,9 @@ class BatchedEnv:
 
     def get_state(self) -> dict:
         """Copies of the whole state as {name: tensor}: the fields of `sim` (the simulation),
-        "step_count" [W] int64, "alive" [W, A] bool and "rng" (the generator's state, uint8, CPU).
-        set_state(state) restores it exactly: the steps that follow are bit-identical."""
+        "step_count" [W] int64, "alive" [W, A] bool, "rng" (the generator's state, uint8, CPU) and,
+        with appearance on, "appearance_ids" [W] int64 (CPU). set_state(state) restores it exactly:
+        the steps that follow are bit-identical."""
         self._check_open()
         self._check_started()
         state = {name: value.clone() for name, value in {**explicit_state.fields(self.sim), **self._counters()}.items()}
@@ -437,10 +447,14 @@ class BatchedEnv:
             raise ValueError(f"state['rng'] must be a torch.Generator state (from get_state()), got an invalid one: "
                              f"{exc}") from exc
         self.step_count, self.alive = state.pop("step_count"), state.pop("alive")
+        appearance_ids = state.pop("appearance_ids", None)
         self.sim = type(self.sim)(**state)
         self.generator.set_state(rng)
         self._needs_reset = False
         with limited_threads(self.torch_threads):
+            if appearance_ids is not None:
+                self.appearance_ids = appearance_ids
+                self.views.set_appearance(appearance_ids)
             self.views.sync(self.sim, full=True)  # per-episode instance data (landmarks, ...) changed too
 
     def close(self) -> None:
@@ -477,8 +491,11 @@ class BatchedEnv:
 
     # ================================================================== internals
     def _counters(self) -> dict:
-        """The core's part of the state (get_state / set_state)."""
-        return {"step_count": self.step_count, "alive": self.alive}
+        """The core's part of the state (get_state / set_state); "appearance_ids" with appearance on."""
+        counters = {"step_count": self.step_count, "alive": self.alive}
+        if self.appearance is not None:
+            counters["appearance_ids"] = self.appearance_ids
+        return counters
 
     def _action_mask(self) -> torch.Tensor:
         """The scenario's action mask [W, A, num_actions] of the current state, checked."""
@@ -556,6 +573,10 @@ class BatchedEnv:
         self.sim = explicit_state.select_worlds(mask, fresh, self.sim)
         self.step_count = torch.where(mask, torch.zeros_like(self.step_count), self.step_count)
         self.alive = self.alive | mask[:, None]
+        if self.appearance is not None:  # drawn after spawn: the first layouts match those with it off
+            fresh_ids = torch.randint(-2 ** 63, 2 ** 63 - 1, (self.num_worlds,), generator=self.generator)
+            self.appearance_ids = torch.where(mask.cpu(), fresh_ids, self.appearance_ids)
+            self.views.set_appearance(self.appearance_ids)
 
     def _observe(self, full: bool) -> dict:
         self.views.sync(self.sim, full)

@@ -56,6 +56,8 @@ class EnvOptions:
     # Refuse a step whose actions the action mask forbids (ValueError, nothing changes); default: the
     # mask is advice that policies may read (envs/masking.py).
     enforce_action_mask: bool = False
+    # Per-world looks (marl_render/appearance.py): None (off), "train", "heldout" or a marl_render.Appearance.
+    appearance: object = None
 
 
 OPTION_NAMES = frozenset(field.name for field in dataclasses.fields(EnvOptions))
@@ -74,6 +76,18 @@ def shadows(value, bounds) -> mr.Shadows | None:
     if not isinstance(value, (bool, np.bool_)):
         raise TypeError(f"shadows must be a bool or a marl_render.Shadows, got {describe(value)}")
     return mr.Shadows(bounds=bounds) if value else None
+
+
+def appearance(value) -> mr.Appearance | None:
+    """None (the effect off) or the Appearance each world's look is drawn from at its resets."""
+    if value is None or isinstance(value, mr.Appearance):
+        return value
+    want = f"None, one of {list(mr.appearance.SPLITS)} or a marl_render.Appearance"
+    if not isinstance(value, str):
+        raise TypeError(f"appearance must be {want}, got {describe(value)}")
+    if value not in mr.appearance.SPLITS:
+        raise ValueError(f"appearance must be {want}, got {value!r}")
+    return mr.Appearance(split=value)
 
 
 def autoreset_mode(value) -> bool | str:

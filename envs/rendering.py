@@ -11,6 +11,7 @@ import torch
 
 import marl_render as mr
 from marl_render import memory
+from marl_render.transforms import quat_from_yaw_pitch_roll, quat_multiply
 from marl_render.validation import resolution_hw
 
 
@@ -18,8 +19,12 @@ class EnvRenderer:
     """The agents' views (one renderer, a camera per agent) and the overview (one per world)."""
 
     def __init__(self, scenario, *, resolution: tuple, effects: tuple, shadows, grayscale: bool,
-                 context: mr.GLContext, device: torch.device, multisamples: int = 0, supersample: int = 1):
+                 context: mr.GLContext, device: torch.device, multisamples: int = 0, supersample: int = 1,
+                 appearance: mr.Appearance | None = None):
         self.scenario, self.resolution, self.shadows = scenario, resolution, shadows
+        self.appearance = appearance  # the looks' distribution ("appearance" is then in effects)
+        self._look = None  # the AppearanceParams of the current worlds (set_appearance)
+        self._free_cameras = None  # the agents' free cameras as place_cameras left them (camera jitter)
         self.multisamples, self.supersample = multisamples, supersample  # the agents' views only
         self.grayscale, self.context, self.device = grayscale, context, device
         self.overview_renderer = None
@@ -40,6 +45,34 @@ class EnvRenderer:
         self._sync(self.renderer, state, full)
         self._needs_full = False
 
+    def set_appearance(self, ids: torch.Tensor) -> None:
+        """Every world's look from its id ([W] int64): the renderers' appearance rows and the agents'
+        camera jitter (fov_y, and the height and pitch of the mounted or free cameras)."""
+        self._look = self.appearance.sample(ids)
+        for renderer in (self.renderer, self.overview_renderer):
+            if renderer is not None:
+                renderer.set_appearance(**self._look.renderer_kwargs())
+        if self.appearance.camera:
+            self._jitter_cameras(self.renderer, self._look)
+
+    def _jitter_cameras(self, renderer: mr.BatchRenderer, look) -> None:
+        scene = renderer.scene
+        W, A = scene.num_worlds, scene.agents_per_world
+        fov_y = (scene.fov_y * look.fov_scale[:, None]).expand(W, A)
+        up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        height = look.camera_height[:, None, None] * up  # [W, 1, 3]
+        mount = scene.camera_mount
+        if mount is not None:  # in the body's frame: bodies stand upright (yaw only)
+            offset = torch.tensor(mount.offset, dtype=torch.float64) + height.expand(W, A, 3)
+            renderer.set_cameras(fov_y=fov_y, mount_offset=offset,
+                                 mount_pitch=(mount.pitch + look.camera_pitch[:, None]).expand(W, A))
+            return
+        position, rotation = self._free_cameras
+        tilt = quat_from_yaw_pitch_roll(torch.zeros(W, A, dtype=torch.float64),
+                                        look.camera_pitch[:, None].expand(W, A))  # about the camera's x axis
+        renderer.set_cameras(position=position + height, fov_y=fov_y,
+                             rotation=quat_multiply(rotation.to(torch.float64), tilt))
+
     def invalidate(self) -> None:
         """The state is about to change beyond poses: the next sync sends everything."""
         self._needs_full = True
@@ -54,6 +87,7 @@ class EnvRenderer:
         current = self.overview_renderer
         if current is None or current.scene.resolution != resolution:
             effects = ("lighting", "shadows") if self.shadows else ("lighting",)
+            effects += ("appearance",) if self.appearance is not None else ()
             scene = self._scene(overview=True, resolution=resolution, effects=effects)
             replaced = 0 if current is None else memory.renderer_bytes(current.scene)
             memory.check_fits(memory.renderer_bytes(scene) - replaced,
@@ -63,6 +97,8 @@ class EnvRenderer:
                 current.close()
                 self.overview_renderer = None
             self.overview_renderer = self._renderer(scene, overview=True)
+            if self._look is not None:  # the worlds' looks; the overview camera is not jittered
+                self.overview_renderer.set_appearance(**self._look.renderer_kwargs())
         self._sync(self.overview_renderer, state, full=True)
         return self.overview_renderer.render().rgb[:, 0].to(self.device)
 
@@ -91,6 +127,8 @@ class EnvRenderer:
         except BaseException:
             renderer.close()
             raise
+        if not overview and scene.camera_mount is None:  # the poses camera jitter starts from
+            self._free_cameras = (renderer.camera_position.clone(), renderer.camera_rotation.clone())
         return renderer
 
     def _sync(self, renderer: mr.BatchRenderer, state, full: bool) -> None:

@@ -182,7 +182,7 @@ class Rooms(ArenaScenario):
         return [room_floors(), outer_walls(),
                 Prop("walls", "box", count=24, position=lambda s: self.walls(s)[0], height=WALL_HEIGHT / 2,
                      scale=lambda s: self.walls(s)[1], active=lambda s: self.walls(s)[2], color=WALL_COLOR,
-                     moves=False),
+                     moves=False, role="wall"),
                 Prop("home", scenery.disc_mesh(), count=1, position=lambda s: self.room_centre(s.home)[:, None],
                      height=0.01, scale=(2 * HOME_RADIUS, 2 * HOME_RADIUS, 0.02), color=HOME_COLOR, moves=False),
                 Prop("goal", mr.cylinder(segments=10), count=1, position="goal", height=GOAL_HEIGHT / 2,
@@ -308,4 +308,5 @@ def outer_walls() -> Static:
     position = [[ARENA + t / 2, 0.0, h / 2], [-ARENA - t / 2, 0.0, h / 2], [0.0, ARENA + t / 2, h / 2],
                 [0.0, -ARENA - t / 2, h / 2]]
     scale = [[t, 2 * ARENA + 2 * t, h]] * 2 + [[2 * ARENA, t, h]] * 2
-    return Static("outer_walls", "box", position=position, scale=scale, color=[list(scenery.WALL_COLOR)] * 4)
+    return Static("outer_walls", "box", position=position, scale=scale, color=[list(scenery.WALL_COLOR)] * 4,
+                  role="wall")

@@ -66,7 +66,8 @@ def add_arena(scene: mr.Scene, half_extent=(1.5, 1.5), *, wall_height: float = 0
 
     One group rather than two because the renderer culls and draws once per group. The
     floor extends `floor_margin` metres past the walls so egocentric views see ground,
-    not sky, below the horizon. Stored once for all worlds.
+    not sky, below the horizon. Stored once for all worlds. Under the "appearance" effect the
+    slab takes each world's floor look and the walls its wall look (their roles).
     """
     hx, hy = (float(v) for v in half_extent)
     t, h = float(wall_thickness), float(wall_height)
@@ -75,7 +76,8 @@ def add_arena(scene: mr.Scene, half_extent=(1.5, 1.5), *, wall_height: float = 0
                 [0.0, hy + t / 2, h / 2], [0.0, -hy - t / 2, h / 2]]
     scale = [[2 * (hx + floor_margin), 2 * (hy + floor_margin), 0.1],
              [t, 2 * hy + 2 * t, h], [t, 2 * hy + 2 * t, h], [2 * hx, t, h], [2 * hx, t, h]]
-    scene.add_static(name, "box", position=position, scale=scale, color=[list(floor_color)] + [list(wall_color)] * 4)
+    scene.add_static(name, "box", position=position, scale=scale, color=[list(floor_color)] + [list(wall_color)] * 4,
+                     role=["floor"] + ["wall"] * 4)
 
 
 def arena_shadow_bounds(half_extent=(1.5, 1.5), *, margin: float = 0.6, height: float = 1.0) -> tuple:

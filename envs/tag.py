@@ -161,7 +161,7 @@ class Tag(ArenaScenario):
             return []
         return [Prop("obstacles", "box", count=self.num_obstacles, position="obstacle_center",
                      height=OBSTACLE_HEIGHT / 2, yaw="obstacle_angle", color=OBSTACLE_COLOR,
-                     scale=(2 * OBSTACLE_HALF, 2 * OBSTACLE_HALF, OBSTACLE_HEIGHT), moves=False)]
+                     scale=(2 * OBSTACLE_HALF, 2 * OBSTACLE_HALF, OBSTACLE_HEIGHT), moves=False, role="wall")]
 
     def obstacles(self, state):
         return planar.Obstacles(state.obstacle_center, self._obstacle_half, state.obstacle_angle)

@@ -1,4 +1,5 @@
 """marl-render: batched egocentric rendering for multi-agent RL from pixels."""
+from .appearance import Appearance, AppearanceParams
 from .backend import GLContext, configure
 from .meshes import MeshData, box, capsule, cone, cylinder, load_model, plane, sphere
 from .renderer import BatchRenderer, Frame
@@ -9,7 +10,7 @@ from .transforms import look_at_quat, quat_from_yaw_pitch_roll, yaw_pitch_roll_f
 __version__ = "0.1.0"
 
 __all__ = [
-    "BatchRenderer", "Frame", "GLContext", "configure",
+    "BatchRenderer", "Frame", "GLContext", "configure", "Appearance", "AppearanceParams",
     "Scene", "Lighting", "Fog", "Shadows", "CameraMount", "MeshData",
     "box", "capsule", "cone", "cylinder", "plane", "sphere", "load_model",
     "SkinnedMesh", "skinned_character", "skinned_limb", "load_skinned_model",

@@ -80,6 +80,7 @@ STATIC_INSTANCE = RowLayout("STATIC", 5, {
     "owner": Field(2, "w"),
     "color": Field(3),
     "position_lo": Field(4, "xyz"),
+    "role": Field(4, "w"),  # scene.ROLES code: read only by the "appearance" effect
 })
 
 # One row per view (and per world in the shadow pass's light buffer): the view-projection
@@ -93,6 +94,21 @@ VIEW = RowLayout("VIEW", 6, {
 })
 VIEW_PROJECTION_TEXELS = 4
 
+# One row per world of the "appearance" effect (appearance.py): its light, sky, the colours and
+# patterns of its floor and walls (rgb, w = 1: replaces the instance colour; pattern: kind,
+# cells per metre, contrast) and the 3x3 colour transform of everything else (rows).
+APPEARANCE = RowLayout("APPEARANCE", 11, {
+    "light_direction": Field(0, "xyz"),  # unit, pointing from the light
+    "light_color": Field(1, "xyz"),
+    "ambient": Field(2, "xyz"),
+    "sky": Field(3, "xyz"),
+    "floor": Field(4),
+    "wall": Field(5),
+    "floor_pattern": Field(6, "xyz"),
+    "wall_pattern": Field(7, "xyz"),
+    "color_transform": Field(8, "xyz"),  # texels 8-10, one row of the matrix each
+})
+COLOR_TRANSFORM_TEXELS = 3
 
 
 def instance_texels(*, static: bool, joints: int = 0) -> int:
@@ -110,3 +126,8 @@ def glsl_defines(*, static: bool, joints: int = 0) -> tuple[str, ...]:
     if joints:
         row += (f"FIRST_JOINT_TEXEL {INSTANCE.texels}", f"JOINT_TEXELS {JOINT_TEXELS}")
     return row + VIEW.defines()
+
+
+def appearance_defines() -> tuple[str, ...]:
+    """The APPEARANCE_* #define lines of the per-world appearance rows (variants of the effect only)."""
+    return APPEARANCE.defines()

@@ -21,6 +21,7 @@ from typing import Protocol
 import torch
 
 from . import layout, skinning
+from .appearance import AppearanceRows
 from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
 from .scene import Scene, StaticGroup, check_depth_range
 from .tiling import TileLayout
@@ -53,6 +54,9 @@ class PackTargets(Protocol):
 
     def pairs(self, group: str) -> torch.Tensor:
         """int32 [num_views * count]: the visible pairs, view * count + instance."""
+
+    def appearance(self) -> torch.Tensor:
+        """float32 [num_worlds * APPEARANCE.texels * 4] (scenes with the "appearance" effect)."""
 
 
 @dataclass
@@ -92,6 +96,9 @@ class FramePacker:
                                                                torch.tensor(mount.pitch, dtype=torch.float64)))
             offset = torch.tensor(mount.offset, dtype=torch.float64)
             self._mount_constants = (torch.tensor(mount.instance), offset, tilt)
+        self._mount_per_view = None  # (offset [W, A, 3], tilt [W, A, 3, 3]) once set_cameras gave mount_*
+        # Each world's look (the "appearance" effect), packed when it changed.
+        self.appearance = AppearanceRows(scene) if "appearance" in scene.effects else None
         self.state: dict[str, dict[str, torch.Tensor]] = {}
         for name, group in scene.groups.items():
             C = group.capacity
@@ -194,13 +201,18 @@ class FramePacker:
         if "active" in staged or "owner" in staged:
             self._mask_dirty.add(group)
 
-    def set_cameras(self, *, position=None, rotation=None, look_at=None, fov_y=None, near=None, far=None) -> None:
+    def set_cameras(self, *, position=None, rotation=None, look_at=None, fov_y=None, near=None, far=None,
+                    mount_offset=None, mount_pitch=None) -> None:
         """See BatchRenderer.set_cameras: everything is validated before anything is stored."""
         W, A = self.scene.num_worlds, self.scene.agents_per_world
         mounted = self.scene.camera_mount is not None
         if mounted and (position is not None or rotation is not None or look_at is not None):
             raise ValueError("cameras are mounted on instances (scene.mount_cameras); position/rotation/look_at "
                              "cannot be set, move the instances instead")
+        mount = self._mount_arguments(mount_offset, mount_pitch) if mounted else None
+        if not mounted and (mount_offset is not None or mount_pitch is not None):
+            raise ValueError("mount_offset and mount_pitch apply to cameras mounted on instances "
+                             "(scene.mount_cameras); these cameras are free: set position and rotation instead")
         if rotation is not None and look_at is not None:
             raise ValueError("give either rotation or look_at, not both")
         staged = {}
@@ -230,10 +242,34 @@ class FramePacker:
         for key, value in staged.items():
             target = {"position": self.camera_position, "rotation": self.camera_rotation}.get(key)
             (target if target is not None else getattr(self, key)).copy_(value)
-        if staged:
+        if mount is not None:
+            self._mount_per_view = mount
+        if staged or mount is not None:
             self._cameras_dirty = True
         if {"fov_y", "near", "far"} & staged.keys():
             self._projection = None
+
+    def _mount_arguments(self, offset, pitch):
+        """(offset [W, A, 3], tilt [W, A, 3, 3]) float64 of mounted cameras with per-view mount_offset /
+        mount_pitch (each defaults to the current value), or None when neither is given."""
+        if offset is None and pitch is None:
+            return None
+        W, A = self.scene.num_worlds, self.scene.agents_per_world
+        mount = self.scene.camera_mount
+        if offset is None:
+            current = self._mount_per_view
+            offset = current[0] if current is not None else torch.tensor(mount.offset, dtype=torch.float64)
+        offset = _broadcast_arg("mount_offset", offset, (W, A, 3)).to(torch.float64)
+        if pitch is None:
+            tilt = self._mount_per_view[1] if self._mount_per_view is not None else None
+        else:
+            pitch = _broadcast_arg("mount_pitch", pitch, (W, A)).to(torch.float64)
+            check_range("mount_pitch", pitch, -math.pi / 2, math.pi / 2)
+            tilt = quat_to_matrix(quat_from_yaw_pitch_roll(torch.zeros_like(pitch), pitch))
+        if tilt is None:
+            tilt = quat_to_matrix(quat_from_yaw_pitch_roll(torch.zeros(W, A, dtype=torch.float64),
+                                                           torch.full((W, A), mount.pitch, dtype=torch.float64)))
+        return offset.clone(), tilt
 
     def check_group(self, group) -> None:
         if not isinstance(group, str):
@@ -255,6 +291,7 @@ class FramePacker:
         memory[row["owner"]] = -1.0
         memory[row["color"]] = group.color
         memory[row["position_lo"]] = (group.position - hi.to(torch.float64)).to(torch.float32)
+        memory[row["role"]] = 0.0 if group.role is None else group.role.to(torch.float32)
 
     def prepare(self, targets: PackTargets) -> dict:
         """The packing stages of a frame, each only when its inputs changed: camera poses
@@ -271,6 +308,9 @@ class FramePacker:
         packed_groups = list(self._dirty)
         for name in packed_groups:
             self._pack_group(name, targets.instances(name))
+        if self.appearance is not None and self.appearance.dirty:
+            targets.appearance().copy_(self.appearance.rows.reshape(-1))
+            self.appearance.dirty = False
         self._dirty.clear()
         packed = time.perf_counter()
         self._cull(set(packed_groups), cameras_moved, targets)
@@ -285,6 +325,9 @@ class FramePacker:
         state = self.state[mount.group]
         index, offset, tilt = self._mount_constants
         body = quat_to_matrix(state["rotation"][:, index].to(torch.float64))
+        if self._mount_per_view is not None:  # set_cameras(mount_offset=, mount_pitch=): one per view
+            offset, tilt = self._mount_per_view
+            return state["position"][:, index] + (body @ offset[..., None])[..., 0], body @ tilt
         position = state["position"][:, index] + body @ offset
         return position, body if tilt is None else body @ tilt
 
@@ -438,6 +481,17 @@ def _float_arg(name, value, shape):
     check_shape(name, tensor, shape)
     check_finite(name, tensor)
     return tensor
+
+
+def _broadcast_arg(name, value, shape):
+    """_float_arg of a value that may broadcast to `shape` (one value for every view, or per world)."""
+    tensor = as_tensor(name, value)
+    try:
+        tensor = torch.broadcast_to(tensor, shape)
+    except RuntimeError:
+        raise ValueError(f"{name} must have shape {list(shape)} (or broadcast to it), "
+                         f"got {list(tensor.shape)}") from None
+    return _float_arg(name, tensor, shape)
 
 
 def _indices(table: layout.RowLayout, leading: int) -> dict:

@@ -22,12 +22,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import backend, memory, readback, shaders, skinning
-from .meshes import MeshData, to_panda_geom
+from . import backend, layout, memory, readback, shaders, skinning
+from .meshes import MeshData, plane, to_panda_geom
 from .packing import FramePacker
 from .panda_buffers import TextureMemory, buffer_texture, int_input, panda_texture, vec3_input
 from .provoking import shared_corner_mesh
-from .scene import Scene
+from .scene import ROLES, Scene
 from .shadows import ShadowPass, atlas_layout
 from .threads import one_thread
 from .tiling import TileLayout, column_layout
@@ -68,6 +68,7 @@ class _PandaTargets:
     def __init__(self, groups: dict):
         self.groups = groups  # the renderer's draw groups by name, filled as they are built
         self.views_texture = None
+        self.appearance_texture = None  # the "appearance" effect's rows, one per world
         self._memory: dict[tuple, TextureMemory] = {}
 
     def views(self) -> torch.Tensor:
@@ -78,6 +79,9 @@ class _PandaTargets:
 
     def pairs(self, group: str) -> torch.Tensor:
         return self._view(("pairs", group), self.groups[group].pairs, np.int32)
+
+    def appearance(self) -> torch.Tensor:
+        return self._view(("appearance",), self.appearance_texture, np.float32)
 
     def _view(self, key: tuple, texture, dtype) -> torch.Tensor:
         view = self._memory.get(key)
@@ -228,6 +232,10 @@ class BatchRenderer:
             "ambient_color": vec3_input(lighting.ambient), "fog_color": vec3_input(fog.color),
             "fog_density": float(fog.density),
             "tile_size": LVecBase2f(self.layout.tile_width, self.layout.tile_height)}
+        if "appearance" in self.effects:
+            self.appearance_texture = self._targets.appearance_texture = buffer_texture(
+                "appearance", self.scene.num_worlds * layout.APPEARANCE.texels)
+            self._shared_inputs["appearance"] = self.appearance_texture
         for index in range(self.layout.num_passes):
             self._passes.append(self._make_pass(self.layout.pass_views(index)))
 
@@ -306,7 +314,24 @@ class BatchRenderer:
             root.set_shader_input(name, value)
         root.set_shader_input("tiles", int_input(len(views)))
         root.set_shader_input("view_offset", int_input(views.start))
+        if "appearance" in self.effects:
+            self._add_sky(root, len(views))
         return _Pass(views, buffer, root, color, aux)
+
+    def _add_sky(self, root, count: int) -> None:
+        """The appearance effect's sky: a quad per view, drawn after every group (shaders/sky.vert)."""
+        from panda3d.core import CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib, NodePath, OmniBoundingVolume
+
+        sky = NodePath(to_panda_geom(plane()))
+        sky.set_bin("fixed", len(self.scene.static) + len(self.scene.groups))
+        sky.node().set_bounds(OmniBoundingVolume())
+        sky.node().set_final(True)
+        sky.set_attrib(DepthTestAttrib.make(DepthTestAttrib.M_less_equal))  # the far plane: only where nothing was
+        sky.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_off))
+        sky.set_attrib(CullFaceAttrib.make(CullFaceAttrib.M_cull_none))
+        sky.set_shader(shaders.compiled_sky(shaders.sky_defines(self.effects, gray=self.color == "gray")))
+        sky.set_instance_count(count)
+        sky.reparent_to(root)
 
     def _build_groups(self):
         from panda3d.core import NodePath, OmniBoundingVolume
@@ -339,10 +364,13 @@ class BatchRenderer:
             node.set_bin("fixed", order)
             node.node().set_bounds(OmniBoundingVolume())
             node.node().set_final(True)
+            role = 0 if static else ROLES[group.role]
+            surface = bool(group.role.any()) if static else bool(role)
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
                                           flat=procedural and mesh.flat, corners=procedural,
                                           gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf,
-                                          joints=joints, influences=mesh.influences if joints else 4)
+                                          joints=joints, influences=mesh.influences if joints else 4,
+                                          role=role, surface=surface)
             node.set_shader(shaders.compiled(defines))
             if textured and "texture" in self.effects:
                 node.set_texture(panda_texture(group.texture, group.name), 1)
@@ -386,12 +414,31 @@ class BatchRenderer:
                            owner=owner, joints=joints)
 
     @one_thread
-    def set_cameras(self, *, position=None, rotation=None, look_at=None, fov_y=None, near=None, far=None) -> None:
+    def set_cameras(self, *, position=None, rotation=None, look_at=None, fov_y=None, near=None, far=None,
+                    mount_offset=None, mount_pitch=None) -> None:
         """Free cameras: position [W,A,3], rotation [W,A,4] or look_at [W,A,3] targets;
-        fov_y (radians), near, far: scalars or [W,A]. Mounted cameras take only fov_y/near/far."""
+        fov_y (radians), near, far: scalars or [W,A]. Mounted cameras take fov_y/near/far and, per
+        view, mount_offset [W,A,3] (metres in the instance's frame) and mount_pitch [W,A] (radians in
+        [-pi/2, pi/2], positive looks up), which replace scene.mount_cameras' offset and pitch."""
         self._check_open()
         self.packer.set_cameras(position=position, rotation=rotation, look_at=look_at, fov_y=fov_y, near=near,
-                                far=far)
+                                far=far, mount_offset=mount_offset, mount_pitch=mount_pitch)
+
+    @one_thread
+    def set_appearance(self, **kwargs) -> None:
+        """Each world's look, for a scene that declares the "appearance" effect (appearance.py): any of
+        light_direction [W,3] (non-zero, pointing from the light), light_color [W,3] and ambient [W,3]
+        (>= 0), sky [W,3], floor [W,3] and wall [W,3] (RGB in [0,1]: the colour of instances with that
+        role), floor_pattern [W] and wall_pattern [W] (int index into appearance.PATTERNS),
+        pattern_scale [W,2] (cells per metre of floor and wall patterns), pattern_contrast [W,2] (in
+        [0,1]), hue_shift [W] (turns), saturation [W] and value [W] (scales, >= 0) of the colours of
+        every other instance. Each may broadcast to its shape (one value for all worlds); those not
+        given keep their values. Everything is validated before anything is stored."""
+        self._check_open()
+        if self.packer.appearance is None:
+            raise ValueError(f"set_appearance needs a scene that declares the 'appearance' effect, got effects "
+                             f"{list(self.scene.effects)}")
+        self.packer.appearance.set(**kwargs)
 
     # ------------------------------------------------------------------ rendering
     @one_thread
@@ -573,7 +620,7 @@ class BatchRenderer:
         if self._closed:
             return
         self._closed = True
-        textures = [getattr(self, "views_texture", None)]
+        textures = [getattr(self, "views_texture", None), getattr(self, "appearance_texture", None)]
         passes = getattr(self, "_passes", [])
         shadow_pass = getattr(self, "shadow_pass", None)
         if (passes or shadow_pass is not None) and self._context.pid == os.getpid():

@@ -61,6 +61,10 @@ def check_depth_range(near, far, log_depth: bool) -> None:
                          f"ratio of {ratio:.3g}; raise near, lower far, or add 'log_depth' to the scene's effects")
 
 
+# Roles of surfaces under the "appearance" effect: a floor or wall instance takes its world's floor
+# or wall colour and pattern; every other instance keeps its own colour, jittered per world.
+ROLES = {None: 0, "floor": 1, "wall": 2}
+
 MIN_DIRECTION_LENGTH, MAX_DIRECTION_LENGTH = 1e-30, 1e30  # Lighting.direction's length (see there)
 
 
@@ -135,6 +139,7 @@ class StaticGroup:
     color: torch.Tensor  # [K, 4]
     texture: object = None
     segment_base: int = 0
+    role: torch.Tensor | None = None  # [K] int64 ROLES codes (None: all 0, no role)
 
     @property
     def count(self) -> int:
@@ -149,6 +154,7 @@ class InstanceGroup:
     capacity: int  # C: instance slots per world (inactive slots are not drawn)
     texture: object = None
     segment_base: int = 0
+    role: str | None = None  # a key of ROLES: the role of every instance
 
 
 @dataclass(frozen=True)
@@ -215,12 +221,15 @@ class Scene:
         used += [g.segment_base + g.capacity for g in self.groups.values()]
         return max(used, default=1)
 
-    def add_static(self, name: str, mesh, position, rotation=None, scale=None, color=None, texture=None) -> StaticGroup:
+    def add_static(self, name: str, mesh, position, rotation=None, scale=None, color=None, texture=None,
+                   role=None) -> StaticGroup:
         """Geometry identical in every world (floor, walls): stored and uploaded once.
 
         position [K, 3] or [3]; rotation [K|1, 4] quaternions (w, x, y, z); scale [K|1, 3],
         [K|1, 1] or a number; color [K|1, 3|4] in [0, 1]; texture an image file path or a
-        uint8 array [h, w, 3|4] (shown where the scene declares the "texture" effect)."""
+        uint8 array [h, w, 3|4] (shown where the scene declares the "texture" effect);
+        role None, "floor" or "wall" for all instances, or one of those per instance: under the
+        "appearance" effect such instances take their world's floor / wall colour and pattern."""
         self._check_name(name)
         position = as_tensor("position", position)
         check_host("position", position)
@@ -237,18 +246,21 @@ class Scene:
                              f"got minimum {scale.min().item()}")
         check_range("color", color, 0.0, 1.0)  # the same bounds as BatchRenderer.update
         rotation = _unit(rotation)
+        role = _roles(role, count)
         texture = _resolve_texture(texture)
         mesh = _resolve_mesh(mesh)  # last: a model file is parsed in a child process
-        group = StaticGroup(name, mesh, position, rotation, scale, color, texture, self._next_segment_base())
+        group = StaticGroup(name, mesh, position, rotation, scale, color, texture, self._next_segment_base(), role)
         self.static[name] = group
         return group
 
-    def add_group(self, name: str, mesh, capacity: int, texture=None) -> InstanceGroup:
-        """A mesh drawn up to `capacity` times per world, posed per step."""
+    def add_group(self, name: str, mesh, capacity: int, texture=None, role=None) -> InstanceGroup:
+        """A mesh drawn up to `capacity` times per world, posed per step. role: None, "floor" or
+        "wall" (under the "appearance" effect its instances take their world's floor / wall look)."""
         self._check_name(name)
         capacity = positive_int("capacity", capacity)
+        _role_code("role", role)
         texture = _resolve_texture(texture)
-        group = InstanceGroup(name, _resolve_mesh(mesh), capacity, texture, self._next_segment_base())
+        group = InstanceGroup(name, _resolve_mesh(mesh), capacity, texture, self._next_segment_base(), role)
         self.groups[name] = group
         return group
 
@@ -298,6 +310,22 @@ def _effect_names(effects) -> tuple:
     if unknown:
         raise ValueError(f"effects must be drawn from {list(EFFECTS)}, got unknown {unknown}")
     return tuple(sorted(set(effects)))
+
+
+def _role_code(name: str, role) -> int:
+    if role is not None and not isinstance(role, str) or role not in ROLES:
+        raise ValueError(f"{name} must be one of {list(ROLES)}, got {describe(role)}")
+    return ROLES[role]
+
+
+def _roles(role, count: int) -> torch.Tensor:
+    """[count] int64 role codes from one role for all instances or a sequence of one per instance."""
+    if role is None or isinstance(role, str):
+        return torch.full((count,), _role_code("role", role), dtype=torch.int64)
+    if not isinstance(role, (tuple, list)) or len(role) != count:
+        raise ValueError(f"role must be one of {list(ROLES)} or a list of {count} of them (one per instance), "
+                         f"got {describe(role)}")
+    return torch.tensor([_role_code(f"role[{i}]", r) for i, r in enumerate(role)], dtype=torch.int64)
 
 
 def _resolve_mesh(mesh):

@@ -28,6 +28,7 @@ EFFECT_DEFINES = {
     "segmentation": "OUTPUT_SEGMENTATION",
     "log_depth": "LOG_DEPTH",
     "shadows": "EFFECT_SHADOWS",
+    "appearance": "EFFECT_APPEARANCE",
 }
 EFFECTS = tuple(EFFECT_DEFINES)
 
@@ -39,7 +40,7 @@ def source(name: str) -> str:
 
 def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False,
                 corners: bool = False, gray: bool = False, shadow_pcf: bool = False,
-                joints: int = 0, influences: int = 4) -> tuple[str, ...]:
+                joints: int = 0, influences: int = 4, role: int = 0, surface: bool = False) -> tuple[str, ...]:
     """The sorted #define lines of one variant (texture only for groups that have one).
 
     Lighting runs per vertex for meshes whose faces each have one normal (flat), where
@@ -51,8 +52,17 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
     its welded corners (provoking.py) with the same defines. Shadows filter their edges
     (SHADOW_PCF) only when asked. joints > 0: a skinned group (the SKINNING variant), whose
     instances carry that many joint matrices and whose vertices follow up to `influences`
-    joints each (1..4; each vertex blends only that many)."""
+    joints each (1..4; each vertex blends only that many). Under the appearance effect, role is
+    the code (scene.ROLES) of every instance of a moving group (static groups read theirs per
+    instance), and surface says that some instance has a role: only then does the variant carry
+    the floor and wall patterns (a world position per fragment)."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
+    if "appearance" in effects:
+        defines.update(layout.appearance_defines())
+        if role and not static:
+            defines.add(f"GROUP_ROLE {role}")
+        if surface:
+            defines.add("APPEARANCE_SURFACE")
     if "lighting" in effects:
         defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
     if "depth" in effects:
@@ -64,14 +74,14 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
     if "texture" in effects and textured:
         defines.add("EFFECT_TEXTURE")
     defines.update(_instance_defines(static, joints, influences))
-    # Aux attachments are numbered in declaration order after the colour target.
-    location = 1
-    if "depth" in effects:
-        defines.add(f"DEPTH_LOCATION {location}")
-        location += 1
-    if "segmentation" in effects:
-        defines.add(f"SEGMENTATION_LOCATION {location}")
+    defines.update(_aux_locations(effects))
     return tuple(sorted(defines))
+
+
+def _aux_locations(effects) -> set[str]:
+    """Aux attachments are numbered in declaration order after the colour target."""
+    names = [name for name in ("depth", "segmentation") if name in effects]
+    return {f"{name.upper()}_LOCATION {location}" for location, name in enumerate(names, start=1)}
 
 
 def variant_source(stage: str, defines: tuple[str, ...]) -> str:
@@ -105,6 +115,30 @@ def _compile_view(defines: tuple[str, ...]):
     if shader is None:
         raise RuntimeError(f"shader variant {defines} failed to parse; see the GL log above")
     return shader
+
+
+def sky_defines(effects: frozenset, *, gray: bool = False) -> tuple[str, ...]:
+    """#defines of the appearance effect's sky (shaders/sky.*): each world's own background colour,
+    drawn behind everything in the same frame, and the background values of the aux outputs."""
+    defines = set(layout.appearance_defines()) | _aux_locations(effects)
+    defines.update(EFFECT_DEFINES[e] for e in ("depth", "segmentation") if e in effects)
+    if gray:
+        defines.add("OUTPUT_GRAY")
+    return tuple(sorted(defines))
+
+
+def compiled_sky(defines: tuple[str, ...]):
+    """Cached Panda3D Shader of the sky (sky.vert, sky.frag)."""
+    key = ("sky", defines)
+    if key not in _COMPILED:
+        from panda3d.core import Shader
+
+        header = GLSL_VERSION + "".join(f"#define {d}\n" for d in defines)
+        shader = Shader.make(Shader.SL_GLSL, header + source("sky.vert"), header + source("sky.frag"))
+        if shader is None:
+            raise RuntimeError(f"sky variant {defines} failed to parse; see the GL log above")
+        _COMPILED[key] = shader
+    return _COMPILED[key]
 
 
 def _instance_defines(static: bool, joints: int, influences: int) -> set[str]:

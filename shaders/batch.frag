@@ -23,6 +23,15 @@
 #if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
 #define v_direct g_direct
 #endif
+#if defined(EFFECT_APPEARANCE) && defined(LIGHT_PER_FRAGMENT)
+#define v_look_light_direction g_look_light_direction
+#define v_look_light_color g_look_light_color
+#define v_look_ambient g_look_ambient
+#endif
+#ifdef APPEARANCE_SURFACE
+#define v_world g_world
+#define v_pattern g_pattern
+#endif
 #endif
 #ifdef OUTPUT_DEPTH
 flat in vec4 depth_plane;  // the triangle's plane n.(x, y, w) = d in its view's clip space
@@ -36,9 +45,22 @@ uniform sampler2D p3d_Texture0;
 #endif
 #ifdef LIGHT_PER_FRAGMENT
 in vec3 v_normal;
+#ifdef EFFECT_APPEARANCE
+flat in vec3 v_look_light_direction;  // the world's light (batch.vert reads it)
+flat in vec3 v_look_light_color;
+flat in vec3 v_look_ambient;
+#define light_direction v_look_light_direction
+#define light_color v_look_light_color
+#define ambient_color v_look_ambient
+#else
 uniform vec3 light_direction;  // world frame, pointing from the light
 uniform vec3 light_color;
 uniform vec3 ambient_color;
+#endif
+#endif
+#ifdef APPEARANCE_SURFACE
+in vec3 v_world;         // the fragment relative to its world's origin (m)
+flat in vec4 v_pattern;  // (pattern kind, cells per metre, contrast, role: 1 floor, 2 wall)
 #endif
 #if defined(EFFECT_FOG) || defined(OUTPUT_DEPTH) || defined(LOG_DEPTH)
 in float v_depth;
@@ -134,6 +156,34 @@ float light_visibility() {
 }
 #endif
 
+#ifdef APPEARANCE_SURFACE
+// The factor a floor's or wall's pattern leaves of its colour, from where the fragment is in its
+// world (no texture to upload). Kinds, as appearance.PATTERNS: 0 plain, 1 checker, 2 stripes,
+// 3 noise (a random shade per cell), 4 bricks. Floors are patterned in (x, y); walls along the
+// wall (x + y: axis-aligned walls have one of them constant) and up.
+float surface_pattern() {
+    int kind = int(v_pattern.x + 0.5);
+    if (kind == 0) {
+        return 1.0;
+    }
+    vec2 uv = (v_pattern.w > 1.5 ? vec2(v_world.x + v_world.y, v_world.z) : v_world.xy) * v_pattern.y;
+    vec2 cell = floor(uv);
+    float dark;
+    if (kind == 1) {
+        dark = mod(cell.x + cell.y, 2.0);
+    } else if (kind == 2) {
+        dark = step(0.5, uv.x - cell.x);
+    } else if (kind == 3) {
+        uvec2 q = uvec2(ivec2(cell)) * uvec2(1597334677u, 3812015801u);
+        dark = float(((q.x ^ q.y) * 1597334677u) >> 8) * (1.0 / 16777216.0);
+    } else {
+        vec2 brick = fract(vec2(0.5 * uv.x + 0.5 * mod(cell.y, 2.0), uv.y));  // two cells wide, rows offset
+        dark = brick.y < 0.12 || brick.x < 0.06 ? 1.0 : 0.0;  // the mortar
+    }
+    return 1.0 - v_pattern.z * dark;
+}
+#endif
+
 void main() {
     vec3 color = v_color.rgb;
 #if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
@@ -141,6 +191,9 @@ void main() {
 #endif
 #ifdef EFFECT_TEXTURE
     color *= texture(p3d_Texture0, v_uv).rgb;
+#endif
+#ifdef APPEARANCE_SURFACE
+    color *= surface_pattern();
 #endif
 #ifdef LIGHT_PER_FRAGMENT
     float lambert = max(dot(normalize(v_normal), -light_direction), 0.0);

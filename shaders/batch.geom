@@ -38,6 +38,20 @@ flat out ivec2 g_shadow_tile;
 flat in vec3 v_direct[];
 flat out vec3 g_direct;
 #endif
+#if defined(EFFECT_APPEARANCE) && defined(LIGHT_PER_FRAGMENT)
+flat in vec3 v_look_light_direction[];
+flat out vec3 g_look_light_direction;
+flat in vec3 v_look_light_color[];
+flat out vec3 g_look_light_color;
+flat in vec3 v_look_ambient[];
+flat out vec3 g_look_ambient;
+#endif
+#ifdef APPEARANCE_SURFACE
+in vec3 v_world[];
+out vec3 g_world;
+flat in vec4 v_pattern[];
+flat out vec4 g_pattern;
+#endif
 in vec3 v_clip[];              // (x, y, w) before the move into the tile
 flat in vec2 v_tile_origin[];
 flat out vec4 depth_plane;     // n.(x, y, w) = d
@@ -74,6 +88,15 @@ void main() {
 #endif
 #if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
         g_direct = v_direct[i];
+#endif
+#if defined(EFFECT_APPEARANCE) && defined(LIGHT_PER_FRAGMENT)
+        g_look_light_direction = v_look_light_direction[i];
+        g_look_light_color = v_look_light_color[i];
+        g_look_ambient = v_look_ambient[i];
+#endif
+#ifdef APPEARANCE_SURFACE
+        g_world = v_world[i];
+        g_pattern = v_pattern[i];
 #endif
         depth_plane = plane;
         depth_tile = vec4(v_tile_origin[i], w_range);

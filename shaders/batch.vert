@@ -37,10 +37,24 @@ flat out vec4 v_color;
 #ifdef LIGHT_PER_FRAGMENT
 out vec3 v_normal;
 #endif
-#ifdef LIGHT_PER_VERTEX
+#if defined(LIGHT_PER_VERTEX) && !defined(EFFECT_APPEARANCE)
 uniform vec3 light_direction;  // world frame, pointing from the light
 uniform vec3 light_color;
 uniform vec3 ambient_color;
+#endif
+#ifdef EFFECT_APPEARANCE
+// Each world's look (rows: APPEARANCE_* from marl_render/layout.py): its light, the colours and
+// patterns of floors and walls, the colour transform of everything else.
+uniform samplerBuffer appearance;
+#ifdef LIGHT_PER_FRAGMENT
+flat out vec3 v_look_light_direction;  // the world's light, for the fragment stage
+flat out vec3 v_look_light_color;
+flat out vec3 v_look_ambient;
+#endif
+#ifdef APPEARANCE_SURFACE
+out vec3 v_world;         // the vertex relative to its world's origin (m): where patterns are drawn
+flat out vec4 v_pattern;  // a floor's or wall's (pattern kind, cells per metre, contrast, role); kind 0: none
+#endif
 #endif
 #if defined(EFFECT_FOG) || defined(OUTPUT_DEPTH) || defined(LOG_DEPTH)
 out float v_depth;
@@ -98,6 +112,45 @@ void main() {
     vec4 rotation = texelFetch(instances, row + ROW_ROTATION).ROW_ROTATION_LANES;  // unit (w, x, y, z)
     vec3 scale = texelFetch(instances, row + ROW_SCALE).ROW_SCALE_LANES;
     v_color = texelFetch(instances, row + ROW_COLOR).ROW_COLOR_LANES;
+#ifdef EFFECT_APPEARANCE
+    int look = world * APPEARANCE_TEXELS;
+#ifdef STATIC_GROUP
+    int role = int(texelFetch(instances, row + ROW_ROLE).ROW_ROLE_LANES + 0.5);  // per instance
+#elif defined(GROUP_ROLE)
+    int role = GROUP_ROLE;
+#else
+    int role = 0;
+#endif
+#ifdef APPEARANCE_SURFACE
+    v_pattern = vec4(0.0);
+#endif
+    if (role == 0) {
+        // Not a floor or wall: the world's colour transform (hue, saturation and value jitter).
+        int rows = look + APPEARANCE_COLOR_TRANSFORM;
+        vec3 own = v_color.rgb;
+        v_color.rgb = clamp(vec3(dot(texelFetch(appearance, rows).xyz, own),
+                                 dot(texelFetch(appearance, rows + 1).xyz, own),
+                                 dot(texelFetch(appearance, rows + 2).xyz, own)), 0.0, 1.0);
+    } else {
+        bool floor_role = role == 1;
+        vec4 surface = texelFetch(appearance, look + (floor_role ? APPEARANCE_FLOOR : APPEARANCE_WALL));
+        v_color.rgb = surface.w > 0.5 ? surface.rgb : v_color.rgb;  // w 0: the instance's own colour
+#ifdef APPEARANCE_SURFACE
+        v_pattern = vec4(texelFetch(appearance, look + (floor_role ? APPEARANCE_FLOOR_PATTERN
+                                                                   : APPEARANCE_WALL_PATTERN)).xyz, float(role));
+#endif
+    }
+#ifdef EFFECT_LIGHTING
+    vec3 light_direction = texelFetch(appearance, look + APPEARANCE_LIGHT_DIRECTION).APPEARANCE_LIGHT_DIRECTION_LANES;
+    vec3 light_color = texelFetch(appearance, look + APPEARANCE_LIGHT_COLOR).APPEARANCE_LIGHT_COLOR_LANES;
+    vec3 ambient_color = texelFetch(appearance, look + APPEARANCE_AMBIENT).APPEARANCE_AMBIENT_LANES;
+#ifdef LIGHT_PER_FRAGMENT
+    v_look_light_direction = light_direction;
+    v_look_light_color = light_color;
+    v_look_ambient = ambient_color;
+#endif
+#endif
+#endif
 
     vec3 vertex = p3d_Vertex.xyz;
 #ifdef EFFECT_LIGHTING
@@ -134,6 +187,9 @@ void main() {
     vec3 relative = position;  // already relative to the world's origin
 #endif
     vec3 world_position = relative + rotate(rotation, vertex * scale);
+#ifdef APPEARANCE_SURFACE
+    v_world = world_position;
+#endif
     vec4 clip = view_projection * vec4(world_position, 1.0);
 
     // Clip against this view's own frustum before moving it into its tile, so nothing

@@ -1,0 +1,301 @@
+"""Per-world looks: what the "appearance" effect draws differently in each world, and the sampler of
+train and held-out appearances.
+
+A scene that declares the "appearance" effect gets one row per world (layout.APPEARANCE) that the
+shaders read in the same instanced pass as everything else:
+
+- the directional light (direction, colour) and the ambient light;
+- the sky: the world's background colour (a quad per view drawn behind everything, shaders/sky.*);
+- the floor and wall colours and their procedural patterns (PATTERNS, computed in the fragment
+  shader from the world position: no texture is uploaded), for instances whose role is "floor" or
+  "wall" (``Scene.add_static(..., role=)``, ``Scene.add_group(..., role=)``);
+- a colour transform of every other instance (agents, objects): a rotation of hue by the same
+  angle for the whole world, and a scaling of saturation and value. Objects keep their hue order
+  and the hue distances between them, so teams stay apart within a world; the default jitter
+  (+-0.025 turns, 9 degrees) keeps each team colour within a band around its own hue.
+
+``BatchRenderer.set_appearance(...)`` sets them ([W, ...] per argument; until then a world shows
+the scene's lighting and background and its instances' own colours). Camera jitter is on the camera
+side: ``set_cameras(fov_y=, mount_offset=, mount_pitch=)``.
+
+``Appearance`` draws them from per-world ids (a pure function through marl_render.keyed_random):
+
+    look = Appearance(split="train")            # or "heldout"
+    params = look.sample(ids)                   # ids [W] int64 -> AppearanceParams of [W, ...] tensors
+    renderer.set_appearance(**params.renderer_kwargs())
+
+Splits: the hue circle is cut into HUE_SECTORS sectors; the sky, floor and wall hues of "train"
+come from TRAIN_SECTORS and those of "heldout" from HELDOUT_SECTORS, which share none; floor and
+wall patterns of "train" are TRAIN_PATTERNS (plain, checker, stripes) and those of "heldout"
+HELDOUT_PATTERNS (noise, bricks). So no held-out sky, floor or wall has a hue sector or pattern that
+appears in training. Light, object jitter and camera jitter are drawn alike in both splits.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+
+from . import layout
+from .keyed_random import KeyedRandom, as_keys, derive_keys
+from .validation import as_tensor, check_finite, check_host, check_range, describe
+
+PATTERNS = ("plain", "checker", "stripes", "noise", "bricks")  # kinds of shaders/batch.frag's surface_pattern
+TRAIN_PATTERNS = (0, 1, 2)
+HELDOUT_PATTERNS = (3, 4)
+HUE_SECTORS = 12  # 30 degrees each
+HELDOUT_SECTORS = (1, 4, 7, 10)
+TRAIN_SECTORS = tuple(s for s in range(HUE_SECTORS) if s not in HELDOUT_SECTORS)
+SPLITS = ("train", "heldout")
+
+GREY = torch.full((3, 3), 1.0 / 3.0, dtype=torch.float64)  # projection onto the grey axis
+
+
+def color_transform(hue_shift: torch.Tensor, saturation: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    """[W, 3, 3] float32 matrices M with rgb' = M rgb: hue rotated by hue_shift turns about the grey
+    axis, the distance from it scaled by saturation, everything scaled by value (all [W]).
+    M = value (P + saturation (cos t (I - P) + sin t [u]x)), P the grey projection, u = (1, 1, 1) / sqrt 3."""
+    angle = 2 * math.pi * hue_shift.to(torch.float64)
+    cross = torch.tensor([[0.0, -1.0, 1.0], [1.0, 0.0, -1.0], [-1.0, 1.0, 0.0]], dtype=torch.float64) / math.sqrt(3)
+    chroma = torch.cos(angle)[:, None, None] * (torch.eye(3, dtype=torch.float64) - GREY) \
+        + torch.sin(angle)[:, None, None] * cross
+    matrix = GREY + saturation.to(torch.float64)[:, None, None] * chroma
+    return (value.to(torch.float64)[:, None, None] * matrix).to(torch.float32)
+
+
+def hsv_to_rgb(hue: torch.Tensor, saturation: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    """[..., 3] RGB of HSV colours (hue in turns, saturation and value in [0, 1]), as matplotlib's."""
+    h6 = torch.remainder(hue, 1.0) * 6
+    k = torch.remainder(torch.tensor([5.0, 3.0, 1.0], dtype=h6.dtype) + h6[..., None], 6)
+    return value[..., None] - (value * saturation)[..., None] * torch.clamp(torch.minimum(k, 4 - k), 0, 1)
+
+
+# ---------------------------------------------------------------------- the renderer's rows
+# set_appearance's arguments: (shape per world, kind, low, high); kind "float" or "int".
+ARGUMENTS = {
+    "light_direction": ((3,), "float", None, None),
+    "light_color": ((3,), "float", 0.0, None),
+    "ambient": ((3,), "float", 0.0, None),
+    "sky": ((3,), "float", 0.0, 1.0),
+    "floor": ((3,), "float", 0.0, 1.0),
+    "wall": ((3,), "float", 0.0, 1.0),
+    "floor_pattern": ((), "int", 0, len(PATTERNS) - 1),
+    "wall_pattern": ((), "int", 0, len(PATTERNS) - 1),
+    "pattern_scale": ((2,), "float", 1e-3, 1e3),
+    "pattern_contrast": ((2,), "float", 0.0, 1.0),
+    "hue_shift": ((), "float", -1e3, 1e3),
+    "saturation": ((), "float", 0.0, 1e3),
+    "value": ((), "float", 0.0, 1e3),
+}
+
+
+class AppearanceRows:
+    """Every world's APPEARANCE row (float32 [W, texels, 4]) and the arguments it was made from;
+    kept by the FramePacker of a scene with the "appearance" effect. Until set, a world shows the
+    scene's lighting and background, floors and walls keep their own colours, nothing is patterned
+    and the colour transform is the identity."""
+
+    def __init__(self, scene):
+        W = scene.num_worlds
+        direction = torch.tensor(scene.lighting.direction, dtype=torch.float64)
+        self.values = {
+            "light_direction": direction.expand(W, 3).clone(),
+            "light_color": torch.tensor(scene.lighting.color, dtype=torch.float64).expand(W, 3).clone(),
+            "ambient": torch.tensor(scene.lighting.ambient, dtype=torch.float64).expand(W, 3).clone(),
+            "sky": torch.tensor(scene.background[:3], dtype=torch.float64).expand(W, 3).clone(),
+            "floor": None, "wall": None,  # None: the instances' own colours
+            "floor_pattern": torch.zeros(W, dtype=torch.int64), "wall_pattern": torch.zeros(W, dtype=torch.int64),
+            "pattern_scale": torch.ones(W, 2, dtype=torch.float64),
+            "pattern_contrast": torch.zeros(W, 2, dtype=torch.float64),
+            "hue_shift": torch.zeros(W, dtype=torch.float64), "saturation": torch.ones(W, dtype=torch.float64),
+            "value": torch.ones(W, dtype=torch.float64),
+        }
+        self.num_worlds = W
+        self.rows = torch.zeros(W, layout.APPEARANCE.texels, 4)
+        self._write()
+        self.dirty = True  # not yet packed
+
+    def set(self, **kwargs) -> None:
+        """Validate every given argument ([W, ...] or broadcastable to it), then store them all."""
+        unknown = sorted(set(kwargs) - set(ARGUMENTS))
+        if unknown:
+            raise TypeError(f"set_appearance got unknown argument(s) {unknown}; accepted: {sorted(ARGUMENTS)}")
+        staged = {name: self._checked(name, value) for name, value in kwargs.items() if value is not None}
+        self.values.update(staged)
+        if staged:
+            self._write()
+            self.dirty = True
+
+    def light_directions(self) -> torch.Tensor:
+        """[W, 3] float64 unit directions of each world's light (pointing from it)."""
+        direction = self.values["light_direction"]
+        return direction / direction.norm(dim=-1, keepdim=True)
+
+    def _checked(self, name: str, value) -> torch.Tensor:
+        shape, kind, low, high = ARGUMENTS[name]
+        want = [self.num_worlds, *shape]
+        tensor = as_tensor(name, value, dtype_kind=kind)
+        check_host(name, tensor)
+        try:
+            tensor = torch.broadcast_to(tensor, want)
+        except RuntimeError:
+            raise ValueError(f"{name} must have shape {want} (or broadcast to it), got {list(tensor.shape)}") from None
+        if kind == "float":
+            tensor = tensor.to(torch.float64)
+            check_finite(name, tensor)
+        else:
+            tensor = tensor.to(torch.int64)
+        check_range(name, tensor, low, high)
+        if name == "light_direction":
+            length = tensor.norm(dim=-1)
+            if bool(((length < 1e-30) | (length > 1e30)).any()):
+                raise ValueError(f"light_direction must be non-zero vectors of length in [1e-30, 1e30], got "
+                                 f"lengths in [{length.min().item():.3g}, {length.max().item():.3g}]")
+        return tensor.clone()
+
+    def _write(self) -> None:
+        rows, v = self.rows, self.values
+        field = layout.APPEARANCE.fields
+        rows.zero_()
+
+        def put(name, values):
+            texel, lanes = layout.APPEARANCE[name]
+            rows[:, texel, lanes] = values.to(torch.float32)
+
+        put("light_direction", self.light_directions())
+        for name in ("light_color", "ambient", "sky"):
+            put(name, v[name])
+        for index, surface in enumerate(("floor", "wall")):
+            if v[surface] is not None:  # lane w = 1: the shader replaces the instance's colour
+                put(surface, torch.cat((v[surface], torch.ones(self.num_worlds, 1, dtype=torch.float64)), -1))
+            pattern = torch.stack((v[f"{surface}_pattern"].to(torch.float64), v["pattern_scale"][:, index],
+                                   v["pattern_contrast"][:, index]), -1)
+            put(f"{surface}_pattern", pattern)
+        first = field["color_transform"].texel
+        rows[:, first:first + layout.COLOR_TRANSFORM_TEXELS, :3] = color_transform(
+            v["hue_shift"], v["saturation"], v["value"])
+
+
+# ---------------------------------------------------------------------- the sampler
+@dataclasses.dataclass(frozen=True)
+class AppearanceParams:
+    """Per-world appearance drawn by Appearance.sample: [W, ...] tensors (float64 unless said)."""
+
+    light_direction: torch.Tensor  # [W, 3] unit, pointing from the light
+    light_color: torch.Tensor  # [W, 3]
+    ambient: torch.Tensor  # [W, 3]
+    sky: torch.Tensor  # [W, 3] RGB in [0, 1]
+    floor: torch.Tensor  # [W, 3]
+    wall: torch.Tensor  # [W, 3]
+    floor_pattern: torch.Tensor  # [W] int64 index into PATTERNS
+    wall_pattern: torch.Tensor  # [W] int64
+    pattern_scale: torch.Tensor  # [W, 2] cells per metre (floor, wall)
+    pattern_contrast: torch.Tensor  # [W, 2] in [0, 1]
+    hue_shift: torch.Tensor  # [W] turns, of every instance that is not a floor or wall
+    saturation: torch.Tensor  # [W] scale
+    value: torch.Tensor  # [W] scale
+    sky_hue: torch.Tensor  # [W] turns: the hues the splits are made of
+    floor_hue: torch.Tensor  # [W]
+    wall_hue: torch.Tensor  # [W]
+    fov_scale: torch.Tensor  # [W] factor of the cameras' fov_y
+    camera_height: torch.Tensor  # [W] metres added to the cameras' height
+    camera_pitch: torch.Tensor  # [W] radians added to the cameras' pitch (positive looks up)
+
+    def renderer_kwargs(self) -> dict:
+        """The keyword arguments of BatchRenderer.set_appearance (everything but the hues and cameras)."""
+        return {name: getattr(self, name) for name in ARGUMENTS}
+
+
+def _fraction(name: str, value, high: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= high:
+        raise ValueError(f"{name} must be a number in [0, {high:g}], got {describe(value)}")
+    return float(value)
+
+
+@dataclasses.dataclass(frozen=True)
+class Appearance:
+    """A distribution of per-world appearances and its split; see the module docstring.
+
+    split: "train" or "heldout". textures: draw floor and wall patterns (else all plain). camera:
+    jitter the agents' cameras (fov_y scaled by U(1 - fov_jitter, 1 + fov_jitter), height moved by
+    U(-height_jitter, height_jitter) metres, pitch by U(-pitch_jitter, pitch_jitter) radians).
+    hue_jitter (turns), saturation_jitter and value_jitter (fractions): the colour transform of
+    everything but floors and walls."""
+
+    split: str = "train"
+    textures: bool = True
+    camera: bool = True
+    fov_jitter: float = 0.1
+    height_jitter: float = 0.05
+    pitch_jitter: float = math.radians(5.0)
+    hue_jitter: float = 0.025
+    saturation_jitter: float = 0.15
+    value_jitter: float = 0.15
+
+    def __post_init__(self):
+        if not isinstance(self.split, str) or self.split not in SPLITS:
+            raise ValueError(f"split must be one of {list(SPLITS)}, got {describe(self.split)}")
+        for name in ("textures", "camera"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name} must be a bool, got {describe(getattr(self, name))}")
+        for name, high in (("fov_jitter", 0.5), ("height_jitter", 10.0), ("pitch_jitter", math.pi / 4),
+                           ("hue_jitter", 0.5), ("saturation_jitter", 1.0), ("value_jitter", 1.0)):
+            object.__setattr__(self, name, _fraction(name, getattr(self, name), high))
+
+    def sample(self, ids) -> AppearanceParams:
+        """The appearance of each world of ids [W] (int64): a pure function of (id, this Appearance),
+        on the CPU (where the renderer packs)."""
+        ids = as_keys(ids, "ids").cpu()
+        r = KeyedRandom(derive_keys(ids, "appearance"))
+        W = r.num_worlds
+        sectors = torch.tensor(TRAIN_SECTORS if self.split == "train" else HELDOUT_SECTORS)
+        patterns = torch.tensor(TRAIN_PATTERNS if self.split == "train" else HELDOUT_PATTERNS)
+
+        def hue(stream):  # a hue in one of the split's sectors
+            sector = sectors[r.randint(f"{stream}/sector", 0, len(sectors))]
+            return (sector + r.uniform(f"{stream}/within", dtype=torch.float64)) / HUE_SECTORS
+
+        def surface(stream, saturation, value):
+            h = hue(stream)
+            s = r.uniform(f"{stream}/saturation", low=saturation[0], high=saturation[1], dtype=torch.float64)
+            v = r.uniform(f"{stream}/value", low=value[0], high=value[1], dtype=torch.float64)
+            return h, hsv_to_rgb(h, s, v)
+
+        def tint(stream, max_saturation):
+            h, s = r.uniform(f"{stream}/hue", dtype=torch.float64), r.uniform(
+                f"{stream}/saturation", high=max_saturation, dtype=torch.float64)
+            return hsv_to_rgb(h, s, torch.ones_like(h))
+
+        def jitter(stream, amount):
+            return r.uniform(stream, low=-amount, high=amount, dtype=torch.float64)
+
+        sky_hue, sky = surface("sky", (0.15, 0.5), (0.65, 0.95))
+        floor_hue, floor = surface("floor", (0.1, 0.45), (0.25, 0.5))
+        wall_hue, wall = surface("wall", (0.1, 0.45), (0.5, 0.8))
+        azimuth = r.uniform("light/azimuth", high=2 * math.pi, dtype=torch.float64)
+        elevation = r.uniform("light/elevation", low=math.radians(35), high=math.radians(75), dtype=torch.float64)
+        direction = -torch.stack((torch.cos(elevation) * torch.cos(azimuth), torch.cos(elevation) * torch.sin(azimuth),
+                                  torch.sin(elevation)), -1)
+        intensity = r.uniform("light/intensity", (1,), low=0.55, high=0.9, dtype=torch.float64)
+        ambient = r.uniform("ambient/intensity", (1,), low=0.25, high=0.45, dtype=torch.float64)
+        if self.textures:
+            floor_pattern, wall_pattern = (patterns[r.randint(f"{surface}/pattern", 0, len(patterns))]
+                                           for surface in ("floor", "wall"))
+        else:
+            floor_pattern = wall_pattern = torch.zeros(W, dtype=torch.int64)
+        scale = torch.stack((r.uniform("floor/scale", low=1.5, high=4.0, dtype=torch.float64),
+                             r.uniform("wall/scale", low=4.0, high=8.0, dtype=torch.float64)), -1)
+        contrast = r.uniform("pattern/contrast", (2,), low=0.15, high=0.35, dtype=torch.float64)
+        camera = 1.0 if self.camera else 0.0
+        return AppearanceParams(
+            light_direction=direction, light_color=intensity * tint("light/tint", 0.25),
+            ambient=ambient * tint("ambient/tint", 0.15), sky=sky, floor=floor, wall=wall,
+            floor_pattern=floor_pattern, wall_pattern=wall_pattern, pattern_scale=scale, pattern_contrast=contrast,
+            hue_shift=jitter("objects/hue", self.hue_jitter),
+            saturation=1 + jitter("objects/saturation", self.saturation_jitter),
+            value=1 + jitter("objects/value", self.value_jitter),
+            sky_hue=sky_hue, floor_hue=floor_hue, wall_hue=wall_hue,
+            fov_scale=1 + camera * jitter("camera/fov", self.fov_jitter),
+            camera_height=camera * jitter("camera/height", self.height_jitter),
+            camera_pitch=camera * jitter("camera/pitch", self.pitch_jitter))
