@@ -27,7 +27,7 @@ side: ``set_cameras(fov_y=, mount_offset=, mount_pitch=)``.
 Splits: the hue circle is cut into HUE_SECTORS sectors; the sky, floor and wall hues of "train"
 come from TRAIN_SECTORS and those of "heldout" from HELDOUT_SECTORS, which share none; floor and
 wall patterns of "train" are TRAIN_PATTERNS (plain, checker, stripes) and those of "heldout"
-HELDOUT_PATTERNS (noise, bricks). So no held-out sky, floor or wall has a hue sector or pattern that
+HELDOUT_PATTERNS (dots, bricks). So no held-out sky, floor or wall has a hue sector or pattern that
 appears in training. Light, object jitter and camera jitter are drawn alike in both splits.
 """
 from __future__ import annotations
@@ -39,11 +39,21 @@ import torch
 
 from . import layout
 from .keyed_random import KeyedRandom, as_keys, derive_keys
+from .threads import one_thread
 from .validation import as_tensor, check_finite, check_host, check_range, describe
 
-PATTERNS = ("plain", "checker", "stripes", "noise", "bricks")  # kinds of shaders/batch.frag's surface_pattern
+PATTERNS = ("plain", "checker", "stripes", "dots", "bricks")  # shaders/batch.frag's surface_pattern
 TRAIN_PATTERNS = (0, 1, 2)
 HELDOUT_PATTERNS = (3, 4)
+# Per pattern: (cells along u per cell along v, shift along u per row, line threshold, weights of
+# the terms a, b, ab) of surface_pattern (cells are 1 / pattern_scale metres along v).
+PATTERN_TERMS = torch.tensor([
+    [1.0, 0.0, 0.5, 0.0, 0.0, 0.0],  # plain
+    [1.0, 0.0, 0.5, 1.0, 1.0, -2.0],  # checker: a xor b
+    [1.0, 0.0, 0.5, 1.0, 0.0, 0.0],  # stripes across u
+    [1.0, 0.0, 0.65, 0.0, 0.0, 1.0],  # dots: a and b past 0.65, a square in each cell's corner
+    [0.5, 0.5, 0.88, 1.0, 1.0, -1.0],  # bricks: mortar lines (a or b), cells twice as long, rows shifted
+], dtype=torch.float64)
 HUE_SECTORS = 12  # 30 degrees each
 HELDOUT_SECTORS = (1, 4, 7, 10)
 TRAIN_SECTORS = tuple(s for s in range(HUE_SECTORS) if s not in HELDOUT_SECTORS)
@@ -51,17 +61,40 @@ SPLITS = ("train", "heldout")
 
 GREY = torch.full((3, 3), 1.0 / 3.0, dtype=torch.float64)  # projection onto the grey axis
 
+# The sampler's ranges. Surfaces are (sky, floor, wall): saturation and value of their HSV colours,
+# floors darker than walls so that geometry reads at a glance.
+SURFACE_SATURATION = ((0.15, 0.1, 0.1), (0.5, 0.45, 0.45))
+SURFACE_VALUE = ((0.65, 0.25, 0.5), (0.95, 0.5, 0.8))
+LIGHT_ELEVATION = (math.radians(35.0), math.radians(75.0))  # above the horizon
+LIGHT_INTENSITY = ((0.55, 0.25), (0.9, 0.45))  # (directional, ambient)
+TINT_SATURATION = torch.tensor([0.25, 0.15], dtype=torch.float64)  # of the (directional, ambient) light's colour
+PATTERN_SCALE = ((1.5, 4.0), (4.0, 8.0))  # cells per metre: lows (floor, wall), highs (floor, wall)
+PATTERN_CONTRAST = (0.15, 0.35)
+
+# The sampler's one draw of uniforms per world (keyed_random: element i of stream "look"), taken
+# apart in this order: name -> how many.
+COLUMNS = {"sector": 3, "within_sector": 3, "saturation": 3, "value": 3, "light": 2, "intensity": 2, "tint_hue": 2,
+           "tint_saturation": 2, "pattern": 2, "pattern_scale": 2, "pattern_contrast": 2, "jitter": 6}
+DRAWS = sum(COLUMNS.values())
+
+
+def color_transform_terms(hue_shift: torch.Tensor, saturation: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    """[W, 3] (a, b, c) float64 of the colour transform rgb' = a rgb + b mean(rgb) + c ((1, 1, 1) x rgb):
+    hue rotated by hue_shift turns about the grey axis, the distance from it scaled by saturation,
+    everything scaled by value (all [W]). It is the matrix value (P + saturation (cos t (I - P) +
+    sin t [u]x)), P the projection onto the grey axis u = (1, 1, 1) / sqrt 3, written out."""
+    angle = 2 * math.pi * hue_shift.to(torch.float64)
+    chroma = saturation.to(torch.float64) * value.to(torch.float64)
+    a = chroma * torch.cos(angle)
+    return torch.stack((a, value.to(torch.float64) - a, chroma * torch.sin(angle) / math.sqrt(3)), -1)
+
 
 def color_transform(hue_shift: torch.Tensor, saturation: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
-    """[W, 3, 3] float32 matrices M with rgb' = M rgb: hue rotated by hue_shift turns about the grey
-    axis, the distance from it scaled by saturation, everything scaled by value (all [W]).
-    M = value (P + saturation (cos t (I - P) + sin t [u]x)), P the grey projection, u = (1, 1, 1) / sqrt 3."""
-    angle = 2 * math.pi * hue_shift.to(torch.float64)
-    cross = torch.tensor([[0.0, -1.0, 1.0], [1.0, 0.0, -1.0], [-1.0, 1.0, 0.0]], dtype=torch.float64) / math.sqrt(3)
-    chroma = torch.cos(angle)[:, None, None] * (torch.eye(3, dtype=torch.float64) - GREY) \
-        + torch.sin(angle)[:, None, None] * cross
-    matrix = GREY + saturation.to(torch.float64)[:, None, None] * chroma
-    return (value.to(torch.float64)[:, None, None] * matrix).to(torch.float32)
+    """[W, 3, 3] float64 matrices M with rgb' = M rgb (the transform of color_transform_terms)."""
+    a, b, c = color_transform_terms(hue_shift, saturation, value).unbind(-1)
+    cross = torch.tensor([[0.0, -1.0, 1.0], [1.0, 0.0, -1.0], [-1.0, 1.0, 0.0]], dtype=torch.float64)
+    return (a[:, None, None] * torch.eye(3, dtype=torch.float64) + b[:, None, None] * GREY
+            + c[:, None, None] * cross)
 
 
 def hsv_to_rgb(hue: torch.Tensor, saturation: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
@@ -115,17 +148,22 @@ class AppearanceRows:
         self.rows = torch.zeros(W, layout.APPEARANCE.texels, 4)
         self._write()
         self.dirty = True  # not yet packed
+        self.version = 0  # counts the changes (what a renderer's sky images follow)
 
-    def set(self, **kwargs) -> None:
-        """Validate every given argument ([W, ...] or broadcastable to it), then store them all."""
+    def set(self, check=None, **kwargs) -> None:
+        """Validate every given argument ([W, ...] or broadcastable to it), then store them all;
+        check(staged) may refuse the checked values first (a renderer's shadow pass does)."""
         unknown = sorted(set(kwargs) - set(ARGUMENTS))
         if unknown:
             raise TypeError(f"set_appearance got unknown argument(s) {unknown}; accepted: {sorted(ARGUMENTS)}")
         staged = {name: self._checked(name, value) for name, value in kwargs.items() if value is not None}
+        if check is not None:
+            check(staged)
         self.values.update(staged)
         if staged:
             self._write()
             self.dirty = True
+            self.version += 1
 
     def light_directions(self) -> torch.Tensor:
         """[W, 3] float64 unit directions of each world's light (pointing from it)."""
@@ -169,12 +207,12 @@ class AppearanceRows:
         for index, surface in enumerate(("floor", "wall")):
             if v[surface] is not None:  # lane w = 1: the shader replaces the instance's colour
                 put(surface, torch.cat((v[surface], torch.ones(self.num_worlds, 1, dtype=torch.float64)), -1))
-            pattern = torch.stack((v[f"{surface}_pattern"].to(torch.float64), v["pattern_scale"][:, index],
-                                   v["pattern_contrast"][:, index]), -1)
-            put(f"{surface}_pattern", pattern)
-        first = field["color_transform"].texel
-        rows[:, first:first + layout.COLOR_TRANSFORM_TEXELS, :3] = color_transform(
-            v["hue_shift"], v["saturation"], v["value"])
+            terms = PATTERN_TERMS[v[f"{surface}_pattern"]]  # [W, 6]
+            scale = v["pattern_scale"][:, index]
+            first = field[f"{surface}_pattern"].texel
+            rows[:, first] = torch.stack((scale * terms[:, 0], scale, terms[:, 1], terms[:, 2]), -1).to(torch.float32)
+            rows[:, first + 1, :3] = (terms[:, 3:] * v["pattern_contrast"][:, index:index + 1]).to(torch.float32)
+        put("color_transform", color_transform_terms(v["hue_shift"], v["saturation"], v["value"]))
 
 
 # ---------------------------------------------------------------------- the sampler
@@ -243,59 +281,53 @@ class Appearance:
                            ("hue_jitter", 0.5), ("saturation_jitter", 1.0), ("value_jitter", 1.0)):
             object.__setattr__(self, name, _fraction(name, getattr(self, name), high))
 
+    @one_thread  # small tensors: torch's thread pool would cost more than the work (threads.py)
     def sample(self, ids) -> AppearanceParams:
         """The appearance of each world of ids [W] (int64): a pure function of (id, this Appearance),
-        on the CPU (where the renderer packs)."""
+        on the CPU (where the renderer packs). One draw of DRAWS uniforms per world, taken apart by
+        rows of its transpose: every quantity below is [k, W] and contiguous (torch runs elementwise
+        ops on strided columns far slower, by milliseconds with two threads)."""
         ids = as_keys(ids, "ids").cpu()
-        r = KeyedRandom(derive_keys(ids, "appearance"))
-        W = r.num_worlds
-        sectors = torch.tensor(TRAIN_SECTORS if self.split == "train" else HELDOUT_SECTORS)
-        patterns = torch.tensor(TRAIN_PATTERNS if self.split == "train" else HELDOUT_PATTERNS)
+        u = KeyedRandom(derive_keys(ids, "appearance")).uniform("look", (DRAWS,), dtype=torch.float64)
+        draw = {name: rows for name, rows in zip(COLUMNS, u.T.contiguous().split(list(COLUMNS.values())),
+                                                  strict=True)}
+        train = self.split == "train"
+        sectors = torch.tensor(TRAIN_SECTORS if train else HELDOUT_SECTORS, dtype=torch.float64)
+        patterns = torch.tensor(TRAIN_PATTERNS if train else HELDOUT_PATTERNS)
 
-        def hue(stream):  # a hue in one of the split's sectors
-            sector = sectors[r.randint(f"{stream}/sector", 0, len(sectors))]
-            return (sector + r.uniform(f"{stream}/within", dtype=torch.float64)) / HUE_SECTORS
+        def between(values, low, high):  # values [k, W] in [0, 1) -> [low, high) (numbers or one per row)
+            low, high = (torch.as_tensor(v, dtype=torch.float64).reshape(-1, 1) for v in (low, high))
+            return low + values * (high - low)
 
-        def surface(stream, saturation, value):
-            h = hue(stream)
-            s = r.uniform(f"{stream}/saturation", low=saturation[0], high=saturation[1], dtype=torch.float64)
-            v = r.uniform(f"{stream}/value", low=value[0], high=value[1], dtype=torch.float64)
-            return h, hsv_to_rgb(h, s, v)
+        def pick(values, options):  # one of options per value in [0, 1)
+            return options[(values * len(options)).long()]
 
-        def tint(stream, max_saturation):
-            h, s = r.uniform(f"{stream}/hue", dtype=torch.float64), r.uniform(
-                f"{stream}/saturation", high=max_saturation, dtype=torch.float64)
-            return hsv_to_rgb(h, s, torch.ones_like(h))
-
-        def jitter(stream, amount):
-            return r.uniform(stream, low=-amount, high=amount, dtype=torch.float64)
-
-        sky_hue, sky = surface("sky", (0.15, 0.5), (0.65, 0.95))
-        floor_hue, floor = surface("floor", (0.1, 0.45), (0.25, 0.5))
-        wall_hue, wall = surface("wall", (0.1, 0.45), (0.5, 0.8))
-        azimuth = r.uniform("light/azimuth", high=2 * math.pi, dtype=torch.float64)
-        elevation = r.uniform("light/elevation", low=math.radians(35), high=math.radians(75), dtype=torch.float64)
+        # Sky, floor and walls: a hue in one of the split's sectors, then a saturation and value.
+        hues = (pick(draw["sector"], sectors) + draw["within_sector"]) / HUE_SECTORS  # [3, W]
+        colors = hsv_to_rgb(hues, between(draw["saturation"], *SURFACE_SATURATION),
+                            between(draw["value"], *SURFACE_VALUE))  # [3 surfaces, W, 3]
+        azimuth, elevation = 2 * math.pi * draw["light"][0], between(draw["light"][1:], *LIGHT_ELEVATION)[0]
         direction = -torch.stack((torch.cos(elevation) * torch.cos(azimuth), torch.cos(elevation) * torch.sin(azimuth),
                                   torch.sin(elevation)), -1)
-        intensity = r.uniform("light/intensity", (1,), low=0.55, high=0.9, dtype=torch.float64)
-        ambient = r.uniform("ambient/intensity", (1,), low=0.25, high=0.45, dtype=torch.float64)
+        intensity = between(draw["intensity"], *LIGHT_INTENSITY)  # [2, W]: the light's and the ambient's
+        tints = hsv_to_rgb(draw["tint_hue"], between(draw["tint_saturation"], 0.0, TINT_SATURATION),
+                           torch.ones_like(intensity))  # [2, W, 3]
+        lights = intensity[..., None] * tints
         if self.textures:
-            floor_pattern, wall_pattern = (patterns[r.randint(f"{surface}/pattern", 0, len(patterns))]
-                                           for surface in ("floor", "wall"))
+            surface_patterns = pick(draw["pattern"], patterns)  # [2, W]
         else:
-            floor_pattern = wall_pattern = torch.zeros(W, dtype=torch.int64)
-        scale = torch.stack((r.uniform("floor/scale", low=1.5, high=4.0, dtype=torch.float64),
-                             r.uniform("wall/scale", low=4.0, high=8.0, dtype=torch.float64)), -1)
-        contrast = r.uniform("pattern/contrast", (2,), low=0.15, high=0.35, dtype=torch.float64)
-        camera = 1.0 if self.camera else 0.0
+            surface_patterns = torch.zeros(2, len(ids), dtype=torch.int64)
+        amounts = torch.tensor([self.hue_jitter, self.saturation_jitter, self.value_jitter, self.fov_jitter,
+                                self.height_jitter, self.pitch_jitter], dtype=torch.float64)
+        if not self.camera:
+            amounts[3:] = 0.0
+        jitter = (2 * draw["jitter"] - 1) * amounts[:, None]  # [6, W] in [-amount, amount)
         return AppearanceParams(
-            light_direction=direction, light_color=intensity * tint("light/tint", 0.25),
-            ambient=ambient * tint("ambient/tint", 0.15), sky=sky, floor=floor, wall=wall,
-            floor_pattern=floor_pattern, wall_pattern=wall_pattern, pattern_scale=scale, pattern_contrast=contrast,
-            hue_shift=jitter("objects/hue", self.hue_jitter),
-            saturation=1 + jitter("objects/saturation", self.saturation_jitter),
-            value=1 + jitter("objects/value", self.value_jitter),
-            sky_hue=sky_hue, floor_hue=floor_hue, wall_hue=wall_hue,
-            fov_scale=1 + camera * jitter("camera/fov", self.fov_jitter),
-            camera_height=camera * jitter("camera/height", self.height_jitter),
-            camera_pitch=camera * jitter("camera/pitch", self.pitch_jitter))
+            light_direction=direction, light_color=lights[0], ambient=lights[1],
+            sky=colors[0], floor=colors[1], wall=colors[2],
+            floor_pattern=surface_patterns[0], wall_pattern=surface_patterns[1],
+            pattern_scale=between(draw["pattern_scale"], *PATTERN_SCALE).T.contiguous(),
+            pattern_contrast=between(draw["pattern_contrast"], *PATTERN_CONTRAST).T.contiguous(),
+            hue_shift=jitter[0], saturation=1 + jitter[1], value=1 + jitter[2],
+            sky_hue=hues[0], floor_hue=hues[1], wall_hue=hues[2],
+            fov_scale=1 + jitter[3], camera_height=jitter[4], camera_pitch=jitter[5])

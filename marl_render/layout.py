@@ -95,8 +95,10 @@ VIEW = RowLayout("VIEW", 6, {
 VIEW_PROJECTION_TEXELS = 4
 
 # One row per world of the "appearance" effect (appearance.py): its light, sky, the colours and
-# patterns of its floor and walls (rgb, w = 1: replaces the instance colour; pattern: kind,
-# cells per metre, contrast) and the 3x3 colour transform of everything else (rows).
+# patterns of its floor and walls (rgb, w = 1: replaces the instance colour; a pattern is two
+# texels: cells per metre along u and v, row shift, line threshold; weights of its terms) and the
+# colour transform of everything else, M rgb = a rgb + b mean(rgb) + c (u x rgb) with u = (1, 1, 1)
+# (appearance.color_transform_terms: hue, saturation and value in three numbers).
 APPEARANCE = RowLayout("APPEARANCE", 11, {
     "light_direction": Field(0, "xyz"),  # unit, pointing from the light
     "light_color": Field(1, "xyz"),
@@ -104,11 +106,11 @@ APPEARANCE = RowLayout("APPEARANCE", 11, {
     "sky": Field(3, "xyz"),
     "floor": Field(4),
     "wall": Field(5),
-    "floor_pattern": Field(6, "xyz"),
-    "wall_pattern": Field(7, "xyz"),
-    "color_transform": Field(8, "xyz"),  # texels 8-10, one row of the matrix each
+    "floor_pattern": Field(6),  # texels 6-7
+    "wall_pattern": Field(8),  # texels 8-9
+    "color_transform": Field(10, "xyz"),  # (a, b, c)
 })
-COLOR_TRANSFORM_TEXELS = 3
+PATTERN_TEXELS = 2
 
 
 def instance_texels(*, static: bool, joints: int = 0) -> int:

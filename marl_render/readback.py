@@ -32,8 +32,9 @@ FORMATS = {1: GL_RED, 3: GL_RGB, 4: GL_RGBA}
 _functions = None
 
 
-def _gl():
-    """GL entry points through eglGetProcAddress (they dispatch to the current context)."""
+def gl_functions() -> dict:
+    """GL entry points through eglGetProcAddress (they dispatch to the current context): those of
+    the reads here and of the appearance effect's sky images (sky.py)."""
     global _functions
     if _functions is None:
         name = ctypes.util.find_library("EGL")
@@ -49,6 +50,12 @@ def _gl():
             "glPixelStorei": (None, [uint, sint]),
             "glBindBuffer": (None, [uint, uint]),
             "glGetError": (uint, []),
+            "glCreateTextures": (None, [uint, sint, ctypes.POINTER(uint)]),
+            "glTextureStorage2D": (None, [uint, sint, uint, sint, sint]),
+            "glTextureSubImage2D": (None, [uint, sint, sint, sint, sint, sint, uint, uint, ptr]),
+            "glCopyImageSubData": (None, [uint, uint, sint, sint, sint, sint, uint, uint, sint, sint, sint, sint,
+                                          sint, sint, sint]),
+            "glDeleteTextures": (None, [sint, ctypes.POINTER(uint)]),
         }
         functions = {}
         for function, (restype, argtypes) in signatures.items():
@@ -83,7 +90,7 @@ def read_texture(name: int, width: int, height: int, components: int, destinatio
     if not destination.is_contiguous() or destination.numel() * destination.element_size() != size:
         raise ValueError(f"destination must be a contiguous tensor of {size} bytes, got shape "
                          f"{tuple(destination.shape)} of {destination.dtype}")
-    functions = _gl()
+    functions = gl_functions()
     while functions["glGetError"]():  # errors of earlier calls are not ours to report
         pass
     alignment = _get_integer(functions, GL_PACK_ALIGNMENT)

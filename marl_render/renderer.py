@@ -23,12 +23,13 @@ import numpy as np
 import torch
 
 from . import backend, layout, memory, readback, shaders, skinning
-from .meshes import MeshData, plane, to_panda_geom
+from .meshes import MeshData, to_panda_geom
 from .packing import FramePacker
 from .panda_buffers import TextureMemory, buffer_texture, int_input, panda_texture, vec3_input
 from .provoking import shared_corner_mesh
 from .scene import ROLES, Scene
-from .shadows import ShadowPass, atlas_layout
+from .shadows import ShadowPass, atlas_layout, light_projection
+from .sky import SkyImages
 from .threads import one_thread
 from .tiling import TileLayout, column_layout
 from .triangle_corners import to_panda_geom_with_corners
@@ -140,6 +141,9 @@ class BatchRenderer:
         if multisamples and {"depth", "segmentation"} & set(scene.effects):
             raise ValueError("multisamples cannot be combined with the depth or segmentation outputs (their "
                              "bit-packed samples would be averaged); use supersample instead")
+        if multisamples and "appearance" in scene.effects:
+            raise ValueError("multisamples cannot be combined with the appearance effect (MSAA resolves its own "
+                             "buffer over the sky copied into each framebuffer, sky.py); use supersample instead")
         self.multisamples = multisamples
         height, width = scene.resolution
         self.scene = scene
@@ -176,6 +180,8 @@ class BatchRenderer:
         self._groups: dict[str, DrawGroup] = {}
         self._targets = _PandaTargets(self._groups)  # the packer writes into their textures
         self.shadow_pass = None
+        self._sky = None  # the appearance effect's sky images (sky.py)
+        self._looks_version = -1  # the version of the appearance rows the sky and shadows show
         try:
             # Panda3D opens each framebuffer right away; until it is inactive, any frame
             # drawn by another thread would draw it too.
@@ -236,6 +242,7 @@ class BatchRenderer:
             self.appearance_texture = self._targets.appearance_texture = buffer_texture(
                 "appearance", self.scene.num_worlds * layout.APPEARANCE.texels)
             self._shared_inputs["appearance"] = self.appearance_texture
+            self._sky = SkyImages(self.layout, self.scene.agents_per_world, gray=self.color == "gray")
         for index in range(self.layout.num_passes):
             self._passes.append(self._make_pass(self.layout.pass_views(index)))
 
@@ -298,6 +305,7 @@ class BatchRenderer:
         if self.color == "gray":  # the shader's luma of the background
             background = np.full(3, float(np.dot(background, shaders.GRAY_WEIGHTS)))
         buffer.set_clear_color(tuple(background) + (1.0,))
+        buffer.set_clear_color_active("appearance" not in self.effects)  # the sky is copied over every tile instead
         buffer.set_active(False)
 
         root = NodePath(f"marl_render_pass_{views.start}")
@@ -314,24 +322,7 @@ class BatchRenderer:
             root.set_shader_input(name, value)
         root.set_shader_input("tiles", int_input(len(views)))
         root.set_shader_input("view_offset", int_input(views.start))
-        if "appearance" in self.effects:
-            self._add_sky(root, len(views))
         return _Pass(views, buffer, root, color, aux)
-
-    def _add_sky(self, root, count: int) -> None:
-        """The appearance effect's sky: a quad per view, drawn after every group (shaders/sky.vert)."""
-        from panda3d.core import CullFaceAttrib, DepthTestAttrib, DepthWriteAttrib, NodePath, OmniBoundingVolume
-
-        sky = NodePath(to_panda_geom(plane()))
-        sky.set_bin("fixed", len(self.scene.static) + len(self.scene.groups))
-        sky.node().set_bounds(OmniBoundingVolume())
-        sky.node().set_final(True)
-        sky.set_attrib(DepthTestAttrib.make(DepthTestAttrib.M_less_equal))  # the far plane: only where nothing was
-        sky.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_off))
-        sky.set_attrib(CullFaceAttrib.make(CullFaceAttrib.M_cull_none))
-        sky.set_shader(shaders.compiled_sky(shaders.sky_defines(self.effects, gray=self.color == "gray")))
-        sky.set_instance_count(count)
-        sky.reparent_to(root)
 
     def _build_groups(self):
         from panda3d.core import NodePath, OmniBoundingVolume
@@ -438,7 +429,12 @@ class BatchRenderer:
         if self.packer.appearance is None:
             raise ValueError(f"set_appearance needs a scene that declares the 'appearance' effect, got effects "
                              f"{list(self.scene.effects)}")
-        self.packer.appearance.set(**kwargs)
+
+        def shadows_can_follow(staged):  # each world's shadow map is fitted along its own light
+            if self.shadow_pass is not None and "light_direction" in staged:
+                light_projection(staged["light_direction"], self.shadow_pass.bounds)
+
+        self.packer.appearance.set(check=shadows_can_follow, **kwargs)
 
     # ------------------------------------------------------------------ rendering
     @one_thread
@@ -462,8 +458,15 @@ class BatchRenderer:
         to date. Returns the groups whose instance data was packed (to be uploaded)."""
         timings = self.packer.prepare(self._targets)
         packed_groups = timings.pop("packed")
+        looks = self.packer.appearance
+        new_looks = looks is not None and self._looks_version != looks.version
+        if new_looks:
+            self._sky.set_sky(looks.values["sky"])
+            if self.shadow_pass is not None:  # each world's map along its own light
+                self.shadow_pass.set_light_directions(looks.light_directions())
+            self._looks_version = looks.version
         if self.shadow_pass is not None:  # the atlas depends on the instances, not on the cameras
-            self.shadow_pass.prepare(self.packer, changed=bool(packed_groups))
+            self.shadow_pass.prepare(self.packer, changed=bool(packed_groups) or new_looks)
         self.last_timings = timings
         return packed_groups
 
@@ -492,9 +495,27 @@ class BatchRenderer:
                         node.show()
                     node.set_instance_count(count)
                 entry[2] = count
-        # Every pass is drawn in one frame before any is read: llvmpipe rasterises one
-        # framebuffer on its threads while the next one is being drawn. The shadow atlas,
-        # when out of date, is drawn first in the same frame (its buffer sorts before them).
+        if self._sky is not None:
+            if self._passes[0].texture_ids is None:  # the colour textures are made by the first frame
+                self._render_frame()
+                self._texture_ids()
+            for index, render_pass in enumerate(self._passes):
+                self._sky.copy_into(index, render_pass.texture_ids["color"])
+        self._render_frame()
+        copy_seconds = 0.0
+        for render_pass in self._passes:
+            copy_seconds += self._read_pass(render_pass, rgb, depth, segmentation)
+        self._check_shaders()  # after the reads: Panda3D reports some failures of the frame only then
+        self.last_timings["gl"] = time.perf_counter() - started - copy_seconds
+        self.last_timings["copy"] = copy_seconds
+        rgb = rgb.view((W, A) + rgb_shape[1:])
+        return Frame(rgb, None if depth is None else depth.view(W, A, height, width),
+                     None if segmentation is None else segmentation.view(W, A, height, width))
+
+    def _render_frame(self) -> None:
+        """Every pass is drawn in one frame before any is read: llvmpipe rasterises one
+        framebuffer on its threads while the next one is being drawn. The shadow atlas,
+        when out of date, is drawn first in the same frame (its buffer sorts before them)."""
         for render_pass in self._passes:
             render_pass.buffer.set_active(True)
         if self.shadow_pass is not None:
@@ -508,15 +529,14 @@ class BatchRenderer:
                 render_pass.buffer.set_active(False)
             if self.shadow_pass is not None:
                 self.shadow_pass.set_active(False)
-        copy_seconds = 0.0
+
+    def _texture_ids(self) -> None:
+        """The GL names of every pass's render textures (they exist once a frame drew them)."""
+        gsg = self._context.gsg
         for render_pass in self._passes:
-            copy_seconds += self._read_pass(render_pass, rgb, depth, segmentation)
-        self._check_shaders()  # after the reads: Panda3D reports some failures of the frame only then
-        self.last_timings["gl"] = time.perf_counter() - started - copy_seconds
-        self.last_timings["copy"] = copy_seconds
-        rgb = rgb.view((W, A) + rgb_shape[1:])
-        return Frame(rgb, None if depth is None else depth.view(W, A, height, width),
-                     None if segmentation is None else segmentation.view(W, A, height, width))
+            if render_pass.texture_ids is None:
+                render_pass.texture_ids = {name: readback.texture_id(texture, gsg) for name, texture in
+                                           [("color", render_pass.color), *render_pass.aux.items()]}
 
     def _check_shaders(self):
         """A variant that failed to compile draws nothing: raise with the GL log instead."""
@@ -537,10 +557,7 @@ class BatchRenderer:
     def _read_pass(self, render_pass: _Pass, rgb, depth, segmentation) -> float:
         """Read one framebuffer's textures into the outputs; returns the seconds spent on
         copies after the GL reads (none for plain channels-last colour and k = 1)."""
-        if render_pass.texture_ids is None:
-            gsg = self._context.gsg
-            render_pass.texture_ids = {name: readback.texture_id(texture, gsg) for name, texture in
-                                       [("color", render_pass.color), *render_pass.aux.items()]}
+        self._texture_ids()
         views, k = render_pass.views, self.supersample
         height, width = self.scene.resolution
         rows, columns = len(views) * height * k, width * k
@@ -626,6 +643,8 @@ class BatchRenderer:
         if (passes or shadow_pass is not None) and self._context.pid == os.getpid():
             # a forked child must not touch its parent's GL objects
             with self._context.current():  # Panda3D deletes the framebuffers right away
+                if getattr(self, "_sky", None) is not None:
+                    self._sky.close()
                 if shadow_pass is not None:
                     shadow_pass.close()
                 for render_pass in passes:

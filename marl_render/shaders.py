@@ -117,30 +117,6 @@ def _compile_view(defines: tuple[str, ...]):
     return shader
 
 
-def sky_defines(effects: frozenset, *, gray: bool = False) -> tuple[str, ...]:
-    """#defines of the appearance effect's sky (shaders/sky.*): each world's own background colour,
-    drawn behind everything in the same frame, and the background values of the aux outputs."""
-    defines = set(layout.appearance_defines()) | _aux_locations(effects)
-    defines.update(EFFECT_DEFINES[e] for e in ("depth", "segmentation") if e in effects)
-    if gray:
-        defines.add("OUTPUT_GRAY")
-    return tuple(sorted(defines))
-
-
-def compiled_sky(defines: tuple[str, ...]):
-    """Cached Panda3D Shader of the sky (sky.vert, sky.frag)."""
-    key = ("sky", defines)
-    if key not in _COMPILED:
-        from panda3d.core import Shader
-
-        header = GLSL_VERSION + "".join(f"#define {d}\n" for d in defines)
-        shader = Shader.make(Shader.SL_GLSL, header + source("sky.vert"), header + source("sky.frag"))
-        if shader is None:
-            raise RuntimeError(f"sky variant {defines} failed to parse; see the GL log above")
-        _COMPILED[key] = shader
-    return _COMPILED[key]
-
-
 def _instance_defines(static: bool, joints: int, influences: int) -> set[str]:
     """The instance layout of a group (layout.py: where the packer put each value, joints
     included), and whether it is static or skinned."""

@@ -50,13 +50,15 @@ BUFFER_SORT = -1  # before the views' framebuffers (sort 0) in every render_fram
 
 
 def light_axes(direction) -> torch.Tensor:
-    """[3, 3] float64 rows (right, up, forward) of the light's frame; forward = direction."""
+    """[..., 3, 3] float64 rows (right, up, forward) of the light's frame; forward = direction [..., 3]."""
     forward = torch.as_tensor(direction, dtype=torch.float64)
-    forward = forward / forward.norm()
-    hint = torch.tensor([0.0, 0.0, 1.0] if abs(float(forward[2])) < 0.99 else [0.0, 1.0, 0.0], dtype=torch.float64)
+    forward = forward / forward.norm(dim=-1, keepdim=True)
+    steep = forward[..., 2:].abs() >= 0.99  # the up hint must not be parallel to the light
+    hint = torch.where(steep, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
+                       torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
     right = torch.linalg.cross(forward, hint)
-    right = right / right.norm()
-    return torch.stack((right, torch.linalg.cross(right, forward), forward))
+    right = right / right.norm(dim=-1, keepdim=True)
+    return torch.stack((right, torch.linalg.cross(right, forward), forward), -2)
 
 
 def static_bounds(scene: Scene) -> tuple:
@@ -84,7 +86,9 @@ def static_bounds(scene: Scene) -> tuple:
 
 
 def light_projection(direction, bounds) -> tuple[torch.Tensor, float]:
-    """(view-projection [4, 4] float64 in the world frame, depth bias in depth units).
+    """(view-projection [..., 4, 4] float64 in the world frame, depth bias in depth units) of one
+    direction [3] or one per world [W, 3] (the appearance effect's lights; the bias is then the
+    largest of theirs: it only absorbs rounding, SHADOW_BIAS_M).
 
     Orthographic along the light: x, y span the bounds' corners seen from the light, depth
     spans them too and reaches CASTER_REACH diagonals further towards the light."""
@@ -92,17 +96,17 @@ def light_projection(direction, bounds) -> tuple[torch.Tensor, float]:
     low, high = (torch.tensor(b, dtype=torch.float64) for b in bounds)
     corners = torch.stack([torch.where(torch.tensor(mask, dtype=torch.bool), high, low)
                            for mask in np.ndindex(2, 2, 2)])  # [8, 3]
-    local = corners @ axes.T  # [8, 3] in (right, up, forward)
-    near, far = local.amin(0), local.amax(0)
-    near[2] -= CASTER_REACH * float((high - low).norm())
+    local = corners @ axes.transpose(-1, -2)  # [..., 8, 3] in (right, up, forward)
+    near, far = local.amin(-2), local.amax(-2)
+    near[..., 2] -= CASTER_REACH * float((high - low).norm())
     extent = far - near
-    if float(extent[:2].min()) <= 1e-9 * max(1.0, float(extent.max())):
-        raise ValueError(f"shadows.bounds must have an area seen along lighting.direction {tuple(direction)}, "
-                         f"got bounds {bounds}")
-    matrix = torch.eye(4, dtype=torch.float64)
-    matrix[:3, :3] = 2 * axes / extent[:, None]
-    matrix[:3, 3] = -2 * near / extent - 1
-    return matrix, max(SHADOW_BIAS_M / float(extent[2]), 1e-6)  # window depth is (z - near) / extent
+    if bool((extent[..., :2].amin(-1) <= 1e-9 * extent.amax(-1).clamp(min=1.0)).any()):
+        raise ValueError(f"shadows.bounds must have an area seen along lighting.direction (or each world's "
+                         f"light_direction) {torch.as_tensor(direction).tolist()}, got bounds {bounds}")
+    matrix = torch.eye(4, dtype=torch.float64).expand(*extent.shape[:-1], 4, 4).clone()
+    matrix[..., :3, :3] = 2 * axes / extent[..., :, None]
+    matrix[..., :3, 3] = -2 * near / extent - 1
+    return matrix, max(SHADOW_BIAS_M / float(extent[..., 2].min()), 1e-6)  # window depth is (z - near) / extent
 
 
 def atlas_layout(num_worlds: int, resolution: int, max_size: int) -> TileLayout:
@@ -130,7 +134,8 @@ class ShadowPass:
         self.layout = atlas_layout(scene.num_worlds, settings.resolution, max_size)
         bounds = settings.bounds if settings.bounds is not None else static_bounds(scene)
         self.bounds = bounds
-        self.light, self.bias = light_projection(scene.lighting.direction, bounds)
+        self.light, self.bias = light_projection(scene.lighting.direction, bounds)  # [4, 4], or [W, 4, 4]
+        self._roots = []  # the main pass roots that read the atlas (bind)
         self.buffer = self.root = None
         self.casters, self.pairs, self.pair_offsets = {}, {}, {}
         self.pair_memory: dict[str, TextureMemory] = {}  # views of the pairs' RAM images, made once
@@ -219,10 +224,18 @@ class ShadowPass:
         """Shader inputs of the main pass (its EFFECT_SHADOWS variants)."""
         from panda3d.core import LVecBase2i
 
+        self._roots.append(root)
         root.set_shader_input("lights", self.lights)
         root.set_shader_input("shadow_atlas", self.atlas)
         root.set_shader_input("shadow_tiles", LVecBase2i(self.layout.columns, self.layout.tile_width))
         root.set_shader_input("shadow_bias", float(self.bias))
+
+    def set_light_directions(self, directions: torch.Tensor) -> None:
+        """One light direction per world ([W, 3], the appearance effect's): every map is drawn again."""
+        self.light, self.bias = light_projection(directions, self.bounds)
+        for root in self._roots:
+            root.set_shader_input("shadow_bias", float(self.bias))
+        self.pending = True
 
     def prepare(self, packer, changed: bool) -> None:
         """Light matrices and culled casters for the next frame, when anything moved. The packer
@@ -243,6 +256,10 @@ class ShadowPass:
 
     def _world_matrices(self, world_origin: torch.Tensor) -> torch.Tensor:
         """[W, 4, 4] float64: the light's view-projection in each world's origin-relative frame."""
+        if self.light.ndim == 3:  # a light per world
+            matrices = self.light.clone()
+            matrices[:, :3, 3] += (self.light[:, :3, :3] @ world_origin[..., None])[..., 0]
+            return matrices
         matrices = self.light.expand(len(world_origin), 4, 4).clone()
         matrices[:, :3, 3] += world_origin @ self.light[:3, :3].T
         return matrices

@@ -29,8 +29,9 @@
 #define v_look_ambient g_look_ambient
 #endif
 #ifdef APPEARANCE_SURFACE
-#define v_world g_world
+#define v_surface g_surface
 #define v_pattern g_pattern
+#define v_shift g_shift
 #endif
 #endif
 #ifdef OUTPUT_DEPTH
@@ -59,8 +60,9 @@ uniform vec3 ambient_color;
 #endif
 #endif
 #ifdef APPEARANCE_SURFACE
-in vec3 v_world;         // the fragment relative to its world's origin (m)
-flat in vec4 v_pattern;  // (pattern kind, cells per metre, contrast, role: 1 floor, 2 wall)
+in vec2 v_surface;       // pattern coordinates, in cells
+flat in vec4 v_pattern;  // term weights (u lines, v lines, both; contrast included) and line threshold
+flat in float v_shift;   // shift along u per row of cells
 #endif
 #if defined(EFFECT_FOG) || defined(OUTPUT_DEPTH) || defined(LOG_DEPTH)
 in float v_depth;
@@ -157,30 +159,15 @@ float light_visibility() {
 #endif
 
 #ifdef APPEARANCE_SURFACE
-// The factor a floor's or wall's pattern leaves of its colour, from where the fragment is in its
-// world (no texture to upload). Kinds, as appearance.PATTERNS: 0 plain, 1 checker, 2 stripes,
-// 3 noise (a random shade per cell), 4 bricks. Floors are patterned in (x, y); walls along the
-// wall (x + y: axis-aligned walls have one of them constant) and up.
+// The factor a floor's or wall's pattern leaves of its colour, from where the fragment lies (no
+// texture). One branch-free formula for every pattern (llvmpipe would run every branch anyway):
+// a and b are 1 past the threshold along u and v within a cell, the weights combine them.
+// appearance.py sets them per pattern: checker a + b - 2ab, stripes a, dots ab, bricks
+// a + b - ab with every other row shifted by half a cell; plain all 0.
 float surface_pattern() {
-    int kind = int(v_pattern.x + 0.5);
-    if (kind == 0) {
-        return 1.0;
-    }
-    vec2 uv = (v_pattern.w > 1.5 ? vec2(v_world.x + v_world.y, v_world.z) : v_world.xy) * v_pattern.y;
-    vec2 cell = floor(uv);
-    float dark;
-    if (kind == 1) {
-        dark = mod(cell.x + cell.y, 2.0);
-    } else if (kind == 2) {
-        dark = step(0.5, uv.x - cell.x);
-    } else if (kind == 3) {
-        uvec2 q = uvec2(ivec2(cell)) * uvec2(1597334677u, 3812015801u);
-        dark = float(((q.x ^ q.y) * 1597334677u) >> 8) * (1.0 / 16777216.0);
-    } else {
-        vec2 brick = fract(vec2(0.5 * uv.x + 0.5 * mod(cell.y, 2.0), uv.y));  // two cells wide, rows offset
-        dark = brick.y < 0.12 || brick.x < 0.06 ? 1.0 : 0.0;  // the mortar
-    }
-    return 1.0 - v_pattern.z * dark;
+    vec2 p = vec2(v_surface.x + v_shift * floor(v_surface.y), v_surface.y);
+    vec2 ab = step(vec2(v_pattern.w), fract(p));
+    return 1.0 - dot(v_pattern.xyz, vec3(ab, ab.x * ab.y));
 }
 #endif
 

@@ -52,8 +52,9 @@ flat out vec3 v_look_light_color;
 flat out vec3 v_look_ambient;
 #endif
 #ifdef APPEARANCE_SURFACE
-out vec3 v_world;         // the vertex relative to its world's origin (m): where patterns are drawn
-flat out vec4 v_pattern;  // a floor's or wall's (pattern kind, cells per metre, contrast, role); kind 0: none
+out vec2 v_surface;       // a floor's or wall's pattern coordinates (cells) at the vertex
+flat out vec4 v_pattern;  // its pattern's term weights (u lines, v lines, both) and line threshold
+flat out float v_shift;   // its pattern's shift along u per row of cells (bricks)
 #endif
 #endif
 #if defined(EFFECT_FOG) || defined(OUTPUT_DEPTH) || defined(LOG_DEPTH)
@@ -122,22 +123,24 @@ void main() {
     int role = 0;
 #endif
 #ifdef APPEARANCE_SURFACE
+    vec4 cells = vec4(0.0);  // (cells per metre along u and v, shift, threshold) of a floor or wall
     v_pattern = vec4(0.0);
 #endif
     if (role == 0) {
-        // Not a floor or wall: the world's colour transform (hue, saturation and value jitter).
-        int rows = look + APPEARANCE_COLOR_TRANSFORM;
+        // Not a floor or wall: the world's colour transform (hue, saturation and value jitter),
+        // a rgb + b mean(rgb) + c ((1, 1, 1) x rgb), a rotation about the grey axis and scalings.
+        vec3 terms = texelFetch(appearance, look + APPEARANCE_COLOR_TRANSFORM).APPEARANCE_COLOR_TRANSFORM_LANES;
         vec3 own = v_color.rgb;
-        v_color.rgb = clamp(vec3(dot(texelFetch(appearance, rows).xyz, own),
-                                 dot(texelFetch(appearance, rows + 1).xyz, own),
-                                 dot(texelFetch(appearance, rows + 2).xyz, own)), 0.0, 1.0);
+        v_color.rgb = clamp(terms.x * own + terms.y * ((own.r + own.g + own.b) / 3.0)
+                            + terms.z * (own.zxy - own.yzx), 0.0, 1.0);
     } else {
         bool floor_role = role == 1;
         vec4 surface = texelFetch(appearance, look + (floor_role ? APPEARANCE_FLOOR : APPEARANCE_WALL));
         v_color.rgb = surface.w > 0.5 ? surface.rgb : v_color.rgb;  // w 0: the instance's own colour
 #ifdef APPEARANCE_SURFACE
-        v_pattern = vec4(texelFetch(appearance, look + (floor_role ? APPEARANCE_FLOOR_PATTERN
-                                                                   : APPEARANCE_WALL_PATTERN)).xyz, float(role));
+        int pattern = look + (floor_role ? APPEARANCE_FLOOR_PATTERN : APPEARANCE_WALL_PATTERN);
+        cells = texelFetch(appearance, pattern);
+        v_pattern = vec4(texelFetch(appearance, pattern + 1).xyz, cells.w);
 #endif
     }
 #ifdef EFFECT_LIGHTING
@@ -188,7 +191,11 @@ void main() {
 #endif
     vec3 world_position = relative + rotate(rotation, vertex * scale);
 #ifdef APPEARANCE_SURFACE
-    v_world = world_position;
+    // Floors are patterned in (x, y); walls along the wall (x + y: an axis-aligned wall has one
+    // of them constant) and up. Linear in the position, so interpolating it is exact.
+    v_surface = (role == 1 ? world_position.xy : vec2(world_position.x + world_position.y, world_position.z))
+              * cells.xy;
+    v_shift = cells.z;
 #endif
     vec4 clip = view_projection * vec4(world_position, 1.0);
 

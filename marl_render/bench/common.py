@@ -102,10 +102,12 @@ def machine() -> dict:
             "torch": torch.__version__, "cpu_threads": torch.get_num_threads()}
 
 
-def arena_scene(worlds: int, agents: int, resolution, instances: int = 10, effects=("lighting",)) -> mr.Scene:
-    """Floor + `instances` per world: the agents' capsules (cameras mounted) and boxes."""
+def arena_scene(worlds: int, agents: int, resolution, instances: int = 10, effects=("lighting",),
+                floor_role=None) -> mr.Scene:
+    """Floor (of role floor_role) + `instances` per world: the agents' capsules (cameras mounted) and boxes."""
     scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=resolution, effects=effects)
-    scene.add_static("floor", "plane", position=[0, 0, 0], scale=[12, 12, 1], color=[0.35, 0.55, 0.35])
+    scene.add_static("floor", "plane", position=[0, 0, 0], scale=[12, 12, 1], color=[0.35, 0.55, 0.35],
+                     role=floor_role)
     scene.add_group("agents", mr.capsule(0.25, 0.9, segments=8, rings=2), capacity=agents)
     scene.add_group("boxes", "box", capacity=max(instances - agents, 1))
     scene.mount_cameras("agents", list(range(agents)), offset=(0.0, 0.0, 0.3))

@@ -11,6 +11,12 @@ Shadows: lighting + shadows at each --shadow-resolutions map size (PCF on and of
 atlas redrawn every frame (every box moves); wall and CPU time relative to lighting
 alone, the two alternated.
 
+Appearance: the same scene with walls around it, lit, against the same with the "appearance"
+effect and everything it does on (each world's light, sky, floor and wall colours and patterns,
+object colour jitter; the agents' cameras jittered in fov, height and pitch), timed in
+alternating blocks; views/s, the median ratio of block pairs and the load average. Also the
+seconds to sample and set every world's look (what an env does when worlds reset).
+
 Skinning: the agents of the same scene as skinned characters (random joint poses every
 frame, linear-blend skinning in the vertex shader) against the same mesh rigid, timed in
 alternating blocks; views/s and the cost relative to rigid.
@@ -36,6 +42,7 @@ from tabulate import tabulate
 
 from .common import RandomMotion, apply, arena_scene, machine, progress, pyplot, time_per_call, write_report
 
+SECTIONS = ("effects", "shadows", "appearance", "skinning", "outputs", "ablation")
 OUTPUTS = [("rgb", {}), ("rgb, channels first", {"channels_first": True}), ("gray", {"color": "gray"})]
 EFFECT_SETS = [(), ("lighting",), ("texture",), ("fog",), ("depth",), ("segmentation",), ("log_depth",),
                ("lighting", "texture", "fog", "depth", "segmentation")]
@@ -49,6 +56,9 @@ def add_arguments(parser):
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--shadow-resolutions", type=int, nargs="*", default=[128, 256, 512, 1024],
                         help="shadow-map texels per side (per world) to measure; none: skip shadows")
+    parser.add_argument("--rounds", type=int, default=8, help="alternating blocks per variant (appearance)")
+    parser.add_argument("--sections", nargs="*", default=list(SECTIONS), choices=SECTIONS,
+                        help="parts to measure (default: all)")
     parser.add_argument("--out", default="out/effects")
 
 
@@ -115,6 +125,90 @@ def _seconds_per_frame(renderer, scene, steps) -> tuple:
     return (time.perf_counter() - wall) / steps, (time.process_time() - cpu) / steps
 
 
+def _alternating_blocks(frame, renderers: dict, steps: int, rounds: int = 8) -> tuple[dict, dict]:
+    """({label: [wall seconds per frame of each block]}, the same in process CPU seconds): frame(label)
+    timed in blocks that alternate between the renderers (so that both see the same load on a shared
+    machine; CPU time, llvmpipe's threads included, varies far less with that load); the renderers
+    are closed."""
+    seconds, cpu_seconds = {label: [] for label in renderers}, {label: [] for label in renderers}
+    block = max(steps // 4, 2)
+    try:
+        for label in renderers:
+            time_per_call(functools.partial(frame, label), 1, warmup=2)
+        for _ in range(rounds):
+            for label in renderers:
+                cpu = time.process_time()
+                seconds[label].append(time_per_call(functools.partial(frame, label), block, warmup=0))
+                cpu_seconds[label].append((time.process_time() - cpu) / block)
+    finally:
+        for renderer in renderers.values():
+            renderer.close()
+    return seconds, cpu_seconds
+
+
+def _appearance_scene(args, appearance: bool):
+    """arena_scene with its floor and four walls given roles, lit, with or without the appearance effect."""
+    effects = ("lighting", "appearance") if appearance else ("lighting",)
+    scene = arena_scene(args.worlds, args.agents, args.resolution, effects=effects, floor_role="floor")
+    half, height = 6.0, 1.0
+    scene.add_static("walls", "box", position=[[half, 0, height / 2], [-half, 0, height / 2], [0, half, height / 2],
+                                               [0, -half, height / 2]],
+                     scale=[[0.2, 2 * half, height]] * 2 + [[2 * half, 0.2, height]] * 2, color=[0.55, 0.5, 0.45],
+                     role="wall")
+    return scene
+
+
+def _appearance(args) -> dict:
+    """The appearance effect, everything on, against lighting alone: alternating blocks of frames."""
+    import marl_render as mr
+    from marl_render.threads import single_threaded
+
+    renderers, motions = {}, {}
+    for label in ("off", "on"):
+        scene = _appearance_scene(args, label == "on")
+        renderers[label], motions[label] = mr.BatchRenderer(scene), RandomMotion(scene, seed=0)
+    on, scene = renderers["on"], renderers["on"].scene
+    W, A = args.worlds, args.agents
+    ids = torch.arange(W, dtype=torch.int64)
+    look = mr.Appearance(split="train").sample(ids)
+    assert bool((look.floor_pattern > 0).any() and (look.wall_pattern > 0).any()), "some worlds must be patterned"
+
+    def set_look():  # what an env does at a reset: every world's look and its cameras' jitter
+        params = mr.Appearance(split="train").sample(ids)
+        on.set_appearance(**params.renderer_kwargs())
+        mount = scene.camera_mount
+        on.set_cameras(fov_y=(scene.fov_y * params.fov_scale[:, None]).expand(W, A),
+                       mount_offset=torch.tensor(mount.offset, dtype=torch.float64)
+                       + params.camera_height[:, None, None] * torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+                       mount_pitch=(mount.pitch + params.camera_pitch[:, None]).expand(W, A))
+
+    set_seconds = time_per_call(set_look, 5, warmup=1)
+
+    @single_threaded()
+    def frame(label):
+        apply(renderers[label], motions[label].next())
+        renderers[label].render()
+
+    load_before = os.getloadavg()
+    seconds, cpu_seconds = _alternating_blocks(frame, renderers, args.steps, rounds=args.rounds)
+    views = args.worlds * args.agents
+
+    def ratios(timings):  # on / off of each pair of blocks
+        return [on / off for on, off in zip(timings["on"], timings["off"], strict=True)]
+
+    ratio, cpu_ratio = float(np.median(ratios(seconds))), float(np.median(ratios(cpu_seconds)))
+    return {"views": views, "off_views_per_s": views / float(np.median(seconds["off"])),
+            "on_views_per_s": views / float(np.median(seconds["on"])),
+            "off_ms_per_frame": float(np.median(seconds["off"])) * 1e3,
+            "on_ms_per_frame": float(np.median(seconds["on"])) * 1e3,
+            "time_ratio_on_off": ratio, "time_ratios": ratios(seconds), "cost_vs_off": ratio - 1,
+            "off_cpu_ms_per_frame": float(np.median(cpu_seconds["off"])) * 1e3,
+            "on_cpu_ms_per_frame": float(np.median(cpu_seconds["on"])) * 1e3,
+            "cpu_ratio_on_off": cpu_ratio, "cpu_ratios": ratios(cpu_seconds), "cpu_cost_vs_off": cpu_ratio - 1,
+            "set_appearance_ms": set_seconds * 1e3, "load_average_before": load_before,
+            "load_average": os.getloadavg()}
+
+
 def _skinning(args) -> dict:
     """Skinned against rigid agents (the same character mesh), alternating blocks of frames."""
     import marl_render as mr
@@ -138,17 +232,7 @@ def _skinning(args) -> dict:
             renderers[label].update("agents", joints=joints)
         renderers[label].render()
 
-    seconds = {label: [] for label in renderers}
-    block = max(args.steps // 4, 2)
-    try:
-        for label in renderers:
-            time_per_call(functools.partial(frame, label), 1, warmup=2)
-        for _ in range(8):  # alternating blocks, so that both see the same load on a shared machine
-            for label in renderers:
-                seconds[label].append(time_per_call(functools.partial(frame, label), block, warmup=0))
-    finally:
-        for renderer in renderers.values():
-            renderer.close()
+    seconds, _ = _alternating_blocks(frame, renderers, args.steps)
     views = args.worlds * args.agents
     # Medians over the blocks: the cost is the median of each block pair's ratio.
     cost = float(np.median([s / r - 1.0 for s, r in zip(seconds["skinned"], seconds["rigid"], strict=True)]))
@@ -201,8 +285,9 @@ def run(args) -> dict:
 
     result = {"benchmark": "effects", "worlds": args.worlds, "agents": args.agents, "resolution": args.resolution,
               "views": args.worlds * args.agents, "machine": machine(), "effects": [], "outputs": [], "ablation": []}
+    sections = set(args.sections)
     base = None
-    for effects in EFFECT_SETS:
+    for effects in EFFECT_SETS if "effects" in sections else ():
         label = "+".join(effects) or "none"
         progress(f"effects: {label}")
         scene = _scene(args, effects)
@@ -212,39 +297,42 @@ def run(args) -> dict:
         result["effects"].append({"effects": label, "views_per_s": rate, "ms_per_frame": scene.num_views / rate * 1e3,
                                   "cost_vs_none": base / rate - 1.0})
 
-    result["shadows"] = _shadow_costs(args)
-    progress("effects: skinned agents against rigid ones")
-    result["skinning"] = _skinning(args)
+    if "shadows" in sections:
+        result["shadows"] = _shadow_costs(args)
+    if "appearance" in sections:
+        progress("effects: appearance against lighting alone")
+        result["appearance"] = _appearance(args)
+    if "skinning" in sections:
+        progress("effects: skinned agents against rigid ones")
+        result["skinning"] = _skinning(args)
 
     scene = _scene(args, ("lighting",))
-    for label, options in OUTPUTS:
+    for label, options in OUTPUTS if "outputs" in sections else ():
         progress(f"output: {label}")
         with mr.BatchRenderer(scene, **options) as renderer:
             rate = _views_per_s(renderer, scene, args.steps)
             channels = renderer.channels
         result["outputs"].append({"output": label, "views_per_s": rate, "ms_per_frame": scene.num_views / rate * 1e3,
                                   "bytes_per_view": args.resolution ** 2 * channels})
-    rgb_rate = result["outputs"][0]["views_per_s"]
     for row in result["outputs"]:
-        row["speedup_vs_rgb"] = row["views_per_s"] / rgb_rate
+        row["speedup_vs_rgb"] = row["views_per_s"] / result["outputs"][0]["views_per_s"]
     steps = [
         ("one camera per view", lambda: NaiveRenderer(scene, tiled=False), max(3, args.steps // 4)),
         ("tiled display regions", lambda: NaiveRenderer(scene), max(3, args.steps // 4)),
         ("one instanced pass", lambda: mr.BatchRenderer(scene, readback="copy"), args.steps),
         ("direct readback", lambda: mr.BatchRenderer(scene), args.steps),
     ]
-    for label, make, count in steps:
+    for label, make, count in steps if "ablation" in sections else ():
         progress(f"ablation: {label}")
         renderer = make()
         rate = _views_per_s(renderer, scene, count)
         renderer.close()
         result["ablation"].append({"step": label, "views_per_s": rate})
-    if args.processes > 1:
+    if args.processes > 1 and "ablation" in sections:
         progress(f"ablation: {args.processes} processes")
         result["ablation"].append({"step": f"{args.processes} processes", "views_per_s": _several_processes(args)})
-    first = result["ablation"][0]["views_per_s"]
     for row in result["ablation"]:
-        row["speedup_vs_first"] = row["views_per_s"] / first
+        row["speedup_vs_first"] = row["views_per_s"] / result["ablation"][0]["views_per_s"]
     _write(args.out, result)
     return result
 
@@ -273,6 +361,20 @@ def _write(out: str, result: dict) -> None:
                            colalign=["right", "left", "right", "right", "right", "right", "right"])
         lines += ["", f"Shadows: one {result['worlds']}-world atlas pass per frame, the fragment shader reads it.",
                   "", shadows]
+    look = result.get("appearance")
+    if look:
+        appearance = tabulate([["lighting", look["off_views_per_s"], look["off_ms_per_frame"], "",
+                                look["off_cpu_ms_per_frame"], ""],
+                               ["lighting + appearance", look["on_views_per_s"], look["on_ms_per_frame"],
+                                f"{look['cost_vs_off']:+.1%}", look["on_cpu_ms_per_frame"],
+                                f"{look['cpu_cost_vs_off']:+.1%}"]],
+                              ["effects", "views/s", "ms/frame", "cost", "CPU ms/frame", "CPU cost"], tablefmt="pipe",
+                              floatfmt=["", ",.0f", ".1f", "", ".1f", ""],
+                              colalign=["left", "right", "right", "right", "right", "right"])
+        lines += ["", "Appearance: each world's light, sky, floor and wall colours and patterns, object colour "
+                  "jitter and camera jitter, against lighting alone; costs are medians of the ratios of "
+                  f"alternating blocks (load average {look['load_average'][0]:.2f}; sampling and setting every "
+                  f"world's look: {look['set_appearance_ms']:.2f} ms):", "", appearance]
     skin = result.get("skinning")
     if skin:
         skinning = tabulate([["rigid", skin["rigid_views_per_s"], ""],
@@ -283,6 +385,8 @@ def _write(out: str, result: dict) -> None:
                   f"{skin['influences']} per vertex; lighting), a random pose each frame, against the same mesh "
                   "rigid:", "", skinning]
     write_report(out, "effects", result, lines + ["", ablation])
+    if not (result["effects"] and result["ablation"]):  # sections left out: no figure
+        return
     plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.2))
     names = [r["effects"].replace("+", "+\n") if len(r["effects"]) > 12 else r["effects"] for r in result["effects"]]
