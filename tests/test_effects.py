@@ -105,6 +105,7 @@ EFFECT_MARKERS = {
     "segmentation": {"frag": ["out_segment", "v_segment"], "vert": ["v_segment", "segment_base +"]},
     "log_depth": {"frag": ["gl_FragDepth", "v_near_far", "log2"], "vert": ["v_near_far"]},
     "shadows": {"frag": ["shadow_atlas", "light_visibility", "v_light", "texelFetch"], "vert": ["v_light", "lights"]},
+    "appearance": {"vert": ["samplerBuffer appearance", "APPEARANCE_COLOR_TRANSFORM", "int role"]},
 }
 
 
@@ -137,6 +138,23 @@ def test_bare_variant_only_has_the_colour_path():
     assert re.findall(r"^\s*(?:flat\s+)?in\s+\w+\s+(\w+)", frag, re.M) == ["v_color"]
     vert = active_code("vert", ())
     assert re.findall(r"^\s*(?:flat\s+)?out\s+\w+\s+(\w+)", vert, re.M) == ["v_color"]
+
+
+@pytest.mark.parametrize("static", [False, True])
+def test_surface_patterns_only_for_groups_with_floors_or_walls_under_the_appearance_effect(static):
+    def code(stage, effects, surface):
+        defines = shaders.defines_for(frozenset(effects), static=static, textured=False, surface=surface,
+                                      role=0 if static else 2)
+        return preprocess(shaders.variant_source(stage, defines))
+
+    everything = set(shaders.EFFECTS)
+    assert "surface_pattern" in code("frag", {"appearance"}, True)
+    assert "v_surface" in code("vert", {"appearance"}, True)
+    for effects, surface in ((everything, False), (everything - {"appearance"}, True)):
+        assert "surface_pattern" not in code("frag", effects, surface)
+        assert "v_surface" not in code("vert", effects, surface)
+    lit = code("frag", {"appearance", "lighting"}, False)  # smooth meshes take the world's light from the vertex
+    assert "v_look_light_direction" in lit and "uniform vec3 light_direction" not in lit
 
 
 def test_texture_code_only_for_groups_that_have_a_texture():
