@@ -8,7 +8,8 @@ names and teams, defaults, physics terms and settings, the keys, shapes and dtyp
 step info (from a step), the PettingZoo spaces and the TorchRL specs; the rules are the
 env module's own docstring. The picture of each env (OUT/envs/NAME.png) is every agent's
 view of one world after a seeded reset (PICTURE_SEEDS, or --seed), labelled, beside the
-overview camera.
+overview camera; OUT/envs/appearance.png is one world under four train and four held-out
+appearances (the `appearance` option, docs/appearance.md).
 
 Only the one-line summaries of reward and episode end, the meaning of the continuous action
 dimensions and of the info keys are written here by hand (the code has no names for them);
@@ -24,8 +25,9 @@ import math
 import os
 import sys
 
+import numpy as np
 import torch
-from PIL import Image, ImageFont
+from PIL import Image, ImageDraw, ImageFont
 
 from marl_render.envs import env_class, list_envs, make_env, make_parallel_env, make_torchrl_env
 from record_video import frame_image  # examples/record_video.py: labelled views beside the overview
@@ -33,6 +35,7 @@ from record_video import frame_image  # examples/record_video.py: labelled views
 WORLDS = 2  # worlds of the envs built here; shapes print it as "W"
 PICTURE_SEEDS = {"tag": 3}  # reset seeds of the pictures (default 0): tag's 0 shows the predators only walls
 PICTURE_HEIGHT = 256  # views are enlarged (nearest neighbour, at least 2x) to a column at least this high
+APPEARANCE_ENV, APPEARANCE_IDS = "spread", (1, 2, 3, 4)  # the appearances picture: one world, these ids per split
 
 SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
     "cartpole": ("dm_control's balance reward in [0, 1] per step: upright x centred x small control "
@@ -199,6 +202,49 @@ def picture(env, seed: int, path: str) -> None:
     Image.fromarray(image).save(path, optimize=True)
 
 
+def appearance_picture(path: str) -> None:
+    """One world (APPEARANCE_ENV after reset(seed=0), copied into every world by set_state) under the
+    train and held-out looks of APPEARANCE_IDS: each one's agents' views beside its overview, a row
+    per split."""
+    rows = []
+    for split in ("train", "heldout"):
+        with make_env(APPEARANCE_ENV, num_worlds=len(APPEARANCE_IDS), appearance=split) as env:
+            env.reset(seed=0)
+            state = {key: value if key == "rng" else value[:1].expand_as(value).clone()
+                     for key, value in env.get_state().items()}
+            state["appearance_ids"] = torch.tensor(APPEARANCE_IDS, dtype=torch.int64)
+            env.set_state(state)
+            # Still bodies and no-op actions: the step changes nothing but the frame it returns.
+            pixels = env.step(torch.zeros(env.num_worlds, env.num_agents, dtype=torch.int64))[0]["pixels"]
+            overview = env.render_overview()
+            scale = picture_scale(env) // 2
+            font = ImageFont.load_default(size=max(9, env.resolution[0] * scale // 8))
+            cells = []
+            for world, look_id in enumerate(APPEARANCE_IDS):
+                cell = Image.fromarray(frame_image(pixels[world], overview[world], env.agent_names, scale, font))
+                ImageDraw.Draw(cell).text((cell.width - 4, cell.height - 4), f"{split} id {look_id}", font=font,
+                                          fill="white", stroke_width=1, stroke_fill="black", anchor="rd")
+                cells.append(np.asarray(cell))
+            rows.append(np.concatenate(cells, axis=1))
+    Image.fromarray(np.concatenate(rows, axis=0)).save(path, optimize=True)
+
+
+def appearance_section(picture_dir: str | None) -> list:
+    if picture_dir is not None:
+        appearance_picture(os.path.join(picture_dir, "appearance.png"))
+    ids = ", ".join(map(str, APPEARANCE_IDS))
+    return ["## Appearances: visual domain randomisation", "",
+            "With `appearance=\"train\"` or `\"heldout\"` (or a `marl_render.Appearance`) every reset draws "
+            "each world's look from its appearance id: light direction and colour, ambient, sky, floor and wall "
+            "colours and patterns, a hue / saturation / value jitter of everything else, and the agents' camera "
+            "field of view, height and pitch. No held-out sky, floor or wall shares a hue sector or a pattern "
+            "with training. Details, the splits and the cost: [docs/appearance.md](appearance.md).", "",
+            "![one world under four train and four held-out appearances](envs/appearance.png)", "",
+            f"*`{APPEARANCE_ENV}` after `reset(seed=0)`, the same state in every world, under appearance ids {ids} "
+            "of the train split (top) and of the held-out split (bottom): each world's agents' views beside its "
+            "overview.*", ""]
+
+
 def picture_scale(env) -> int:
     return max(2, -(-PICTURE_HEIGHT // (env.num_agents * env.resolution[0])))
 
@@ -262,8 +308,9 @@ def page(seed: int | None, picture_dir: str | None) -> str:
              "`torch.compile`, within 1e-12 of the default path; README, \"Compiled physics\"); arena tasks "
              "also take `lidar` (rays of the obs key `lidar`, float32 [W, A, rays] in [0, 1]) and `lidar_range`, "
              "and discrete ones `enforce_action_mask` (a step refuses actions the mask forbids; by default the "
-             "mask is advice: docs/authoring.md). Teams are named as their agents are (`red`: red_0, red_1, ...; "
-             "one team of agent_0, agent_1, ... is `agents`). "
+             "mask is advice: docs/authoring.md); every task takes `appearance` (None, `\"train\"`, "
+             "`\"heldout\"` or a `marl_render.Appearance`: per-world looks, below). Teams are named as their "
+             "agents are (`red`: red_0, red_1, ...; one team of agent_0, agent_1, ... is `agents`). "
              "Agents that leave an episode (caught prey) stay in every tensor: "
              "reward 0, reported terminated, actions ignored (they must still be valid, e.g. 0), until their "
              "world is reset. `truncated` is True for the agents still in the episode when the world reaches "
@@ -276,6 +323,7 @@ def page(seed: int | None, picture_dir: str | None) -> str:
         rows.append((f"[`{name}`](#{name})", cls.default_num_agents, cls.default_max_steps, *SUMMARY[name]))
     lines += table(("env", "agents", "max_steps", "reward", "episode end"), rows) + [""]
     lines += reference_returns(names)
+    lines += appearance_section(picture_dir)
     for name in names:
         lines += env_section(name, seed, picture_dir)
     return "\n".join(lines)

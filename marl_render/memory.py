@@ -37,6 +37,7 @@ PAIR_BYTES = 128
 INSTANCE_BYTES = 320
 PIXEL_BYTES = 14
 EXTRA_TARGET_PIXEL_BYTES = 13  # each of the depth and segmentation outputs
+SKY_PIXEL_BYTES = 4  # the "appearance" effect's sky images: RGBA8 per framebuffer pixel (sky.py), not fitted
 # Per texel of the shadow atlas: 11.4 B measured (4,096 worlds x Shadows(256): 3.1 GiB),
 # against the 8 B (4-byte depth, 4-byte colour target) counted before.
 SHADOW_TEXEL_BYTES = 12
@@ -49,7 +50,8 @@ JOINT_BYTES = 240
 
 def renderer_bytes(scene, supersample: int = 1) -> int:
     """Host bytes a BatchRenderer of `scene` holds at its peak, one render included
-    (supersample=k draws k x k samples per pixel; a shadow atlas holds W maps of
+    (supersample=k draws k x k samples per pixel; the appearance effect's sky images add
+    SKY_PIXEL_BYTES per framebuffer pixel; a shadow atlas holds W maps of
     Shadows.resolution^2 texels; skinned groups hold their joints and the forward-kinematics
     temporaries of a render)."""
     height, width = scene.resolution
@@ -58,6 +60,7 @@ def renderer_bytes(scene, supersample: int = 1) -> int:
     static = sum(group.count for group in scene.static.values())
     extra_targets = sum(effect in scene.effects for effect in ("depth", "segmentation"))
     per_pixel = PIXEL_BYTES + extra_targets * EXTRA_TARGET_PIXEL_BYTES
+    per_pixel += SKY_PIXEL_BYTES if "appearance" in scene.effects else 0
     shadow_maps = getattr(scene, "shadows", None)
     atlas = (scene.num_worlds * shadow_maps.resolution ** 2 * SHADOW_TEXEL_BYTES
              if "shadows" in scene.effects and shadow_maps else 0)

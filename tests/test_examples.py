@@ -257,6 +257,9 @@ def test_env_docs_are_up_to_date(tmp_path):
         picture = png(tmp_path / "envs" / f"{name}.png")
         assert picture.shape[0] >= 256 and picture.std() > 10
         assert png(ROOT / "docs" / "envs" / f"{name}.png").shape == picture.shape
+    assert "](envs/appearance.png)" in written  # one world under eight appearances
+    looks = png(tmp_path / "envs" / "appearance.png")
+    assert looks.shape == png(ROOT / "docs" / "envs" / "appearance.png").shape and looks.std() > 10
 
 
 def test_train_mappo_keeps_its_budget_evaluations_included_and_shows_no_nan(tmp_path):
