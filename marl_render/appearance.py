@@ -212,7 +212,9 @@ class AppearanceRows:
             first = field[f"{surface}_pattern"].texel
             rows[:, first] = torch.stack((scale * terms[:, 0], scale, terms[:, 1], terms[:, 2]), -1).to(torch.float32)
             rows[:, first + 1, :3] = (terms[:, 3:] * v["pattern_contrast"][:, index:index + 1]).to(torch.float32)
-        put("color_transform", color_transform_terms(v["hue_shift"], v["saturation"], v["value"]))
+        terms = color_transform_terms(v["hue_shift"], v["saturation"], v["value"])
+        for index, name in enumerate(("transform_a", "transform_b", "transform_c")):
+            put(name, terms[:, index])
 
 
 # ---------------------------------------------------------------------- the sampler

@@ -74,13 +74,13 @@ JOINT_TEXELS = 3
 # in two float32s (hi + lo) so that scenes far from 0 keep sub-millimetre precision.
 STATIC_INSTANCE = RowLayout("STATIC", 5, {
     "position": Field(0, "xyz"),
-    "active": Field(0, "w"),
+    "role": Field(0, "w"),  # scene.ROLES code, read by the "appearance" effect (with the position: no fetch more)
     "rotation": Field(1),
     "scale": Field(2, "xyz"),
     "owner": Field(2, "w"),
     "color": Field(3),
     "position_lo": Field(4, "xyz"),
-    "role": Field(4, "w"),  # scene.ROLES code: read only by the "appearance" effect
+    "active": Field(4, "w"),
 })
 
 # One row per view (and per world in the shadow pass's light buffer): the view-projection
@@ -97,18 +97,21 @@ VIEW_PROJECTION_TEXELS = 4
 # One row per world of the "appearance" effect (appearance.py): its light, sky, the colours and
 # patterns of its floor and walls (rgb, w = 1: replaces the instance colour; a pattern is two
 # texels: cells per metre along u and v, row shift, line threshold; weights of its terms) and the
-# colour transform of everything else, M rgb = a rgb + b mean(rgb) + c (u x rgb) with u = (1, 1, 1)
-# (appearance.color_transform_terms: hue, saturation and value in three numbers).
-APPEARANCE = RowLayout("APPEARANCE", 11, {
+# colour transform of everything else, rgb' = a rgb + b mean(rgb) + c ((1, 1, 1) x rgb)
+# (appearance.color_transform_terms: hue, saturation and value in three numbers). a, b and c sit
+# beside the light, whose texels a lit vertex fetches anyway.
+APPEARANCE = RowLayout("APPEARANCE", 10, {
     "light_direction": Field(0, "xyz"),  # unit, pointing from the light
+    "transform_a": Field(0, "w"),
     "light_color": Field(1, "xyz"),
+    "transform_b": Field(1, "w"),
     "ambient": Field(2, "xyz"),
+    "transform_c": Field(2, "w"),
     "sky": Field(3, "xyz"),
     "floor": Field(4),
     "wall": Field(5),
     "floor_pattern": Field(6),  # texels 6-7
     "wall_pattern": Field(8),  # texels 8-9
-    "color_transform": Field(10, "xyz"),  # (a, b, c)
 })
 PATTERN_TEXELS = 2
 

@@ -122,6 +122,11 @@ void main() {
 #else
     int role = 0;
 #endif
+    // Fetched before any branch: they share their texels with the light, which the compiler then
+    // fetches once.
+    vec3 terms = vec3(texelFetch(appearance, look + APPEARANCE_TRANSFORM_A).APPEARANCE_TRANSFORM_A_LANES,
+                      texelFetch(appearance, look + APPEARANCE_TRANSFORM_B).APPEARANCE_TRANSFORM_B_LANES,
+                      texelFetch(appearance, look + APPEARANCE_TRANSFORM_C).APPEARANCE_TRANSFORM_C_LANES);
 #ifdef APPEARANCE_SURFACE
     vec4 cells = vec4(0.0);  // (cells per metre along u and v, shift, threshold) of a floor or wall
     v_pattern = vec4(0.0);
@@ -129,7 +134,6 @@ void main() {
     if (role == 0) {
         // Not a floor or wall: the world's colour transform (hue, saturation and value jitter),
         // a rgb + b mean(rgb) + c ((1, 1, 1) x rgb), a rotation about the grey axis and scalings.
-        vec3 terms = texelFetch(appearance, look + APPEARANCE_COLOR_TRANSFORM).APPEARANCE_COLOR_TRANSFORM_LANES;
         vec3 own = v_color.rgb;
         v_color.rgb = clamp(terms.x * own + terms.y * ((own.r + own.g + own.b) / 3.0)
                             + terms.z * (own.zxy - own.yzx), 0.0, 1.0);

@@ -105,7 +105,7 @@ EFFECT_MARKERS = {
     "segmentation": {"frag": ["out_segment", "v_segment"], "vert": ["v_segment", "segment_base +"]},
     "log_depth": {"frag": ["gl_FragDepth", "v_near_far", "log2"], "vert": ["v_near_far"]},
     "shadows": {"frag": ["shadow_atlas", "light_visibility", "v_light", "texelFetch"], "vert": ["v_light", "lights"]},
-    "appearance": {"vert": ["samplerBuffer appearance", "APPEARANCE_COLOR_TRANSFORM", "int role"]},
+    "appearance": {"vert": ["samplerBuffer appearance", "APPEARANCE_TRANSFORM_A", "int role"]},
 }
 
 

@@ -39,8 +39,8 @@ SHUFFLED = {
         "color": Field(0), "position": Field(1, "yzw"), "active": Field(1, "x"), "rotation": Field(4),
         "scale": Field(2, "yzw"), "owner": Field(2, "x")}),
     "STATIC_INSTANCE": RowLayout("STATIC", 6, {
-        "position_lo": Field(0, "yzw"), "role": Field(0, "x"), "color": Field(1), "position": Field(5, "xyz"),
-        "active": Field(5, "w"), "rotation": Field(2), "scale": Field(3, "yzw"), "owner": Field(3, "x")}),
+        "position_lo": Field(0, "yzw"), "active": Field(0, "x"), "color": Field(1), "position": Field(5, "xyz"),
+        "role": Field(5, "w"), "rotation": Field(2), "scale": Field(3, "yzw"), "owner": Field(3, "x")}),
     "VIEW": RowLayout("VIEW", 7, {
         "origin_lo": Field(0, "yzw"), "far": Field(0, "x"), "projection": Field(2), "origin_hi": Field(6, "xyz"),
         "near": Field(6, "w")}),
