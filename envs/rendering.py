@@ -114,7 +114,8 @@ class EnvRenderer:
         scene = mr.Scene(num_worlds=s.num_worlds, agents_per_world=1 if overview else s.num_agents,
                          resolution=resolution, effects=effects, background=s.background,
                          fov_y=s.overview_fov_y if overview else s.fov_y, near=s.near, far=s.far,
-                         shadows=self.shadows or mr.Shadows())
+                         shadows=self.shadows or mr.Shadows(),
+                         surface_patterns=self.appearance is not None and self.appearance.textures)
         s.build_scene(scene, overview)
         return scene
 

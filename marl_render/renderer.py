@@ -356,7 +356,7 @@ class BatchRenderer:
             node.node().set_bounds(OmniBoundingVolume())
             node.node().set_final(True)
             role = 0 if static else ROLES[group.role]
-            surface = bool(group.role.any()) if static else bool(role)
+            surface = self.scene.surface_patterns and (bool(group.role.any()) if static else bool(role))
             defines = shaders.defines_for(self.effects, static=static, textured=textured,
                                           flat=procedural and mesh.flat, corners=procedural,
                                           gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf,
@@ -430,11 +430,15 @@ class BatchRenderer:
             raise ValueError(f"set_appearance needs a scene that declares the 'appearance' effect, got effects "
                              f"{list(self.scene.effects)}")
 
-        def shadows_can_follow(staged):  # each world's shadow map is fitted along its own light
-            if self.shadow_pass is not None and "light_direction" in staged:
+        def drawable(staged):
+            if self.shadow_pass is not None and "light_direction" in staged:  # a shadow map along each light
                 light_projection(staged["light_direction"], self.shadow_pass.bounds)
+            for name in ("floor_pattern", "wall_pattern"):
+                if not self.scene.surface_patterns and name in staged and bool(staged[name].any()):
+                    raise ValueError(f"{name} must be 0 (plain): the scene was built with surface_patterns=False, "
+                                     f"got kinds {sorted(set(staged[name].tolist()))}")
 
-        self.packer.appearance.set(check=shadows_can_follow, **kwargs)
+        self.packer.appearance.set(check=drawable, **kwargs)
 
     # ------------------------------------------------------------------ rendering
     @one_thread

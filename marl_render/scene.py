@@ -181,6 +181,9 @@ class Scene:
     near: float = 0.05
     far: float = 100.0
     shadows: Shadows = field(default_factory=Shadows)  # settings of the "shadows" effect
+    # The "appearance" effect's floor and wall patterns: compiled into the variants of groups with
+    # roles (a fragment-shader cost, appearance.py); False leaves them out (the patterns must be plain).
+    surface_patterns: bool = True
     static: dict = field(default_factory=dict, init=False)
     groups: dict = field(default_factory=dict, init=False)
     camera_mount: CameraMount | None = field(default=None, init=False)
@@ -199,6 +202,7 @@ class Scene:
         if not 0 < self.fov_y < math.pi:
             raise ValueError(f"fov_y must be in (0, pi) radians, got {self.fov_y}")
         self.background = _color("background", self.background, sizes=(3, 4))
+        self.surface_patterns = boolean("surface_patterns", self.surface_patterns)
         for name, kind in (("lighting", Lighting), ("fog", Fog), ("shadows", Shadows)):
             if not isinstance(getattr(self, name), kind):
                 raise TypeError(f"{name} must be a marl_render.{kind.__name__}, got {describe(getattr(self, name))}")

@@ -148,6 +148,25 @@ def test_a_checker_darkens_every_other_cell_by_the_contrast():
     assert (stripes == stripes[:1]).all() and len(stripes[0].unique()) == 2
 
 
+def test_a_scene_without_surface_patterns_compiles_none_and_refuses_them(monkeypatch):
+    compiled = []
+    original = mr.shaders.compiled
+    monkeypatch.setattr(mr.shaders, "compiled", lambda defines: compiled.append(defines) or original(defines))
+    scene = mr.Scene(num_worlds=2, agents_per_world=1, resolution=8, effects=("appearance",), surface_patterns=False)
+    scene.add_static("floor", "plane", position=[[0, 0, 0]], scale=[[20, 20, 1]], role="floor")
+    with mr.BatchRenderer(scene) as r:
+        assert not any("APPEARANCE_SURFACE" in defines for defines in compiled)
+        with pytest.raises(ValueError, match=r"floor_pattern must be 0 \(plain\): the scene was built with "
+                                             r"surface_patterns=False, got kinds \[0, 1\]"):
+            r.set_appearance(floor_pattern=torch.tensor([0, 1]), floor=(0.1, 0.2, 0.3))
+        assert r.packer.appearance.values["floor"] is None  # nothing was stored
+        r.set_appearance(floor_pattern=0, floor=(0.1, 0.2, 0.3))
+    with pytest.raises(TypeError, match="surface_patterns must be a bool"):
+        mr.Scene(num_worlds=1, agents_per_world=1, surface_patterns="no")
+    with make_env("spread", appearance=mr.Appearance(textures=False), resolution=8) as env:
+        assert env.renderer.scene.surface_patterns is False
+
+
 def test_every_pattern_draws_something_different():
     with top_down_floor(len(looks.PATTERNS)) as r:
         r.set_appearance(floor=(0.5, 0.5, 0.5), floor_pattern=torch.arange(len(looks.PATTERNS)), pattern_scale=3.0,
