@@ -146,10 +146,12 @@ def _alternating_blocks(frame, renderers: dict, steps: int, rounds: int = 8) -> 
     return seconds, cpu_seconds
 
 
-def _appearance_scene(args, appearance: bool):
-    """arena_scene with its floor and four walls given roles, lit, with or without the appearance effect."""
-    effects = ("lighting", "appearance") if appearance else ("lighting",)
+def _appearance_scene(args, look):
+    """arena_scene with its floor and four walls given roles, lit, with the appearance effect when
+    look (a marl_render.Appearance) is given (its patterns compiled when it draws them)."""
+    effects = ("lighting",) if look is None else ("lighting", "appearance")
     scene = arena_scene(args.worlds, args.agents, args.resolution, effects=effects, floor_role="floor")
+    scene.surface_patterns = look is not None and look.textures
     half, height = 6.0, 1.0
     scene.add_static("walls", "box", position=[[half, 0, height / 2], [-half, 0, height / 2], [0, half, height / 2],
                                                [0, -half, height / 2]],
@@ -158,30 +160,35 @@ def _appearance_scene(args, appearance: bool):
     return scene
 
 
+def _set_look(renderer, look, ids: torch.Tensor) -> None:
+    """What an env does at a reset: every world's look from its id, and its cameras' jitter."""
+    params = look.sample(ids)
+    renderer.set_appearance(**params.renderer_kwargs())
+    scene, mount = renderer.scene, renderer.scene.camera_mount
+    W, A = scene.num_worlds, scene.agents_per_world
+    renderer.set_cameras(fov_y=(scene.fov_y * params.fov_scale[:, None]).expand(W, A),
+                         mount_offset=torch.tensor(mount.offset, dtype=torch.float64)
+                         + params.camera_height[:, None, None] * torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+                         mount_pitch=(mount.pitch + params.camera_pitch[:, None]).expand(W, A))
+
+
 def _appearance(args) -> dict:
-    """The appearance effect, everything on, against lighting alone: alternating blocks of frames."""
+    """The appearance effect against lighting alone, everything on ("on") and without the floor and
+    wall patterns ("no_patterns"), in alternating blocks of frames: per variant views/s, wall and CPU
+    ms per frame, and the median of its blocks' ratios to "off"."""
     import marl_render as mr
     from marl_render.threads import single_threaded
 
+    variants = {"off": None, "on": mr.Appearance(), "no_patterns": mr.Appearance(textures=False)}
+    ids = torch.arange(args.worlds, dtype=torch.int64)
     renderers, motions = {}, {}
-    for label in ("off", "on"):
-        scene = _appearance_scene(args, label == "on")
+    for label, look in variants.items():
+        scene = _appearance_scene(args, look)
         renderers[label], motions[label] = mr.BatchRenderer(scene), RandomMotion(scene, seed=0)
-    on, scene = renderers["on"], renderers["on"].scene
-    W, A = args.worlds, args.agents
-    ids = torch.arange(W, dtype=torch.int64)
-    look = mr.Appearance(split="train").sample(ids)
-
-    def set_look():  # what an env does at a reset: every world's look and its cameras' jitter
-        params = mr.Appearance(split="train").sample(ids)
-        on.set_appearance(**params.renderer_kwargs())
-        mount = scene.camera_mount
-        on.set_cameras(fov_y=(scene.fov_y * params.fov_scale[:, None]).expand(W, A),
-                       mount_offset=torch.tensor(mount.offset, dtype=torch.float64)
-                       + params.camera_height[:, None, None] * torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
-                       mount_pitch=(mount.pitch + params.camera_pitch[:, None]).expand(W, A))
-
-    set_seconds = time_per_call(set_look, 5, warmup=1)
+        if look is not None:
+            _set_look(renderers[label], look, ids)
+    set_seconds = time_per_call(functools.partial(_set_look, renderers["on"], variants["on"], ids), 5, warmup=1)
+    patterns = variants["on"].sample(ids)
 
     @single_threaded()
     def frame(label):
@@ -191,23 +198,23 @@ def _appearance(args) -> dict:
     load_before = os.getloadavg()
     seconds, cpu_seconds = _alternating_blocks(frame, renderers, args.steps, rounds=args.rounds)
     views = args.worlds * args.agents
-
-    def ratios(timings):  # on / off of each pair of blocks
-        return [on / off for on, off in zip(timings["on"], timings["off"], strict=True)]
-
-    ratio, cpu_ratio = float(np.median(ratios(seconds))), float(np.median(ratios(cpu_seconds)))
-    return {"views": views, "off_views_per_s": views / float(np.median(seconds["off"])),
-            "on_views_per_s": views / float(np.median(seconds["on"])),
-            "off_ms_per_frame": float(np.median(seconds["off"])) * 1e3,
-            "on_ms_per_frame": float(np.median(seconds["on"])) * 1e3,
-            "time_ratio_on_off": ratio, "time_ratios": ratios(seconds), "cost_vs_off": ratio - 1,
-            "off_cpu_ms_per_frame": float(np.median(cpu_seconds["off"])) * 1e3,
-            "on_cpu_ms_per_frame": float(np.median(cpu_seconds["on"])) * 1e3,
-            "cpu_ratio_on_off": cpu_ratio, "cpu_ratios": ratios(cpu_seconds), "cpu_cost_vs_off": cpu_ratio - 1,
-            "patterned_floors": float((look.floor_pattern > 0).double().mean()),
-            "patterned_walls": float((look.wall_pattern > 0).double().mean()),
-            "set_appearance_ms": set_seconds * 1e3, "load_average_before": load_before,
-            "load_average": os.getloadavg()}
+    result = {"views": views, "patterned_floors": float((patterns.floor_pattern > 0).double().mean()),
+              "patterned_walls": float((patterns.wall_pattern > 0).double().mean()),
+              "set_appearance_ms": set_seconds * 1e3, "load_average_before": load_before}
+    for label in variants:
+        result[f"{label}_views_per_s"] = views / float(np.median(seconds[label]))
+        result[f"{label}_ms_per_frame"] = float(np.median(seconds[label])) * 1e3
+        result[f"{label}_cpu_ms_per_frame"] = float(np.median(cpu_seconds[label])) * 1e3
+        if label == "off":
+            continue
+        for kind, timings in (("time", seconds), ("cpu", cpu_seconds)):
+            ratios = [t / off for t, off in zip(timings[label], timings["off"], strict=True)]
+            result[f"{kind}_ratios_{label}_off"] = ratios
+            result[f"{kind}_ratio_{label}_off"] = float(np.median(ratios))
+    result["cost_vs_off"] = result["time_ratio_on_off"] - 1
+    result["cpu_cost_vs_off"] = result["cpu_ratio_on_off"] - 1
+    result["load_average"] = os.getloadavg()
+    return result
 
 
 def _skinning(args) -> dict:
@@ -364,13 +371,13 @@ def _write(out: str, result: dict) -> None:
                   "", shadows]
     look = result.get("appearance")
     if look:
-        appearance = tabulate([["lighting", look["off_views_per_s"], look["off_ms_per_frame"], "",
-                                look["off_cpu_ms_per_frame"], ""],
-                               ["lighting + appearance", look["on_views_per_s"], look["on_ms_per_frame"],
-                                f"{look['cost_vs_off']:+.1%}", look["on_cpu_ms_per_frame"],
-                                f"{look['cpu_cost_vs_off']:+.1%}"]],
-                              ["effects", "views/s", "ms/frame", "cost", "CPU ms/frame", "CPU cost"], tablefmt="pipe",
-                              floatfmt=["", ",.0f", ".1f", "", ".1f", ""],
+        rows = [["lighting", look["off_views_per_s"], look["off_ms_per_frame"], "", look["off_cpu_ms_per_frame"], ""]]
+        for label, name in (("on", "lighting + appearance"), ("no_patterns", "the same without patterns")):
+            rows.append([name, look[f"{label}_views_per_s"], look[f"{label}_ms_per_frame"],
+                         f"{look[f'time_ratio_{label}_off'] - 1:+.1%}", look[f"{label}_cpu_ms_per_frame"],
+                         f"{look[f'cpu_ratio_{label}_off'] - 1:+.1%}"])
+        appearance = tabulate(rows, ["effects", "views/s", "ms/frame", "cost", "CPU ms/frame", "CPU cost"],
+                              tablefmt="pipe", floatfmt=["", ",.0f", ".1f", "", ".1f", ""],
                               colalign=["left", "right", "right", "right", "right", "right"])
         lines += ["", "Appearance: each world's light, sky, floor and wall colours and patterns, object colour "
                   "jitter and camera jitter, against lighting alone; costs are medians of the ratios of "
