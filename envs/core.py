@@ -576,7 +576,7 @@ class BatchedEnv:
         if self.appearance is not None:  # drawn after spawn: the first layouts match those with it off
             fresh_ids = torch.randint(-2 ** 63, 2 ** 63 - 1, (self.num_worlds,), generator=self.generator)
             self.appearance_ids = torch.where(mask.cpu(), fresh_ids, self.appearance_ids)
-            self.views.set_appearance(self.appearance_ids)
+            self.views.set_appearance(self.appearance_ids, mask.cpu())
 
     def _observe(self, full: bool) -> dict:
         self.views.sync(self.sim, full)

@@ -45,10 +45,18 @@ class EnvRenderer:
         self._sync(self.renderer, state, full)
         self._needs_full = False
 
-    def set_appearance(self, ids: torch.Tensor) -> None:
-        """Every world's look from its id ([W] int64): the renderers' appearance rows and the agents'
-        camera jitter (fov_y, and the height and pitch of the mounted or free cameras)."""
-        self._look = self.appearance.sample(ids)
+    def set_appearance(self, ids: torch.Tensor, worlds: torch.Tensor | None = None) -> None:
+        """The looks of the worlds where `worlds` ([W] bool, None: all) is True, from their ids ([W]
+        int64): the renderers' appearance rows and the agents' camera jitter (fov_y, and the height
+        and pitch of the mounted or free cameras). Only those worlds are sampled (a reset of a few
+        worlds costs a few draws); the others keep theirs."""
+        if worlds is None or self._look is None:
+            self._look = self.appearance.sample(ids)
+        else:
+            fresh = self.appearance.sample(ids[worlds])
+            self._look = mr.AppearanceParams(**{
+                name: torch.index_put(value, (worlds,), getattr(fresh, name))
+                for name, value in vars(self._look).items()})
         for renderer in (self.renderer, self.overview_renderer):
             if renderer is not None:
                 renderer.set_appearance(**self._look.renderer_kwargs())

@@ -425,6 +425,10 @@ def test_appearance_ids_are_drawn_per_reset_world_and_keep_layouts_of_the_first_
         looked.reset_worlds(torch.tensor([False, True, False, True]))
         assert torch.equal(looked.appearance_ids[[0, 2]], ids[[0, 2]])
         assert not bool((looked.appearance_ids[[1, 3]] == ids[[1, 3]]).any())
+        # Only the reset worlds were sampled again, and every world shows the look of its id.
+        expected = looks.Appearance("heldout").sample(looked.appearance_ids)
+        shown = looked.renderer.packer.appearance.values
+        assert torch.equal(shown["sky"], expected.sky) and torch.equal(shown["floor_pattern"], expected.floor_pattern)
         assert "appearance_ids" not in plain.get_state()
 
 
