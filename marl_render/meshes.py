@@ -97,8 +97,12 @@ def plane() -> MeshData:
     return _mesh("plane", positions, normals, uvs, [(0, 1, 2), (0, 2, 3)])
 
 
-def _lathe(name, profile, segments):
-    """Surface of revolution about Z from a profile of (radius, z, normal_r, normal_z, v)."""
+def lathe(name: str, profile, segments: int) -> MeshData:
+    """A surface of revolution about +Z named `name`: the profile, a sequence of (radius, z,
+    normal_r, normal_z, v) rings from bottom to top, swept through `segments` steps of a full
+    turn (u runs 0..1 around, v as given). Rings of radius 0 touch the axis and get no
+    degenerate triangles. sphere, cylinder, cone and capsule are lathes, and so are the
+    skinned limbs of marl_render.skinning."""
     positions, normals, uvs, triangles = [], [], [], []
     rings = len(profile)
     for i in range(segments + 1):
@@ -130,7 +134,7 @@ def sphere(segments: int = 16, rings: int = 8) -> MeshData:
         phi = math.pi * j / rings - math.pi / 2  # bottom to top
         r, z = 0.5 * math.cos(phi), 0.5 * math.sin(phi)
         profile.append((r, z, math.cos(phi), math.sin(phi), j / rings))
-    return _lathe("sphere", profile, segments)
+    return lathe("sphere", profile, segments)
 
 
 def cylinder(segments: int = 16) -> MeshData:
@@ -139,7 +143,7 @@ def cylinder(segments: int = 16) -> MeshData:
         (0.5, -0.5, 1, 0, 0.1), (0.5, 0.5, 1, 0, 0.9),  # side
         (0.5, 0.5, 0, 1, 0.9), (0.0, 0.5, 0, 1, 1.0),  # top cap
     ]
-    return _lathe("cylinder", profile, segments)
+    return lathe("cylinder", profile, segments)
 
 
 def cone(segments: int = 16) -> MeshData:
@@ -149,7 +153,7 @@ def cone(segments: int = 16) -> MeshData:
         (0.0, -0.5, 0, -1, 0.0), (0.5, -0.5, 0, -1, 0.2),
         (0.5, -0.5, nr, nz, 0.2), (0.0, 0.5, nr, nz, 1.0),
     ]
-    return _lathe("cone", profile, segments)
+    return lathe("cone", profile, segments)
 
 
 def capsule(radius: float = 0.25, length: float = 1.0, segments: int = 16, rings: int = 4) -> MeshData:
@@ -166,7 +170,7 @@ def capsule(radius: float = 0.25, length: float = 1.0, segments: int = 16, rings
         phi = (math.pi / 2) * j / rings
         profile.append((radius * math.cos(phi), half + radius * math.sin(phi), math.cos(phi), math.sin(phi),
                         0.5 + 0.5 * j / rings))
-    return _lathe("capsule", profile, segments)
+    return lathe("capsule", profile, segments)
 
 
 PROCEDURAL = {"box": box, "sphere": sphere, "cylinder": cylinder, "capsule": capsule, "cone": cone, "plane": plane}
@@ -254,13 +258,16 @@ def load_model(path, *, name: str = "mesh", timeout: float | None = None) -> Mes
     MODEL_LOAD_TIMEOUT = 120) bounds the parse; files known to hang the parser (a cycle in a
     glTF hierarchy, an .egg referencing a device, an OBJ face of more than 10,000 corners)
     are refused before it starts."""
-    path, result = _arrays_from_child(path, name, "_write_model_arrays", timeout)
+    path, result = parse_model_file(path, name, skinned=False, timeout=timeout)
     return _mesh(os.path.basename(path), result["positions"], result["normals"], result["uvs"], result["triangles"])
 
 
-def _arrays_from_child(path, name: str, writer: str, timeout: float | None = None) -> tuple[str, dict]:
-    """(absolute path, arrays) that the function `writer` of this module saved after
-    parsing the model file in a child process; errors as load_model documents them."""
+def parse_model_file(path, name: str, *, skinned: bool, timeout: float | None = None) -> tuple[str, dict]:
+    """(absolute path, numpy arrays by name) of the model file `path`, parsed by Panda3D in a
+    child process: the triangles (positions, normals, uvs, triangles) and, when `skinned`, the
+    skin too (joint_names, parents, pivots, skin_joints, skin_weights). load_model and
+    skinning.load_skinned_model build their meshes from it; errors as load_model documents
+    them, each naming `name` and the file."""
     import subprocess
     import sys
     import tempfile
@@ -270,7 +277,8 @@ def _arrays_from_child(path, name: str, writer: str, timeout: float | None = Non
 
     timeout = MODEL_LOAD_TIMEOUT if timeout is None else positive_float("timeout", timeout)
     path = os.path.abspath(regular_file(name, path, kind="model"))
-    check_model_file(name, path, skinned=writer == "_write_skin_arrays")
+    check_model_file(name, path, skinned=skinned)
+    writer = "_write_skin_arrays" if skinned else "_write_model_arrays"
     _remove_orphaned_folders(tempfile.gettempdir())
     with tempfile.TemporaryDirectory(prefix=f"marl_render_model_{os.getpid()}_") as folder:
         output = os.path.join(folder, "arrays.npz")

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .meshes import MeshData, _arrays_from_child, _lathe, to_panda_geom
+from .meshes import MeshData, lathe, parse_model_file, to_panda_geom
 from .transforms import quat_to_matrix
 
 MAX_INFLUENCES = 4  # joints per vertex
@@ -194,7 +194,7 @@ def load_skinned_model(path, *, name: str = "mesh") -> SkinnedMesh:
     refused (panda3d-gltf would load them wrong); geometry without skin follows an
     extra root joint "(model)". Errors as load_model's, plus ValueError for a model
     without skin."""
-    path, arrays = _arrays_from_child(path, name, "_write_skin_arrays")
+    path, arrays = parse_model_file(path, name, skinned=True)
     return SkinnedMesh(os.path.basename(path), *(np.ascontiguousarray(arrays[key], dtype=dtype) for key, dtype in (
         ("positions", np.float32), ("normals", np.float32), ("uvs", np.float32), ("triangles", np.int32))),
         joint_names=tuple(str(n) for n in arrays["joint_names"]), parents=arrays["parents"].astype(np.int32),
@@ -230,7 +230,7 @@ def _tube(radius: float, length: float, rings_along: int, segments: int) -> Mesh
         phi = (math.pi / 2) * j / caps
         profile.append((radius * math.cos(phi), length - radius + radius * math.sin(phi), math.cos(phi), math.sin(phi),
                         1.0))
-    return _lathe("tube", profile, segments)
+    return lathe("tube", profile, segments)
 
 
 def _chain_weights(z: np.ndarray, bones: np.ndarray, blend: float) -> tuple[np.ndarray, np.ndarray]:
