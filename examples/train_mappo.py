@@ -98,6 +98,12 @@ def evaluate(env, actor, seed: int, random: bool) -> tuple[float, int]:
     return float(returns.mean()), worlds
 
 
+def next_batch_overruns(elapsed: float, batch_seconds: float, budget: float) -> bool:
+    """The stopping rule: training that has run `elapsed` seconds, the last batch taking
+    `batch_seconds`, stops when one more such batch would end past `budget` seconds."""
+    return elapsed + batch_seconds > budget
+
+
 def completed_episodes(batch, running: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Returns of the episodes that ended in a collector batch [worlds, steps], and the running
     returns of the episodes still going. `running` [worlds] carries them from batch to batch;
@@ -167,7 +173,7 @@ def main():
     progress = tqdm(total=int(budget), unit="s", desc="training",
                     bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt}s {postfix}")
     agent_frames, running, last_return = 0, torch.zeros(args.worlds), None
-    batch_started = start
+    last_elapsed = 0.0
     for batch in collector:
         ended, running = completed_episodes(batch, running)
         batch = batch.reshape(-1)  # [worlds * rollout] samples, each with its N agents
@@ -184,7 +190,8 @@ def main():
                 optimizer.step()
         collector.update_policy_weights_()
         agent_frames += frames_per_batch * args.agents
-        elapsed = time.perf_counter() - start
+        elapsed = time.perf_counter() - start  # the curve's time and the stopping rule's: one reading
+        batch_seconds, last_elapsed = elapsed - last_elapsed, elapsed
         reward = float(batch["next", GROUP, "reward"].mean())
         episode_return = float(ended.mean()) if len(ended) else None
         last_return = last_return if episode_return is None else episode_return
@@ -195,9 +202,7 @@ def main():
         progress.set_postfix_str(f"episode return {shown} (running episodes so far {float(running.mean()):.1f}), "
                                  f"{agent_frames / elapsed:,.0f} agent-frames/s")
         progress.refresh()
-        now = time.perf_counter()
-        batch_seconds, batch_started = now - batch_started, now
-        if now + batch_seconds > start + budget:  # the next batch would eat into the final evaluation
+        if next_batch_overruns(elapsed, batch_seconds, budget):  # it would eat into the final evaluation
             break
     progress.close()
     collector.shutdown()
@@ -208,7 +213,7 @@ def main():
               "return": "sum of an agent's rewards over its episode, mean over agents and episodes",
               "eval_episodes": episodes, "episode_steps": eval_env.core.max_steps,
               "minutes": (time.perf_counter() - started) / 60, "budget_minutes": args.minutes,
-              "eval_seconds": eval_seconds,
+              "eval_seconds": eval_seconds, "train_started_seconds": start - started, "train_budget_seconds": budget,
               "train_minutes": (trained_at - start) / 60, "agent_frames": agent_frames,
               "worlds": args.worlds, "agents": args.agents, "resolution": args.resolution}
     print(f"return per agent and episode ({episodes} episodes): random {random_return:.2f} -> trained "

@@ -46,3 +46,26 @@ def check_only_declared_terms(monkeypatch):
         assert all(calls[name] == 0 for name in planar.TERM_NAMES - declared), calls
 
     return check
+
+
+@pytest.fixture
+def framebuffers_made(monkeypatch):
+    """A list that records every framebuffer a BatchRenderer allocates while the test runs (a
+    pass's tiles, or the shadow atlas): a call refused before any GL allocation leaves it empty.
+    This is what "fails fast" means, checked without a clock."""
+    from marl_render import renderer, shadows
+
+    made = []
+    make_pass, shadow_pass = renderer.BatchRenderer._make_pass, shadows.ShadowPass.__init__
+
+    def counted_pass(self, views):
+        made.append(f"pass of {len(views)} views")
+        return make_pass(self, views)
+
+    def counted_shadows(self, *args, **kwargs):
+        made.append("shadow atlas")
+        return shadow_pass(self, *args, **kwargs)
+
+    monkeypatch.setattr(renderer.BatchRenderer, "_make_pass", counted_pass)
+    monkeypatch.setattr(shadows.ShadowPass, "__init__", counted_shadows)
+    return made

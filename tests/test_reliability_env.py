@@ -14,7 +14,6 @@ import statistics
 import subprocess
 import sys
 import textwrap
-import time
 import warnings
 
 import pytest
@@ -144,11 +143,10 @@ def test_torchrl_actions_that_require_grad_leave_no_graph(group_map):
     (10 ** 6, ValueError, "1000000"), (1025, ValueError, "1025"), (2 ** 63, ValueError, str(2 ** 63)),
     (0, ValueError, "0"), (-4, ValueError, "-4"), (True, TypeError, "True"), (2.0, TypeError, r"2\.0"),
 ])
-def test_torch_threads_out_of_range_is_a_clear_error(value, error, given):
-    start = time.perf_counter()
+def test_torch_threads_out_of_range_is_a_clear_error(value, error, given, framebuffers_made):
     with pytest.raises(error, match=rf"torch_threads must be None or an int in \[1, 1024\], got {given}$"):
         make_env("cartpole", num_worlds=W, resolution=RES, torch_threads=value)
-    assert time.perf_counter() - start < 10.0
+    assert framebuffers_made == []  # refused before anything was allocated
 
 
 @pytest.mark.parametrize("value,error", [(10 ** 6, ValueError), (2 ** 31, ValueError), (2 ** 64, ValueError),
@@ -180,14 +178,14 @@ def test_the_largest_torch_threads_steps_and_restores_the_caller():
 
 # ---------------------------------------------------------------------- memory
 @pytest.mark.parametrize("name", ENVS)
-def test_twenty_million_worlds_at_resolution_1_is_a_clear_error(name):
-    before, start = rss_mb(), time.perf_counter()
+def test_twenty_million_worlds_at_resolution_1_is_a_clear_error(name, framebuffers_made):
+    before = rss_mb()
     with pytest.raises(ValueError, match=r"^num_worlds=20000000 x num_agents=\d+ at resolution 1x1 needs about "
                                          r"[\d.]+ GiB of host memory, more than the [\d.]+ GiB available "
                                          r"\(\d+ > \d+ bytes\); lower num_worlds"):
         make_env(name, num_worlds=20_000_000, resolution=1)
-    assert time.perf_counter() - start < 10.0
-    assert rss_mb() - before < 50
+    assert framebuffers_made == []  # refused before anything was allocated ...
+    assert rss_mb() - before < 50  # ... on the GL side or in torch
 
 
 def test_the_guard_counts_views_instances_and_state_not_only_pixels(monkeypatch):
