@@ -27,11 +27,16 @@ parser.add_argument("--horizon", type=int, default=100, help="steps per episode"
 parser.add_argument("--seed", type=int, default=0, help="seed of the env and the policy")
 args = parser.parse_args()  # before importing jax: --help works without the extra
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-from jax.example_libraries import optimizers, stax  # noqa: E402
+from marl_render.extras import command_needs_extra  # noqa: E402
 
-from marl_render.envs import make_jax_env  # noqa: E402
+with command_needs_extra("jax", "examples/jax_policy_gradient.py"):
+    import jax
+    import jax.numpy as jnp
+    from jax.example_libraries import optimizers, stax
+
+    from marl_render.envs import make_jax_env
+with command_needs_extra("plots", "examples/jax_policy_gradient.py"):  # before training, not after it
+    from matplotlib.figure import Figure  # no pyplot: no GUI backend is chosen
 
 GAMMA = 0.98
 env = make_jax_env("cartpole", num_worlds=args.worlds, resolution=args.resolution, max_steps=args.horizon,
@@ -93,7 +98,6 @@ os.makedirs(args.out, exist_ok=True)
 with open(os.path.join(args.out, "result.json"), "w") as f:
     json.dump({"env": "cartpole", "worlds": args.worlds, "resolution": args.resolution, "horizon": args.horizon,
                "seconds": time.perf_counter() - start, "mean_return": returns}, f, indent=1)
-from matplotlib.figure import Figure  # noqa: E402 (no pyplot: no GUI backend is chosen)
 
 figure = Figure(figsize=(5, 3), dpi=80, layout="tight")
 figure.add_subplot(xlabel="iteration (one episode per world)", ylabel=f"mean return (max {args.horizon})").plot(returns)

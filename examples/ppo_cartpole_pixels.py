@@ -29,19 +29,22 @@ import os
 import resource
 import time
 
-import matplotlib
 import numpy as np
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from marl_render.envs import make_vec_env
 from marl_render.envs.cartpole import FORCE_LEVELS
+from marl_render.extras import command_needs_extra
 
-NO_FORCE = FORCE_LEVELS.index(0.0)  # the discrete action that pushes with no force
+with command_needs_extra("plots", "examples/ppo_cartpole_pixels.py"):  # before training, not after it
+    import matplotlib
+    from tqdm import tqdm
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
+
+NO_FORCE = FORCE_LEVELS.index(0.0)  # the discrete action that pushes with no force
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):

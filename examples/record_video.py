@@ -10,13 +10,16 @@ An .mp4 output needs imageio's ffmpeg plugin (pip install imageio-ffmpeg).
 import argparse
 import os
 
-import imageio.v3 as iio
 import numpy as np
 import torch
 import torch.nn.functional as F
 from PIL import Image, ImageDraw, ImageFont
 
 from marl_render.envs import list_envs, make_env
+from marl_render.extras import command_needs_extra
+
+with command_needs_extra("video", "examples/record_video.py"):
+    import imageio.v3 as iio
 
 FORMATS = (".gif", ".mp4")
 

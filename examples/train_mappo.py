@@ -28,9 +28,16 @@ from torchrl.collectors import Collector
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
-from tqdm import tqdm
 
 from marl_render.envs import make_torchrl_env
+from marl_render.extras import command_needs_extra
+
+with command_needs_extra("plots", "examples/train_mappo.py"):  # before training, not after it
+    import matplotlib
+    from tqdm import tqdm
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
 
 GROUP = "agents"
 
@@ -227,11 +234,6 @@ def main():
 
 
 def plot(curve, result, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     ended = [(seconds / 60, episode_return) for seconds, _, _, episode_return in curve if episode_return is not None]
     fig, ax = plt.subplots(figsize=(6, 3.6))
     ax.plot([m for m, _ in ended], [r for _, r in ended], marker=".", label="training episodes (sampled actions)")

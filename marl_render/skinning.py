@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from .extras import require
 from .meshes import MeshData, lathe, parse_model_file, to_panda_geom
 from .transforms import quat_to_matrix
 
@@ -193,7 +194,9 @@ def load_skinned_model(path, *, name: str = "mesh") -> SkinnedMesh:
     than four (JOINTS_1 / WEIGHTS_1), or whose vertices name a joint the skin does not list, are
     refused (panda3d-gltf would load them wrong); geometry without skin follows an
     extra root joint "(model)". Errors as load_model's, plus ValueError for a model
-    without skin."""
+    without skin. A glTF file without panda3d-gltf installed raises MissingExtraError at once."""
+    if str(path).lower().endswith((".gltf", ".glb")):
+        require("gltf", "load_skinned_model of a glTF file", "gltf")
     path, arrays = parse_model_file(path, name, skinned=True)
     return SkinnedMesh(os.path.basename(path), *(np.ascontiguousarray(arrays[key], dtype=dtype) for key, dtype in (
         ("positions", np.float32), ("normals", np.float32), ("uvs", np.float32), ("triangles", np.int32))),

@@ -1,4 +1,7 @@
-"""Command line of the benchmarks; see `python -m marl_render.bench --help`."""
+"""Command line of the benchmarks; see `python -m marl_render.bench --help`.
+
+The benchmarks need the `bench` extra; a subcommand whose packages are missing stays listed
+and, when chosen, fails at once with one line naming the extra to install."""
 from __future__ import annotations
 
 import argparse
@@ -6,7 +9,9 @@ import importlib
 import json
 import sys
 
-# subcommand -> (module, one-line help). Modules are imported only when chosen.
+from marl_render.extras import MissingExtraError, needs_extra
+
+# subcommand -> (module, one-line help). Each module is imported to list its options.
 SUBCOMMANDS = {
     "render": ("marl_render.bench.render", "batched renderer vs the plain Panda3D way (views/s, ratio)"),
     "env": ("marl_render.bench.env", "environment steps/s and agent-frames/s"),
@@ -23,10 +28,16 @@ SUBCOMMANDS = {
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m marl_render.bench", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="SUBCOMMAND")
-    modules = {}
+    modules, missing = {}, {}
     for name, (module_name, help_text) in SUBCOMMANDS.items():
         try:
-            module = importlib.import_module(module_name)
+            with needs_extra("bench", f"python -m marl_render.bench {name}"):
+                module = importlib.import_module(module_name)
+        except MissingExtraError as error:
+            # Listed, and refused in one line when chosen, before any work.
+            missing[name] = str(error)
+            sub.add_parser(name, help=f"{help_text} [not installed: needs the '{error.extra}' extra]", add_help=False)
+            continue
         except ModuleNotFoundError as error:
             if error.name != module_name:
                 raise
@@ -36,8 +47,19 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
         command.add_argument("--json", action="store_true", help="print one JSON object on stdout")
         module.add_arguments(command)
-    args = parser.parse_args(argv)
-    result = modules[args.command].run(args)
+    args, unknown = parser.parse_known_args(argv)
+    if args.command in missing:
+        print(f"error: {missing[args.command]}", file=sys.stderr)
+        return 2
+    if unknown:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    module = modules[args.command]
+    try:  # options that need another extra (bench env --api jax) are refused before any work too
+        getattr(module, "check_extras", lambda args: None)(args)
+    except MissingExtraError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    result = module.run(args)
     if args.json:
         print(json.dumps(result, indent=None, default=str))
     else:

@@ -41,6 +41,7 @@ import time
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from . import accuracy_report as report
 from .accuracy_report import SHORT
@@ -239,8 +240,6 @@ class Sweeps:
     on one setting only. Errors come from the first pass."""
 
     def __init__(self, args, cfg: dict, state: SpreadState):
-        from tqdm import tqdm
-
         self.args, self.cfg, self.state = args, cfg, state
         self.result = {}
         c = cfg

@@ -13,7 +13,8 @@ import os
 import numpy as np
 from tabulate import tabulate
 
-from .common import pyplot, write_report
+from .common import write_report
+from .figures import pyplot
 
 # Display names of the integrators (point labels, progress and recommendations).
 SHORT = {"semi_implicit_euler": "SIE", "velocity_verlet": "Verlet", "rk4": "RK4"}

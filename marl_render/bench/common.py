@@ -149,13 +149,3 @@ def write_report(out: str, name: str, result: dict, markdown: list[str] | None =
     if markdown is not None:
         with open(os.path.join(out, f"{name}.md"), "w") as f:
             f.write("\n".join(markdown) + "\n")
-
-
-def pyplot():
-    """matplotlib.pyplot on the file-only Agg backend (no display here)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt

@@ -40,7 +40,8 @@ import numpy as np
 import torch
 from tabulate import tabulate
 
-from .common import RandomMotion, apply, arena_scene, machine, progress, pyplot, time_per_call, write_report
+from .common import RandomMotion, apply, arena_scene, machine, progress, time_per_call, write_report
+from .figures import pyplot
 
 SECTIONS = ("effects", "shadows", "appearance", "skinning", "outputs", "ablation")
 OUTPUTS = [("rgb", {}), ("rgb, channels first", {"channels_first": True}), ("gray", {"color": "gray"})]

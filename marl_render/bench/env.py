@@ -23,9 +23,11 @@ import time
 import numpy as np
 import torch
 
+from ..extras import require
 from .common import machine, progress
 
 APIS = ("core", "vec", "sb3", "jax")
+API_EXTRAS = {"sb3": ("sb3", "stable_baselines3"), "jax": ("jax", "jax")}  # api -> (extra, module it needs)
 
 
 def add_arguments(parser):
@@ -36,6 +38,8 @@ def add_arguments(parser):
     parser.add_argument("--resolution", type=int, nargs="+", default=[64])
     parser.add_argument("--steps", type=int, default=30, help="timed steps per front end")
     parser.add_argument("--continuous", action="store_true")
+    parser.add_argument("--device", default="cpu",
+                        help="torch device of the env's tensors (e.g. cuda); the GL device is chosen by EGL")
     parser.add_argument("--api", nargs="+", choices=APIS, default=["core"],
                         help="front end(s) to step through; several take turns in one run (default: core)")
 
@@ -103,8 +107,10 @@ def draw_actions(core, count: int, seed: int = 0) -> list:
 
 
 def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, continuous=False,
-            apis=("core",)) -> list:
-    kwargs = {"num_worlds": worlds, "resolution": resolution, "continuous": continuous, "seed": 0}
+            apis=("core",), device: str = "cpu") -> list:
+    kwargs = {"num_worlds": worlds, "resolution": resolution, "continuous": continuous, "seed": 0, "device": device}
+    # CUDA work is asynchronous: wait for it before reading the clock, or a step is timed short.
+    synchronize = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
     if agents is not None:
         kwargs["num_agents"] = agents
     steppers = []
@@ -124,15 +130,18 @@ def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, co
         for k, a in enumerate(actions[warmup:]):
             turn = k % len(steppers)  # who goes first rotates, so that no front end always follows another
             for stepper in steppers[turn:] + steppers[:turn]:
+                synchronize()
                 start = time.perf_counter()
                 stepper.step(a)
+                synchronize()
                 seconds[stepper.api] += time.perf_counter() - start
                 render_seconds[stepper.api] += sum(stepper.core.renderer.last_timings.values())
         rows = []
         for stepper in steppers:
             per_step = seconds[stepper.api] / steps
             row = {"env": name, "api": stepper.api, "worlds": worlds, "agents": core.num_agents,
-                   "resolution": resolution, "ms_per_step": per_step * 1e3, "env_steps_per_s": worlds / per_step,
+                   "resolution": resolution, "device": str(core.device), "ms_per_step": per_step * 1e3,
+                   "env_steps_per_s": worlds / per_step,
                    "agent_frames_per_s": worlds * core.num_agents / per_step,
                    "render_share": render_seconds[stepper.api] / seconds[stepper.api],
                    "front_end_share": 1 - stepper.core_seconds / seconds[stepper.api]}
@@ -145,6 +154,14 @@ def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, co
             stepper.close()
 
 
+def check_extras(args) -> None:
+    """MissingExtraError, before any env is made, for a front end whose extra is not installed."""
+    for api in args.api:
+        if api in API_EXTRAS:
+            extra, module = API_EXTRAS[api]
+            require(extra, f"bench env --api {api}", module)
+
+
 def run(args) -> dict:
     from marl_render.envs import list_envs
 
@@ -155,5 +172,5 @@ def run(args) -> dict:
         each = "default" if agents is None else agents
         progress(f"env {name}: {worlds} worlds of {each} agents at {resolution}px, {args.steps} steps "
                  f"through {', '.join(apis)}")
-        rows += measure(name, worlds, resolution, args.steps, agents, args.continuous, apis)
+        rows += measure(name, worlds, resolution, args.steps, agents, args.continuous, apis, args.device)
     return {"benchmark": "env", "machine": machine(), "results": rows}

@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import moderngl
 import numpy as np
 import torch
 
@@ -207,8 +208,6 @@ class FloorGL:
     """
 
     def __init__(self, scene: Scene, *, tiles_per_framebuffer: int = TILES_PER_FRAMEBUFFER, cull: bool = False):
-        import moderngl
-
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {type(scene).__name__}")
         if set(scene.effects) - {"lighting"}:

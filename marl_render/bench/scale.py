@@ -25,7 +25,8 @@ from tabulate import tabulate
 
 import marl_render as mr
 
-from .common import RandomMotion, apply, arena_scene, machine, progress, pyplot, settled_rss_mb, write_report
+from .common import RandomMotion, apply, arena_scene, machine, progress, settled_rss_mb, write_report
+from .figures import pyplot
 
 STAGES = ("pack", "cull", "gl", "copy")
 

@@ -45,13 +45,16 @@ needs a JAX with a GPU backend; without one ``make_jax_env`` raises ValueError.
 """
 from __future__ import annotations
 
-import jax
 import numpy as np
 import torch
 
 from marl_render.envs.core import BatchedEnv
 from marl_render.envs.registry import make_env
+from marl_render.extras import needs_extra
 from marl_render.validation import describe
+
+with needs_extra("jax", "make_jax_env"):
+    import jax
 
 XLA_CPU_ALIGNMENT = 64  # bytes: XLA's CPU client copies DLPack buffers aligned less than this
 

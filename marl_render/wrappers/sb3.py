@@ -36,13 +36,16 @@ import numpy as np
 import torch
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
-from stable_baselines3.common.preprocessing import is_image_space
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-from stable_baselines3.common.vec_env import VecEnv
 
+from marl_render.extras import needs_extra
 from marl_render.validation import describe, unpicklable
 
 from .gymnasium import MarlRenderVectorEnv, make_vec_env
+
+with needs_extra("sb3", "make_sb3_env"):
+    from stable_baselines3.common.preprocessing import is_image_space
+    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+    from stable_baselines3.common.vec_env import VecEnv
 
 
 def make_sb3_env(name: str, num_worlds: int = 1, **kwargs) -> MarlRenderSB3VecEnv:
