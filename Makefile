@@ -27,12 +27,22 @@ PYBATCHRENDER_GIT ?= https://github.com/dolphin-in-a-coma/pybatchrender
 PYBATCHRENDER_COMMIT := 3ef046acc65c7d0c49495fa0f354ccc24e8c949f
 PEERS_PIP := pip install --quiet --disable-pip-version-check
 
+# Release checks in their own venv: build (isolated, as PyPI users' pip builds), twine and cffconvert.
+DIST_VENV ?= .venv-dist
+DIST_STAMP := $(DIST_VENV)/.installed
+DIST_TOOLS := build==1.6.1 twine==7.0.0 cffconvert==2.0.0
+
+# The GPU kit (see tools/gpu_kit/README.md): built offline-ready into GPU_KIT for a machine with
+# Python 3.12, a CUDA torch and no network. PYBATCHRENDER_CLONE, if it exists, goes in too.
+GPU_KIT ?= .gpu-kit
+PYBATCHRENDER_CLONE ?= $(PYBATCHRENDER_VENV)/src/pybatchrender
+
 .PHONY: demo test test-benchmarl test-rllib bench baselines bench-peers peers-venvs meltingpot-venv mpe-venv \
-	pybatchrender-venv clean
+	pybatchrender-venv dist gpu-kit clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[bench,test,video,jax,sb3,gltf]"
+	$(VENV)/bin/pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[bench,test,video,jax,sb3,gltf,plots]"
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -118,5 +128,21 @@ bench-peers: $(STAMP) peers-venvs
 	$(PY) -m marl_render.bench peers --meltingpot-venv $(MELTINGPOT_VENV) --mpe-venv $(MPE_VENV) \
 		--pybatchrender-venv $(PYBATCHRENDER_VENV) --out docs/bench
 
+$(DIST_STAMP):
+	$(PYTHON) -m venv $(DIST_VENV)
+	$(DIST_VENV)/bin/pip install --quiet --disable-pip-version-check $(DIST_TOOLS)
+	touch $(DIST_STAMP)
+
+# dist/: the sdist and the wheel, checked by twine; CITATION.cff against its schema.
+dist: $(DIST_STAMP)
+	rm -rf dist marl_render.egg-info  # an old egg-info's SOURCES.txt would add its files to the sdist
+	$(DIST_VENV)/bin/python -m build --outdir dist .
+	$(DIST_VENV)/bin/twine check --strict dist/*
+	$(DIST_VENV)/bin/cffconvert --validate -i CITATION.cff
+
+gpu-kit: $(STAMP)
+	$(PY) tools/gpu_kit/build.py --out $(GPU_KIT) --pybatchrender $(PYBATCHRENDER_CLONE)
+
 clean:
-	rm -rf $(VENV) $(BENCHMARL_VENV) $(RLLIB_VENV) $(MELTINGPOT_VENV) $(MPE_VENV) $(PYBATCHRENDER_VENV) out
+	rm -rf $(VENV) $(BENCHMARL_VENV) $(RLLIB_VENV) $(MELTINGPOT_VENV) $(MPE_VENV) $(PYBATCHRENDER_VENV) $(DIST_VENV) \
+		out dist $(GPU_KIT)
