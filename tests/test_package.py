@@ -15,7 +15,6 @@ import re
 import shutil
 import subprocess
 import sys
-import sysconfig
 import tarfile
 import textwrap
 import zipfile
@@ -27,6 +26,7 @@ from packaging.requirements import Requirement
 
 from marl_render.envs import env_class, list_envs
 from marl_render.extras import EXTRAS
+from throwaway_venv import throwaway_venv
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE_FOLDERS = ("marl_render", "envs", "shaders")  # what the wheel's marl_render is built from
@@ -157,17 +157,11 @@ def test_the_sdist_is_the_source_tree(built):
 def installed(built, tmp_path_factory):
     """The python of a throwaway venv into which the wheel is installed (not editable); the
     dependencies come from this environment's site-packages through a .pth file."""
-    home = tmp_path_factory.mktemp("venv")
-    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(home)], check=True, timeout=120)
-    python = home / "bin" / "python"
-    site = Path(subprocess.run([python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
-                               capture_output=True, text=True, check=True).stdout.strip())
-    # A path line only: the .pth files there (this checkout's editable install among them) are not run.
-    (site / "dependencies.pth").write_text(sysconfig.get_path("purelib") + "\n")
+    venv = throwaway_venv(tmp_path_factory.mktemp("venv"))
     subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index",
-                    "--disable-pip-version-check", "--target", str(site), str(built.wheel)],
+                    "--disable-pip-version-check", "--target", str(venv.site), str(built.wheel)],
                    check=True, capture_output=True, timeout=300)
-    return SimpleNamespace(python=python, site=site)
+    return venv
 
 
 EVERY_TASK_FROM_THE_WHEEL = """
