@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from throwaway_venv import throwaway_venv
+from isolated_install import RED_BOX_PICTURE, throwaway_venv
 
 ROOT = Path(__file__).resolve().parents[1]
 KIT = ROOT / "tools" / "gpu_kit"
@@ -204,13 +204,7 @@ SLIM_RENDER = """
         env.reset(seed=0)
         pixels[name] = list(env.step(env.random_actions())[0]["pixels"].shape)
         env.close()
-    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=(16, 16), effects=(), background=(0, 0, 1.0))
-    scene.add_group("boxes", "box", capacity=1)
-    with mr.BatchRenderer(scene) as renderer:
-        renderer.set_cameras(position=torch.zeros(1, 1, 3), rotation=torch.tensor([[[1.0, 0, 0, 0]]]))
-        renderer.update("boxes", position=torch.tensor([[[0.0, 4.0, 0.0]]]), color=torch.tensor([[[1.0, 0, 0]]]),
-                        active=torch.ones(1, 1, dtype=torch.bool))
-        rgb = renderer.render().rgb[0, 0]
+    {picture}
     with open("tri.egg", "w") as f:
         f.write("<CoordinateSystem> { Z-up }\\n<VertexPool> v { <Vertex> 0 { 0 0 0 } <Vertex> 1 { 1 0 0 } "
                 "<Vertex> 2 { 0 1 0 } }\\n<Polygon> { <VertexRef> { 0 1 2 <Ref> { v } } }\\n")
@@ -240,7 +234,8 @@ def test_the_slimmed_panda3d_layout_renders_here(tmp_path):
     # marl-render from this checkout's editable install, if that is how it is installed here
     for editable in Path(sysconfig.get_path("purelib")).glob("__editable__*marl_render*.pth"):
         shutil.copy2(editable, site / f"b_{editable.name}")
-    done = subprocess.run([venv.python, "-I", "-c", textwrap.dedent(SLIM_RENDER)], cwd=tmp_path,
+    code = textwrap.dedent(SLIM_RENDER).replace("{picture}", RED_BOX_PICTURE)
+    done = subprocess.run([venv.python, "-I", "-c", code], cwd=tmp_path,
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])

@@ -24,9 +24,9 @@ from types import SimpleNamespace
 import pytest
 from packaging.requirements import Requirement
 
+from isolated_install import RED_BOX_PICTURE, throwaway_venv
 from marl_render.envs import env_class, list_envs
 from marl_render.extras import EXTRAS
-from throwaway_venv import throwaway_venv
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE_FOLDERS = ("marl_render", "envs", "shaders")  # what the wheel's marl_render is built from
@@ -165,7 +165,7 @@ def installed(built, tmp_path_factory):
 
 
 EVERY_TASK_FROM_THE_WHEEL = """
-    import importlib.metadata, json, math, sys
+    import importlib.metadata, json, sys
     import torch
     import marl_render as mr
     from marl_render.envs import list_envs, make_env
@@ -179,15 +179,7 @@ EVERY_TASK_FROM_THE_WHEEL = """
         tasks[name] = [list(pixels.shape), str(pixels.dtype), list(reward.shape), float(pixels.float().std())]
         env.close()
 
-    # A picture: a red unit box 3.5 m in front of the camera, on a blue background.
-    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=(16, 16), effects=(), background=(0.0, 0.0, 1.0),
-                     fov_y=math.radians(60))
-    scene.add_group("boxes", "box", capacity=1)
-    with mr.BatchRenderer(scene) as renderer:
-        renderer.set_cameras(position=torch.zeros(1, 1, 3), rotation=torch.tensor([[[1.0, 0, 0, 0]]]))
-        renderer.update("boxes", position=torch.tensor([[[0.0, 4.0, 0.0]]]), color=torch.tensor([[[1.0, 0, 0]]]),
-                        active=torch.ones(1, 1, dtype=torch.bool))
-        rgb = renderer.render().rgb[0, 0]
+    {picture}
     print(json.dumps({"tasks": tasks, "centre": rgb[8, 8].tolist(), "corner": rgb[0, 0].tolist(),
                       "files": [mr.__file__, mr.envs.__file__, sys.executable],
                       "version": [mr.__version__, importlib.metadata.version("marl-render")]}))
@@ -195,7 +187,8 @@ EVERY_TASK_FROM_THE_WHEEL = """
 
 
 def test_the_wheel_installed_alone_makes_every_task_and_renders_from_outside_the_repository(installed, tmp_path):
-    done = subprocess.run([installed.python, "-I", "-c", textwrap.dedent(EVERY_TASK_FROM_THE_WHEEL)], cwd=tmp_path,
+    code = textwrap.dedent(EVERY_TASK_FROM_THE_WHEEL).replace("{picture}", RED_BOX_PICTURE)
+    done = subprocess.run([installed.python, "-I", "-c", code], cwd=tmp_path,
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
