@@ -233,12 +233,14 @@ MODEL_LOAD_TIMEOUT = 120.0  # seconds; a file that still hangs the parser is ref
 # Runs meshes.py in the child without importing the marl_render package (torch is slow
 # to import and not needed there); the module needs only numpy and Panda3D.
 _CHILD_BOOTSTRAP = """
-import importlib.util, sys
+import importlib.util, os, sys
 try:  # Linux: killed when the parent dies (prctl PR_SET_PDEATHSIG = 1, SIGKILL = 9)
     import ctypes
     ctypes.CDLL(None).prctl(1, 9)
 except (OSError, AttributeError):  # elsewhere the parent's timeout still bounds the child
     pass
+if os.getppid() != int(sys.argv[5]):  # the parent died before the line above: nobody waits for the result
+    sys.exit(3)
 spec = importlib.util.spec_from_file_location("marl_render_model_child", sys.argv[1])
 module = importlib.util.module_from_spec(spec)
 sys.modules[spec.name] = module
@@ -283,7 +285,8 @@ def parse_model_file(path, name: str, *, skinned: bool, timeout: float | None = 
     with tempfile.TemporaryDirectory(prefix=f"marl_render_model_{os.getpid()}_") as folder:
         output = os.path.join(folder, "arrays.npz")
         try:
-            child = subprocess.run([sys.executable, "-I", "-c", _CHILD_BOOTSTRAP, __file__, path, output, writer],
+            child = subprocess.run([sys.executable, "-I", "-c", _CHILD_BOOTSTRAP, __file__, path, output, writer,
+                                    str(os.getpid())],
                                    stdin=subprocess.DEVNULL, capture_output=True, timeout=timeout, cwd=folder)
         except subprocess.TimeoutExpired:
             raise ValueError(f"{name}: model file {path!r} was still loading after {timeout:g} s; refused (raise "

@@ -332,6 +332,21 @@ def test_model_files_that_would_hang_the_parser_are_refused_at_once(tmp_path, mo
         mr.load_model(quad_egg(tmp_path / "quad.egg"), timeout=0)
 
 
+@pytest.mark.parametrize("parent_alive", [True, False])
+def test_a_child_whose_parent_died_before_it_started_watching_exits_at_once(tmp_path, parent_alive):
+    """The child asks to be killed with its parent as it starts; a parent killed before that (a
+    loaded machine) left it parsing on: it checks that its parent is still the one that started it.
+    A wrong parent pid stands for the parent that died (the child would have been reparented)."""
+    from marl_render import meshes
+
+    output = tmp_path / "arrays.npz"
+    parent = os.getpid() if parent_alive else 1
+    done = subprocess.run([sys.executable, "-I", "-c", meshes._CHILD_BOOTSTRAP, meshes.__file__,
+                           str(quad_egg(tmp_path / "quad.egg")), str(output), "_write_model_arrays", str(parent)],
+                          capture_output=True, timeout=120, cwd=tmp_path)
+    assert (done.returncode, output.exists()) == ((0, True) if parent_alive else (3, False)), done.stderr[-2000:]
+
+
 def test_a_killed_parent_leaves_no_parser_and_no_work_folder(tmp_path):
     """A parent killed during a load used to leave the child spinning and its temporary files behind."""
     import psutil
@@ -353,7 +368,7 @@ def test_a_killed_parent_leaves_no_parser_and_no_work_folder(tmp_path):
         assert folders
         parent.kill()
         parent.wait(timeout=10)
-        gone, alive = psutil.wait_procs(children, timeout=5)
+        gone, alive = psutil.wait_procs(children, timeout=60)  # at once, normally: a bound for a hang, not a speed
         assert not alive
     finally:
         if parent.poll() is None:
