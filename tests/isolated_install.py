@@ -9,14 +9,17 @@ from types import SimpleNamespace
 
 
 def throwaway_venv(home: Path) -> SimpleNamespace:
-    """A venv at `home` without pip: .python, and .site (its site-packages), which ends with a .pth
-    line naming this environment's site-packages. Only a path line: the .pth files there (this
-    checkout's editable install among them) are not run."""
+    """A venv at `home` without pip: .python, and .site (its site-packages), whose .pth file names
+    this process's site-packages folders (this environment's, and those it reaches through .pth
+    files of its own, as a throwaway venv does). Path lines only: the .pth files in those folders
+    (this checkout's editable install among them) are not run."""
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(home)], check=True, timeout=120)
     python = home / "bin" / "python"
     site = Path(subprocess.run([python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
                                capture_output=True, text=True, check=True).stdout.strip())
-    (site / "a_dependencies.pth").write_text(sysconfig.get_path("purelib") + "\n")
+    reached = [path for path in sys.path if path.endswith("site-packages") and Path(path).is_dir()]
+    folders = dict.fromkeys([sysconfig.get_path("purelib"), *reached])
+    (site / "a_dependencies.pth").write_text("".join(f"{folder}\n" for folder in folders))
     return SimpleNamespace(python=python, site=site)
 
 

@@ -3,9 +3,10 @@ wheel installed on its own (not editable) in a throwaway environment, used from 
 repository.
 
 The sdist is the whole source tree (MANIFEST.in says why): it must hold exactly the files of the
-repository, and its tests run from it against the installed wheel. The builds run offline with
-the installed setuptools (`python -m build --no-isolation`); the throwaway environment reuses the
-installed dependencies through a .pth file, so only marl-render itself is installed into it."""
+repository, and its tests run from it once it is installed as a clone is (editable). The builds
+run offline with the installed setuptools (`python -m build --no-isolation`); the throwaway
+environments reuse the installed dependencies through a .pth file, so only marl-render itself is
+installed into them."""
 import ast
 import email.parser
 import importlib.metadata
@@ -31,8 +32,7 @@ from marl_render.extras import EXTRAS
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE_FOLDERS = ("marl_render", "envs", "shaders")  # what the wheel's marl_render is built from
 GENERATED = {"PKG-INFO", "setup.cfg"}  # files setuptools adds to an sdist (besides the egg-info folder)
-LOCAL_ONLY = ("__pycache__", ".pytest_cache", ".hypothesis", ".venv", ".git", "build", "dist", "out", ".gpu-kit",
-              ".gl", ".whl")  # never part of the source tree
+LOCAL_ONLY = ("__pycache__", "build", "dist", "out")  # folders never part of the source tree, nor hidden ones but .ci
 
 
 def private_imports(folder: Path) -> list[str]:
@@ -69,7 +69,8 @@ def source_files() -> set[str]:
         return {name for name in listed if (ROOT / name).is_file()}
     files = set()
     for folder, subfolders, names in os.walk(ROOT):
-        subfolders[:] = [s for s in subfolders if s not in LOCAL_ONLY and not s.endswith(".egg-info")]
+        subfolders[:] = [s for s in subfolders if s not in LOCAL_ONLY and not s.endswith(".egg-info")
+                         and (s == ".ci" or not s.startswith("."))]
         files |= {str((Path(folder) / name).relative_to(ROOT)) for name in names}
     return files - GENERATED
 
@@ -205,12 +206,22 @@ def test_the_wheel_installed_alone_makes_every_task_and_renders_from_outside_the
     assert result["centre"] == [255, 0, 0] and result["corner"] == [0, 0, 255]
 
 
-def test_the_sdists_tests_run_from_it_against_the_installed_wheel(built, installed, tmp_path):
+def test_the_sdists_tests_run_from_it(built, tmp_path):
+    """As from a clone: the unpacked sdist installed editable (what `make test` does there), then
+    tests that read its conftest.py, docs and sources. (Run from the source tree, an installed wheel
+    would be shadowed by the tree's marl_render/ folder, which lacks envs/ and the shaders: the
+    layout maps them in at install time.)"""
     with tarfile.open(built.sdist) as sdist:
         sdist.extractall(tmp_path, filter="data")
     unpacked = tmp_path / f"marl_render-{source_version()}"
-    # conftest.py, the docs the test reads and the package under test: the wheel's, not this checkout's
-    done = subprocess.run([installed.python, "-I", "-m", "pytest", "-q", "-p", "no:cacheprovider",
+    venv = throwaway_venv(tmp_path / "venv")
+    subprocess.run([venv.python, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index", "--no-build-isolation",
+                    "--disable-pip-version-check", "--editable", str(unpacked)],
+                   check=True, capture_output=True, timeout=300)
+    where = subprocess.run([venv.python, "-c", "import marl_render.envs as e; print(e.__file__)"], cwd=tmp_path,
+                           capture_output=True, text=True, check=True).stdout.strip()
+    assert Path(where) == unpacked / "envs" / "__init__.py"
+    done = subprocess.run([venv.python, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                            "tests/test_authoring.py::test_tutorial_usage_block_runs_as_written",
                            "tests/test_package.py::test_no_module_imports_a_private_name_of_another",
                            "-W", "ignore::DeprecationWarning", "--override-ini", "addopts="],

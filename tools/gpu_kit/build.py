@@ -275,17 +275,17 @@ def copy_clone(clone: Path, target: Path) -> dict:
 
 
 def write_manifest(kit: Path, **about) -> dict:
+    """MANIFEST.json: every file of the kit with its size and sha256, and what the kit was built from.
+    Returns it, with total_bytes: the kit's size on disk, the manifest included."""
     files = {}
     for path in sorted(p for p in kit.rglob("*") if p.is_file()):
         data = path.read_bytes()
         files[str(path.relative_to(kit))] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
     commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True)
     manifest = {"marl_render_commit": commit.stdout.strip() or None, "python": PYTHON_VERSION, **about,
-                "files": files, "total_bytes": sum(f["bytes"] for f in files.values())}
-    manifest["total_bytes"] += len(json.dumps(manifest, indent=1)) + 64  # itself, about
+                "files": files}
     (kit / "MANIFEST.json").write_text(json.dumps(manifest, indent=1) + "\n")
-    manifest["total_bytes"] = sum(p.stat().st_size for p in kit.rglob("*") if p.is_file())
-    return manifest
+    return {**manifest, "total_bytes": sum(p.stat().st_size for p in kit.rglob("*") if p.is_file())}
 
 
 if __name__ == "__main__":
