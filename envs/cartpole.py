@@ -29,10 +29,10 @@ import torch
 import marl_render as mr
 
 from . import array_ops
-from .cartpole_dynamics import CARTPOLE, integrate, stop_at_limit
+from .cartpole_dynamics import CARTPOLE, SLIDER_LIMIT, integrate, stop_at_limit
 from .compiled import compile_kernel
 from .dmc_rewards import balance_reward
-from .scenario import Scenario, Step
+from .scenario import STATE_LIMIT, Scenario, Step
 
 FORCE_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)
 CART_HEIGHT = 1.0  # the cart body's z (hinge height)
@@ -105,6 +105,13 @@ class CartPoleBalance(Scenario):
         return CartPoleState(qstate=torch.zeros(W, 4, dtype=torch.float64, device=self.device),
                              last_control=torch.zeros(W, dtype=torch.float64, device=self.device))
 
+    def state_bounds(self):
+        """The cart on its rail (|x| <= the slider stop), the control in [-1, 1]; angles and rates
+        within the default +-STATE_LIMIT."""
+        free = STATE_LIMIT
+        return {"qstate": ((-SLIDER_LIMIT, -free, -free, -free), (SLIDER_LIMIT, free, free, free)),
+                "last_control": (-1.0, 1.0)}
+
     def spawn(self, generator):
         W, g = self.num_worlds, generator
         x = torch.rand(W, generator=g, dtype=torch.float64) * 0.2 - 0.1
@@ -119,8 +126,9 @@ class CartPoleBalance(Scenario):
 
     def step(self, state, actions, alive, generator):
         u = self.control(actions)
-        if self._kernel is not None:
-            q, reward = self._kernel(state.qstate, u)
+        compiled = None if self._kernel is None else self._kernel(state.qstate, u)  # None: it failed
+        if compiled is not None:
+            q, reward = compiled
         else:
             # One pass over the arrays of the cheapest namespace (envs/array_ops.py): at small
             # batches the cost of this step is the number of calls, not the arithmetic.
@@ -135,8 +143,12 @@ class CartPoleBalance(Scenario):
         example = (torch.zeros(W, 4, dtype=torch.float64, device=self.device),
                    torch.zeros(W, dtype=torch.float64, device=self.device))
         self._kernel = compile_kernel(functools.partial(advance, array_ops.TorchOps, dt=self.dt), example,
-                                      f"cartpole physics for {W} worlds")
-        return self._kernel is not None
+                                      f"cartpole physics for {W} worlds", key=("cartpole", W, str(self.device)))
+        return self.physics_compiled
+
+    @property
+    def physics_compiled(self) -> bool:
+        return self._kernel is not None and self._kernel.active
 
     def observation(self, state, alive):
         x, theta, xdot, thetadot = state.qstate.unbind(-1)

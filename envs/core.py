@@ -206,13 +206,13 @@ class BatchedEnv:
                      self.num_worlds, self.num_agents, self.resolution)
         self.context.check_usable()  # in a forked child: ForkedContextError now, not a torch deadlock below
 
+        multisamples = check.multisamples(options.multisamples)
+        supersample = positive_int("supersample", options.supersample)
+        compile_physics = check.flag("compile_physics", options.compile_physics)
+
         self.scenario = scenario(params, Layout(self.num_worlds, self.num_agents, self.continuous, self.device))
         if options.physics_substeps is not None:
             self.scenario.physics = check.physics_substeps(options.physics_substeps, self.scenario)
-        self.physics_compiled = False  # True once the task's compiled kernel is in use
-        if check.flag("compile_physics", options.compile_physics):
-            with limited_threads(self.torch_threads):
-                self.physics_compiled = self.scenario.compile_physics()
         self._describe(self.scenario)
         self.sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
         self._check_scenario()
@@ -230,10 +230,24 @@ class BatchedEnv:
         with limited_threads(self.torch_threads):
             self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=effects,
                                      shadows=self.shadows, grayscale=self.grayscale, context=self.context,
-                                     device=self.device, multisamples=options.multisamples,
-                                     supersample=options.supersample, appearance=self.appearance)
+                                     device=self.device, multisamples=multisamples, supersample=supersample,
+                                     appearance=self.appearance)
         self.renderer = self.views.renderer
+        # Last: compiling takes seconds, so every other option has been checked by now.
+        if compile_physics:
+            try:
+                with limited_threads(self.torch_threads):
+                    self.scenario.compile_physics()
+            except BaseException:
+                self.views.close()
+                raise
         self._closed = False
+
+    @property
+    def physics_compiled(self) -> bool:
+        """Whether steps run the task's compiled physics kernel (compile_physics=True and compiling
+        worked; False again if the kernel ever failed at a step and the default path took over)."""
+        return self.scenario.physics_compiled
 
     def _describe(self, s: Scenario) -> None:
         """Copy the scenario's description onto the driver (the names front ends read)."""

@@ -69,6 +69,15 @@ def flag(name: str, value) -> bool:
     return bool(value)
 
 
+def multisamples(value) -> int:
+    """MSAA samples of the agents' views: an int >= 0 (numpy ints too, as the other options take)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"multisamples must be an int >= 0 (0: no MSAA), got {describe(value)}")
+    if value < 0:
+        raise ValueError(f"multisamples must be an int >= 0 (0: no MSAA), got {value}")
+    return int(value)
+
+
 def shadows(value, bounds) -> mr.Shadows | None:
     """None (no shadows) or the Shadows settings of the scene."""
     if isinstance(value, mr.Shadows):

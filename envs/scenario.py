@@ -170,6 +170,18 @@ class Scenario(abc.ABC):
         return {name: (-STATE_LIMIT, STATE_LIMIT) for name, value in explicit_state.fields(self.initial_state()).items()
                 if value.is_floating_point()}
 
+    def check_state(self, state: dict) -> None:
+        """Raise ValueError naming the field where `state` ({field: tensor}) breaks a rule of the task
+        that the ranges of state_bounds cannot say (which team may carry which flag, a counter that
+        must agree with another). set_state and every spawn are checked with it; default: no rule."""
+        return None
+
+    def check_declarations(self, state) -> None:
+        """Raise naming the declaration where the task's declarations disagree with each other, once
+        when the env is built, given initial_state() (ArenaScenario checks its obstacles against
+        physics_terms and its props against the state's fields); default: nothing to check."""
+        return None
+
     def heuristic(self, state, alive: torch.Tensor) -> torch.Tensor:
         """Actions of a scripted policy that reads the state: a reference that beats random."""
         raise NotImplementedError(f"{type(self).__name__} has no scripted heuristic")
@@ -183,6 +195,11 @@ class Scenario(abc.ABC):
     def has_lidar(cls) -> bool:
         """Whether the task can give the lidar observation."""
         return cls.lidar is not Scenario.lidar
+
+    @property
+    def physics_compiled(self) -> bool:
+        """Whether step() runs a compiled kernel now (see compile_physics)."""
+        return False
 
     def compile_physics(self) -> bool:
         """Switch step() to a compiled kernel (EnvOptions.compile_physics, envs/compiled.py) whose

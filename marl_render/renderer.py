@@ -136,8 +136,10 @@ class BatchRenderer:
         self.color, self.channels = color, self.COLORS[color]
         self.supersample = positive_int("supersample", supersample)
         self._staging = self._accumulator = None  # reused buffers of reads that need a copy afterwards
-        if isinstance(multisamples, bool) or not isinstance(multisamples, int) or multisamples < 0:
+        if isinstance(multisamples, (bool, np.bool_)) or not isinstance(multisamples, (int, np.integer)) \
+                or multisamples < 0:
             raise ValueError(f"multisamples must be an int >= 0, got {multisamples!r}")
+        multisamples = int(multisamples)
         if multisamples and {"depth", "segmentation"} & set(scene.effects):
             raise ValueError("multisamples cannot be combined with the depth or segmentation outputs (their "
                              "bit-packed samples would be averaged); use supersample instead")

@@ -10,6 +10,7 @@ import shutil
 import pytest
 import torch
 
+from marl_render.envs import compiled as compiled_kernels
 from marl_render.envs import make_env
 
 WORLDS = 16
@@ -65,6 +66,7 @@ def test_a_kernel_that_does_not_compile_leaves_the_default_path(monkeypatch):
         return kernel
 
     monkeypatch.setattr(torch, "compile", broken_compile)
+    monkeypatch.setattr(compiled_kernels, "_COMPILED", {})  # not the kernel another test compiled
     with pytest.warns(RuntimeWarning, match=re.escape("cartpole physics for 16 worlds could not be compiled "
                                                       "(RuntimeError: no working C++ compiler found)")):
         env = cartpole(compile_physics=True)
