@@ -48,10 +48,11 @@ import math
 
 import torch
 
-from marl_render.validation import positive_float, positive_int
+from marl_render.validation import COUNT_LIMIT, positive_int, reward_weight
 
 from . import scenery
 from .arena import ArenaScenario, ArenaState, Prop, Static, numbered
+from .scenario import MAX_COUNT
 
 ARENA = (3.0, 4.0)  # half extents (m)
 BASE_Y = 3.0  # bases at (0, -BASE_Y) red and (0, BASE_Y) blue
@@ -74,9 +75,9 @@ class CaptureFlagParams:
     shaping: float = 0.0  # weight of the progress towards the next capture (0: off)
 
     def __post_init__(self):
-        positive_float("capture_reward", self.capture_reward)
-        positive_float("shaping", self.shaping, allow_zero=True)
-        positive_int("captures_to_win", self.captures_to_win, minimum=0)
+        reward_weight("capture_reward", self.capture_reward)
+        reward_weight("shaping", self.shaping, allow_zero=True)
+        positive_int("captures_to_win", self.captures_to_win, minimum=0, maximum=COUNT_LIMIT)
         positive_int("k_nearest", self.k_nearest)
 
 
@@ -142,6 +143,16 @@ class CaptureFlag(ArenaScenario):
         behind = state.pos.gather(1, who[..., None].expand(-1, -1, 2)) - FLAG_BEHIND * scenery.heading(
             state.yaw.gather(1, who))
         return torch.where(carried[..., None], behind, self.base.expand_as(behind))
+
+    def state_bounds(self):
+        N, T = self.num_agents, self.team_size
+        return {**super().state_bounds(), "carrier": ((-1, -1), (N - 1, T - 1)), "captures": (0, MAX_COUNT)}
+
+    def check_state(self, state):
+        red_flag = state["carrier"][:, 0]  # carried by blue agents (T .. N-1) only
+        if bool(((red_flag >= 0) & (red_flag < self.team_size)).any()):
+            raise ValueError(f"state['carrier'][:, 0] (red's flag) must be -1 or a blue agent in "
+                             f"[{self.team_size}, {self.num_agents - 1}]: a team never carries its own flag")
 
     def spawn(self, generator):
         W, N, T, g = self.num_worlds, self.num_agents, self.team_size, generator

@@ -49,10 +49,11 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.validation import positive_int
+from marl_render.validation import COUNT_LIMIT, positive_int
 
 from . import scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered
+from .scenario import MAX_COUNT
 
 ARENA = 2.0  # half extent (m)
 SPAWN_GRID = 4
@@ -86,7 +87,7 @@ class CommonsParams:
         if not (isinstance(r, tuple) and len(r) == 4 and all(isinstance(p, (int, float)) and not isinstance(p, bool)
                                                              and 0 <= p <= 1 for p in r)):
             raise ValueError(f"regrowth must be a tuple of 4 probabilities in [0, 1], got {r!r}")
-        positive_int("tag_timeout", self.tag_timeout)
+        positive_int("tag_timeout", self.tag_timeout, maximum=COUNT_LIMIT)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,6 +137,18 @@ class Commons(ArenaScenario):
     def initial_state(self):
         W, N = self.num_worlds, self.num_agents
         return self._fresh(torch.zeros(W, N, 2), torch.zeros(W, N))
+
+    def state_bounds(self):
+        # Counters of the episode grow while a world keeps stepping without autoreset.
+        return {**super().state_bounds(), "timeout": (0, self.params.tag_timeout), "collected": (0, MAX_COUNT),
+                "steps": (0, MAX_COUNT), "depleted_at": (-1, MAX_COUNT)}
+
+    def check_state(self, state):
+        if not torch.equal(state["shown"], state["timeout"] == 0):
+            raise ValueError("state['shown'] must be True exactly for the agents in play (state['timeout'] == 0)")
+        depleted, steps = state["depleted_at"], state["steps"]
+        if bool(((depleted == 0) | (depleted > steps)).any()):
+            raise ValueError("state['depleted_at'] must be -1 (apples left) or a step in [1, state['steps']]")
 
     def spawn(self, generator):
         W, N, g = self.num_worlds, self.num_agents, generator

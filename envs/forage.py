@@ -39,7 +39,7 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.validation import positive_float, positive_int
+from marl_render.validation import COUNT_LIMIT, FLOAT32_MAX, positive_int, reward_weight
 
 from . import scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered
@@ -65,8 +65,8 @@ class ForageParams:
     def __post_init__(self):
         if self.num_items is not None and positive_int("num_items", self.num_items) > 32:
             raise ValueError(f"num_items must be an int in [1, 32], got {self.num_items}")
-        positive_int("respawn_delay", self.respawn_delay)
-        positive_float("item_reward", self.item_reward)
+        positive_int("respawn_delay", self.respawn_delay, maximum=COUNT_LIMIT)
+        reward_weight("item_reward", self.item_reward)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,7 +116,8 @@ class Forage(ArenaScenario):
         return candidates.reshape(W, I, M, 2).gather(2, pick[..., None, None].expand(W, I, 1, 2)).squeeze(2)
 
     def state_bounds(self):
-        return {**super().state_bounds(), "items": self.inside_walls(), "item_timer": (0, self.params.respawn_delay)}
+        return {**super().state_bounds(), "items": self.inside_walls(), "item_timer": (0, self.params.respawn_delay),
+                "team_score": (0.0, FLOAT32_MAX)}  # a sum of rewards >= 0, growing while a world keeps stepping
 
     def spawn(self, generator):
         W, N, g = self.num_worlds, self.num_agents, generator

@@ -50,7 +50,7 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.validation import positive_float
+from marl_render.validation import reward_weight
 
 from . import scenery
 from .arena import ArenaScenario, Prop, Static, numbered
@@ -100,8 +100,8 @@ class PushParams:
     shaping: float = 0.0
 
     def __post_init__(self):
-        positive_float("goal_reward", self.goal_reward)
-        positive_float("shaping", self.shaping, allow_zero=True)
+        reward_weight("goal_reward", self.goal_reward)
+        reward_weight("shaping", self.shaping, allow_zero=True)
 
 
 class Push(ArenaScenario):

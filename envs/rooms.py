@@ -59,7 +59,7 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.validation import boolean, finite_float, positive_float
+from marl_render.validation import boolean, finite_float, reward_weight
 
 from . import planar, scenery
 from .arena import ArenaScenario, ArenaState, Prop, Static, numbered
@@ -129,9 +129,9 @@ class RoomsParams:
         boolean("return_home", self.return_home)
         if not 0.0 <= finite_float("open_wall", self.open_wall) <= 1.0:
             raise ValueError(f"open_wall must be a probability in [0, 1], got {self.open_wall}")
-        positive_float("found_reward", self.found_reward)
-        positive_float("step_penalty", self.step_penalty, allow_zero=True)
-        positive_float("explore_reward", self.explore_reward, allow_zero=True)
+        reward_weight("found_reward", self.found_reward)
+        reward_weight("step_penalty", self.step_penalty, allow_zero=True)
+        reward_weight("explore_reward", self.explore_reward, allow_zero=True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,6 +187,10 @@ class Rooms(ArenaScenario):
                      height=0.01, scale=(2 * HOME_RADIUS, 2 * HOME_RADIUS, 0.02), color=HOME_COLOR, moves=False),
                 Prop("goal", mr.cylinder(segments=10), count=1, position="goal", height=GOAL_HEIGHT / 2,
                      scale=(2 * GOAL_RADIUS, 2 * GOAL_RADIUS, GOAL_HEIGHT), color=GOAL_COLOR, moves=False)]
+
+    def state_bounds(self):
+        return {**super().state_bounds(), "door": (-DOOR_RANGE, DOOR_RANGE), "goal": self.inside_walls(),
+                "home": (0, GRID * GRID - 1)}
 
     def spawn(self, generator):
         W, N, g = self.num_worlds, self.num_agents, generator

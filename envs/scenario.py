@@ -39,6 +39,7 @@ from . import scenery
 from . import state as explicit_state
 
 STATE_LIMIT = 1e6  # default bound of float state fields in set_state: float32 math on them (squares, sums) stays finite
+MAX_COUNT = 2 ** 62  # bound of counters that grow while a world keeps stepping without autoreset
 
 
 @dataclasses.dataclass(frozen=True)

@@ -102,6 +102,10 @@ class SpeakerListener(ArenaScenario):
                 Prop("lamp", "sphere", count=1, position=lambda s: s.pos[:, :1], height=0.64, scale=(0.24,) * 3,
                      color=lambda s: self._lamp_colors[(s.lamp + 1).cpu()][:, None])]
 
+    def state_bounds(self):
+        K = self.num_targets
+        return {**super().state_bounds(), "targets": self.inside_walls(), "goal": (0, K - 1), "lamp": (-1, K - 1)}
+
     def spawn(self, generator):
         W, K, g = self.num_worlds, self.num_targets, generator
         cells = scenery.cell_spawn(g, W, torch.full((K + 1,), 0.3), 3, 1.2)  # targets and listener, apart

@@ -29,7 +29,7 @@ import math
 
 import torch
 
-from marl_render.validation import positive_float, positive_int
+from marl_render.validation import positive_int, reward_weight
 
 from . import scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered
@@ -52,7 +52,7 @@ class SpreadParams:
             positive_int("num_landmarks", self.num_landmarks)
             if self.num_landmarks > 12:
                 raise ValueError(f"num_landmarks must be an int in [1, 12], got {self.num_landmarks}")
-        positive_float("collision_penalty", self.collision_penalty, allow_zero=True)
+        reward_weight("collision_penalty", self.collision_penalty, allow_zero=True)
 
 
 @dataclasses.dataclass(frozen=True)

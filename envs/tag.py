@@ -56,7 +56,7 @@ import math
 
 import torch
 
-from marl_render.validation import positive_float, positive_int
+from marl_render.validation import positive_int, reward_weight
 
 from . import planar, scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered
@@ -87,8 +87,8 @@ class TagParams:
             positive_int("num_prey", self.num_prey)
         if positive_int("num_obstacles", self.num_obstacles, minimum=0) > 8:
             raise ValueError(f"num_obstacles must be an int in [0, 8], got {self.num_obstacles}")
-        positive_float("catch_reward", self.catch_reward)
-        positive_float("shaping", self.shaping, allow_zero=True)
+        reward_weight("catch_reward", self.catch_reward)
+        reward_weight("shaping", self.shaping, allow_zero=True)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -105,11 +105,17 @@ def check_range(name: str, tensor: torch.Tensor, low=None, high=None) -> None:
         raise ValueError(f"{name} must be <= {high}, got maximum {tensor.max().item()}")
 
 
-def positive_int(name: str, value, *, minimum: int = 1) -> int:
+FLOAT32_MAX = float(torch.finfo(torch.float32).max)
+REWARD_WEIGHT_LIMIT = 1e6  # a reward weight above this could overflow float32 rewards once multiplied
+COUNT_LIMIT = 10 ** 9  # step counts and delays of a task's keywords (they meet int64 tensors and products)
+
+
+def positive_int(name: str, value, *, minimum: int = 1, maximum: int | None = None) -> int:
+    want = f"an int >= {minimum}" if maximum is None else f"an int in [{minimum}, {maximum}]"
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an int >= {minimum}, got {describe(value)}")
-    if value < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {value}")
+        raise TypeError(f"{name} must be {want}, got {describe(value)}")
+    if value < minimum or maximum is not None and value > maximum:
+        raise ValueError(f"{name} must be {want}, got {value}")
     return int(value)
 
 
@@ -130,6 +136,17 @@ def positive_float(name: str, value, *, allow_zero: bool = False) -> float:
     if not np.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
         bound = ">= 0" if allow_zero else "> 0"
         raise ValueError(f"{name} must be a finite number {bound}, got {value}")
+    return value
+
+
+def reward_weight(name: str, value, *, allow_zero: bool = False) -> float:
+    """A task's reward weight: finite, > 0 (or >= 0), and at most REWARD_WEIGHT_LIMIT, so that the
+    rewards it scales stay finite in float32 (a weight of 1e39 is already infinite there)."""
+    value = positive_float(name, value, allow_zero=allow_zero)
+    if value > REWARD_WEIGHT_LIMIT:
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ValueError(f"{name} must be a number {bound} and <= {REWARD_WEIGHT_LIMIT:g} (a reward weight: larger "
+                         f"ones overflow float32 rewards), got {value:g}")
     return value
 
 

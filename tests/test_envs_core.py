@@ -443,7 +443,7 @@ def test_set_state_rejects_bad_states_and_changes_nothing(name):
 
 @pytest.mark.parametrize("name, key, low, high", [
     ("tag", "pos", -1.5, 1.5), ("tag", "obstacle_center", -1.5, 1.5), ("spread", "landmarks", -1.5, 1.5),
-    ("spread", "vel", -1e6, 1e6), ("cartpole", "qstate", -1e6, 1e6)])
+    ("spread", "vel", -1e6, 1e6), ("cartpole", "qstate", -1.8, 1.8)])  # qstate[:, 0]: the cart on its rail
 def test_set_state_checks_ranges_that_have_meaning(name, key, low, high):
     """Positions must be inside the walls, other floats within +-1e6, step_count within [0, max_steps]:
     values beyond them (3e38 positions, a wrapping step counter) would lose the env on its next step."""

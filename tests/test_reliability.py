@@ -141,7 +141,8 @@ OWN_CASES = {
     ],
     "forage": [
         ("num_items=33", dict(num_items=33), ValueError, r"num_items must be an int in \[1, 32\], got 33"),
-        ("respawn_delay=0", dict(respawn_delay=0), ValueError, r"respawn_delay must be an int >= 1, got 0"),
+        ("respawn_delay=0", dict(respawn_delay=0), ValueError,
+         r"respawn_delay must be an int in \[1, 1000000000\], got 0"),
         ("item_reward=inf", dict(item_reward=float("inf")), ValueError, r"item_reward must be a finite"),
     ],
     "push": [
