@@ -112,6 +112,7 @@ class ArenaScenario(Scenario):
     thrust = egomotion.THRUST  # N at full forward action (a task may set one per agent, [A])
     team_colors = scenery.TEAM_COLORS
     shown: str | None = None  # a bool [W, A] state field: agents drawn (default: all, always)
+    step_hook = "rules"
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -127,6 +128,16 @@ class ArenaScenario(Scenario):
         {team: float}. bodies: (radius, mass) of each further body after the agents.
         extra_actions: names of the task's own actions beyond movement: discrete actions 5, 6, ...
         (they do not move the body), or continuous values 2, 3, ... (in [-1, 1]); rules reads them."""
+        where = f"{type(self).__name__}.setup_arena"
+        if not (isinstance(teams, dict) and all(isinstance(team, str) and not isinstance(names, str)
+                                                 and all(isinstance(n, str) for n in names)
+                                                 for team, names in teams.items())):
+            raise TypeError(f"{where}: teams must be a dict {{team name: [agent names]}}, got {teams!r}")
+        count = sum(len(names) for names in teams.values())
+        if count != self.num_agents:
+            raise ValueError(f"{where}: teams hold {count} agents but the env is built for num_agents="
+                             f"{self.num_agents}; a task whose own keywords set its team sizes must also say so "
+                             f"in num_agents_for (see envs/tag.py), so that the env is built for that count")
         self.teams = teams
         self._team_of = [team for team, names in teams.items() for _ in names]
         self.discrete_actions(egomotion.ACTION_MEANINGS + tuple(extra_actions))
@@ -167,6 +178,10 @@ class ArenaScenario(Scenario):
     def at_rest(self, pos: Tensor, yaw: Tensor, **extra) -> ArenaState:
         """A state (of class State) with the bodies at pos [W, B, 2], still and active, the agents
         facing yaw [W, A], and the task's own fields `extra`; all on the env's device."""
+        unknown = sorted(set(extra) - {field.name for field in dataclasses.fields(self.State)})
+        if unknown:
+            raise TypeError(f"{type(self).__name__}.State is {self.State.__name__}, which has no field(s) {unknown}: "
+                            f"declare State = your dataclass subclass of ArenaState with them (envs/arena.py)")
         pos = pos.to(self.device)
         return self.State(pos=pos, vel=torch.zeros_like(pos), active=torch.ones_like(pos[..., 0], dtype=torch.bool),
                           yaw=yaw.to(self.device), **{name: value.to(self.device) for name, value in extra.items()})
@@ -222,9 +237,52 @@ class ArenaScenario(Scenario):
         if frozen is not None:  # an immovable body (planar.py: infinite mass) for this step
             held = torch.cat((frozen, frozen.new_zeros(self.num_worlds, extra)), 1)
             bodies = bodies._replace(mass=torch.where(held, math.inf, bodies.mass))
-        bodies = planar.step(bodies, force, self.obstacles(state), self.physics)
+        obstacles = self.obstacles(state)
+        self._check_obstacles(obstacles)
+        bodies = planar.step(bodies, force, obstacles, self.physics)
         moved = dataclasses.replace(state, pos=bodies.pos, vel=bodies.vel, active=bodies.active, yaw=yaw)
-        return Step(*self.rules(state, moved, actions, alive, generator))
+        result = self.rules(state, moved, actions, alive, generator)
+        if not (isinstance(result, tuple) and len(result) == 4):
+            raise TypeError(f"{type(self).__name__}.rules must return (state, reward, terminated, info), got "
+                            f"{describe(result)}")
+        return Step(*result)
+
+    def _check_obstacles(self, obstacles) -> None:
+        """Boxes the physics would ignore are refused: drawn (by a Prop) but not solid is a silent bug."""
+        if obstacles is not None and "obstacles" not in self.physics.terms and obstacles.center.shape[1]:
+            raise ValueError(f"{type(self).__name__}.obstacles returns {obstacles.center.shape[1]} box(es) but "
+                             f"physics_terms {sorted(self.physics.terms)} has no 'obstacles': add it, or the "
+                             f"bodies pass through them")
+
+    def check_declarations(self, state) -> None:
+        """The physics was declared (setup_arena), its obstacles are solid, and every prop and the
+        shown field read fields of the state that exist, with the shapes they need."""
+        name = type(self).__name__
+        if self.physics is None:
+            raise RuntimeError(f"{name}.setup must call setup_arena(teams, ...) (envs/arena.py)")
+        self._check_obstacles(self.obstacles(state))
+        W, A = self.num_worlds, self.num_agents
+        if self.shown is not None:
+            _check_source(state, self.shown, (W, A), torch.bool, f"{name}.shown")
+        for item in self._declared():
+            if not isinstance(item, Prop):
+                continue
+            where = f"{name}.props: Prop {item.name!r}"
+            _check_source(state, item.position, (W, item.count, 2), "float", f"{where}'s position")
+            if item.yaw is not None:
+                _check_source(state, item.yaw, (W, item.count), "float", f"{where}'s yaw")
+            if item.active is not None:
+                _check_source(state, item.active, (W, item.count), torch.bool, f"{where}'s active")
+            for what in ("scale", "color"):
+                value = getattr(item, what)
+                if _from_state(value):
+                    _check_source(state, value, (W, item.count, 3), "float", f"{where}'s {what}")
+                else:
+                    try:
+                        _per_instance(value, W, item.count)
+                    except (TypeError, ValueError, RuntimeError) as error:
+                        raise ValueError(f"{where}'s {what} must be (3,) for all or [{item.count}, 3] (one per "
+                                         f"object), or name a field of the state; got {describe(value)}") from error
 
     def _frozen(self, state) -> Tensor | None:
         """frozen(state), checked: the hook's mistake is named here, not inside the physics."""
@@ -415,6 +473,21 @@ class ArenaScenario(Scenario):
         action = torch.where(error > 0, 2, 3)  # turn left / right
         action = torch.where(error.abs() < 0.3, 1, action)  # forward
         return torch.where(near, 0, action).to(torch.int64)
+
+
+def _check_source(state, source, shape: tuple, dtype, what: str) -> None:
+    """A Prop's (or shown's) source: a field of `state` (or a function of it) giving `shape` of `dtype`
+    ("float": any float dtype)."""
+    if isinstance(source, str) and not hasattr(state, source):
+        fields = [field.name for field in dataclasses.fields(state)]
+        raise ValueError(f"{what} names {source!r}, which is not a field of the state {fields}")
+    if not _from_state(source):
+        raise TypeError(f"{what} must name a field of the state or be a function of it, got {describe(source)}")
+    value = _read(state, source)
+    dtype_ok = isinstance(value, Tensor) and (value.is_floating_point() if dtype == "float" else value.dtype == dtype)
+    if not dtype_ok or tuple(value.shape) != shape:
+        want = "a float" if dtype == "float" else str(dtype)
+        raise ValueError(f"{what} must give {want} tensor of shape {list(shape)}, got {describe(value)}")
 
 
 def _per_instance(value, num_worlds: int, count: int) -> Tensor:

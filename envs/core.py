@@ -86,7 +86,9 @@ the RNG state, and ``set_state(state)`` restores all of it exactly.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
 
 import numpy as np
 import torch
@@ -102,9 +104,10 @@ from . import spec as env_spec
 from . import state as explicit_state
 from .options import EnvOptions
 from .rendering import EnvRenderer, check_memory
-from .scenario import Layout, Scenario
+from .scenario import MAX_COUNT, Layout, Scenario
 
 OBS_KEYS = ("pixels", "depth", "state", "lidar", "action_mask")
+DRIVER_INFO = ("step_count", "done_worlds", "autoreset_worlds", "final_obs")  # info names the driver fills in
 
 
 def _from_user(name: str, value):
@@ -268,13 +271,15 @@ class BatchedEnv:
         self._check_open()
         self._check_process()
         seed = check.seed("seed", seed)
-        if seed is not None:
-            self.seed = seed
-            self.generator.manual_seed(seed)
-        with limited_threads(self.torch_threads):
-            self._reset_masked(torch.ones(self.num_worlds, dtype=torch.bool, device=self.device))
+        with limited_threads(self.torch_threads), self._all_or_nothing():
+            self._reseed(seed)
+            sim, step_count, alive, looks = self._respawned(
+                torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), self.sim, self.step_count,
+                self.alive, self.appearance_ids)
+            obs = self._observe(sim, alive, full=True)
+            self._commit(sim, alive, step_count, looks)
             self._needs_reset = False
-            return self._observe(full=True)
+            return obs
 
     @torch.no_grad()
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
@@ -289,12 +294,13 @@ class BatchedEnv:
             raise ValueError(f"mask must be a bool tensor of shape [{self.num_worlds}] (num_worlds), "
                              f"got shape {list(mask.shape)}")
         seed = check.seed("seed", seed)
-        if seed is not None:
-            self.seed = seed
-            self.generator.manual_seed(seed)
-        with limited_threads(self.torch_threads):
-            self._reset_masked(mask.to(self.device))
-            return self._observe(full=True)
+        with limited_threads(self.torch_threads), self._all_or_nothing():
+            self._reseed(seed)
+            sim, step_count, alive, looks = self._respawned(mask.to(self.device), self.sim, self.step_count,
+                                                            self.alive, self.appearance_ids)
+            obs = self._observe(sim, alive, full=True)
+            self._commit(sim, alive, step_count, looks)
+            return obs
 
     @torch.no_grad()
     def step(self, actions):
@@ -306,9 +312,12 @@ class BatchedEnv:
             actions = self.check_actions(actions)
             if self.enforce_action_mask:
                 self._check_allowed(actions)
-            return self._step(actions)
+            with self._all_or_nothing():
+                return self._step(actions)
 
     def _step(self, actions):
+        """One step worked out in locals (the state, counters, frames and outputs) and committed only
+        at the end, once every hook has succeeded (see _all_or_nothing)."""
         W = self.num_worlds
         # next_step: the worlds whose episode ended at the previous step start a new one now;
         # their agents sit this step out (actions ignored, reward 0) and are then reset.
@@ -317,29 +326,32 @@ class BatchedEnv:
         else:
             restart = torch.zeros(W, dtype=torch.bool, device=self.device)
         alive_before = self.alive & ~restart[:, None]
-        result = self.scenario.step(self.sim, actions, alive_before, self.generator)
-        self.sim, reward, terminated, info = self._checked_step(result)
+        sim, reward, terminated, task_info = self._checked_step(
+            self.scenario.step(self.sim, actions, alive_before, self.generator))
         reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
-        self.alive = alive_before & ~terminated
-        self.step_count = self.step_count + 1
-        restarted = bool(restart.any())
-        if restarted:
-            self._reset_masked(restart)  # alive again, step_count 0: not terminated, not truncated
-        terminated = ~self.alive
-        truncated = (self.step_count >= self.max_steps)[:, None] & self.alive
+        alive = alive_before & ~terminated
+        step_count = self.step_count + 1
+        restarted, looks = bool(restart.any()), self.appearance_ids
+        if restarted:  # alive again, step_count 0: not terminated, not truncated
+            sim, step_count, alive, looks = self._respawned(restart, sim, step_count, alive, looks)
+        terminated = ~alive
+        truncated = (step_count >= self.max_steps)[:, None] & alive
         done_worlds = (terminated | truncated).all(dim=1)
-        info = {"step_count": self.step_count.clone(), "done_worlds": done_worlds, **info}
+        # The task's info values may be its state's own tensors: the caller gets copies.
+        info = {"step_count": step_count.clone(), "done_worlds": done_worlds,
+                **{key: value.clone() for key, value in task_info.items()}}
         if self.autoreset == "next_step":
             info["autoreset_worlds"] = restart
         if self.autoreset != "same_step":
-            return self._observe(full=restarted), reward, terminated, truncated, info
-        # same_step: the final frame of the ended episodes, then the reset and the new frame.
-        obs = self._observe(full=False)
-        info["final_obs"] = dict(obs)
-        info["autoreset_worlds"] = done_worlds.clone()
-        if bool(done_worlds.any()):
-            self._reset_masked(done_worlds)
-            obs = self._observe(full=True)
+            obs = self._observe(sim, alive, full=restarted)
+        else:  # the final frame of the ended episodes, then the reset and the new frame
+            obs = self._observe(sim, alive, full=False)
+            info["final_obs"] = dict(obs)
+            info["autoreset_worlds"] = done_worlds.clone()
+            if bool(done_worlds.any()):
+                sim, step_count, alive, looks = self._respawned(done_worlds, sim, step_count, alive, looks)
+                obs = self._observe(sim, alive, full=True)
+        self._commit(sim, alive, step_count, looks)
         return obs, reward, terminated, truncated, info
 
     def episode_over(self) -> torch.Tensor:
@@ -355,7 +367,7 @@ class BatchedEnv:
             return torch.rand(W, A, self.action_dim, generator=generator) * 2 - 1
         if self.enforce_action_mask:  # among the allowed actions only (envs/masking.py)
             with torch.no_grad(), limited_threads(self.torch_threads):
-                return masking.sample_allowed(self._action_mask(), generator)
+                return masking.sample_allowed(self._action_mask(self.sim, self.alive), generator)
         return torch.randint(self.num_actions, (W, A), generator=generator)
 
     @torch.no_grad()
@@ -381,7 +393,7 @@ class BatchedEnv:
             if bool((tensor.abs() > 1).any()):
                 raise ValueError(f"actions must be {want}, got values in "
                                  f"[{tensor.min().item():.4g}, {tensor.max().item():.4g}] (clamp them first)")
-            return tensor.to(device=self.device, dtype=torch.float32)
+            return tensor.to(device=self.device, dtype=torch.float32, copy=True)  # the env's own: see below
         want = f"an integer tensor of shape [{W}, {A}] (worlds, agents) with values in [0, {self.num_actions})"
         try:
             tensor = as_tensor("actions", actions, dtype_kind="int")
@@ -394,7 +406,9 @@ class BatchedEnv:
             low, high = (value.item() for value in torch.aminmax(checked))
             if low < 0 or high >= self.num_actions:
                 raise ValueError(f"actions must be {want}, got values in [{low}, {high}]")
-        return tensor.to(device=self.device, dtype=torch.int64)
+        # A copy even where no conversion is needed: a task may keep actions in its state, and the
+        # caller's tensor (a rollout buffer written in place) must not change the env afterwards.
+        return tensor.to(device=self.device, dtype=torch.int64, copy=True)
 
     @torch.no_grad()
     def render_overview(self, resolution=None) -> torch.Tensor:
@@ -416,7 +430,7 @@ class BatchedEnv:
         if not self.state_dim:
             raise NotImplementedError(f"{type(self.scenario).__name__} has no state observation")
         with limited_threads(self.torch_threads):
-            return self.scenario.observation(self.sim, self.alive).to(torch.float32)
+            return self._state_obs(self.sim, self.alive)
 
     @torch.no_grad()
     def heuristic_actions(self) -> torch.Tensor:
@@ -425,7 +439,12 @@ class BatchedEnv:
         self._check_open()
         self._check_started()
         with limited_threads(self.torch_threads):
-            return self.check_actions(self.scenario.heuristic(self.sim, self.alive))
+            actions = self.scenario.heuristic(self.sim, self.alive)
+            try:
+                return self.check_actions(actions)
+            except (TypeError, ValueError) as error:
+                raise type(error)(f"{type(self.scenario).__name__}.heuristic must return valid actions: "
+                                  f"{error}") from error
 
     def get_state(self) -> dict:
         """Copies of the whole state as {name: tensor}: the fields of `sim` (the simulation),
@@ -443,33 +462,36 @@ class BatchedEnv:
         RNG included; the env then continues from it as if it had never left it.
 
         Every key must be there, each tensor of the current shape, dtype and device, floats
-        finite, "step_count" in [0, max_steps] and the fields of `sim` within the scenario's
-        ``state_bounds()`` (e.g. positions inside the arena's walls); else TypeError / ValueError
-        naming the key, and nothing changes."""
+        finite, "step_count" >= 0 (and <= max_steps with autoreset on: past it a world would have
+        been reset), and the fields of `sim` within the scenario's ``state_bounds()`` (positions
+        inside the arena's walls, indices within their range) and its ``check_state`` rules; else
+        TypeError / ValueError naming the key, and nothing changes."""
         self._check_open()
         template = {**explicit_state.fields(self.sim), **self._counters(), "rng": self.generator.get_state()}
         state = explicit_state.checked(state, template)
         steps = state["step_count"]
-        if bool(((steps < 0) | (steps > self.max_steps)).any()):
-            raise ValueError(f"state['step_count'] must be >= 0 and <= max_steps={self.max_steps}, got values in "
+        most = self.max_steps if self.autoreset else MAX_COUNT  # without autoreset done worlds keep stepping
+        if bool(((steps < 0) | (steps > most)).any()):
+            bound = f"max_steps={self.max_steps} (autoreset={self.autoreset!r})" if self.autoreset else f"{most}"
+            raise ValueError(f"state['step_count'] must be >= 0 and <= {bound}, got values in "
                              f"[{int(steps.min())}, {int(steps.max())}]")
-        explicit_state.check_bounds(state, self.scenario.state_bounds())
         rng = state.pop("rng")
+        step_count, alive = state.pop("step_count"), state.pop("alive")
+        looks = state.pop("appearance_ids", None)  # with appearance on: any int64 is an id
+        self._check_values(state, "state[{key!r}]")
         try:
             torch.Generator().set_state(rng)
         except RuntimeError as exc:
             raise ValueError(f"state['rng'] must be a torch.Generator state (from get_state()), got an invalid one: "
                              f"{exc}") from exc
-        self.step_count, self.alive = state.pop("step_count"), state.pop("alive")
-        appearance_ids = state.pop("appearance_ids", None)
-        self.sim = type(self.sim)(**state)
-        self.generator.set_state(rng)
-        self._needs_reset = False
-        with limited_threads(self.torch_threads):
-            if appearance_ids is not None:
-                self.appearance_ids = appearance_ids
-                self.views.set_appearance(appearance_ids)
-            self.views.sync(self.sim, full=True)  # per-episode instance data (landmarks, ...) changed too
+        sim = type(self.sim)(**state)
+        with limited_threads(self.torch_threads), self._all_or_nothing():
+            if looks is not None:
+                self.views.set_appearance(looks)
+            self.views.sync(sim, full=True)  # per-episode instance data (landmarks, ...) changed too
+            self._commit(sim, alive, step_count, looks)
+            self.generator.set_state(rng)
+            self._needs_reset = False
 
     def close(self) -> None:
         """Release the renderers; safe to call twice. Any later use raises RuntimeError."""
@@ -511,9 +533,10 @@ class BatchedEnv:
             counters["appearance_ids"] = self.appearance_ids
         return counters
 
-    def _action_mask(self) -> torch.Tensor:
-        """The scenario's action mask [W, A, num_actions] of the current state, checked."""
-        mask = self.scenario.action_mask(self.sim, self.alive)
+    def _action_mask(self, sim, alive: torch.Tensor) -> torch.Tensor:
+        """The scenario's action mask [W, A, num_actions] of state `sim`, checked (the hook's own tensor:
+        it may be a constant or the state's; copy it before handing it out)."""
+        mask = self.scenario.action_mask(sim, alive)
         _check_tensor(f"{type(self.scenario).__name__}.action_mask", mask, (self.num_worlds, self.num_agents,
                                                                            self.num_actions), "bool", self.device)
         return mask
@@ -524,23 +547,127 @@ class BatchedEnv:
         acting = self.alive
         if self.autoreset == "next_step":
             acting = acting & ~self.episode_over()[:, None]
-        mask = self._action_mask()
+        mask = self._action_mask(self.sim, self.alive)
         refused = masking.forbidden(mask, actions, acting)
         if bool(refused.any()):
             raise masking.refusal(refused, mask, actions, self.agent_names, self.action_meanings)
 
     def _check_scenario(self):
-        """A scenario whose setup() left its declarations incomplete fails here, naming the hook."""
-        s, A, where = self.scenario, self.num_agents, f"{type(self.scenario).__name__}.setup"
+        """A scenario whose declarations are incomplete or disagree fails here, when the env is built,
+        naming the declaration or the hook (not at the first reset or step, or deep in the renderer)."""
+        s, A, name = self.scenario, self.num_agents, type(self.scenario).__name__
+        where = f"{name}.setup"
         if len(self.agent_names) != A or len(set(self.agent_names)) != A:
             raise RuntimeError(f"{where} must give teams holding {A} distinct agent names, got {self.agent_names}")
         if self.continuous and not (isinstance(self.action_dim, int) and self.action_dim >= 1):
             raise RuntimeError(f"{where} must declare continuous_actions(dim) with dim >= 1 for continuous=True")
         if not self.continuous and not (isinstance(self.num_actions, int) and self.num_actions >= 1):
             raise RuntimeError(f"{where} must declare discrete_actions(meanings) with at least one action")
+        if isinstance(self.dt, bool) or not isinstance(self.dt, (int, float)) or not 0 < self.dt < math.inf:
+            raise ValueError(f"{name}.dt (simulated seconds per step) must be a finite number > 0, got {self.dt!r}")
+        if self.state_obs and not self.state_dim:
+            raise ValueError(f"state_obs=True needs a task with a state observation, and {name} has none "
+                             f"(state_dim 0, no observation hook)")
+        self._check_info_keys()
         if not (dataclasses.is_dataclass(self.sim) and not isinstance(self.sim, type)):
-            raise RuntimeError(f"{type(s).__name__}.initial_state must return a dataclass of tensors (envs/state.py), "
+            raise RuntimeError(f"{name}.initial_state must return a dataclass of tensors (envs/state.py), "
                                f"got {describe(self.sim)}")
+        # Every field has the worlds first: a field of length W by chance (a task's constant vector)
+        # would be split between worlds by partial resets, so the layout is probed with one more world.
+        probe = explicit_state.fields(type(s)(s.params, Layout(self.num_worlds + 1, A, self.continuous,
+                                                                self.device)).initial_state())
+        for field, value in explicit_state.fields(self.sim).items():
+            probed = probe.get(field)
+            if not (isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == self.num_worlds
+                    and isinstance(probed, torch.Tensor) and probed.ndim and probed.shape[0] == self.num_worlds + 1):
+                got = [f"shape {list(t.shape)}" if isinstance(t, torch.Tensor) else describe(t)
+                       for t in (value, probed)]
+                raise ValueError(f"{name}.initial_state's field {field!r} must be a tensor with the worlds first, "
+                                 f"[W, ...] (every world has its own value); with W={self.num_worlds} it has {got[0]}, "
+                                 f"with W={self.num_worlds + 1} {got[1]}")
+            if not _same_device(value.device, self.device):
+                raise ValueError(f"{name}.initial_state's field {field!r} must be on device {self.device}, got "
+                                 f"{value.device}")
+        self._bounds = self._checked_bounds(s.state_bounds())
+        s.check_declarations(self.sim)
+
+    def _check_info_keys(self):
+        """info_keys: {str: torch.dtype}, none of them a name the driver's own info entries use."""
+        name, keys = type(self.scenario).__name__, self.info_keys
+        for key, dtype in keys.items():
+            if not isinstance(key, str) or not isinstance(dtype, torch.dtype):
+                raise TypeError(f"{name}.info_keys must map str names to torch dtypes, got {key!r}: {describe(dtype)}")
+        reserved = sorted(set(keys) & set(DRIVER_INFO))
+        if reserved:
+            raise ValueError(f"{name}.info_keys names {reserved}, which the driver's own info entries use "
+                             f"({list(DRIVER_INFO)}); rename the task's statistic(s) (they would replace the "
+                             f"driver's values, or be replaced by them)")
+
+    def _checked_bounds(self, bounds) -> dict:
+        """The scenario's state_bounds(), checked once: fields of the state, (low, high) numbers or
+        one number per index of the field's last axis."""
+        where = f"{type(self.scenario).__name__}.state_bounds"
+        fields = explicit_state.fields(self.sim)
+        if not isinstance(bounds, dict):
+            raise TypeError(f"{where} must return a dict {{field: (low, high)}}, got {describe(bounds)}")
+        for key, pair in bounds.items():
+            if key not in fields:
+                raise ValueError(f"{where} names {key!r}, which is not a field of the state {sorted(fields)}")
+            try:
+                low, high = (torch.as_tensor(v, dtype=torch.float64) for v in pair)
+                torch.broadcast_shapes(low.shape, high.shape, fields[key].shape)
+            except (TypeError, ValueError, RuntimeError) as error:
+                raise ValueError(f"{where}[{key!r}] must be (low, high), each a number or one per index of the "
+                                 f"field's last axis (shape {list(fields[key].shape)}), got {describe(pair)}"
+                                 ) from error
+        return bounds
+
+    def _check_values(self, state: dict, label: str) -> None:
+        """Floats finite, every field within state_bounds and the task's check_state rules."""
+        explicit_state.check_bounds(state, self._bounds, label)
+        self.scenario.check_state(state)
+
+    # ------------------------------------------------------------------ atomic calls
+    @contextlib.contextmanager
+    def _all_or_nothing(self):
+        """A call that changes the env works out the new state, counters and frames in locals and
+        commits them at its end (_commit): if a hook (or the renderer) raises on the way, or the call
+        is interrupted, the generator and seed are put back and nothing else has changed. The
+        renderer may hold the uncommitted state's instances by then: its next sync sends all; and the
+        uncommitted worlds' looks: the committed ones are put back."""
+        rng, seed = self.generator.get_state(), self.seed
+        try:
+            yield
+        except BaseException:
+            self.generator.set_state(rng)
+            self.seed = seed
+            self.views.invalidate()
+            if self.appearance is not None and not self._needs_reset:  # before the first reset: none to keep
+                self.views.set_appearance(self.appearance_ids)
+            raise
+
+    def _commit(self, sim, alive: torch.Tensor, step_count: torch.Tensor, looks: torch.Tensor | None) -> None:
+        self.sim, self.alive, self.step_count, self.appearance_ids = sim, alive, step_count, looks
+
+    def _reseed(self, seed: int | None) -> None:
+        if seed is not None:
+            self.seed = seed
+            self.generator.manual_seed(seed)
+
+    def _respawned(self, mask: torch.Tensor, sim, step_count: torch.Tensor, alive: torch.Tensor,
+                   looks: torch.Tensor | None) -> tuple:
+        """(sim, step_count, alive, looks) with a new episode in the worlds of mask [W] (spawn's state,
+        checked; with appearance on, new appearance ids there, which the renderer takes now)."""
+        where = f"{type(self.scenario).__name__}.spawn"
+        fresh = self.scenario.spawn(self.generator)
+        self._check_state(where, fresh)
+        self._check_values(explicit_state.fields(fresh), where + "'s state.{key}")
+        if looks is not None:  # drawn after spawn: the first layouts match those with appearance off
+            fresh_ids = torch.randint(-2 ** 63, 2 ** 63 - 1, (self.num_worlds,), generator=self.generator)
+            looks = torch.where(mask.cpu(), fresh_ids, looks)
+            self.views.set_appearance(looks, mask.cpu())
+        return (explicit_state.select_worlds(mask, fresh, sim),
+                torch.where(mask, torch.zeros_like(step_count), step_count), alive | mask[:, None], looks)
 
     def _check_open(self):
         if self._closed:
@@ -557,8 +684,8 @@ class BatchedEnv:
 
     def _checked_step(self, result):
         """Scenario.step's result after checking its form, so that a task's mistake is named at its
-        hook rather than deep in the renderer (shape and dtype reads only: no pass over the data)."""
-        where = f"{type(self.scenario).__name__}.step"
+        hook rather than deep in the renderer (shape and dtype reads, and whether the reward is finite)."""
+        where = f"{type(self.scenario).__name__}.{self.scenario.step_hook}"
         if not (isinstance(result, tuple) and len(result) == 4):
             raise TypeError(f"{where} must return (state, reward, terminated, info), got {describe(result)}")
         state, reward, terminated, info = result
@@ -571,6 +698,9 @@ class BatchedEnv:
                              f"got {sorted(info) if isinstance(info, dict) else describe(info)}")
         for key, dtype in self.info_keys.items():
             _check_tensor(f"{where}'s info[{key!r}]", info[key], (W,), dtype, self.device)
+        if not bool(torch.isfinite(reward).all()):
+            raise ValueError(f"{where}'s reward must be finite, got NaN or Inf in world(s) "
+                             f"{(~torch.isfinite(reward)).any(1).nonzero()[:, 0].tolist()}")
         return result
 
     def _check_state(self, where: str, state) -> None:
@@ -580,36 +710,47 @@ class BatchedEnv:
         for name, want in explicit_state.fields(self.sim).items():
             _check_tensor(f"{where}'s state.{name}", getattr(state, name), tuple(want.shape), want.dtype, want.device)
 
-    def _reset_masked(self, mask: torch.Tensor) -> None:
-        self.views.invalidate()  # before the state changes: an interruption from here on still resyncs
-        fresh = self.scenario.spawn(self.generator)
-        self._check_state(f"{type(self.scenario).__name__}.spawn", fresh)
-        self.sim = explicit_state.select_worlds(mask, fresh, self.sim)
-        self.step_count = torch.where(mask, torch.zeros_like(self.step_count), self.step_count)
-        self.alive = self.alive | mask[:, None]
-        if self.appearance is not None:  # drawn after spawn: the first layouts match those with it off
-            fresh_ids = torch.randint(-2 ** 63, 2 ** 63 - 1, (self.num_worlds,), generator=self.generator)
-            self.appearance_ids = torch.where(mask.cpu(), fresh_ids, self.appearance_ids)
-            self.views.set_appearance(self.appearance_ids, mask.cpu())
-
-    def _observe(self, full: bool) -> dict:
-        self.views.sync(self.sim, full)
+    def _observe(self, sim, alive: torch.Tensor, full: bool) -> dict:
+        """The observations of state `sim`: a render and the task's observation hooks, as tensors the
+        caller owns (a hook may return its state's tensors or a constant; those are copied)."""
+        try:
+            self.views.sync(sim, full)
+        except (TypeError, ValueError, RuntimeError, IndexError) as error:
+            self._name_non_finite(sim, error)
+            raise
         frame = self.views.render()
-        obs = {"pixels": frame.rgb.to(self.device)}
+        obs = {"pixels": frame.rgb.to(self.device)}  # a new tensor every render (BatchRenderer.render)
         if self.depth:
             obs["depth"] = frame.depth.clamp_(max=self.far).to(self.device)
-        W, A, s = self.num_worlds, self.num_agents, type(self.scenario).__name__
         if self.state_obs:
-            state = self.scenario.observation(self.sim, self.alive)
-            _check_tensor(f"{s}.observation", state, (W, A, self.state_dim), "float", self.device)
-            obs["state"] = state.to(torch.float32)
+            obs["state"] = self._state_obs(sim, alive)
         if self.lidar_rays:
-            obs["lidar"] = self.scenario.lidar(self.sim, self.lidar_rays, self.lidar_range)
+            obs["lidar"] = self._lidar_obs(sim)
         if not self.continuous:
-            mask = self.scenario.action_mask(self.sim, self.alive)
-            _check_tensor(f"{s}.action_mask", mask, (W, A, self.num_actions), "bool", self.device)
-            obs["action_mask"] = mask
+            obs["action_mask"] = self._action_mask(sim, alive).clone(memory_format=torch.contiguous_format)
         return obs
+
+    def _state_obs(self, sim, alive: torch.Tensor) -> torch.Tensor:
+        return self._owned("observation", self.scenario.observation(sim, alive), self.state_dim)
+
+    def _lidar_obs(self, sim) -> torch.Tensor:
+        return self._owned("lidar", self.scenario.lidar(sim, self.lidar_rays, self.lidar_range), self.lidar_rays)
+
+    def _owned(self, hook: str, value, width: int) -> torch.Tensor:
+        """A hook's per-agent observation [W, A, width], checked, as a float32 copy the caller owns."""
+        _check_tensor(f"{type(self.scenario).__name__}.{hook}", value, (self.num_worlds, self.num_agents, width),
+                      "float", self.device)
+        return value.to(dtype=torch.float32, memory_format=torch.contiguous_format, copy=True)
+
+    def _name_non_finite(self, sim, error: BaseException) -> None:
+        """The renderer refused the instances of a state the step hook made: where fields of it are
+        not finite, say so, naming the hook and the fields (the renderer knows neither)."""
+        bad = [name for name, value in explicit_state.fields(sim).items()
+               if value.is_floating_point() and not bool(torch.isfinite(value).all())]
+        if bad:
+            where = f"{type(self.scenario).__name__}.{self.scenario.step_hook}"
+            raise ValueError(f"{where} returned a state with non-finite values (NaN or Inf) in "
+                             f"{', '.join('state.' + name for name in bad)}") from error
 
 
 def _check_tensor(what: str, value, shape: tuple, dtype, device: torch.device) -> None:
@@ -622,7 +763,10 @@ def _check_tensor(what: str, value, shape: tuple, dtype, device: torch.device) -
         dtype_ok, want_dtype = value.dtype == torch.bool, "torch.bool"
     else:
         dtype_ok, want_dtype = value.dtype == dtype, str(dtype)
-    same_device = value.device.type == device.type and (device.index is None or value.device.index == device.index)
-    if tuple(value.shape) != shape or not dtype_ok or not same_device:
+    if tuple(value.shape) != shape or not dtype_ok or not _same_device(value.device, device):
         raise ValueError(f"{what} must have shape {list(shape)}, {want_dtype}, device {device}; got shape "
                          f"{list(value.shape)}, {value.dtype}, device {value.device}")
+
+
+def _same_device(given: torch.device, want: torch.device) -> bool:
+    return given.type == want.type and (want.index is None or given.index == want.index)

@@ -102,6 +102,7 @@ class Scenario(abc.ABC):
     overview_fov_y: float = math.radians(60.0)
     shadow_bounds = None  # the box shadows=True covers; None: fitted to the static geometry
     opponents: tuple = ()  # teams that play against the others (random in the reference evaluation)
+    step_hook: str = "step"  # the hook that holds the task's rules (what the driver's messages name)
 
     def __init__(self, params, layout: Layout):
         self.params = params

@@ -33,8 +33,8 @@ def select_worlds(mask: torch.Tensor, new, old):
 
 def checked(state, template: dict) -> dict:
     """Copies of `state`'s tensors after checking them against `template` (the env's current state):
-    the same keys, and per key a tensor of the same shape, dtype and device, finite where floating.
-    Raises TypeError / ValueError naming the key, the expected and the given."""
+    the same keys, and per key a tensor of the same shape, dtype and device (check_bounds then checks
+    the values). Raises TypeError / ValueError naming the key, the expected and the given."""
     if not isinstance(state, dict):
         raise TypeError(f"state must be a dict of tensors as returned by get_state(), got {describe(state)}")
     missing, unknown = sorted(set(template) - set(state)), sorted(set(state) - set(template))
@@ -49,16 +49,17 @@ def checked(state, template: dict) -> dict:
             if getattr(given, what) != getattr(want, what):
                 raise ValueError(f"state[{key!r}] must have {what} {_show(getattr(want, what))}, "
                                  f"got {_show(getattr(given, what))}")
-        if given.is_floating_point() and not bool(torch.isfinite(given).all()):
-            raise ValueError(f"state[{key!r}] must be finite, got NaN or Inf values")
         copies[key] = given.detach().clone()
     return copies
 
 
-def check_bounds(state: dict, bounds: dict) -> None:
-    """Raise ValueError naming the key if a tensor of `state` leaves its (low, high) in `bounds`
-    ({key: (low, high)}; low / high a number, or one number per index of the last axis, e.g. the
-    arena's (hx, hy) for positions)."""
+def check_bounds(state: dict, bounds: dict, label: str = "state[{key!r}]") -> None:
+    """Raise ValueError naming the key if a tensor of `state` is not finite (floating ones) or leaves
+    its (low, high) in `bounds` ({key: (low, high)}; low / high a number, or one number per index of
+    the last axis, e.g. the arena's (hx, hy) for positions). `label` words the key in the message."""
+    for key, value in state.items():
+        if value.is_floating_point() and value.numel() and not bool(torch.isfinite(value).all()):
+            raise ValueError(f"{label.format(key=key)} must be finite, got NaN or Inf values")
     for key, (low, high) in bounds.items():
         value = state[key]
         if not value.numel():
@@ -67,7 +68,7 @@ def check_bounds(state: dict, bounds: dict) -> None:
         hi = torch.as_tensor(high, dtype=torch.float64)
         wide = value.to(torch.float64)  # int64 counters compared exactly enough; no overflow in the test
         if bool(((wide < lo) | (wide > hi)).any()):
-            raise ValueError(f"state[{key!r}] must be within [{_bound(low)}, {_bound(high)}], got values in "
+            raise ValueError(f"{label.format(key=key)} must be within [{_bound(low)}, {_bound(high)}], got values in "
                              f"[{wide.min().item():.6g}, {wide.max().item():.6g}]")
 
 

@@ -274,8 +274,8 @@ class WrongFrozen(Beacon):
 @pytest.mark.parametrize("task, words", [
     (WrongFrozen, r"WrongFrozen\.frozen must return None or a bool tensor of shape \[2, 2\] on cpu, got tensor of "
                   r"shape \(2,\)"),
-    (WrongRewardShape, r"WrongRewardShape\.step's reward must have shape \[2, 2\].*got shape \[2\]"),
-    (WrongInfoDtype, r"WrongInfoDtype\.step's info\['on_beacon'\] must have shape \[2\], torch\.int64"),
+    (WrongRewardShape, r"WrongRewardShape\.rules's reward must have shape \[2, 2\].*got shape \[2\]"),
+    (WrongInfoDtype, r"WrongInfoDtype\.rules's info\['on_beacon'\] must have shape \[2\], torch\.int64"),
     (WrongObservation, r"WrongObservation\.observation must have shape \[2, 2, 8\].*got shape \[2, 2, 5\]"),
     (WrongSpawn, r"WrongSpawn\.spawn's state\.beacon must have shape \[2, 1, 2\].*got shape \[2, 2, 2\]"),
 ])

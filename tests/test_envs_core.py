@@ -415,7 +415,7 @@ BAD_STATES = [  # (change the state, error, words of the message)
      r"must be finite"),
     (lambda s: {**s, "step_count": s["step_count"] - 10}, ValueError, r"state\['step_count'\] must be >= 0"),
     (lambda s: {**s, "step_count": torch.full_like(s["step_count"], 2 ** 63 - 1)}, ValueError,
-     r"state\['step_count'\] must be >= 0 and <= max_steps=\d+"),
+     r"state\['step_count'\] must be >= 0 and <= \d+"),  # without autoreset: any count a world can reach
     (lambda s: {**s, first_float_key(s): torch.full_like(s[first_float_key(s)], 3e38)}, ValueError,
      r"state\['\w+'\] must be within \["),
     (lambda s: {**s, "rng": torch.zeros_like(s["rng"])}, ValueError, r"state\['rng'\] must be a torch.Generator state"),
