@@ -46,6 +46,9 @@ def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution
         generator = torch.Generator().manual_seed(seed + 1)
         opponents = opponent_mask(env)
         evaluated = ~opponents
+        if not bool(evaluated.any()):  # the mean over no agents would be NaN
+            raise ValueError(f"{type(env.scenario).__name__}.opponents {list(env.scenario.opponents)} names every team "
+                             f"{list(env.groups)}, so no agent is evaluated; leave at least one team out of it")
         obs = env.reset()
         episode_return = torch.zeros(episodes, env.num_agents, dtype=torch.float64)
         running = torch.ones(episodes, dtype=torch.bool)

@@ -69,7 +69,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from marl_render.envs.core import BatchedEnv
-from marl_render.envs.registry import env_class, make_env
+from marl_render.envs.registry import env_class, make_env, split_kwargs
 from marl_render.validation import describe, positive_int, unpicklable
 from marl_render.wrappers import spaces as spaces_from_spec
 
@@ -78,6 +78,7 @@ CORE_AUTORESET = {AutoresetMode.NEXT_STEP: "next_step", AutoresetMode.SAME_STEP:
                   AutoresetMode.DISABLED: False}
 _MODE_OF_CORE = {mode: autoreset for autoreset, mode in CORE_AUTORESET.items()}
 _NOT_STEP_INFO = ("done_worlds", "autoreset_worlds", "final_obs")  # carried by the step's own outputs
+_VECTOR_ONLY = ("autoreset_mode", "action_mask", "render_mode")  # make_vec_env's own keywords, not make_env's
 
 
 def make_vec_env(name: str, num_worlds: int = 1, *, autoreset_mode=AutoresetMode.NEXT_STEP,
@@ -126,8 +127,7 @@ def gymnasium_vector_entry_point(name: str, num_envs: int = 1, **kwargs) -> Marl
     N / num_agents worlds (num_envs counts entries, worlds x agents, so it must be a multiple of
     num_agents); kwargs as make_vec_env's."""
     num_envs = positive_int("num_envs", num_envs)
-    agents = kwargs.get("num_agents")
-    agents = getattr(env_class(name), "default_num_agents", 1) if agents is None else agents
+    agents = _agents_per_world(name, kwargs)
     if isinstance(agents, (int, np.integer)) and not isinstance(agents, bool) and agents >= 1 and num_envs % agents:
         raise ValueError(f"num_envs must be a multiple of num_agents={agents} for {name!r} (num_envs = num_worlds x "
                          f"num_agents entries), got {num_envs}")
@@ -137,6 +137,16 @@ def gymnasium_vector_entry_point(name: str, num_envs: int = 1, **kwargs) -> Marl
         envs.close()
         raise ValueError(f"num_envs must be a multiple of num_agents={envs.num_agents} for {name!r}, got {num_envs}")
     return envs
+
+
+def _agents_per_world(name: str, kwargs: dict):
+    """The agent count make_vec_env(name, **kwargs) builds for: the task's own keywords may set it
+    (tag's num_predators, num_prey), so it is the task's num_agents_for, not only num_agents."""
+    scenario = env_class(name)
+    core_kwargs = {key: value for key, value in kwargs.items() if key not in _VECTOR_ONLY}
+    options, params = split_kwargs(scenario, core_kwargs)  # an unknown keyword is refused here, by name
+    agents = scenario.num_agents_for(params, options.num_agents)
+    return scenario.default_num_agents if agents is None else agents
 
 
 def make_gym_env(name: str, *, render_mode: str | None = None, **kwargs) -> MarlRenderGymEnv:

@@ -89,7 +89,7 @@ from marl_render.validation import describe, unpicklable
 
 GROUP_MAPS = ("team", "one_group", "per_agent")
 _DONE_KEYS = ("done", "terminated", "truncated")
-_RESERVED = (*_DONE_KEYS, "_reset", "reward", "action", "info")
+_RESERVED = (*_DONE_KEYS, "_reset", "reward", "action", "info", "next")  # "next": TorchRL's step results
 
 
 def make_torchrl_env(name: str, num_worlds: int = 1, group_map="team", **kwargs) -> MarlRenderTorchRLEnv:
@@ -146,6 +146,10 @@ def resolve_group_map(group_map, agent_names: list[str], teams: dict) -> dict[st
         missing = [n for n in agent_names if not any(n in names for names in resolved.values())]
         if missing:
             raise ValueError(f"group_map must place every agent in a group; missing: {missing}")
+    empty = [group for group in resolved if not isinstance(group, str) or not group]
+    if empty:
+        raise ValueError(f"group names must be non-empty str (they become TensorDict keys), got {empty!r} from "
+                         f"group_map={describe(group_map)}; rename the team or pass group_map={{name: [agents]}}")
     reserved = sorted(set(resolved) & set(_RESERVED))
     if reserved:
         raise ValueError(f"group names {reserved} clash with TorchRL's root keys {list(_RESERVED)}; "
