@@ -1,6 +1,7 @@
 """Shared pieces of the benchmarks: timing, progress, memory, the reference arena scene, reports."""
 from __future__ import annotations
 
+import argparse
 import ctypes
 import ctypes.util
 import functools
@@ -16,6 +17,45 @@ import psutil
 import torch
 
 import marl_render as mr
+
+
+def positive_int_argument(text: str) -> int:
+    """argparse type: an int >= 1 (the error names the value; argparse adds the option)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an int >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an int >= 1, got {value}")
+    return value
+
+
+def positive_seconds_argument(text: str) -> float:
+    """argparse type: a finite number of seconds > 0 (nan and inf would time nothing or never stop)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds > 0, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number of seconds > 0, got {text!r}")
+    return value
+
+
+def env_spec_argument(text: str) -> str:
+    """argparse type: NAME or NAME:AGENTS of a registered env (AGENTS an int >= 1), or 'all'."""
+    from marl_render.envs import list_envs
+
+    name, colon, agents = text.partition(":")
+    if text != "all" and name not in list_envs():
+        raise argparse.ArgumentTypeError(f"unknown env {name!r} in {text!r}; known: {list_envs()} or 'all'")
+    if colon:
+        try:
+            count = int(agents)
+        except ValueError:
+            count = 0
+        if count < 1:
+            raise argparse.ArgumentTypeError(f"expected NAME:AGENTS with AGENTS an int >= 1, got {text!r}")
+    return text
 
 
 def progress(message: str) -> None:

@@ -23,18 +23,27 @@ import time
 import torch
 
 from ..threads import single_threaded
-from .common import machine, progress, write_report
+from .common import (
+    env_spec_argument,
+    machine,
+    positive_int_argument,
+    positive_seconds_argument,
+    progress,
+    write_report,
+)
 
 STAGES = ("update", "pack", "cull", "gl", "copy")  # update: BatchRenderer.update calls; the rest: last_timings
 
 
 def add_arguments(parser):
-    parser.add_argument("--env", nargs="+", default=["cartpole", "spread:4"],
+    # Every argument is checked here, before any env is built or timed.
+    parser.add_argument("--env", nargs="+", default=["cartpole", "spread:4"], type=env_spec_argument,
                         help="environments as NAME or NAME:AGENTS, or 'all' (every registered env, default agents)")
-    parser.add_argument("--worlds", type=int, nargs="+", default=[16, 64, 256, 1024])
-    parser.add_argument("--resolution", type=int, default=64)
-    parser.add_argument("--rounds", type=int, default=5, help="alternating env/floor blocks per size")
-    parser.add_argument("--block-seconds", type=float, default=0.4, help="about how long one timed block runs")
+    parser.add_argument("--worlds", type=positive_int_argument, nargs="+", default=[16, 64, 256, 1024])
+    parser.add_argument("--resolution", type=positive_int_argument, default=64)
+    parser.add_argument("--rounds", type=positive_int_argument, default=5, help="alternating env/floor blocks per size")
+    parser.add_argument("--block-seconds", type=positive_seconds_argument, default=0.4,
+                        help="about how long one timed block runs")
     parser.add_argument("--compile-physics", action="store_true",
                         help="make_env(compile_physics=True) for the tasks that have a compiled kernel (cartpole)")
     parser.add_argument("--out", default=None, help="also write DIR/floor.json")

@@ -226,6 +226,8 @@ def command_line(args) -> str:
     for dest, default, _ in VENVS.values():
         if getattr(args, dest) != default:
             words += ["--" + dest.replace("_", "-"), getattr(args, dest)]
+    if args.compile_physics:
+        words.append("--compile-physics")
     if args.lp_num_threads is not None:
         words += ["--lp-num-threads", str(args.lp_num_threads)]
     if args.out:
