@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 import marl_render as mr
-from marl_render.validation import describe, positive_float
+from marl_render.validation import describe, positive_float, positive_int
 
 from . import egomotion, planar, scenery, sight
 from .scenario import Scenario, Step, numbered
@@ -268,6 +268,7 @@ class ArenaScenario(Scenario):
             if not isinstance(item, Prop):
                 continue
             where = f"{name}.props: Prop {item.name!r}"
+            positive_int(f"{where}'s count", item.count)
             _check_source(state, item.position, (W, item.count, 2), "float", f"{where}'s position")
             if item.yaw is not None:
                 _check_source(state, item.yaw, (W, item.count), "float", f"{where}'s yaw")

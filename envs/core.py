@@ -88,7 +88,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import math
+import threading
 
 import numpy as np
 import torch
@@ -120,6 +122,20 @@ def _from_user(name: str, value):
         kind = "a nested tensor" if value.is_nested else f"layout {value.layout}"
         raise TypeError(f"{name} must be a dense tensor with data, got {kind} on {value.device}")
     return value.detach()
+
+
+def _env_call(method):
+    """A call of the env's public API: one at a time (two steps from two threads at once read the
+    same state and one of them was lost, silently; an RLock, as calls nest), outside
+    torch.inference_mode() and without grad (in this order: inference_mode(False) turns grad on).
+    Inference mode makes inference tensors, which nothing may write into outside it: an env reset
+    under it failed every later call outside it in the renderer's buffers. So what the env keeps
+    and returns are normal tensors, whatever mode the caller is in."""
+    @functools.wraps(method)
+    def call(self, *args, **kwargs):
+        with self._lock, torch.inference_mode(False), torch.no_grad():
+            return method(self, *args, **kwargs)
+    return call
 
 
 class BatchedEnv:
@@ -161,6 +177,11 @@ class BatchedEnv:
     """
 
     def __init__(self, scenario: type[Scenario], options: EnvOptions | None = None, params=None):
+        with torch.inference_mode(False), torch.no_grad():  # what the env keeps are normal tensors: _env_call
+            self._build(scenario, options, params)
+
+    def _build(self, scenario, options, params) -> None:
+        self._lock = threading.RLock()  # see _env_call
         self._closed = True  # until fully built: close() and __del__ then do nothing
         if not (isinstance(scenario, type) and issubclass(scenario, Scenario)):
             raise TypeError(f"scenario must be a Scenario subclass (envs/scenario.py), got {describe(scenario)}")
@@ -265,7 +286,7 @@ class BatchedEnv:
             setattr(self, name, getattr(s, name))
 
     # ================================================================== public API
-    @torch.no_grad()
+    @_env_call
     def reset(self, seed: int | None = None) -> dict:
         """Reset every world; `seed` (optional) re-seeds the env's generator first."""
         self._check_open()
@@ -281,7 +302,7 @@ class BatchedEnv:
             self._needs_reset = False
             return obs
 
-    @torch.no_grad()
+    @_env_call
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
         """Reset only the worlds where mask [W] (bool) is True; returns obs of all worlds.
 
@@ -302,7 +323,7 @@ class BatchedEnv:
             self._commit(sim, alive, step_count, looks)
             return obs
 
-    @torch.no_grad()
+    @_env_call
     def step(self, actions):
         """Advance all worlds one step: (obs, reward, terminated, truncated, info)."""
         self._check_open()
@@ -366,7 +387,7 @@ class BatchedEnv:
         if self.continuous:
             return torch.rand(W, A, self.action_dim, generator=generator) * 2 - 1
         if self.enforce_action_mask:  # among the allowed actions only (envs/masking.py)
-            with torch.no_grad(), limited_threads(self.torch_threads):
+            with self._lock, torch.no_grad(), limited_threads(self.torch_threads):  # a committed state's mask
                 return masking.sample_allowed(self._action_mask(self.sim, self.alive), generator)
         return torch.randint(self.num_actions, (W, A), generator=generator)
 
@@ -410,7 +431,7 @@ class BatchedEnv:
         # caller's tensor (a rollout buffer written in place) must not change the env afterwards.
         return tensor.to(device=self.device, dtype=torch.int64, copy=True)
 
-    @torch.no_grad()
+    @_env_call
     def render_overview(self, resolution=None) -> torch.Tensor:
         """uint8 [W, H2, W2, 3]: one camera per world that sees the whole arena, for humans.
 
@@ -422,6 +443,7 @@ class BatchedEnv:
         with limited_threads(self.torch_threads):
             return self.views.overview(self.sim, resolution)
 
+    @_env_call
     def state_observation(self) -> torch.Tensor:
         """float32 [W, A, state_dim]: the low-dimensional observation of the current state (obs
         key "state"), whether or not the env was built with state_obs=True."""
@@ -432,7 +454,7 @@ class BatchedEnv:
         with limited_threads(self.torch_threads):
             return self._state_obs(self.sim, self.alive)
 
-    @torch.no_grad()
+    @_env_call
     def heuristic_actions(self) -> torch.Tensor:
         """The scenario's scripted policy's actions for the current state (valid actions, as
         random_actions gives them): a reference that reads the state and beats random."""
@@ -446,6 +468,7 @@ class BatchedEnv:
                 raise type(error)(f"{type(self.scenario).__name__}.heuristic must return valid actions: "
                                   f"{error}") from error
 
+    @_env_call
     def get_state(self) -> dict:
         """Copies of the whole state as {name: tensor}: the fields of `sim` (the simulation),
         "step_count" [W] int64, "alive" [W, A] bool, "rng" (the generator's state, uint8, CPU) and,
@@ -457,6 +480,7 @@ class BatchedEnv:
         state["rng"] = self.generator.get_state()
         return state
 
+    @_env_call
     def set_state(self, state: dict) -> None:
         """Restore a state from get_state() (of this env or one built with the same arguments),
         RNG included; the env then continues from it as if it had never left it.
@@ -495,10 +519,11 @@ class BatchedEnv:
 
     def close(self) -> None:
         """Release the renderers; safe to call twice. Any later use raises RuntimeError."""
-        if self._closed:
-            return
-        self._closed = True
-        self.views.close()
+        with self._lock:  # not _env_call: finalisers at interpreter exit may find torch's modules gone
+            if self._closed:
+                return
+            self._closed = True
+            self.views.close()
 
     @property
     def closed(self) -> bool:
@@ -572,19 +597,25 @@ class BatchedEnv:
         if not (dataclasses.is_dataclass(self.sim) and not isinstance(self.sim, type)):
             raise RuntimeError(f"{name}.initial_state must return a dataclass of tensors (envs/state.py), "
                                f"got {describe(self.sim)}")
-        # Every field has the worlds first: a field of length W by chance (a task's constant vector)
-        # would be split between worlds by partial resets, so the layout is probed with one more world.
-        probe = explicit_state.fields(type(s)(s.params, Layout(self.num_worlds + 1, A, self.continuous,
-                                                                self.device)).initial_state())
+        # Every field has the worlds first. A field whose length is W by chance (a task's constant
+        # vector) would be split between worlds by partial resets, so the task's layout is probed
+        # with another world count too (1, or 2 for W = 1): its fields must follow it.
+        W, probe_worlds = self.num_worlds, 2 if self.num_worlds == 1 else 1
+        try:
+            probe = explicit_state.fields(type(s)(s.params, Layout(probe_worlds, A, self.continuous,
+                                                                    self.device)).initial_state())
+        except Exception:  # a task that cannot be built for that count: the check below is all there is
+            probe = None
         for field, value in explicit_state.fields(self.sim).items():
-            probed = probe.get(field)
-            if not (isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == self.num_worlds
-                    and isinstance(probed, torch.Tensor) and probed.ndim and probed.shape[0] == self.num_worlds + 1):
+            probed = value if probe is None else probe.get(field)
+            expected = W if probe is None else probe_worlds
+            if not (isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == W
+                    and isinstance(probed, torch.Tensor) and probed.ndim and probed.shape[0] == expected):
                 got = [f"shape {list(t.shape)}" if isinstance(t, torch.Tensor) else describe(t)
                        for t in (value, probed)]
                 raise ValueError(f"{name}.initial_state's field {field!r} must be a tensor with the worlds first, "
-                                 f"[W, ...] (every world has its own value); with W={self.num_worlds} it has {got[0]}, "
-                                 f"with W={self.num_worlds + 1} {got[1]}")
+                                 f"[W, ...] (every world has its own value); with W={W} it has {got[0]}, "
+                                 f"with W={expected} {got[1]}")
             if not _same_device(value.device, self.device):
                 raise ValueError(f"{name}.initial_state's field {field!r} must be on device {self.device}, got "
                                  f"{value.device}")
@@ -636,15 +667,30 @@ class BatchedEnv:
         renderer may hold the uncommitted state's instances by then: its next sync sends all; and the
         uncommitted worlds' looks: the committed ones are put back."""
         rng, seed = self.generator.get_state(), self.seed
+        held = self._held()
+        versions = [_version(tensor) for tensor in held.values()]
         try:
             yield
-        except BaseException:
+        except BaseException as error:
             self.generator.set_state(rng)
             self.seed = seed
             self.views.invalidate()
             if self.appearance is not None and not self._needs_reset:  # before the first reset: none to keep
                 self.views.set_appearance(self.appearance_ids)
+            written = [name for (name, tensor), version in zip(held.items(), versions, strict=True)
+                       if _version(tensor) != version]
+            if written:  # a hook broke the contract: what it wrote cannot be undone
+                self._needs_reset = True
+                raise RuntimeError(f"a hook of {type(self.scenario).__name__} wrote into the env's state in place "
+                                   f"({', '.join(written)}) and the call failed, so it cannot be undone: call reset(); "
+                                   f"hooks must return new tensors, never write into the state they are given"
+                                   ) from error
             raise
+
+    def _held(self) -> dict:
+        """{name: tensor} of the state the env has committed (what a failed call must leave as it was)."""
+        return {**{f"state.{name}": value for name, value in explicit_state.fields(self.sim).items()},
+                "alive": self.alive, "step_count": self.step_count}
 
     def _commit(self, sim, alive: torch.Tensor, step_count: torch.Tensor, looks: torch.Tensor | None) -> None:
         self.sim, self.alive, self.step_count, self.appearance_ids = sim, alive, step_count, looks
@@ -698,7 +744,9 @@ class BatchedEnv:
                              f"got {sorted(info) if isinstance(info, dict) else describe(info)}")
         for key, dtype in self.info_keys.items():
             _check_tensor(f"{where}'s info[{key!r}]", info[key], (W,), dtype, self.device)
-        if not bool(torch.isfinite(reward).all()):
+        # A finite sum proves every value finite in one reduction (isfinite().all() costs ~4x more);
+        # a sum that overflowed is checked in full.
+        if not math.isfinite(reward.sum().item()) and not bool(torch.isfinite(reward).all()):
             raise ValueError(f"{where}'s reward must be finite, got NaN or Inf in world(s) "
                              f"{(~torch.isfinite(reward)).any(1).nonzero()[:, 0].tolist()}")
         return result
@@ -770,3 +818,8 @@ def _check_tensor(what: str, value, shape: tuple, dtype, device: torch.device) -
 
 def _same_device(given: torch.device, want: torch.device) -> bool:
     return given.type == want.type and (want.index is None or given.index == want.index)
+
+
+def _version(tensor: torch.Tensor) -> int | None:
+    """The count of in-place writes into `tensor` (None for inference tensors, which keep none)."""
+    return None if tensor.is_inference() else tensor._version

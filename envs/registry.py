@@ -102,6 +102,9 @@ def has_compiled_physics(name) -> bool:
 def split_kwargs(scenario: type[Scenario], kwargs: dict) -> tuple:
     """(EnvOptions, scenario.Params) from make_env's keywords; unknown keywords are a TypeError
     naming them and listing the accepted ones."""
+    if not (isinstance(scenario.Params, type) and dataclasses.is_dataclass(scenario.Params)):
+        raise TypeError(f"{scenario.__name__}.Params must be a dataclass of the task's keywords (with their "
+                        f"defaults), got {describe(scenario.Params)}")
     param_names = {field.name for field in dataclasses.fields(scenario.Params)}
     unknown = sorted(set(kwargs) - OPTION_NAMES - param_names)
     if unknown:

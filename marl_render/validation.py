@@ -146,7 +146,7 @@ def reward_weight(name: str, value, *, allow_zero: bool = False) -> float:
     if value > REWARD_WEIGHT_LIMIT:
         bound = ">= 0" if allow_zero else "> 0"
         raise ValueError(f"{name} must be a number {bound} and <= {REWARD_WEIGHT_LIMIT:g} (a reward weight: larger "
-                         f"ones overflow float32 rewards), got {value:g}")
+                         f"ones overflow float32 rewards), got {value!r}")
     return value
 
 

@@ -11,6 +11,7 @@ import re
 import subprocess
 import sys
 import textwrap
+import threading
 import warnings
 
 import gymnasium
@@ -484,6 +485,70 @@ def test_a_hook_that_raises_leaves_the_env_as_it_was(hook, call, autoreset, fail
         env.close(), twin.close()
 
 
+def test_an_env_used_under_inference_mode_works_outside_it_and_stays_atomic():
+    """An env built or reset under torch.inference_mode() failed every later call outside it (the
+    renderer's buffers were inference tensors, which nothing may write into outside it)."""
+    with torch.inference_mode():
+        env = probe(state_obs=True)
+    twin = probe(state_obs=True)
+    env.scenario.fail = ("action_mask", 3)
+    actions = torch.zeros(W, 2, dtype=torch.long)
+    with torch.inference_mode():
+        assert_same(env.reset(), twin.reset())
+        assert_same(env.step(actions), twin.step(actions))
+        with pytest.raises(RuntimeError, match="action_mask failed on purpose"):
+            env.step(actions)
+        assert_same(env.step(actions), twin.step(actions))
+    assert_same(env.step(actions), twin.step(actions))  # and outside it again
+    env.close(), twin.close()
+
+
+class InPlace(Probe):
+    """Breaks the contract: writes into the state it is given, then fails."""
+
+    def rules(self, before, moved, actions, alive, generator):
+        before.seen.add_(1.0)
+        raise RuntimeError("rules failed after writing")
+
+
+def test_a_hook_that_wrote_into_the_state_and_failed_says_so_and_asks_for_a_reset():
+    env = probe(InPlace)
+    env.reset()
+    with pytest.raises(RuntimeError, match=r"a hook of InPlace wrote into the env's state in place \(state\.seen\) "
+                                           r"and the call failed, so it cannot be undone: call reset\(\)"):
+        env.step(torch.zeros(W, 2, dtype=torch.long))
+    with pytest.raises(RuntimeError, match=r"call reset\(\) before using this InPlace environment"):
+        env.step(torch.zeros(W, 2, dtype=torch.long))
+    env.close()
+
+
+def test_steps_from_two_threads_at_once_are_all_taken():
+    """Two threads stepping one env: each step read the same state and one of two was lost."""
+    env, twin = make_env("spread", num_worlds=W, resolution=RES, seed=0), make_env("spread", num_worlds=W,
+                                                                                   resolution=RES, seed=0)
+    env.reset(), twin.reset()
+    actions = torch.ones(W, 3, dtype=torch.long)
+    errors = []
+
+    def run():
+        try:
+            for _ in range(25):
+                env.step(actions)
+        except Exception as error:  # noqa: BLE001 (reported below)
+            errors.append(error)
+
+    threads = [threading.Thread(target=run) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    for _ in range(50):
+        twin.step(actions)
+    assert errors == [] and env.step_count.tolist() == [50] * W
+    assert_same(env.get_state(), twin.get_state())
+    env.close(), twin.close()
+
+
 class NaNRules(Probe):
     def rules(self, before, moved, actions, alive, generator):
         state, *rest = super().rules(before, moved, actions, alive, generator)
@@ -588,6 +653,16 @@ def test_make_vec_counts_the_agents_the_task_keywords_set(num_envs, worlds):
 
 
 # ---------------------------------------------------------------------- 13. early, clear errors
+class PlainParams(Probe):
+    class Params:  # not a dataclass
+        pass
+
+
+def test_params_that_are_not_a_dataclass_are_named():
+    with pytest.raises(TypeError, match=r"PlainParams\.Params must be a dataclass of the task's keywords"):
+        make_env(PlainParams, num_worlds=W)
+
+
 class NoStateObs(Probe):
     def setup(self):
         super().setup()
@@ -633,6 +708,11 @@ class NoStateClass(Probe):
     State = ArenaState
 
 
+class EmptyProp(Probe):
+    def props(self):
+        return [Prop("flag", "box", count=0, position=lambda state: state.flag[:, :0], height=0.2)]
+
+
 class AllOpponents(Probe):
     opponents = ("agents",)
 
@@ -643,12 +723,13 @@ class AllOpponents(Probe):
     (type("Still", (Probe,), {"dt": 0}), {}, ValueError, r"Still\.dt \(simulated seconds per step\) must be a finite "
                                                           r"number > 0, got 0"),
     (Unbatched, {}, ValueError, r"Unbatched\.initial_state's field 'weights' must be a tensor with the worlds first, "
-                                r"\[W, \.\.\.\] .*with W=2 it has shape \[2\], with W=3 shape \[2\]"),
+                                r"\[W, \.\.\.\] .*with W=2 it has shape \[2\], with W=1 shape \[2\]"),
     (TeamsByKeyword, {}, ValueError, r"TeamsByKeyword\.setup_arena: teams hold 3 agents but the env is built for "
                                      r"num_agents=2; .* num_agents_for"),
     (MissingField, {}, ValueError, r"MissingField\.props: Prop 'flag''s position names 'flags', which is not a "
                                    r"field of the state"),
     (NoStateClass, {}, TypeError, r"NoStateClass\.State is ArenaState, which has no field\(s\) \['flag', 'seen'\]"),
+    (EmptyProp, {}, ValueError, r"EmptyProp\.props: Prop 'flag''s count must be an int >= 1, got 0"),
 ])
 def test_a_task_author_mistake_is_named_when_the_env_is_built(task, kwargs, error, words):
     with pytest.raises(error, match=words):
@@ -696,6 +777,7 @@ def test_evaluating_a_task_of_opponents_only_is_refused():
     (["--block-seconds", "nan"], r"argument --block-seconds: expected a finite number of seconds > 0, got 'nan'"),
     (["--env", "spread:x"], r"argument --env: expected NAME:AGENTS with AGENTS an int >= 1, got 'spread:x'"),
     (["--env", "sprad"], r"argument --env: unknown env 'sprad'"),
+    (["--env", "cartpole:2"], r"argument --env: cartpole takes 1 to 1 agents, got 'cartpole:2'"),
     (["--worlds", "16", "0"], r"argument --worlds: expected an int >= 1, got 0"),
 ])
 def test_bench_floor_checks_its_arguments_before_any_work(argv, words, capsys):

@@ -44,6 +44,7 @@ def positive_seconds_argument(text: str) -> float:
 def env_spec_argument(text: str) -> str:
     """argparse type: NAME or NAME:AGENTS of a registered env (AGENTS an int >= 1), or 'all'."""
     from marl_render.envs import list_envs
+    from marl_render.envs.registry import env_class
 
     name, colon, agents = text.partition(":")
     if text != "all" and name not in list_envs():
@@ -55,6 +56,9 @@ def env_spec_argument(text: str) -> str:
             count = 0
         if count < 1:
             raise argparse.ArgumentTypeError(f"expected NAME:AGENTS with AGENTS an int >= 1, got {text!r}")
+        low, high = env_class(name).agent_range
+        if not low <= count <= high:
+            raise argparse.ArgumentTypeError(f"{name} takes {low} to {high} agents, got {text!r}")
     return text
 
 
