@@ -56,12 +56,8 @@ class Probe(ArenaScenario):
     """Two agents; observation() returns a state field as it is, action_mask() one constant tensor,
     and the reward reads the field. ``fail = (hook, n)`` makes the n-th call of that hook raise."""
 
-    name = "probe"
-    State = ProbeState
-    default_num_agents = 2
-    agent_range = (2, 2)
-    default_max_steps = 3
-    physics_terms = frozenset({"walls", "drag"})
+    name, State, physics_terms = "probe", ProbeState, frozenset({"walls", "drag"})
+    default_num_agents, agent_range, default_max_steps = 2, (2, 2), 3  # episodes end at the third step
     info_keys = {"seen_sum": torch.float32}
     fail = None
 
