@@ -1,17 +1,15 @@
 """Reliability round 4 (issue 24): the env's memory, atomic steps, states that load back, and the
 traps a task author meets. Each test failed before its fix; the numbers in the section titles
-are the issue's items. Cases that compile (item 6) run in a child process with a timeout."""
+are the issue's items. Cases that compile (item 6) run in a child process with a timeout, and so
+do those of items 7-10 (tests/round4_isolated.py), which could crash or hang before their fixes."""
 from __future__ import annotations
 
 import argparse
-import collections
 import dataclasses
-import math
-import re
+import pathlib
 import subprocess
 import sys
 import textwrap
-import threading
 import warnings
 
 import gymnasium
@@ -19,14 +17,12 @@ import numpy as np
 import pytest
 import torch
 
+import round4_isolated
 from departing_env import Departing
-from marl_render.bench import __main__ as bench_main
 from marl_render.bench import peers
 from marl_render.envs import (
-    ArenaScenario,
     ArenaState,
     Prop,
-    list_envs,
     make_env,
     make_parallel_env,
     make_torchrl_env,
@@ -37,110 +33,9 @@ from marl_render.envs import (
 from marl_render.envs import cartpole as cartpole_module
 from marl_render.envs import compiled as compiled_kernels
 from marl_render.envs.evaluation import evaluate, random_policy
-
-W = 2
-RES = 8
-ENVS = list_envs()
+from round4_probe import ENVS, LOOKS, RES, Probe, ProbeState, W, assert_same, probe, scribble
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
-
-
-# ---------------------------------------------------------------------- a small task to break on purpose
-@dataclasses.dataclass(frozen=True)
-class ProbeState(ArenaState):
-    seen: torch.Tensor  # [W, A, 3] float32: handed out by observation() as it is
-    flag: torch.Tensor  # [W, 1, 2] a prop's place
-
-
-class Probe(ArenaScenario):
-    """Two agents; observation() returns a state field as it is, action_mask() one constant tensor,
-    and the reward reads the field. ``fail = (hook, n)`` makes the n-th call of that hook raise."""
-
-    name, State, physics_terms = "probe", ProbeState, frozenset({"walls", "drag"})
-    default_num_agents, agent_range, default_max_steps = 2, (2, 2), 3  # episodes end at the third step
-    info_keys = {"seen_sum": torch.float32}
-    fail = None
-
-    def setup(self):
-        self.setup_arena({"agents": numbered("agent", 2)}, state_dim=3, radius=0.15, max_speed=2.0)
-        self.calls = collections.Counter()
-        self.everything = torch.ones(self.num_worlds, 2, self.num_actions, dtype=torch.bool)
-
-    def check(self, hook):
-        self.calls[hook] += 1
-        if self.fail == (hook, self.calls[hook]):
-            raise RuntimeError(f"{hook} failed on purpose")
-
-    def initial_state(self):
-        W, N = self.num_worlds, self.num_agents
-        return self.at_rest(torch.zeros(W, N, 2), torch.zeros(W, N), seen=torch.zeros(W, N, 3),
-                            flag=torch.zeros(W, 1, 2))
-
-    def props(self):
-        return [Prop("flag", "box", count=1, position="flag", height=0.2, scale=(0.2, 0.2, 0.4), moves=False)]
-
-    def spawn(self, generator):
-        self.check("spawn")
-        W, N = self.num_worlds, self.num_agents
-        pos = torch.rand(W, N, 2, generator=generator) * 2 - 1
-        return self.at_rest(pos, torch.zeros(W, N), seen=torch.rand(W, N, 3, generator=generator) + 1,
-                            flag=torch.rand(W, 1, 2, generator=generator) - 0.5)
-
-    def rules(self, before, moved, actions, alive, generator):
-        self.check("rules")
-        noise = torch.rand(self.num_worlds, generator=generator)  # draws: a failed step must not lose them
-        reward = before.seen.sum(-1) + noise[:, None]
-        return moved, reward, torch.zeros_like(alive), {"seen_sum": before.seen.sum((1, 2))}
-
-    def observation(self, state, alive):
-        self.check("observation")
-        return state.seen
-
-    def action_mask(self, state, alive):
-        self.check("action_mask")
-        return self.everything
-
-    def instances(self, state, full):
-        self.check("instances")
-        return super().instances(state, full)
-
-
-def probe(task=Probe, **kwargs):
-    return make_env(task, **{"num_worlds": W, "resolution": RES, "seed": 0, **kwargs})
-
-
-def assert_same(a, b, where=""):
-    """Nested dicts / tuples of tensors are equal, bit for bit."""
-    if isinstance(a, torch.Tensor):
-        assert torch.equal(a, b), where
-    elif isinstance(a, dict):
-        assert a.keys() == b.keys(), where
-        for key in a:
-            assert_same(a[key], b[key], f"{where}[{key!r}]")
-    else:
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            assert_same(x, y, f"{where}[{i}]")
-
-
-def tensors(value):
-    if isinstance(value, torch.Tensor):
-        yield value
-    elif isinstance(value, dict):
-        for item in value.values():
-            yield from tensors(item)
-    elif isinstance(value, (list, tuple)):
-        for item in value:
-            yield from tensors(item)
-
-
-def scribble(value) -> None:
-    """Write into every tensor of `value`, as a caller that owns them may."""
-    for tensor in tensors(value):
-        if tensor.dtype == torch.bool:
-            tensor.logical_not_()
-        else:
-            tensor.fill_(3)
 
 
 # ---------------------------------------------------------------------- 1. what the env hands out is the caller's
@@ -150,7 +45,16 @@ def test_writing_into_what_the_env_returned_changes_nothing(name, autoreset):
     """obs (pixels, state, action_mask), rewards, flags, info (commons' depleted_at), final_obs,
     state_observation() and heuristic_actions(): all the caller's. A twin that never sees the
     writes stays bit-identical."""
-    kwargs = dict(num_worlds=W, resolution=RES, seed=0, state_obs=True, autoreset=autoreset, max_steps=2)
+    scribble_and_compare(name, autoreset=autoreset)
+
+
+@pytest.mark.parametrize("autoreset", [False, "same_step"])
+def test_lidar_and_appearance_ids_handed_out_are_the_callers(autoreset):
+    scribble_and_compare("tag", autoreset=autoreset, **LOOKS)
+
+
+def scribble_and_compare(name, **options):
+    kwargs = dict(num_worlds=W, resolution=RES, seed=0, state_obs=True, max_steps=2, **options)
     with make_env(name, **kwargs) as env, make_env(name, **kwargs) as twin:
         scribble(env.reset())
         twin.reset()
@@ -163,6 +67,23 @@ def test_writing_into_what_the_env_returned_changes_nothing(name, autoreset):
             scribble(env.state_observation())
             scribble(env.heuristic_actions())
             assert_same(env.get_state(), twin.get_state())
+            scribble(env.get_state())
+
+
+class LidarEcho(Probe):
+    """Its lidar hook returns a state field as it is (3 rays)."""
+
+    def lidar(self, state, rays, reach):
+        return state.seen
+
+
+def test_a_state_field_handed_out_as_lidar_is_a_copy():
+    env = probe(LidarEcho, lidar=3)
+    obs = env.reset()
+    assert torch.equal(obs["lidar"], env.sim.seen)
+    obs["lidar"].zero_()
+    assert bool((env.sim.seen >= 1).all())
+    env.close()
 
 
 def test_a_state_field_handed_out_as_observation_is_a_copy():
@@ -272,6 +193,28 @@ def test_actions_the_env_keeps_are_its_own(kind):
     actions[:] = 4  # a rollout buffer written in place
     assert bool((env.sim.last == 1).all())
     env.close()
+
+
+class Forbidding(Probe):
+    """Agent 0 may never go forward (action 1)."""
+
+    def action_mask(self, state, alive):
+        mask = super().action_mask(state, alive).clone()
+        mask[:, 0, 1] = False
+        return mask
+
+
+def test_a_step_that_enforce_action_mask_refuses_changes_nothing():
+    """The state, counters, generator and appearance ids; the frames that follow equal a twin's."""
+    env, twin = (probe(Forbidding, enforce_action_mask=True, **LOOKS) for _ in range(2))
+    env.reset(), twin.reset()
+    before = env.get_state()
+    with pytest.raises(ValueError, match=r"got 2 forbidden: world 0 agent 'agent_0' took 1 \('forward'\)"):
+        env.step(torch.tensor([[1, 1]] * W))
+    assert_same(env.get_state(), before)
+    allowed = torch.tensor([[2, 1]] * W)
+    assert_same(env.step(allowed), twin.step(allowed))
+    env.close(), twin.close()
 
 
 # ---------------------------------------------------------------------- 2. the driver's info names are reserved
@@ -395,226 +338,28 @@ def probe_cartpole():
     return make_env("cartpole", num_worlds=W, resolution=RES, seed=0, continuous=True)
 
 
-# ---------------------------------------------------------------------- 7. every state field has its range
-BAD_FIELDS = [  # (task, field, index, value, words)
-    ("rooms", "home", (0,), 9, r"state\['home'\] must be within \[0, 8\]"),
-    ("rooms", "home", (0,), -1, r"state\['home'\] must be within \[0, 8\]"),
-    ("rooms", "door", (0, 0), 5.0, r"state\['door'\] must be within \[-0\.5, 0\.5\]"),
-    ("rooms", "goal", (0, 0, 0), 3.5, r"state\['goal'\] must be within"),
-    ("speaker_listener", "goal", (0,), 5, r"state\['goal'\] must be within \[0, 2\]"),
-    ("speaker_listener", "lamp", (0,), -5, r"state\['lamp'\] must be within \[-1, 2\]"),
-    ("speaker_listener", "targets", (0, 0, 0), 9.0, r"state\['targets'\] must be within"),
-    ("commons", "timeout", (0, 0), -5, r"state\['timeout'\] must be within \[0, 25\]"),
-    ("commons", "timeout", (0, 0), 26, r"state\['timeout'\] must be within \[0, 25\]"),
-    ("commons", "steps", (0,), -1, r"state\['steps'\] must be within"),
-    ("commons", "depleted_at", (0,), -2, r"state\['depleted_at'\] must be within"),
-    ("commons", "depleted_at", (0,), 5, r"state\['depleted_at'\] must be -1 .* or a step in \[1, state\['steps'\]\]"),
-    ("commons", "shown", (0, 0), False, r"state\['shown'\] must be True exactly for the agents in play"),
-    ("capture_flag", "carrier", (0, 0), 99, r"state\['carrier'\] must be within \[\[-1, -1\], \[15, 7\]\]"),
-    ("capture_flag", "carrier", (0, 1), 9, r"state\['carrier'\] must be within \[\[-1, -1\], \[15, 7\]\]"),
-    ("capture_flag", "carrier", (0, 0), 3, r"red's flag\) must be -1 or a blue agent in \[8, 15\]"),
-    ("capture_flag", "captures", (0, 0), -1, r"state\['captures'\] must be within"),
-    ("forage", "item_timer", (0, 0), 11, r"state\['item_timer'\] must be within \[0, 10\]"),
-    ("forage", "team_score", (0,), -1.0, r"state\['team_score'\] must be within"),
-    ("tag", "obstacle_center", (0, 0, 0), 2.0, r"state\['obstacle_center'\] must be within"),
-    ("cartpole", "qstate", (0, 0), 1.9, r"state\['qstate'\] must be within \[\[-1\.8, "),
-    ("cartpole", "last_control", (0,), 1.5, r"state\['last_control'\] must be within \[-1, 1\]"),
-]
+# ---------------------------------------------------------------------- 7-10. in a child process
+ISOLATED = pathlib.Path(round4_isolated.__file__)
 
 
-@pytest.mark.parametrize("name, field, index, value, words", BAD_FIELDS,
-                         ids=[f"{c[0]}-{c[1]}={c[3]}" for c in BAD_FIELDS])
-def test_a_state_field_out_of_its_range_is_refused_and_changes_nothing(name, field, index, value, words):
-    with make_env(name, num_worlds=W, resolution=RES, seed=0) as env, make_env(name, num_worlds=W, resolution=RES,
-                                                                               seed=0) as twin:
-        env.reset(), twin.reset()
-        state = env.get_state()
-        state[field][index] = value
-        with pytest.raises(ValueError, match=words):
-            env.set_state(state)
-        assert_same(env.get_state(), twin.get_state())
-        actions = env.random_actions(torch.Generator().manual_seed(0))
-        assert_same(env.step(actions), twin.step(actions))  # the env steps on as if never asked
-
-
-@pytest.mark.parametrize("name", ENVS)
-def test_every_field_with_a_meaning_has_a_range(name):
-    """Every state field that is not a bool has bounds in set_state (integers included)."""
-    env = make_env(name, num_worlds=W, resolution=RES)
-    bounds = env.scenario.state_bounds()
-    unbounded = [field.name for field in dataclasses.fields(env.sim)
-                 if getattr(env.sim, field.name).dtype != torch.bool and field.name not in bounds]
-    env.close()
-    assert unbounded == []
-
-
-# ---------------------------------------------------------------------- 8. a step commits when every hook succeeded
-FAILURES = [  # (hook, the call that raises, autoreset, the step it happens in: 0 is reset())
-    ("rules", 1, False, 1), ("observation", 2, False, 1), ("action_mask", 2, False, 1), ("instances", 2, False, 1),
-    ("spawn", 2, "next_step", 4), ("spawn", 2, "same_step", 3), ("action_mask", 5, "same_step", 3),
-    ("spawn", 1, False, 0), ("observation", 1, False, 0),
-]
-
-
-@pytest.mark.parametrize("hook, call, autoreset, failing_step", FAILURES)
-def test_a_hook_that_raises_leaves_the_env_as_it_was(hook, call, autoreset, failing_step):
-    env = probe(state_obs=True, autoreset=autoreset)
-    twin = probe(state_obs=True, autoreset=autoreset)
-    env.scenario.fail = (hook, call)
-    generator = torch.Generator().manual_seed(0)
+@pytest.mark.parametrize("item", sorted(round4_isolated.ITEMS))
+def test_in_a_child_process(item):
+    """The tests of an item in round4_isolated.py, all their cases, in a fresh Python under a timeout
+    (a bound on a hang, not on speed): a crash or a hang there fails this test, not the session."""
+    tests = [f"{ISOLATED}::{name}" for name in round4_isolated.ITEMS[item]]
+    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *tests]
     try:
-        if failing_step == 0:
-            with pytest.raises(RuntimeError, match=f"{hook} failed on purpose"):
-                env.reset()
-            with pytest.raises(RuntimeError, match=r"call reset\(\) before"):
-                env.step(torch.zeros(W, 2, dtype=torch.long))
-        assert_same(env.reset(), twin.reset())
-        for step in range(1, 7):
-            actions = env.random_actions(generator)
-            if step == failing_step:
-                before = env.get_state()
-                with pytest.raises(RuntimeError, match=f"{hook} failed on purpose"):
-                    env.step(actions)
-                assert_same(env.get_state(), before)  # the RNG, step counts and simulation
-            assert_same(env.step(actions), twin.step(actions), f"step {step}")  # the frames too
-    finally:
-        env.close(), twin.close()
+        child = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=ISOLATED.parent.parent)
+    except subprocess.TimeoutExpired as error:
+        output = error.stdout.decode(errors="replace") if isinstance(error.stdout, bytes) else error.stdout or ""
+        pytest.fail(f"item {item} hung: no result after {error.timeout} s; its output so far:\n{output[-3000:]}")
+    assert child.returncode == 0, (f"item {item}: exit status {child.returncode}\n"
+                                   f"{child.stdout[-4000:]}{child.stderr[-2000:]}")
 
 
-def test_an_env_used_under_inference_mode_works_outside_it_and_stays_atomic():
-    """An env built or reset under torch.inference_mode() failed every later call outside it (the
-    renderer's buffers were inference tensors, which nothing may write into outside it)."""
-    with torch.inference_mode():
-        env = probe(state_obs=True)
-    twin = probe(state_obs=True)
-    env.scenario.fail = ("action_mask", 3)
-    actions = torch.zeros(W, 2, dtype=torch.long)
-    with torch.inference_mode():
-        assert_same(env.reset(), twin.reset())
-        assert_same(env.step(actions), twin.step(actions))
-        with pytest.raises(RuntimeError, match="action_mask failed on purpose"):
-            env.step(actions)
-        assert_same(env.step(actions), twin.step(actions))
-    assert_same(env.step(actions), twin.step(actions))  # and outside it again
-    env.close(), twin.close()
-
-
-class InPlace(Probe):
-    """Breaks the contract: writes into the state it is given, then fails."""
-
-    def rules(self, before, moved, actions, alive, generator):
-        before.seen.add_(1.0)
-        raise RuntimeError("rules failed after writing")
-
-
-def test_a_hook_that_wrote_into_the_state_and_failed_says_so_and_asks_for_a_reset():
-    env = probe(InPlace)
-    env.reset()
-    with pytest.raises(RuntimeError, match=r"a hook of InPlace wrote into the env's state in place \(state\.seen\) "
-                                           r"and the call failed, so it cannot be undone: call reset\(\)"):
-        env.step(torch.zeros(W, 2, dtype=torch.long))
-    with pytest.raises(RuntimeError, match=r"call reset\(\) before using this InPlace environment"):
-        env.step(torch.zeros(W, 2, dtype=torch.long))
-    env.close()
-
-
-def test_steps_from_two_threads_at_once_are_all_taken():
-    """Two threads stepping one env: each step read the same state and one of two was lost."""
-    env, twin = make_env("spread", num_worlds=W, resolution=RES, seed=0), make_env("spread", num_worlds=W,
-                                                                                   resolution=RES, seed=0)
-    env.reset(), twin.reset()
-    actions = torch.ones(W, 3, dtype=torch.long)
-    errors = []
-
-    def run():
-        try:
-            for _ in range(25):
-                env.step(actions)
-        except Exception as error:  # noqa: BLE001 (reported below)
-            errors.append(error)
-
-    threads = [threading.Thread(target=run) for _ in range(2)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
-    for _ in range(50):
-        twin.step(actions)
-    assert errors == [] and env.step_count.tolist() == [50] * W
-    assert_same(env.get_state(), twin.get_state())
-    env.close(), twin.close()
-
-
-class NaNRules(Probe):
-    def rules(self, before, moved, actions, alive, generator):
-        state, *rest = super().rules(before, moved, actions, alive, generator)
-        return (dataclasses.replace(state, pos=state.pos.clone().index_fill_(1, torch.tensor([1]), math.nan)),
-                *rest)
-
-
-class NaNReward(Probe):
-    def rules(self, before, moved, actions, alive, generator):
-        state, reward, *rest = super().rules(before, moved, actions, alive, generator)
-        return (state, reward * math.inf, *rest)
-
-
-@pytest.mark.parametrize("task, words", [
-    (NaNRules, r"NaNRules\.rules returned a state with non-finite values \(NaN or Inf\) in state\.pos"),
-    (NaNReward, r"NaNReward\.rules's reward must be finite, got NaN or Inf in world\(s\) \[0, 1\]"),
-])
-def test_non_finite_results_of_rules_are_named_by_hook_and_field(task, words):
-    env = probe(task)
-    env.reset()
-    before = env.get_state()
-    with pytest.raises(ValueError, match=words):
-        env.step(torch.zeros(W, 2, dtype=torch.long))
-    assert_same(env.get_state(), before)
-    env.close()
-
-
-# ---------------------------------------------------------------------- 9. states the env made load back
-@pytest.mark.parametrize("autoreset", [False, "next_step", "same_step"])
-@pytest.mark.parametrize("name", ENVS)
-def test_every_state_the_env_produced_loads_back(name, autoreset):
-    """Past max_steps without autoreset too (done worlds keep stepping and counting)."""
-    env = make_env(name, num_worlds=W, resolution=RES, seed=0, max_steps=3, autoreset=autoreset)
-    env.reset()
-    generator = torch.Generator().manual_seed(0)
-    for step in range(8):
-        env.step(env.heuristic_actions() if step % 2 else env.random_actions(generator))
-        state = env.get_state()
-        env.set_state(state)
-        assert_same(env.get_state(), state)
-    if autoreset:
-        assert bool((env.step_count <= 3).all())
-    else:  # done worlds kept stepping, counting past max_steps
-        assert env.step_count.tolist() == [8] * W
-    env.close()
-
-
-class Outside(Probe):
-    """Spawns its agents outside the walls (|x| <= 1.5) in the second episode."""
-
-    def spawn(self, generator):
-        state = super().spawn(generator)
-        return dataclasses.replace(state, pos=state.pos + 4.0) if self.calls["spawn"] > 1 else state
-
-
-def test_a_spawn_outside_the_walls_is_refused_by_name():
-    env = probe(Outside, autoreset="next_step")
-    env.reset()
-    actions = torch.zeros(W, 2, dtype=torch.long)
-    for _ in range(3):
-        env.step(actions)
-    before = env.get_state()
-    with pytest.raises(ValueError, match=r"Outside\.spawn's state\.pos must be within \[\[-1\.5, -1\.5\], "
-                                         r"\[1\.5, 1\.5\]\], got values in"):
-        env.step(actions)
-    assert_same(env.get_state(), before)
-    with pytest.raises(ValueError, match=r"Outside\.spawn's state\.pos must be within"):
-        env.reset()
-    assert_same(env.get_state(), before)
-    env.close()
+def test_every_isolated_test_belongs_to_an_item():
+    tests = {name for name in vars(round4_isolated) if name.startswith("test_")}
+    assert sorted(tests) == sorted(name for names in round4_isolated.ITEMS.values() for name in names)
 
 
 # ---------------------------------------------------------------------- 11. TorchRL group names
@@ -767,22 +512,7 @@ def test_evaluating_a_task_of_opponents_only_is_refused():
         evaluate(AllOpponents, random_policy, episodes=2, resolution=RES)
 
 
-# ---------------------------------------------------------------------- 10 (bench floor) and 14 (bench peers)
-@pytest.mark.parametrize("argv, words", [
-    (["--rounds", "0"], r"argument --rounds: expected an int >= 1, got 0"),
-    (["--block-seconds", "nan"], r"argument --block-seconds: expected a finite number of seconds > 0, got 'nan'"),
-    (["--env", "spread:x"], r"argument --env: expected NAME:AGENTS with AGENTS an int >= 1, got 'spread:x'"),
-    (["--env", "sprad"], r"argument --env: unknown env 'sprad'"),
-    (["--env", "cartpole:2"], r"argument --env: cartpole takes 1 to 1 agents, got 'cartpole:2'"),
-    (["--worlds", "16", "0"], r"argument --worlds: expected an int >= 1, got 0"),
-])
-def test_bench_floor_checks_its_arguments_before_any_work(argv, words, capsys):
-    with pytest.raises(SystemExit) as exit_:
-        bench_main.main(["floor", *argv])
-    assert exit_.value.code == 2
-    assert re.search(words, capsys.readouterr().err)
-
-
+# ---------------------------------------------------------------------- 14. bench peers
 def test_bench_peers_records_compile_physics_in_its_command():
     parser = argparse.ArgumentParser()
     peers.add_arguments(parser)
