@@ -250,6 +250,18 @@ def play_keys(player: Player, keys: list, frames: str | None) -> dict:
     return record
 
 
+def frames_folder_problem(folder: str) -> str | None:
+    """Why the frames cannot be written into `folder` (made if missing), or None: checked before
+    anything is played, so that a bad --frames does not lose a played sequence."""
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as exc:
+        return f"cannot be made a folder ({exc.strerror})"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return "is a folder this process cannot write into"
+    return None
+
+
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(prog="python -m marl_render.play", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -270,6 +282,9 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     if args.frames is not None and args.keys is None:
         print("marl_render.play: --frames needs --keys (a scripted sequence)", file=sys.stderr)
+        return 2
+    if args.frames is not None and (problem := frames_folder_problem(args.frames)):
+        print(f"marl_render.play: --frames {args.frames!r}: {problem}", file=sys.stderr)
         return 2
     if args.keys is None:
         reason = window_unavailable()

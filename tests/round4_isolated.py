@@ -322,18 +322,28 @@ def test_a_spawn_outside_the_walls_is_refused_by_name():
 
 
 
-# ---------------------------------------------------------------------- 10. bench floor checks its arguments first
+# ---------------------------------------------------------------------- 10. the benchmarks check their arguments first
 @item(10)
 @pytest.mark.parametrize("argv, words", [
-    (["--rounds", "0"], r"argument --rounds: expected an int >= 1, got 0"),
-    (["--block-seconds", "nan"], r"argument --block-seconds: expected a finite number of seconds > 0, got 'nan'"),
-    (["--env", "spread:x"], r"argument --env: expected NAME:AGENTS with AGENTS an int >= 1, got 'spread:x'"),
-    (["--env", "sprad"], r"argument --env: unknown env 'sprad'"),
-    (["--env", "cartpole:2"], r"argument --env: cartpole takes 1 to 1 agents, got 'cartpole:2'"),
-    (["--worlds", "16", "0"], r"argument --worlds: expected an int >= 1, got 0"),
+    (["floor", "--rounds", "0"], r"argument --rounds: expected an int >= 1, got 0"),
+    (["floor", "--block-seconds", "nan"], r"argument --block-seconds: expected a finite number of seconds > 0, got "
+                                          r"'nan'"),
+    (["floor", "--env", "spread:x"], r"argument --env: expected NAME:AGENTS with AGENTS an int >= 1, got 'spread:x'"),
+    (["floor", "--env", "sprad"], r"argument --env: unknown env 'sprad'"),
+    (["floor", "--env", "cartpole:2"], r"argument --env: cartpole takes 1 to 1 agents, got 'cartpole:2'"),
+    (["floor", "--worlds", "16", "0"], r"argument --worlds: expected an int >= 1, got 0"),
+    # The adversarial pass: the other benchmarks divided by their counts after building everything.
+    (["env", "--steps", "0"], r"argument --steps: expected an int >= 1, got 0"),
+    (["env", "--worlds", "16", "-1"], r"argument --worlds: expected an int >= 1, got -1"),
+    (["render", "--steps", "0"], r"argument --steps: expected an int >= 1, got 0"),
+    (["effects", "--steps", "0"], r"argument --steps: expected an int >= 1, got 0"),
+    (["scale", "--views", "0"], r"argument --views: expected an int >= 1, got 0"),
+    (["parallel", "--workers", "0"], r"argument --workers: expected an int >= 1, got 0"),
+    (["peers", "--block-seconds", "inf"], r"argument --block-seconds: expected a finite number of seconds > 0, got "
+                                          r"'inf'"),
 ])
-def test_bench_floor_checks_its_arguments_before_any_work(argv, words, capsys):
+def test_the_benchmarks_check_their_arguments_before_any_work(argv, words, capsys):
     with pytest.raises(SystemExit) as exit_:
-        bench_main.main(["floor", *argv])
+        bench_main.main(argv)
     assert exit_.value.code == 2
     assert re.search(words, capsys.readouterr().err)

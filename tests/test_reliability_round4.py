@@ -19,6 +19,7 @@ import torch
 
 import round4_isolated
 from departing_env import Departing
+from marl_render import play
 from marl_render.bench import peers
 from marl_render.envs import (
     ArenaState,
@@ -518,3 +519,14 @@ def test_bench_peers_records_compile_physics_in_its_command():
     peers.add_arguments(parser)
     assert "--compile-physics" in peers.command_line(parser.parse_args(["--compile-physics"])).split()
     assert "--compile-physics" not in peers.command_line(parser.parse_args([])).split()
+
+
+# ---------------------------------------------------------------------- the adversarial pass: play's --frames
+@pytest.mark.parametrize("where", ["a file", "inside a file"])
+def test_play_checks_its_frames_folder_before_playing(where, tmp_path, capsys, framebuffers_made):
+    """A --frames that cannot be a folder failed with a traceback after the whole sequence was played."""
+    (tmp_path / "taken").write_text("")
+    folder = tmp_path / "taken" if where == "a file" else tmp_path / "taken" / "frames"
+    assert play.main(["tag", "--keys", "w w", "--frames", str(folder)]) == 2
+    assert f"marl_render.play: --frames '{folder}': cannot be made a folder" in capsys.readouterr().err
+    assert framebuffers_made == []  # no env was built

@@ -40,7 +40,16 @@ import numpy as np
 import torch
 from tabulate import tabulate
 
-from .common import RandomMotion, apply, arena_scene, machine, progress, time_per_call, write_report
+from .common import (
+    RandomMotion,
+    apply,
+    arena_scene,
+    machine,
+    positive_int_argument,
+    progress,
+    time_per_call,
+    write_report,
+)
 from .figures import pyplot
 
 SECTIONS = ("effects", "shadows", "appearance", "skinning", "outputs", "ablation")
@@ -50,14 +59,15 @@ EFFECT_SETS = [(), ("lighting",), ("texture",), ("fog",), ("depth",), ("segmenta
 
 
 def add_arguments(parser):
-    parser.add_argument("--worlds", type=int, default=64)
-    parser.add_argument("--agents", type=int, default=4)
-    parser.add_argument("--resolution", type=int, default=64)
-    parser.add_argument("--steps", type=int, default=20)
-    parser.add_argument("--processes", type=int, default=2)
-    parser.add_argument("--shadow-resolutions", type=int, nargs="*", default=[128, 256, 512, 1024],
+    parser.add_argument("--worlds", type=positive_int_argument, default=64)
+    parser.add_argument("--agents", type=positive_int_argument, default=4)
+    parser.add_argument("--resolution", type=positive_int_argument, default=64)
+    parser.add_argument("--steps", type=positive_int_argument, default=20)
+    parser.add_argument("--processes", type=positive_int_argument, default=2)
+    parser.add_argument("--shadow-resolutions", type=positive_int_argument, nargs="*", default=[128, 256, 512, 1024],
                         help="shadow-map texels per side (per world) to measure; none: skip shadows")
-    parser.add_argument("--rounds", type=int, default=8, help="alternating blocks per variant (appearance)")
+    parser.add_argument("--rounds", type=positive_int_argument, default=8,
+                        help="alternating blocks per variant (appearance)")
     parser.add_argument("--sections", nargs="*", default=list(SECTIONS), choices=SECTIONS,
                         help="parts to measure (default: all)")
     parser.add_argument("--out", default="out/effects")

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ..extras import require
-from .common import machine, progress
+from .common import machine, positive_int_argument, progress
 
 APIS = ("core", "vec", "sb3", "jax")
 API_EXTRAS = {"sb3": ("sb3", "stable_baselines3"), "jax": ("jax", "jax")}  # api -> (extra, module it needs)
@@ -32,11 +32,12 @@ API_EXTRAS = {"sb3": ("sb3", "stable_baselines3"), "jax": ("jax", "jax")}  # api
 
 def add_arguments(parser):
     parser.add_argument("--env", default="cartpole", help="environment name, or 'all'")
-    parser.add_argument("--worlds", type=int, nargs="+", default=[256], help="worlds per env (several: one row each)")
-    parser.add_argument("--agents", type=int, nargs="+", default=[None],
+    parser.add_argument("--worlds", type=positive_int_argument, nargs="+", default=[256],
+                        help="worlds per env (several: one row each)")
+    parser.add_argument("--agents", type=positive_int_argument, nargs="+", default=[None],
                         help="agents per world (env default if omitted; several: one row each)")
-    parser.add_argument("--resolution", type=int, nargs="+", default=[64])
-    parser.add_argument("--steps", type=int, default=30, help="timed steps per front end")
+    parser.add_argument("--resolution", type=positive_int_argument, nargs="+", default=[64])
+    parser.add_argument("--steps", type=positive_int_argument, default=30, help="timed steps per front end")
     parser.add_argument("--continuous", action="store_true")
     parser.add_argument("--device", default="cpu",
                         help="torch device of the env's tensors (e.g. cuda); the GL device is chosen by EGL")

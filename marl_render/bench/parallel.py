@@ -24,19 +24,23 @@ import time
 
 import torch
 
-from .common import machine, progress
+from .common import machine, positive_int_argument, progress
 
 KINDS = ("single", "parallel", "collect")
 
 
 def add_arguments(parser):
     parser.add_argument("--env", default="spread")
-    parser.add_argument("--worlds", type=int, default=64, help="total worlds W (split evenly over the workers)")
-    parser.add_argument("--agents", type=int, default=None, help="agents per world (env default if omitted)")
-    parser.add_argument("--resolution", type=int, default=64)
-    parser.add_argument("--steps", type=int, default=30, help="batched steps per timed repeat")
-    parser.add_argument("--repeats", type=int, default=3, help="timed repeats per configuration (median reported)")
-    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts to measure")
+    parser.add_argument("--worlds", type=positive_int_argument, default=64,
+                        help="total worlds W (split evenly over the workers)")
+    parser.add_argument("--agents", type=positive_int_argument, default=None,
+                        help="agents per world (env default if omitted)")
+    parser.add_argument("--resolution", type=positive_int_argument, default=64)
+    parser.add_argument("--steps", type=positive_int_argument, default=30, help="batched steps per timed repeat")
+    parser.add_argument("--repeats", type=positive_int_argument, default=3,
+                        help="timed repeats per configuration (median reported)")
+    parser.add_argument("--workers", type=positive_int_argument, nargs="+", default=[1, 2],
+                        help="worker counts to measure")
     parser.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
     parser.add_argument("--lp-threads", nargs="+", default=["default", "1"],
                         help="LP_NUM_THREADS of the worker processes: 'default' (unset) and/or integers")

@@ -32,6 +32,7 @@ comparison, so these are also the agent-frame ratios).
 from __future__ import annotations
 
 import json
+import math
 import os
 import shlex
 import statistics
@@ -40,7 +41,7 @@ import sys
 import tempfile
 import time
 
-from .common import machine, progress, write_report
+from .common import machine, positive_int_argument, positive_seconds_argument, progress, write_report
 
 COMPARISONS = ("meltingpot", "mpe", "pybatchrender")
 WORKER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "peers_worker.py")
@@ -61,17 +62,18 @@ def add_arguments(parser):
     parser.add_argument("--only", nargs="+", choices=COMPARISONS, default=list(COMPARISONS),
                         help="comparisons to run (default: all)")
     parser.add_argument("--rounds", type=int, default=5, help="timed rounds (>= 3; medians are reported)")
-    parser.add_argument("--block-seconds", type=float, default=1.0, help="stepping time of one block")
-    parser.add_argument("--worlds", type=int, nargs="+", default=[16, 64, 256],
+    parser.add_argument("--block-seconds", type=positive_seconds_argument, default=1.0,
+                        help="stepping time of one block")
+    parser.add_argument("--worlds", type=positive_int_argument, nargs="+", default=[16, 64, 256],
                         help="worlds of the batched marl-render commons in the meltingpot comparison")
-    parser.add_argument("--pbr-worlds", type=int, nargs="+", default=[16, 64],
+    parser.add_argument("--pbr-worlds", type=positive_int_argument, nargs="+", default=[16, 64],
                         help="worlds of both systems in the pybatchrender comparison")
     for comparison, (dest, default, target) in VENVS.items():
         parser.add_argument("--" + dest.replace("_", "-"), default=default,
                             help=f"venv of the {comparison} peer (built by `make {target}`)")
     parser.add_argument("--compile-physics", action="store_true",
                         help="also run marl-render's cartpole with compile_physics=True against PyBatchRender")
-    parser.add_argument("--lp-num-threads", type=int, default=None,
+    parser.add_argument("--lp-num-threads", type=positive_int_argument, default=None,
                         help="LP_NUM_THREADS (llvmpipe's rasteriser threads) of every worker; default: each "
                              "system's own (marl-render: 2 per core; llvmpipe's: 1 per core)")
     parser.add_argument("--out", default=None, help="also write DIR/peers.json and DIR/peers.md")
@@ -297,8 +299,8 @@ RUNNERS = {"meltingpot": compare_meltingpot, "mpe": compare_mpe, "pybatchrender"
 def run(args) -> dict:
     if args.rounds < 3:
         raise ValueError(f"--rounds must be >= 3 (medians of at least 3 rounds), got {args.rounds}")
-    if not args.block_seconds > 0:
-        raise ValueError(f"--block-seconds must be > 0, got {args.block_seconds}")
+    if not 0 < args.block_seconds < math.inf:  # inf would never end a block
+        raise ValueError(f"--block-seconds must be a finite number > 0, got {args.block_seconds}")
     if args.lp_num_threads is not None and args.lp_num_threads < 1:
         raise ValueError(f"--lp-num-threads must be >= 1, got {args.lp_num_threads}")
     comparisons = list(dict.fromkeys(args.only))

@@ -7,16 +7,17 @@ Python calls, one readback (marl_render.bench.naive). Reports views/s of both an
 """
 from __future__ import annotations
 
-from .common import RandomMotion, apply, arena_scene, machine, progress, time_per_call
+from .common import RandomMotion, apply, arena_scene, machine, positive_int_argument, progress, time_per_call
 
 
 def add_arguments(parser):
-    parser.add_argument("--worlds", type=int, default=256)
-    parser.add_argument("--agents", type=int, default=4)
-    parser.add_argument("--resolution", type=int, default=64)
-    parser.add_argument("--instances", type=int, default=10, help="instances per world (agents included)")
-    parser.add_argument("--steps", type=int, default=30)
-    parser.add_argument("--baseline-steps", type=int, default=5)
+    parser.add_argument("--worlds", type=positive_int_argument, default=256)
+    parser.add_argument("--agents", type=positive_int_argument, default=4)
+    parser.add_argument("--resolution", type=positive_int_argument, default=64)
+    parser.add_argument("--instances", type=positive_int_argument, default=10,
+                        help="instances per world (agents included)")
+    parser.add_argument("--steps", type=positive_int_argument, default=30)
+    parser.add_argument("--baseline-steps", type=positive_int_argument, default=5)
     parser.add_argument("--no-baseline", action="store_true", help="skip the plain Panda3D way")
 
 
