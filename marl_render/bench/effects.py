@@ -40,16 +40,8 @@ import numpy as np
 import torch
 from tabulate import tabulate
 
-from .common import (
-    RandomMotion,
-    apply,
-    arena_scene,
-    machine,
-    positive_int_argument,
-    progress,
-    time_per_call,
-    write_report,
-)
+from .common import RandomMotion, apply, arena_scene, machine, progress, time_per_call, write_report
+from .common import positive_int_argument as count_argument  # a count >= 1
 from .figures import pyplot
 
 SECTIONS = ("effects", "shadows", "appearance", "skinning", "outputs", "ablation")
@@ -59,14 +51,14 @@ EFFECT_SETS = [(), ("lighting",), ("texture",), ("fog",), ("depth",), ("segmenta
 
 
 def add_arguments(parser):
-    parser.add_argument("--worlds", type=positive_int_argument, default=64)
-    parser.add_argument("--agents", type=positive_int_argument, default=4)
-    parser.add_argument("--resolution", type=positive_int_argument, default=64)
-    parser.add_argument("--steps", type=positive_int_argument, default=20)
-    parser.add_argument("--processes", type=positive_int_argument, default=2)
-    parser.add_argument("--shadow-resolutions", type=positive_int_argument, nargs="*", default=[128, 256, 512, 1024],
+    parser.add_argument("--worlds", type=count_argument, default=64)
+    parser.add_argument("--agents", type=count_argument, default=4)
+    parser.add_argument("--resolution", type=count_argument, default=64)
+    parser.add_argument("--steps", type=count_argument, default=20)
+    parser.add_argument("--processes", type=count_argument, default=2)
+    parser.add_argument("--shadow-resolutions", type=count_argument, nargs="*", default=[128, 256, 512, 1024],
                         help="shadow-map texels per side (per world) to measure; none: skip shadows")
-    parser.add_argument("--rounds", type=positive_int_argument, default=8,
+    parser.add_argument("--rounds", type=count_argument, default=8,
                         help="alternating blocks per variant (appearance)")
     parser.add_argument("--sections", nargs="*", default=list(SECTIONS), choices=SECTIONS,
                         help="parts to measure (default: all)")

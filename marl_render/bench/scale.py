@@ -25,28 +25,20 @@ from tabulate import tabulate
 
 import marl_render as mr
 
-from .common import (
-    RandomMotion,
-    apply,
-    arena_scene,
-    machine,
-    positive_int_argument,
-    progress,
-    settled_rss_mb,
-    write_report,
-)
+from .common import RandomMotion, apply, arena_scene, machine, progress, settled_rss_mb, write_report
+from .common import positive_int_argument as count_argument  # a count >= 1
 from .figures import pyplot
 
 STAGES = ("pack", "cull", "gl", "copy")
 
 
 def add_arguments(parser):
-    parser.add_argument("--views", type=positive_int_argument, nargs="+", default=[16, 64, 256, 1024, 4096])
-    parser.add_argument("--resolutions", type=positive_int_argument, nargs="+", default=[32, 64, 128, 256, 512])
-    parser.add_argument("--resolution", type=positive_int_argument, default=64, help="resolution of the views sweep")
-    parser.add_argument("--fixed-views", type=positive_int_argument, default=256, help="views of the resolution sweep")
-    parser.add_argument("--agents", type=positive_int_argument, default=4)
-    parser.add_argument("--steps", type=positive_int_argument, default=10)
+    parser.add_argument("--views", type=count_argument, nargs="+", default=[16, 64, 256, 1024, 4096])
+    parser.add_argument("--resolutions", type=count_argument, nargs="+", default=[32, 64, 128, 256, 512])
+    parser.add_argument("--resolution", type=count_argument, default=64, help="resolution of the views sweep")
+    parser.add_argument("--fixed-views", type=count_argument, default=256, help="views of the resolution sweep")
+    parser.add_argument("--agents", type=count_argument, default=4)
+    parser.add_argument("--steps", type=count_argument, default=10)
     parser.add_argument("--out", default="out/scale")
 
 
