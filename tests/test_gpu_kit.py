@@ -61,7 +61,7 @@ def test_the_dry_run_writes_one_json_with_every_stage(tmp_path):
         assert stages[name]["status"] == "ok" and stages[name]["exit_status"] == 0, stages[name]["stderr_tail"]
         assert 0 < stages[name]["seconds"] <= stages[name]["limit_seconds"] + 5
     for name in ("env-cartpole-0", "env-spread:4-0"):
-        assert stages[name]["status"] == "failed" and "num_worlds must be an int >= 1, got 0" in \
+        assert stages[name]["status"] == "failed" and "argument --worlds: expected an int >= 1, got 0" in \
             stages[name]["stderr_tail"]
     assert report["mode"] == "cpu" and report["ok"] is False  # the two refused sizes
     requirements = stages["requirements"]["result"]
