@@ -35,19 +35,29 @@ def load(name: str):
 build, report = load("build"), load("report")
 
 
-def check(tmp_path: Path, *arguments: str) -> dict:
-    """check.sh --cpu with this environment's python; its JSON."""
+def check(tmp_path: Path, *arguments: str, python: str = sys.executable, cwd: Path | None = None) -> dict:
+    """check.sh --cpu with this environment's python (or `python`), started in `cwd`; its JSON."""
     target = tmp_path / "check.json"
-    done = subprocess.run(["bash", str(KIT / "check.sh"), "--cpu", "--python", sys.executable, "--json", str(target),
-                           *arguments], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    done = subprocess.run(["bash", str(KIT / "check.sh"), "--cpu", "--python", python, "--json", str(target),
+                           *arguments], capture_output=True, text=True, timeout=600, cwd=cwd or tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads(target.read_text())
 
 
 def test_the_dry_run_writes_one_json_with_every_stage(tmp_path):
+    # Started from the checkout's root, as the device tool starts it: every stage's Python must run
+    # elsewhere, or `python -m marl_render` imports the checkout's marl_render/ (without envs/ and glsl/,
+    # which only an install maps in) instead of the kit's install. A wrapper records where it ran.
+    where = tmp_path / "where.log"
+    python = tmp_path / "python"
+    python.write_text(f'#!/bin/sh\npwd >> "{where}"\nexec "{sys.executable}" "$@"\n')
+    python.chmod(0o755)
     report = check(tmp_path, "--sizes", "4", "--more", "0 8", "--steps", "2",
                    "--tests", f"{ROOT}/tests/test_renderer.py::test_box_projects_where_a_pinhole_camera_puts_it",
-                   "--render-args", "--worlds 2 --agents 2 --resolution 16 --steps 2 --baseline-steps 1")
+                   "--render-args", "--worlds 2 --agents 2 --resolution 16 --steps 2 --baseline-steps 1",
+                   python=str(python), cwd=ROOT)
+    directories = where.read_text().splitlines()
+    assert len(directories) >= 7 and not any(Path(d).is_relative_to(ROOT) for d in directories), directories
     stages = {stage["name"]: stage for stage in report["stages"]}
     # The GPU-only stages are skipped; a failed size ends its task's larger sizes (0 worlds: refused,
     # so 8 is not tried), and the check goes on to write its JSON.

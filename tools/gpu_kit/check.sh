@@ -44,6 +44,11 @@ done
 
 START=$(date +%s)
 WORK="$(mktemp -d)"               # each stage's command, output, status and time
+JSON="$(realpath -m "$JSON")"
+# Every stage runs in WORK: started from a checkout's root (as the device tool starts it), `python -m
+# marl_render` would import the checkout's marl_render/, which lacks envs/ and glsl/ (an install maps
+# them in), instead of the kit's install.
+cd "$WORK"
 if [ -z "$DEVICE" ]; then
     DEVICE=cuda
     [ "$MODE" = cpu ] && DEVICE=cpu
