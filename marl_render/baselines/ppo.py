@@ -11,6 +11,7 @@ its samples after termination (actions ignored, reward 0) are left out of the lo
 """
 from __future__ import annotations
 
+import contextlib
 import time
 
 import torch
@@ -27,6 +28,24 @@ from marl_render.envs.evaluation import opponent_mask, random_policy
 
 from .networks import Actor, CentralCritic, merge_moments
 from .settings import Hyperparameters
+
+
+class StageClock:
+    """Wall-clock seconds per stage of training, summed over the run: ``with clock("env"): ...``.
+    Always on (two perf_counter calls per stage entry), so that result.json says where the time went."""
+
+    STAGES = ("env", "observation", "policy_forward", "gae", "minibatch", "loss_forward_backward", "optimiser")
+
+    def __init__(self):
+        self.seconds = dict.fromkeys(self.STAGES, 0.0)
+
+    @contextlib.contextmanager
+    def __call__(self, stage: str):
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] += time.perf_counter() - started
 
 
 class FrameStack:
@@ -109,7 +128,12 @@ class MAPPO:
         self.reward_scale = RewardScale((env.num_worlds, self.agents), hp.gamma)
         self.running_return = torch.zeros(env.num_worlds, dtype=torch.float64)
         self.env_steps = 0  # env steps summed over worlds
-        self.seconds_stepping = 0.0
+        self.clock = StageClock()
+
+    @property
+    def seconds_stepping(self) -> float:
+        """Seconds spent in the env (steps and resets of ended worlds) while training."""
+        return self.clock.seconds["env"]
 
     def _observation(self, obs: dict) -> torch.Tensor:
         """The trained agents' observation [W, At, ...] of an obs dict."""
@@ -130,12 +154,22 @@ class MAPPO:
         self.critic_net.norm.update(state)
         return state
 
-    @torch.no_grad()
     def collect(self) -> tuple[TensorDict, list]:
         """One rollout of hp.rollout decisions in every world: (the samples of the trained agents
         that were alive, flattened, with advantage and value_target; the returns of the episodes
         that ended, each the sum of the trained agents' rewards averaged over them)."""
-        hp, env = self.hp, self.env
+        started = time.perf_counter()
+        inner = sum(self.clock.seconds[k] for k in ("env", "policy_forward", "gae"))
+        out = self._collect()
+        # Observation handling is what the rollout spent outside the env, the networks and GAE.
+        self.clock.seconds["observation"] += (time.perf_counter() - started
+                                              - (sum(self.clock.seconds[k] for k in ("env", "policy_forward", "gae"))
+                                                 - inner))
+        return out
+
+    @torch.no_grad()
+    def _collect(self) -> tuple[TensorDict, list]:
+        hp, env, clock = self.hp, self.env, self.clock
         T, W, At = hp.rollout, env.num_worlds, self.agents
         steps = []
         ended = []
@@ -149,20 +183,19 @@ class MAPPO:
                 self.actor_net.state_norm.update(self.last_obs_state)
             mask = self.last_obs["action_mask"][:, self.trained]
             td = self._inputs(observation, global_state[:, None].expand(W, At, -1), mask)
-            with set_exploration_type(ExplorationType.RANDOM):
+            with clock("policy_forward"), set_exploration_type(ExplorationType.RANDOM):
                 self.actor(td)
-            self.critic(td)
+                self.critic(td)
             actions = random_policy(env, self.last_obs, self.generator)
             actions[:, self.trained] = td["action"].reshape(W, At)
             alive = self.alive[:, self.trained].clone()
-            started = time.perf_counter()
             reward, done, terminated = self._act(actions)
-            self.seconds_stepping += time.perf_counter() - started
             bootstrap = torch.zeros(W, At)
             if bool(done.any()):  # the value of the state each ended episode stopped in
                 final = self._inputs(self.stack.stack, self._global_state(self.last_obs)[:, None].expand(W, At, -1),
                                      mask)
-                bootstrap = self.critic(final)["state_value"].reshape(W, At)
+                with clock("policy_forward"):
+                    bootstrap = self.critic(final)["state_value"].reshape(W, At)
                 ended += (self.running_return[done] + reward[done].mean(-1).double()).tolist()
                 self._reset(done)
             self.running_return = torch.where(done, 0.0, self.running_return + reward.mean(-1).double())
@@ -176,16 +209,18 @@ class MAPPO:
         batch = {key: torch.stack([s[key] for s in steps]) for key in steps[0]}  # [T, W, ...]
         final = self._inputs(self.stack.stack, self._global_state(self.last_obs)[:, None].expand(W, At, -1),
                              self.last_obs["action_mask"][:, self.trained])
-        last_value = self.critic(final)["state_value"].reshape(1, W, At)
+        with clock("policy_forward"):
+            last_value = self.critic(final)["state_value"].reshape(1, W, At)
         next_value = torch.cat((batch["value"][1:], last_value))
         next_value = torch.where(batch["world_done"], batch["bootstrap"], next_value)
 
         def by_time(x):  # [T, W, At] -> [W * At, T, 1]: GAE's layout
             return x.permute(1, 2, 0).reshape(W * At, T, 1)
 
-        advantage, value_target = generalized_advantage_estimate(
-            hp.gamma, hp.gae_lambda, by_time(batch["value"]), by_time(next_value), by_time(batch["reward"]),
-            by_time(batch["done"]), by_time(batch["terminated"]))
+        with clock("gae"):
+            advantage, value_target = generalized_advantage_estimate(
+                hp.gamma, hp.gae_lambda, by_time(batch["value"]), by_time(next_value), by_time(batch["reward"]),
+                by_time(batch["done"]), by_time(batch["terminated"]))
 
         def back(x):  # [W * At, T, 1] -> [T, W, At, 1]
             return x.reshape(W, At, T, 1).permute(2, 0, 1, 3)
@@ -205,7 +240,8 @@ class MAPPO:
         done = torch.zeros(W, dtype=torch.bool)
         terminated = torch.zeros(W, self.agents, dtype=torch.bool)
         for _ in range(self.hp.action_repeat):
-            obs, r, term, _, info = self.env.step(actions)
+            with self.clock("env"):
+                obs, r, term, _, info = self.env.step(actions)
             reward += r[:, self.trained] * ~done[:, None]
             terminated |= term[:, self.trained] & self.alive[:, self.trained] & ~done[:, None]
             self.alive &= ~term
@@ -216,30 +252,35 @@ class MAPPO:
         return reward, done, terminated
 
     def _reset(self, worlds: torch.Tensor) -> None:
-        self.last_obs = self.env.reset_worlds(worlds)
+        with self.clock("env"):
+            self.last_obs = self.env.reset_worlds(worlds)
         self.alive |= worlds[:, None]
         self.stack.restart(self._observation(self.last_obs), worlds)
 
     def update(self, samples: TensorDict) -> dict:
         """hp.epochs passes of ClipPPOLoss over `samples` in hp.minibatches minibatches; the mean
         of the loss terms of the last pass."""
-        hp = self.hp
+        hp, clock = self.hp, self.clock
         size = len(samples)
         minibatch = max(size // hp.minibatches, 1)
         for _ in range(hp.epochs):
             terms = []
             for index in torch.randperm(size).split(minibatch):
-                minibatch_samples = samples[index]
-                out = self.loss(minibatch_samples)
-                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
-                if self.aux_state:  # on the features of the forward the PPO loss just ran
-                    target = self.actor_net.state_norm(minibatch_samples["own_state"])
-                    out["loss_aux_state"] = (self.actor_net.state_head(self.actor_net.features) - target).pow(2).mean()
-                    total = total + self.aux_state * out["loss_aux_state"]
-                self.optimizer.zero_grad()
-                total.backward()
-                nn.utils.clip_grad_norm_(self.loss.parameters(), hp.max_grad_norm)
-                self.optimizer.step()
+                with clock("minibatch"):
+                    minibatch_samples = samples[index]
+                with clock("loss_forward_backward"):
+                    out = self.loss(minibatch_samples)
+                    total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+                    if self.aux_state:  # on the features of the forward the PPO loss just ran
+                        target = self.actor_net.state_norm(minibatch_samples["own_state"])
+                        out["loss_aux_state"] = (self.actor_net.state_head(self.actor_net.features)
+                                                 - target).pow(2).mean()
+                        total = total + self.aux_state * out["loss_aux_state"]
+                    self.optimizer.zero_grad()
+                    total.backward()
+                with clock("optimiser"):
+                    nn.utils.clip_grad_norm_(self.loss.parameters(), hp.max_grad_norm)
+                    self.optimizer.step()
                 terms.append({k: float(out[k].detach().mean()) for k in ("loss_objective", "loss_critic", "entropy",
                                                                          "explained_variance", "loss_aux_state")
                               if k in out.keys()})

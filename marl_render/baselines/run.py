@@ -177,6 +177,7 @@ def main(argv=None) -> int:
         "budget_minutes": args.budget_minutes,
         "wall_clock_seconds": time.perf_counter() - started,
         "training_seconds": training_seconds, "env_seconds_in_training": trainer.seconds_stepping,
+        "stage_seconds": trainer.clock.seconds,
         "evaluation_seconds": evaluation_seconds,
         "env_steps": trainer.env_steps, "updates": updates,
         "hyperparameters": dataclasses.asdict(hp),
