@@ -40,7 +40,8 @@ def heuristic_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
 
 
 def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution: int = 16, **kwargs) -> dict:
-    """Mean, std, min and max episode return of `policy` over `episodes` episodes (one per world)."""
+    """Mean, std, min and max episode return of `policy` over `episodes` episodes (one per world), and
+    each episode's return (``per_episode``, in world order)."""
     env = make_env(name, num_worlds=episodes, resolution=resolution, seed=seed, **kwargs)
     try:
         generator = torch.Generator().manual_seed(seed + 1)
@@ -64,6 +65,7 @@ def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution
         per_world = (episode_return * evaluated).sum(-1) / evaluated.sum()
         return {"mean": float(per_world.mean()), "std": float(per_world.std(unbiased=False)),
                 "min": float(per_world.min()), "max": float(per_world.max()), "episodes": episodes,
+                "per_episode": per_world.tolist(),
                 "evaluated_agents": [n for n, e in zip(env.agent_names, evaluated.tolist(), strict=True) if e]}
     finally:
         env.close()
@@ -102,6 +104,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed of the envs and the random policy")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
     names = list_envs() if args.env == ["all"] else args.env
     for name in names:
         env_class(name)  # an unknown name fails now, listing the known ones

@@ -2,34 +2,44 @@
 training results), its argument errors, and the report generator on those files."""
 import json
 import math
+import os
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from marl_render.baselines import report, run
 from marl_render.baselines.ppo import FrameStack
 from marl_render.baselines.settings import Hyperparameters, task_hyperparameters
 
-TINY = ["--budget-minutes", "0.02", "--worlds", "2", "--resolution", "8", "--episodes", "2", "--rollout", "4"]
+# 3 updates of 2 worlds x 4 decisions; checkpoints after updates 2 and 3 (16 and 24 env steps).
+TINY = ["--env-steps", "24", "--checkpoint-every", "12", "--checkpoint-episodes", "2", "--worlds", "2",
+        "--resolution", "8", "--episodes", "2", "--rollout", "4"]
+# report.py still writes --budget-minutes into its reproducing commands: a cap that a tiny run never reaches
+CAP = ["--max-minutes", "30"]
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """Two tiny runs: spread from pixels, tag (random prey) from the state."""
     root = tmp_path_factory.mktemp("baselines")
-    assert run.main(["--env", "spread", "--out", str(root / "spread"), *TINY]) == 0
-    assert run.main(["--env", "tag", "--obs", "state", "--out", str(root / "tag-state"), *TINY]) == 0
+    assert run.main(["--env", "spread", "--out", str(root / "spread"), *TINY, *CAP]) == 0
+    assert run.main(["--env", "tag", "--obs", "state", "--out", str(root / "tag-state"), *TINY, *CAP]) == 0
     return root
 
 
 def _check_return(r: dict, episodes: int):
-    assert set(r) >= {"mean", "std", "min", "max", "episodes", "evaluated_agents"}
-    assert r["episodes"] == episodes
+    assert set(r) >= {"mean", "std", "min", "max", "episodes", "per_episode"}
+    assert r["episodes"] == episodes == len(r["per_episode"])
     assert all(isinstance(r[k], float) and math.isfinite(r[k]) for k in ("mean", "std", "min", "max"))
     assert r["min"] <= r["mean"] <= r["max"]
+    assert r["mean"] == pytest.approx(sum(r["per_episode"]) / episodes)
+    assert (r["min"], r["max"]) == (min(r["per_episode"]), max(r["per_episode"]))
 
 
 @pytest.mark.parametrize("folder, env, obs, trained",
@@ -38,22 +48,31 @@ def test_result_json_has_every_field(runs, folder, env, obs, trained):
     result = json.loads((runs / folder / "result.json").read_text())
     assert result["env"] == env and result["obs"] == obs
     assert result["command"].startswith("python -m marl_render.baselines --env ")
-    assert result["seeds"] == {"train": 0, "evaluation": 1000}
+    assert result["seeds"] == {"train": 0, "evaluation": 1000} and result["evaluation_set"] == "development"
     assert set(result["versions"]) >= {"marl_render", "torch", "torchrl", "tensordict"}
     assert result["hyperparameters"] == {**vars(task_hyperparameters(env)), "worlds": 2, "resolution": 8,
                                          "rollout": 4}
     assert len(result["trained_agents"]) == trained
-    assert isinstance(result["env_steps"], int) and result["env_steps"] >= 2 * 4  # one update at least
-    assert result["updates"] == len(result["curve"]) >= 1
-    for key in ("wall_clock_seconds", "training_seconds", "evaluation_seconds"):
+    assert result["budget"] == {"env_steps": 24, "updates": 3, "max_minutes": 30}
+    assert result["env_steps"] == 24 and result["updates"] == 3 and result["truncated"] is False
+    for key in ("wall_clock_seconds", "training_seconds", "evaluation_seconds", "env_seconds_in_training"):
         assert isinstance(result[key], float) and result[key] > 0
-    steps = [p["env_steps"] for p in result["curve"]]
-    assert steps == sorted(steps) and steps[-1] == result["env_steps"]
+    stages = result["stage_seconds"]
+    assert set(stages) == {"env", "observation", "policy_forward", "gae", "minibatch", "loss_forward_backward",
+                           "optimiser"}
+    assert all(v >= 0 for v in stages.values()) and sum(stages.values()) <= result["training_seconds"]
+    assert stages["env"] == result["env_seconds_in_training"]
+    assert [p["env_steps"] for p in result["curve"]] == [8, 16, 24]
     for point in result["curve"]:
         assert set(point) >= {"env_steps", "seconds", "episode_return", "episodes_ended", "entropy"}
         assert point["episode_return"] is None or isinstance(point["episode_return"], float)
+    assert [c["env_steps"] for c in result["checkpoints"]] == [16, 24]
+    for checkpoint in result["checkpoints"]:
+        assert checkpoint["evaluation_set"] == "development" and checkpoint["seconds"] > 0
+        _check_return(checkpoint, 2)
     for policy in ("policy", "random", "heuristic"):
         _check_return(result["evaluation"][policy], 2)
+        assert len(result["evaluation"][policy]["evaluated_agents"]) == trained
 
 
 def test_curve_png_is_written(runs):
@@ -83,7 +102,25 @@ def test_report_reads_the_learners_runs(runs, tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--env", "nope"], "invalid choice"),
     (["--env", "spread", "--worlds", "0"], "--worlds must be >= 1, got 0"),
-    (["--env", "spread", "--budget-minutes", "-1"], "--budget-minutes must be > 0, got -1"),
+    (["--env", "spread", "--max-minutes", "-1"], "--max-minutes must be a finite number > 0, got -1.0"),
+    (["--env", "spread", "--budget-minutes", "nan"], "--max-minutes must be a finite number > 0, got nan"),
+    (["--env", "spread", "--max-minutes", "inf"], "--max-minutes must be a finite number > 0, got inf"),
+    (["--env", "spread", "--env-steps", "0"], "--env-steps must be >= 1, got 0"),
+    (["--env", "spread", "--updates", "-3"], "--updates must be >= 1, got -3"),
+    (["--env", "spread", "--updates", "3", "--env-steps", "9"], "not allowed with argument"),
+    (["--env", "spread", "--gamma", "5"], "--gamma must be > 0.0 and <= 1.0, got 5.0"),
+    (["--env", "spread", "--gamma", "nan"], "--gamma must be > 0.0 and <= 1.0, got nan"),
+    (["--env", "spread", "--clip", "-1"], "--clip must be > 0.0, got -1.0"),
+    (["--env", "spread", "--lr", "0"], "--lr must be > 0.0, got 0.0"),
+    (["--env", "spread", "--gae-lambda", "1.5"], "--gae-lambda must be >= 0.0 and <= 1.0, got 1.5"),
+    (["--env", "spread", "--hidden", "0"], "--hidden must be >= 1, got 0"),
+    (["--env", "spread", "--entropy", "-0.1"], "--entropy must be >= 0.0, got -0.1"),
+    (["--env", "spread", "--checkpoint-every", "-1"], "--checkpoint-every must be >= 0"),
+    (["--env", "spread", "--episodes", "0"], "--episodes must be >= 1, got 0"),
+    (["--env", "spread", "--env-option", "autoreset=True"], "autoreset: not supported, the learner resets"),
+    (["--env", "spread", "--env-option", "autoreset='next_step'"], "autoreset: not supported"),
+    (["--env", "spread", "--train-option", "continuous=True"], "continuous: not supported"),
+    (["--env", "spread", "--out", "/proc/self/baselines"], "--out must be a folder this process can write to"),
 ])
 def test_bad_arguments_are_named(args, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -92,11 +129,112 @@ def test_bad_arguments_are_named(args, message, capsys):
     assert message in capsys.readouterr().err
 
 
+def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys):
+    taken = tmp_path / "result"
+    taken.write_text("not a folder")
+    for out in (taken, taken / "below"):
+        started = time.perf_counter()
+        with pytest.raises(SystemExit):
+            run.main(["--env", "spread", "--out", str(out), *TINY])
+        assert time.perf_counter() - started < 5  # refused by the parser: no env was built, nothing trained
+        assert "--out must be a folder this process can write to" in capsys.readouterr().err
+    assert taken.read_text() == "not a folder"
+    (tmp_path / "new").mkdir()
+    run.parse_args(["--env", "spread", "--out", str(tmp_path / "new" / "a" / "b")])
+    assert list((tmp_path / "new").iterdir()) == []  # checked, nothing left behind
+
+
+def test_the_reference_evaluation_refuses_zero_episodes():
+    result = subprocess.run([sys.executable, "-m", "marl_render.envs.evaluation", "--env", "spread", "--episodes",
+                             "0"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert "--episodes must be >= 1, got 0" in result.stderr and "Traceback" not in result.stderr
+
+
+def _numbers(result: dict):
+    """result.json without what measures time or the machine's load."""
+    if isinstance(result, dict):
+        return {k: _numbers(v) for k, v in result.items() if "seconds" not in k and k != "machine"}
+    if isinstance(result, list):
+        return [_numbers(v) for v in result]
+    return result
+
+
+def test_the_same_command_gives_the_same_numbers(tmp_path):
+    """Training stops on env steps, not on the clock: two runs of one command agree in every number but
+    the timings, in separate processes (as a user would run them)."""
+    results = []
+    for name in ("first", "second"):
+        command = [sys.executable, "-m", "marl_render.baselines", "--env", "spread", "--out", str(tmp_path / name),
+                   *TINY, "--env-steps", "16", "--episodes", "3"]
+        subprocess.run(command, check=True, capture_output=True, timeout=300)
+        results.append(json.loads((tmp_path / name / "result.json").read_text()))
+    first, second = map(_numbers, results)
+    assert first["curve"][0]["loss_objective"] != 0.0 and first["evaluation"]["policy"]["per_episode"]
+    assert first == {**second, "command": first["command"]}
+
+
+def test_publication_set_scores_the_final_policy_and_the_references(tmp_path):
+    out = tmp_path / "publication"
+    assert run.main(["--env", "spread", "--out", str(out), *TINY, "--env-steps", "8", "--eval-set", "publication",
+                     "--checkpoint-every", "0"]) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["evaluation_set"] == "publication" and result["seeds"]["evaluation"] == 7_000_000
+    assert result["checkpoints"] == []
+    for policy in ("policy", "random", "heuristic"):
+        _check_return(result["evaluation"][policy], 2)
+
+
+def test_weights_and_result_are_saved_before_the_curve_is_drawn(tmp_path, monkeypatch):
+    def no_plot(result, path):
+        raise RuntimeError("drawing failed")
+    monkeypatch.setattr(run, "plot_curve", no_plot)
+    out = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="drawing failed"):
+        run.main(["--env", "spread", "--out", str(out), *TINY, "--env-steps", "8", "--checkpoint-every", "0"])
+    assert json.loads((out / "result.json").read_text())["env_steps"] == 8
+    assert set(torch.load(out / "actor.pt")) >= {"head.0.weight"}
+    assert sorted(p.name for p in out.iterdir()) == ["actor.pt", "result.json"]  # no temporary file left
+
+
+def test_result_json_is_written_after_the_weights(tmp_path, monkeypatch):
+    """A run whose weights could not be saved leaves no result.json that says it is done."""
+    def no_save(*args, **kwargs):
+        raise OSError("disk full")
+    monkeypatch.setattr(run.torch, "save", no_save)
+    out = tmp_path / "run"
+    with pytest.raises(OSError, match="disk full"):
+        run.main(["--env", "spread", "--out", str(out), *TINY, "--env-steps", "8", "--checkpoint-every", "0"])
+    assert list(out.iterdir()) == []
+
+
+def test_a_missing_matplotlib_stops_the_run_at_once_naming_the_extra(tmp_path):
+    code = ("import sys; sys.modules['matplotlib'] = None\n"
+            "from marl_render.baselines.run import main\n"
+            f"main(['--env', 'spread', '--out', {str(tmp_path / 'run')!r}, '--env-steps', '100000000'])")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines() == [
+        "python -m marl_render.baselines draws curve.png with matplotlib, which is not installed: "
+        "pip install 'marl-render[bench]'"]
+    assert not (tmp_path / "run").exists()
+
+
+def test_max_minutes_stops_training_and_marks_the_run_truncated(tmp_path):
+    out = tmp_path / "capped"
+    assert run.main(["--env", "spread", "--out", str(out), *TINY, "--env-steps", "100000000", "--max-minutes",
+                     "1e-9", "--checkpoint-every", "0"]) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["truncated"] is True and result["updates"] == 1 and result["env_steps"] == 8
+    assert result["budget"]["env_steps"] == 100_000_000 and result["budget"]["max_minutes"] == 1e-9
+
+
 def test_help_runs_as_a_module():
     result = subprocess.run([sys.executable, "-m", "marl_render.baselines", "--help"], capture_output=True,
                             text=True, timeout=60)
     assert result.returncode == 0
-    assert "--budget-minutes" in result.stdout and "--obs" in result.stdout
+    for option in ("--env-steps", "--updates", "--max-minutes", "--eval-set", "--checkpoint-every", "--obs"):
+        assert option in result.stdout
 
 
 def test_task_hyperparameters_apply_task_defaults_then_overrides():
@@ -108,7 +246,6 @@ def test_task_hyperparameters_apply_task_defaults_then_overrides():
 
 
 def test_frame_stack_keeps_the_last_frames_and_restarts_worlds():
-    import torch
     stack = FrameStack(3)
     first = torch.zeros(2, 1, 1)
     assert stack.reset(first).tolist() == [[[0, 0, 0]], [[0, 0, 0]]]
@@ -124,17 +261,19 @@ def test_learning_accuracy_study_runs_and_reports(tmp_path):
     from marl_render.baselines import learning_accuracy
 
     out = tmp_path / "learning"
-    argv = ["--minutes", "0.03", "--seeds", "0", "1", "--settings", "32px", "32px-msaa4", "--episodes", "2",
-            "--jobs", "2", "--out", str(out), "--worlds", "2", "--rollout", "4"]
+    argv = ["--env-steps", "16", "--seeds", "0", "1", "--settings", "32px", "32px-msaa4", "--episodes", "2",
+            "--jobs", "2", "--out", str(out), "--worlds", "2", "--rollout", "4", "--checkpoint-every", "0"]
     assert learning_accuracy.main(argv) == 0
     for setting in ("32px", "32px-msaa4"):
         for seed in (0, 1):
             result = json.loads((out / f"{setting}-seed{seed}" / "result.json").read_text())
             assert result["seeds"]["train"] == seed and result["hyperparameters"]["worlds"] == 2
+            assert result["env_steps"] == 16 and (out / f"{setting}-seed{seed}" / "actor.pt").is_file()
     msaa = json.loads((out / "32px-msaa4-seed0" / "result.json").read_text())
     assert msaa["env_options"] == {"multisamples": 4} and msaa["hyperparameters"]["resolution"] == 32
     summary = json.loads((tmp_path / "learning.json").read_text())
-    assert summary["seeds"] == [0, 1] and set(summary["settings"]) == {"32px", "32px-msaa4"}
+    assert summary["seeds"] == [0, 1] and summary["env_steps"] == 16
+    assert set(summary["settings"]) == {"32px", "32px-msaa4"}
     for entry in summary["settings"].values():
         assert entry["seeds"] == 2 and [r["seed"] for r in entry["runs"]] == [0, 1]
         assert entry["env_steps_per_second_mean"] > 0
@@ -149,7 +288,7 @@ def test_learning_accuracy_study_runs_and_reports(tmp_path):
 
 def test_env_and_train_options_reach_the_envs(tmp_path):
     out = tmp_path / "push"
-    assert run.main(["--env", "push", "--out", str(out), *TINY, "--train-option", "shaping=0.5",
+    assert run.main(["--env", "push", "--out", str(out), *TINY, "--env-steps", "8", "--train-option", "shaping=0.5",
                      "--env-option", "max_steps=20"]) == 0
     result = json.loads((out / "result.json").read_text())
     assert result["env_options"] == {"max_steps": 20} and result["train_options"] == {"shaping": 0.5}
@@ -174,3 +313,64 @@ def test_learning_accuracy_checks_the_learner_options_before_running(tmp_path, c
         learning_accuracy.main(["--out", str(tmp_path / "runs"), "--worlds", "0"])
     assert "--worlds must be >= 1" in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()
+
+
+def test_learning_accuracy_refuses_duplicate_seeds(tmp_path, capsys):
+    from marl_render.baselines import learning_accuracy
+
+    with pytest.raises(SystemExit):
+        learning_accuracy.main(["--out", str(tmp_path / "runs"), "--seeds", "0", "1", "0"])
+    assert "--seeds must be distinct, got 0 1 0" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_learning_accuracy_reruns_a_truncated_or_partial_result(tmp_path):
+    """A result.json cut off mid-write, or from a run stopped by a safety cap, is not a finished run."""
+    from marl_render.baselines import learning_accuracy
+
+    out = tmp_path / "learning"
+    argv = ["--env-steps", "8", "--seeds", "0", "1", "--settings", "32px", "--episodes", "2", "--out", str(out),
+            "--worlds", "2", "--rollout", "4", "--resolution", "8", "--checkpoint-every", "0"]
+    for seed, text in ((0, '{"env": "spread", "evaluation": {"poli'),
+                       (1, json.dumps({"env": "spread", "truncated": True, "evaluation": {"policy": {"mean": 1.0}}}))):
+        (out / f"32px-seed{seed}").mkdir(parents=True)
+        (out / f"32px-seed{seed}" / "result.json").write_text(text)
+    assert learning_accuracy.main(argv) == 0
+    for seed in (0, 1):
+        result = json.loads((out / f"32px-seed{seed}" / "result.json").read_text())
+        assert result["truncated"] is False and result["env_steps"] == 8 and result["seeds"]["train"] == seed
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_interrupting_learning_accuracy_stops_its_training_run(tmp_path, sig):
+    """The study runs each training in its own process group and ends it however the study ends."""
+    out = tmp_path / "learning"
+    study = subprocess.Popen([sys.executable, "-m", "marl_render.baselines.learning_accuracy", "--env-steps",
+                              "100000000", "--seeds", "0", "--settings", "32px", "--episodes", "2", "--out", str(out),
+                              "--worlds", "2", "--rollout", "4", "--checkpoint-every", "0"],
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = ""
+        while "(pid " not in line:
+            line = study.stdout.readline()
+            assert line, "the study ended before starting its run"
+        child = int(line.split("(pid ")[1].split(")")[0])
+        deadline = time.monotonic() + 120
+        while "update 1/" not in (out / "32px-seed0" / "run.log").read_text():  # the child is training
+            assert time.monotonic() < deadline and study.poll() is None
+            time.sleep(0.2)
+        study.send_signal(sig)
+        study.wait(60)
+    finally:
+        if study.poll() is None:
+            study.kill()
+    assert study.returncode != 0
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            os.kill(child, 0)  # the child's group was stopped and reaped by the study
+        except ProcessLookupError:
+            break
+        assert time.monotonic() < deadline, f"training run {child} outlived the study"
+        time.sleep(0.2)
+    assert not (out / "32px-seed0" / "result.json").exists()

@@ -1,9 +1,11 @@
 """Reference results: every task learned from pixels, one command per task.
 
-    python -m marl_render.baselines --env spread                  # 15 minutes, writes out/baselines/spread/
-    python -m marl_render.baselines --env cartpole --budget-minutes 30 --out docs/baselines/cartpole
+    python -m marl_render.baselines --env spread                  # the task's step budget, out/baselines/spread/
+    python -m marl_render.baselines --env cartpole --env-steps 2000000 --out docs/baselines/cartpole
     python -m marl_render.baselines.published                     # every published command (make baselines runs them)
     python -m marl_render.baselines.report                        # docs/baselines.md from docs/baselines/*/
+
+or from Python, on any registered task: ``train("spread", env_steps=200_000)`` (training.py).
 
 The learner is MAPPO (PPO with a centralised critic) written with TorchRL's ClipPPOLoss and
 GAE: one actor shared by the trained agents (an agent one-hot tells them apart) sees only the
@@ -13,12 +15,14 @@ the state observations of all agents of the world. The learned greedy policy is 
 scripted heuristic policies (docs/reference_returns.json).
 
 Modules: settings (hyperparameters and their per-task defaults), networks (actor and critic),
-ppo (rollouts and updates), policy (the greedy policy handed to evaluate), curve (curve.png),
-run (the command line and result.json), published (the published runs as data, ``make
-baselines``), stats (interquartile mean and stratified bootstrap intervals across seeds, as
-rliable), report (docs/baselines.md) with figures (its pictures) and marl_eval (the runs in
-marl-eval's JSON layout, as BenchMARL writes them).
+ppo (rollouts and updates), training (``train``: the loop, its budget and checkpoints), policy (the
+greedy policy handed to evaluate), curve (curve.png), run (the command line and result.json),
+published (the published runs as data, ``make baselines``), stats (interquartile mean and
+stratified bootstrap intervals across seeds, as rliable), report (docs/baselines.md) with figures
+(its pictures) and marl_eval (the runs in marl-eval's JSON layout, as BenchMARL writes them).
 """
-from .settings import TASK_DEFAULTS, Hyperparameters, task_hyperparameters
+from .settings import EVALUATION_SETS, STEP_BUDGETS, TASK_DEFAULTS, Hyperparameters, task_hyperparameters
+from .training import TrainingRun, train
 
-__all__ = ["Hyperparameters", "TASK_DEFAULTS", "task_hyperparameters"]
+__all__ = ["EVALUATION_SETS", "Hyperparameters", "STEP_BUDGETS", "TASK_DEFAULTS", "TrainingRun", "task_hyperparameters",
+           "train"]

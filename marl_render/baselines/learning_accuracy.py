@@ -1,17 +1,20 @@
-"""What accuracy costs in learning: one task trained at equal wall-clock under each setting.
+"""What accuracy costs in learning: one task trained for the same env steps under each setting.
 
-    python -m marl_render.baselines.learning_accuracy                  # runs + report, ~70 min
+    python -m marl_render.baselines.learning_accuracy                  # runs + report
     python -m marl_render.baselines.learning_accuracy --report-only    # report from the runs there
 
 Each setting changes one thing against the reference (the baseline's defaults: 32 px RGB, no
 anti-aliasing, the task's own physics substeps, 2 for spread): the resolution (48, 64 px), MSAA 4, finer
 physics (4, 8 substeps; coarser than 2 is refused by spread's no-tunnelling bound) and
-grayscale pixels. Every run is ``python -m marl_render.baselines`` with the same budget and
-the settings' options (``--env-option``: the training and evaluation envs both use the
-setting, as a user who picked it would), for every seed. Runs are done one at a time (two with
---jobs 2, to use two cores; every run then shares the machine alike); a run whose result.json
-exists is kept, so an interrupted study resumes. Options not listed below go to every run's
-``python -m marl_render.baselines`` as they are (e.g. ``--worlds 64``).
+grayscale pixels. Every run is ``python -m marl_render.baselines`` with the same budget in env
+steps (``--env-steps``: "the same budget" means the same experience, whatever a step costs) and the
+settings' options (``--env-option``: the training and evaluation envs both use the setting, as a
+user who picked it would), for every seed. What a setting costs is its measured env steps per
+second of training (one run at a time by default; with --jobs 2 two share the cores, which changes
+the timings and not the results). A run whose result.json is complete and not truncated is kept, so
+an interrupted study resumes; interrupting the study (Ctrl-C, SIGTERM) stops its running trainings
+too. Options not listed below go to every run's ``python -m marl_render.baselines`` as they are
+(e.g. ``--worlds 64``).
 
 Writes OUT/<setting>-seed<S>/ (each run's result.json, curve.png, actor.pt) and the report:
 OUT/../learning.json (per setting: each seed's greedy return, env steps, env steps per second,
@@ -23,6 +26,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -49,7 +54,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m marl_render.baselines.learning_accuracy", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="spread", help="the task (default: spread)")
-    parser.add_argument("--minutes", type=float, default=5.0, help="wall-clock budget of every run (default: 5)")
+    parser.add_argument("--env-steps", type=int, default=250_000,
+                        help="budget of every run in env steps summed over worlds (default: %(default)s)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="training seeds (default: 0 1)")
     parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS),
                         help="settings to run (default: all)")
@@ -58,8 +64,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--out", default="docs/accuracy/learning", help="folder of the runs (default: %(default)s)")
     parser.add_argument("--report-only", action="store_true", help="only write the report from existing runs")
     args, args.learner = parser.parse_known_args(argv)
-    if args.minutes <= 0:
-        parser.error(f"--minutes must be > 0, got {args.minutes}")
+    if args.env_steps < 1:
+        parser.error(f"--env-steps must be >= 1, got {args.env_steps}")
+    if len(set(args.seeds)) != len(args.seeds):
+        parser.error(f"--seeds must be distinct, got {' '.join(map(str, args.seeds))}")
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     for setting in args.settings:  # the learner's own checks, before any run starts
@@ -73,38 +81,79 @@ def run_folder(out: Path, setting: str, seed: int) -> Path:
 
 def command(args, setting: str, seed: int) -> list:
     return [sys.executable, "-m", "marl_render.baselines", "--env", args.env, "--seed", str(seed),
-            "--budget-minutes", f"{args.minutes:g}", "--episodes", str(args.episodes),
+            "--env-steps", str(args.env_steps), "--episodes", str(args.episodes),
             *SETTINGS[setting][1], *args.learner, "--out", str(run_folder(Path(args.out), setting, seed))]
 
 
+def finished(folder: Path) -> bool:
+    """Whether the run in `folder` is complete: its result.json reads as a whole, with the final
+    evaluation, and was not cut short by a safety cap."""
+    try:
+        result = json.loads((folder / "result.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(result, dict) and "policy" in result.get("evaluation", {}) and not result.get("truncated")
+
+
+def stop(process: subprocess.Popen) -> None:
+    """End a training run and everything it started (its own process group): SIGTERM, then SIGKILL."""
+    if process.poll() is not None:
+        return
+    for sig, wait in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 10.0)):
+        try:
+            os.killpg(process.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            process.wait(wait)
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
+def terminate_on_sigterm() -> None:
+    """SIGTERM (as from `kill` or a job scheduler) unwinds like Ctrl-C, so that running trainings are stopped."""
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+    signal.signal(signal.SIGTERM, handler)
+
+
 def run_all(args) -> None:
-    """Every (setting, seed) without a result.json, `args.jobs` at a time, with progress lines."""
+    """Every (setting, seed) not finished, `args.jobs` at a time, with progress lines. Each training
+    runs in its own process group, stopped with the study however the study ends."""
     todo = [(s, seed) for seed in args.seeds for s in args.settings
-            if not (run_folder(Path(args.out), s, seed) / "result.json").is_file()]
+            if not finished(run_folder(Path(args.out), s, seed))]
     total = len(todo)
-    print(f"{total} run(s) of {args.minutes:g} min to do, {args.jobs} at a time "
-          f"(about {total * args.minutes / args.jobs:.0f} min)", flush=True)
+    print(f"{total} run(s) of {args.env_steps:,} env steps to do, {args.jobs} at a time", flush=True)
     running: list = []
     done = 0
-    while todo or running:
-        while todo and len(running) < args.jobs:
-            setting, seed = todo.pop(0)
-            folder = run_folder(Path(args.out), setting, seed)
-            folder.mkdir(parents=True, exist_ok=True)
-            log = open(folder / "run.log", "w")  # noqa: SIM115 (closed when the run ends)
-            running.append((setting, seed, subprocess.Popen(command(args, setting, seed), stdout=log,
-                                                            stderr=subprocess.STDOUT), log))
-            print(f"started {setting} seed {seed}", flush=True)
-        time.sleep(2)
-        for entry in list(running):
-            setting, seed, process, log = entry
-            if process.poll() is None:
-                continue
-            running.remove(entry)
+    terminate_on_sigterm()
+    try:
+        while todo or running:
+            while todo and len(running) < args.jobs:
+                setting, seed = todo.pop(0)
+                folder = run_folder(Path(args.out), setting, seed)
+                folder.mkdir(parents=True, exist_ok=True)
+                (folder / "result.json").unlink(missing_ok=True)  # a partial or truncated one: the run starts over
+                log = open(folder / "run.log", "w")  # noqa: SIM115 (closed when the run ends)
+                process = subprocess.Popen(command(args, setting, seed), stdout=log, stderr=subprocess.STDOUT,
+                                           start_new_session=True)
+                running.append((setting, seed, process, log))
+                print(f"started {setting} seed {seed} (pid {process.pid})", flush=True)
+            time.sleep(0.5)
+            for entry in list(running):
+                setting, seed, process, log = entry
+                if process.poll() is None:
+                    continue
+                running.remove(entry)
+                log.close()
+                done += 1
+                state = "done" if process.returncode == 0 else f"FAILED (exit {process.returncode}, see run.log)"
+                print(f"[{done}/{total}] {setting} seed {seed}: {state}", flush=True)
+    finally:
+        for _, _, process, log in running:
+            stop(process)
             log.close()
-            done += 1
-            state = "done" if process.returncode == 0 else f"FAILED (exit {process.returncode}, see run.log)"
-            print(f"[{done}/{total}] {setting} seed {seed}: {state}", flush=True)
 
 
 def summarise(args) -> dict:
@@ -113,10 +162,10 @@ def summarise(args) -> dict:
     for setting in args.settings:
         runs = []
         for seed in args.seeds:
-            path = run_folder(Path(args.out), setting, seed) / "result.json"
-            if not path.is_file():
+            folder = run_folder(Path(args.out), setting, seed)
+            if not finished(folder):
                 continue
-            r = json.loads(path.read_text())
+            r = json.loads((folder / "result.json").read_text())
             runs.append({"seed": seed, "return": r["evaluation"]["policy"]["mean"],
                          "return_std": r["evaluation"]["policy"]["std"], "env_steps": r["env_steps"],
                          "training_seconds": r["training_seconds"],
@@ -160,7 +209,7 @@ def mean_curve(runs: list, key: int) -> tuple:
     return xs, ys
 
 
-def plot(summary: dict, path: Path, env: str, minutes: float) -> None:
+def plot(summary: dict, path: Path, env: str, env_steps: int) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -177,12 +226,12 @@ def plot(summary: dict, path: Path, env: str, minutes: float) -> None:
     axes[1].set_xlabel("million env steps")
     axes[2].set_xlabel("env steps per second of training")
     axes[0].set_ylabel("training episode return (mean over seeds)")
-    axes[2].set_ylabel(f"greedy return after {minutes:g} min (mean ± spread over seeds)")
+    axes[2].set_ylabel(f"greedy return after {env_steps:,} env steps (mean ± spread over seeds)")
     first = next(iter(summary.values()))["runs"][0]
     for ax in axes:
         ax.axhline(first["random"], color="grey", linestyle="--", linewidth=0.8)
     axes[2].legend(fontsize=8)
-    figure.suptitle(f"MAPPO on {env} at equal wall-clock ({minutes:g} min per run); grey: random policy", fontsize=10)
+    figure.suptitle(f"MAPPO on {env} for the same env steps ({env_steps:,} per run); grey: random policy", fontsize=10)
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)
@@ -195,9 +244,9 @@ def report(args) -> None:
     docs = Path(args.out).parent
     stripped = {k: {**v, "runs": [{n: x for n, x in r.items() if n != "curve"} for r in v["runs"]]}
                 for k, v in summary.items()}
-    (docs / "learning.json").write_text(json.dumps({"env": args.env, "minutes": args.minutes, "seeds": args.seeds,
-                                                    "settings": stripped}, indent=1))
-    plot(summary, docs / "learning.png", args.env, args.minutes)
+    (docs / "learning.json").write_text(json.dumps({"env": args.env, "env_steps": args.env_steps,
+                                                    "seeds": args.seeds, "settings": stripped}, indent=1))
+    plot(summary, docs / "learning.png", args.env, args.env_steps)
     notes = docs / "learning_notes.md"
     first = next(iter(summary.values()))["runs"][0]
     text = "\n".join([
@@ -205,7 +254,8 @@ def report(args) -> None:
         "",
         "Generated by `python -m marl_render.baselines.learning_accuracy --report-only` from the runs in",
         f"`{args.out}/` (made by the same command without `--report-only`). MAPPO from pixels, "
-        f"{args.minutes:g} minutes of wall-clock per run on the 2 CPU cores, seeds {', '.join(map(str, args.seeds))};",
+        f"{args.env_steps:,} env steps per run (the same experience for every setting; what a setting costs is",
+        f"its env steps per second), seeds {', '.join(map(str, args.seeds))};",
         "each setting changes one thing against the reference and is used for training and evaluation. The",
         f"greedy return is over {args.episodes} evaluation episodes; \"± spread\" is the standard deviation",
         "between seeds.",

@@ -1,16 +1,24 @@
-"""Train MAPPO on one task from pixels for a fixed wall-clock budget, then evaluate it.
+"""Train MAPPO on one task for a budget of env steps, then evaluate the final policy.
 
-    python -m marl_render.baselines --env spread                       # 15 minutes, 2 CPU cores
-    python -m marl_render.baselines --env cartpole --budget-minutes 30
-    python -m marl_render.baselines --env spread --obs state           # the same learner on the state
+    python -m marl_render.baselines --env spread                          # the task's step budget
+    python -m marl_render.baselines --env spread --env-steps 300000 --eval-set publication
+    python -m marl_render.baselines --env spread --obs state              # the same learner on the state
 
-The budget is hard and covers the whole run (env setup, the reference evaluations, training,
-the final evaluation): training stops when one more update and the final evaluation would
-not fit. The learned greedy policy, the task's uniform random policy and its scripted
-heuristic are each evaluated on --episodes episodes (one per world, the same seeds) by
-``marl_render.envs.evaluation.evaluate``: an episode's return is the sum of the rewards of the
-evaluated agents, averaged over them; opponents (tag's prey, push's and capture_flag's second
-team) play random actions in training and in every evaluation.
+Training stops on its budget: --env-steps (summed over worlds, rounded up to whole updates) or
+--updates; without either, the task's budget (settings.STEP_BUDGETS). The wall-clock is recorded,
+never used to stop, so the same command gives the same numbers (timings apart) on any machine with
+the same software. --max-minutes is an opt-in safety cap on training: a run it stops is marked
+"truncated": true in result.json.
+
+The final greedy policy, the task's uniform random policy and its scripted heuristic are each
+evaluated on one evaluation set (--eval-set): "development" (env seed 1000, 32 episodes: every
+development choice so far was scored on it) or "publication" (env seed 7000000, 64 episodes, kept
+for the published rows). ``marl_render.envs.evaluation.evaluate`` plays one episode per world; an
+episode's return is the sum of the rewards of the evaluated agents, averaged over them; opponents
+(tag's prey, push's and capture_flag's second team) play random actions in training and in every
+evaluation. Every --checkpoint-every env steps the greedy policy is also evaluated on
+--checkpoint-episodes episodes of the development set: result.json's "checkpoints" show how
+stable it is. The row's number is always the final policy's, never the best checkpoint's.
 
 Env keywords: ``--env-option KEY=VALUE`` goes to the training and every evaluation env (a
 task's keyword or an accuracy knob: ``multisamples=4``, ``physics_substeps=4``);
@@ -18,8 +26,9 @@ task's keyword or an accuracy knob: ``multisamples=4``, ``physics_substeps=4``);
 ``shaping=1``: the evaluations keep the task's own reward, so the table compares like with like).
 VALUE is a Python literal (``1``, ``0.5``, ``True``, ``'x'``).
 
-Writes OUT/result.json (env, seeds, versions, env steps, wall-clock, hyperparameters, the
-training curve, the evaluations), OUT/curve.png and OUT/actor.pt (the actor's state_dict).
+Writes OUT/actor.pt (the actor's state_dict), then OUT/result.json (env, seeds, evaluation set,
+budget, versions, env steps, wall-clock and its stages, hyperparameters, the training curve, the
+checkpoints, the evaluations with every episode's return), each atomically, and last OUT/curve.png.
 Options left out take the task's default (marl_render/baselines/settings.py).
 """
 from __future__ import annotations
@@ -28,10 +37,12 @@ import argparse
 import ast
 import dataclasses
 import json
+import math
 import os
 import platform
 import shlex
 import sys
+import tempfile
 import time
 
 import torch
@@ -40,11 +51,25 @@ from marl_render.envs import list_envs
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
 
 from .curve import plot_curve
-from .policy import GreedyPolicy
-from .ppo import MAPPO
-from .settings import FIELDS, task_hyperparameters
+from .settings import EVALUATION_SETS, FIELDS, step_budget, task_hyperparameters
+from .training import train
 
 PROGRESS_SECONDS = 10.0  # at most one progress line per this many seconds
+CHECKPOINTS = 10  # default checkpoint evaluations over a run: one every budget / CHECKPOINTS env steps
+# Env options the learner sets itself, or that its bootstrapping and action sampling do not support.
+RESERVED_OPTIONS = {"num_worlds": "--worlds", "resolution": "--resolution", "grayscale": "--grayscale",
+                    "state_obs": "--obs", "seed": "--seed"}
+REFUSED_OPTIONS = {"autoreset": "the learner resets ended worlds itself (it needs autoreset=False to bootstrap "
+                                "truncated episodes from their last state)",
+                   "continuous": "the learner samples discrete actions"}
+# (option, kind, lowest, highest, lowest allowed itself): the hyperparameters' ranges.
+RANGES = (("worlds", int, 1, None, True), ("resolution", int, 1, None, True), ("frames", int, 1, None, True),
+          ("action-repeat", int, 1, None, True), ("rollout", int, 1, None, True), ("epochs", int, 1, None, True),
+          ("minibatches", int, 1, None, True), ("lr", float, 0.0, None, False), ("gamma", float, 0.0, 1.0, False),
+          ("gae-lambda", float, 0.0, 1.0, True), ("clip", float, 0.0, None, False),
+          ("entropy", float, 0.0, None, True), ("critic-coef", float, 0.0, None, False),
+          ("max-grad-norm", float, 0.0, None, False), ("hidden", int, 1, None, True),
+          ("torch-threads", int, 0, None, True), ("aux-state", float, 0.0, None, True))
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -52,42 +77,87 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
 
 
 def parse_args(argv=None) -> argparse.Namespace:
+    """The command line, every value checked before any work starts."""
     parser = argparse.ArgumentParser(prog="python -m marl_render.baselines", description=__doc__,
                                      formatter_class=HelpFormatter)
     parser.add_argument("--env", required=True, choices=list_envs(), help="the task")
     parser.add_argument("--obs", choices=("pixels", "state"), default="pixels", help="what the actor sees")
-    parser.add_argument("--out", default=None, help="folder for result.json and curve.png "
+    parser.add_argument("--out", default=None, help="folder for result.json, actor.pt and curve.png "
                                                     "(default: out/baselines/ENV, or ENV-state with --obs state)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the training env and the networks")
-    parser.add_argument("--eval-seed", type=int, default=1000, help="seed of the evaluation episodes")
-    parser.add_argument("--episodes", type=int, default=32, help="evaluation episodes per policy")
-    parser.add_argument("--budget-minutes", type=float, default=15.0, help="wall-clock budget of the whole run")
+    budget = parser.add_mutually_exclusive_group()
+    budget.add_argument("--env-steps", type=int, default=None,
+                        help="budget in env steps summed over worlds (default: the task's, settings.STEP_BUDGETS)")
+    budget.add_argument("--updates", type=int, default=None, help="budget in updates (instead of --env-steps)")
+    parser.add_argument("--max-minutes", "--budget-minutes", dest="max_minutes", type=float, default=None,
+                        help="opt-in safety cap on the training wall-clock; a run it stops is marked truncated")
+    parser.add_argument("--eval-set", choices=list(EVALUATION_SETS), default="development",
+                        help="evaluation episodes of the final policy and the references: " + "; ".join(
+                            f"{k}: env seed {v['seed']}, {v['episodes']} episodes" for k, v in EVALUATION_SETS.items()))
+    parser.add_argument("--eval-seed", type=int, default=None, help="env seed of the evaluation (default: the set's)")
+    parser.add_argument("--episodes", type=int, default=None, help="evaluation episodes (default: the set's)")
+    parser.add_argument("--checkpoint-every", type=int, default=None,
+                        help=f"env steps between checkpoint evaluations (default: the budget / {CHECKPOINTS}; 0: none)")
+    parser.add_argument("--checkpoint-episodes", type=int, default=8, help="development episodes per checkpoint")
     parser.add_argument("--env-option", action="append", default=[], metavar="KEY=VALUE", type=env_option,
                         help="env keyword for training and evaluation (repeatable)")
     parser.add_argument("--train-option", action="append", default=[], metavar="KEY=VALUE", type=env_option,
                         help="env keyword for the training env only, e.g. a shaped reward (repeatable)")
     hp = parser.add_argument_group("hyperparameters (default: the task's, see settings.py)")
-    for name, kind in (("worlds", int), ("resolution", int), ("frames", int), ("action-repeat", int),
-                       ("rollout", int), ("epochs", int), ("minibatches", int), ("lr", float), ("gamma", float),
-                       ("gae-lambda", float), ("clip", float), ("entropy", float), ("critic-coef", float),
-                       ("max-grad-norm", float), ("hidden", int),
-                       ("torch-threads", int), ("aux-state", float)):
+    for name, kind, *_ in RANGES:
         hp.add_argument(f"--{name}", type=kind, default=None)
     hp.add_argument("--grayscale", action="store_true", default=None, help="one-channel pixels")
     args = parser.parse_args(argv)
-    for name in ("episodes", "worlds", "resolution", "frames", "action_repeat", "rollout", "epochs", "minibatches"):
+    check_args(parser, args)
+    return args
+
+
+def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """parser.error (exit 2, one line naming the option, the expected and the given) for any value
+    out of range, and an output folder that could not take the run's files."""
+    for name, _, low, high, closed in RANGES:
+        value = getattr(args, name.replace("-", "_"))
+        if value is None:
+            continue
+        expected = (f">= {low}" if closed else f"> {low}") + (f" and <= {high}" if high is not None else "")
+        inside = value > low or (value == low and closed)
+        if not (math.isfinite(value) and inside and (high is None or value <= high)):
+            parser.error(f"--{name} must be {expected}, got {value}")
+    for name in ("env_steps", "updates", "episodes", "checkpoint_episodes"):
         value = getattr(args, name)
         if value is not None and value < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {value}")
-    if args.budget_minutes <= 0:
-        parser.error(f"--budget-minutes must be > 0, got {args.budget_minutes}")
-    reserved = {"num_worlds", "resolution", "grayscale", "state_obs", "seed"}  # set from the hyperparameters
+    if args.checkpoint_every is not None and args.checkpoint_every < 0:
+        parser.error(f"--checkpoint-every must be >= 0 (0: no checkpoints), got {args.checkpoint_every}")
+    if args.max_minutes is not None and not (math.isfinite(args.max_minutes) and args.max_minutes > 0):
+        parser.error(f"--max-minutes must be a finite number > 0, got {args.max_minutes}")
     for key, _ in args.env_option + args.train_option:
-        if key in reserved:
-            parser.error(f"--env-option / --train-option {key}: set it with the learner's own option instead")
+        if key in RESERVED_OPTIONS:
+            parser.error(f"--env-option / --train-option {key}: set it with the learner's own option "
+                         f"{RESERVED_OPTIONS[key]} instead")
+        if key in REFUSED_OPTIONS:
+            parser.error(f"--env-option / --train-option {key}: not supported, {REFUSED_OPTIONS[key]}")
     if args.out is None:
         args.out = os.path.join("out", "baselines", args.env if args.obs == "pixels" else f"{args.env}-state")
-    return args
+    problem = writable_folder(args.out)
+    if problem:
+        parser.error(f"--out must be a folder this process can write to, got {args.out!r}: {problem}")
+
+
+def writable_folder(path: str) -> str | None:
+    """None if `path` is a folder that takes files, or could be made one; else what is wrong.
+    Nothing is left behind: a folder that does not exist yet is tried through its nearest ancestor."""
+    existing = os.path.abspath(path)
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        return "it is a file" if existing == os.path.abspath(path) else f"{existing} is a file"
+    try:
+        with tempfile.NamedTemporaryFile(dir=existing, prefix=".write-check-"):
+            pass
+    except OSError as exc:
+        return f"{existing} takes no files ({exc.strerror or exc})"
+    return None
 
 
 def env_option(text: str) -> tuple:
@@ -102,6 +172,15 @@ def env_option(text: str) -> tuple:
                                          f"got {value!r}") from None
 
 
+def require_matplotlib() -> None:
+    """Exit at once, with the extra to install, when curve.png could not be drawn at the end."""
+    try:
+        import matplotlib  # noqa: F401 (only its presence is checked here)
+    except ImportError:
+        raise SystemExit("python -m marl_render.baselines draws curve.png with matplotlib, which is not installed: "
+                         "pip install 'marl-render[bench]'") from None
+
+
 def versions() -> dict:
     import tensordict
     import torchrl
@@ -112,88 +191,112 @@ def versions() -> dict:
             "python": platform.python_version()}
 
 
+def write_atomically(path: str, write) -> None:
+    """`write(file)` into a temporary file beside `path`, then rename it over `path`: a reader never
+    sees a half-written file, and an interrupted run leaves the previous one (or none)."""
+    folder = os.path.dirname(path) or "."
+    handle, temporary = tempfile.mkstemp(dir=folder, prefix=f".{os.path.basename(path)}.")
+    try:
+        with os.fdopen(handle, "wb") as f:
+            write(f)
+        os.replace(temporary, path)
+    except BaseException:
+        os.unlink(temporary)
+        raise
+
+
 def main(argv=None) -> int:
     started = time.perf_counter()
     args = parse_args(argv)
-    deadline = started + args.budget_minutes * 60
+    require_matplotlib()
     hp = task_hyperparameters(args.env, **{name: getattr(args, name) for name in FIELDS})
+    if hp.torch_threads == 0:  # the cores this process may use
+        hp = dataclasses.replace(hp, torch_threads=len(os.sched_getaffinity(0)))
     torch.set_num_threads(hp.torch_threads)
+    evaluation_set = EVALUATION_SETS[args.eval_set]
+    eval_seed = evaluation_set["seed"] if args.eval_seed is None else args.eval_seed
+    episodes = evaluation_set["episodes"] if args.episodes is None else args.episodes
+    set_name = args.eval_set if eval_seed == evaluation_set["seed"] else f"seed {eval_seed}"
+    env_steps = args.env_steps if args.env_steps is not None or args.updates is not None else \
+        step_budget(args.env, args.obs)
     load_start = os.getloadavg()[0]
-    print(f"{args.env}: MAPPO from {args.obs}, budget {args.budget_minutes:g} min, {hp}", flush=True)
+    print(f"{args.env}: MAPPO from {args.obs}, budget "
+          f"{f'{args.updates} updates' if args.updates else f'{env_steps:,} env steps'}, {hp}", flush=True)
 
     env_options, train_options = dict(args.env_option), dict(args.train_option)
-    trainer = MAPPO(args.env, hp, args.obs, args.seed, {**env_options, **train_options})
-    eval_kwargs = dict(episodes=args.episodes, seed=args.eval_seed, resolution=hp.resolution,
-                       grayscale=hp.grayscale, state_obs=args.obs == "state", **env_options)
-    before = time.perf_counter()
+    eval_kwargs = dict(episodes=episodes, seed=eval_seed, resolution=hp.resolution, grayscale=hp.grayscale,
+                       state_obs=args.obs == "state", **env_options)
     references = {name: evaluate(args.env, policy, **eval_kwargs)
                   for name, policy in (("random", random_policy), ("heuristic", heuristic_policy))}
-    # The greedy policy's evaluation also runs the actor: count it as 1.5 reference evaluations.
-    eval_estimate = 0.75 * (time.perf_counter() - before) + 1.0
     print(f"random {references['random']['mean']:.4g} ± {references['random']['std']:.2g}, heuristic "
           f"{references['heuristic']['mean']:.4g} ± {references['heuristic']['std']:.2g} "
-          f"({args.episodes} episodes)", flush=True)
+          f"({episodes} episodes, {set_name} set)", flush=True)
 
-    train_start = time.perf_counter()
-    curve, updates, printed = [], 0, 0.0
-    while True:
-        update_start = time.perf_counter()
-        samples, ended = trainer.collect()
-        terms = trainer.update(samples)
-        updates += 1
+    printed = [0.0]
+
+    def progress(run, point):
         now = time.perf_counter()
-        point = {"env_steps": trainer.env_steps, "seconds": now - train_start,
-                 "episode_return": sum(ended) / len(ended) if ended else None, "episodes_ended": len(ended),
-                 **terms}
-        curve.append(point)
-        if now - printed >= PROGRESS_SECONDS:
-            printed = now
-            shown = [p["episode_return"] for p in curve if p["episode_return"] is not None]
-            last = f"{shown[-1]:.4g}" if shown else "- (no episode ended yet)"
-            print(f"[{now - started:6.0f} s] update {updates}, {trainer.env_steps:,} env steps "
-                  f"({trainer.env_steps / (now - train_start):,.0f}/s), episode return {last}, "
-                  f"entropy {terms['entropy']:.3f}", flush=True)
-        if now + (now - update_start) + eval_estimate > deadline:
-            break
-    training_seconds = time.perf_counter() - train_start
-    trainer.close()
+        if now - printed[0] < PROGRESS_SECONDS:
+            return
+        printed[0] = now
+        shown = [p["episode_return"] for p in run.curve if p["episode_return"] is not None]
+        last = f"{shown[-1]:.4g}" if shown else "- (no episode ended yet)"
+        print(f"[{now - started:6.0f} s] update {run.updates}/{run.budget_updates}, {run.env_steps:,} env steps "
+              f"({run.env_steps / point['seconds']:,.0f}/s), episode return {last}, "
+              f"entropy {point['entropy']:.3f}", flush=True)
+
+    checkpoint_every = args.checkpoint_every
+    if checkpoint_every is None:
+        checkpoint_every = math.ceil((env_steps or args.updates * hp.worlds * hp.rollout * hp.action_repeat)
+                                     / CHECKPOINTS)
+    run = train(args.env, obs=args.obs, env_steps=env_steps, updates=args.updates, seed=args.seed,
+                hyperparameters=hp, env_options=env_options, train_options=train_options,
+                checkpoint_every=checkpoint_every, checkpoint_episodes=args.checkpoint_episodes,
+                max_seconds=None if args.max_minutes is None else args.max_minutes * 60, progress=progress)
+    trainer = run.trainer
 
     eval_start = time.perf_counter()
-    policy = evaluate(args.env, GreedyPolicy(trainer.actor_net, trainer.trained, args.obs, hp.frames,
-                                             hp.action_repeat), **eval_kwargs)
+    policy = evaluate(args.env, run.policy(), **eval_kwargs)
     evaluation_seconds = time.perf_counter() - eval_start
     print(f"learned greedy policy {policy['mean']:.4g} ± {policy['std']:.2g} (random "
-          f"{references['random']['mean']:.4g}, heuristic {references['heuristic']['mean']:.4g})", flush=True)
+          f"{references['random']['mean']:.4g}, heuristic {references['heuristic']['mean']:.4g}; "
+          f"{set_name} set)", flush=True)
 
     result = {
         "env": args.env, "obs": args.obs,
-        "algorithm": "MAPPO (TorchRL ClipPPOLoss + GAE): shared actor on each agent's own observation, "
+        "algorithm": "MAPPO (clipped PPO objective, TorchRL's GAE): shared actor on each agent's own observation, "
                      "centralised critic on all agents' state observations",
         "command": "python -m marl_render.baselines " + shlex.join(sys.argv[1:] if argv is None else argv),
-        "seeds": {"train": args.seed, "evaluation": args.eval_seed},
+        "seeds": {"train": args.seed, "evaluation": eval_seed},
+        "evaluation_set": set_name,
+        "budget": {"env_steps": run.budget_env_steps, "updates": run.budget_updates,
+                   "max_minutes": args.max_minutes},
+        "budget_minutes": args.max_minutes,  # the opt-in cap (None: none); the budget is in env steps
+        "truncated": run.truncated,
         "versions": versions(),
-        "machine": {"cpu_count": os.cpu_count(), "load_average_1min_start": load_start,
-                    "load_average_1min_end": os.getloadavg()[0], "platform": platform.platform()},
-        "budget_minutes": args.budget_minutes,
+        "machine": {"cpu_count": os.cpu_count(), "cores_available": len(os.sched_getaffinity(0)),
+                    "load_average_1min_start": load_start, "load_average_1min_end": os.getloadavg()[0],
+                    "platform": platform.platform(), "processor": platform.processor()},
         "wall_clock_seconds": time.perf_counter() - started,
-        "training_seconds": training_seconds, "env_seconds_in_training": trainer.seconds_stepping,
+        "training_seconds": run.training_seconds, "env_seconds_in_training": trainer.seconds_stepping,
         "stage_seconds": trainer.clock.seconds,
-        "evaluation_seconds": evaluation_seconds,
-        "env_steps": trainer.env_steps, "updates": updates,
+        "checkpoint_seconds": run.checkpoint_seconds, "evaluation_seconds": evaluation_seconds,
+        "env_steps": trainer.env_steps, "updates": run.updates,
         "hyperparameters": dataclasses.asdict(hp),
         "env_options": env_options, "train_options": train_options,
         "trained_agents": [n for n, t in zip(trainer.env.agent_names, trainer.trained.tolist(), strict=True) if t],
         "evaluation": {"policy": policy, **references,
                        "return": "sum of the evaluated agents' rewards over an episode, averaged over them; "
                                  "mean and std over episodes"},
-        "curve": curve,
+        "checkpoints": run.checkpoints,
+        "curve": run.curve,
     }
     os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, "result.json"), "w") as f:
-        json.dump(result, f, indent=1)
+    write_atomically(os.path.join(args.out, "actor.pt"), lambda f: torch.save(trainer.actor_net.state_dict(), f))
+    write_atomically(os.path.join(args.out, "result.json"),
+                     lambda f: f.write(json.dumps(result, indent=1).encode()))
     plot_curve(result, os.path.join(args.out, "curve.png"))
-    torch.save(trainer.actor_net.state_dict(), os.path.join(args.out, "actor.pt"))
-    print(f"wrote {args.out}/result.json, curve.png and actor.pt in {result['wall_clock_seconds']:.0f} s", flush=True)
+    print(f"wrote {args.out}/actor.pt, result.json and curve.png in {result['wall_clock_seconds']:.0f} s", flush=True)
     return 0
 
 

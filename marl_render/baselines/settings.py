@@ -46,6 +46,34 @@ TASK_DEFAULTS: dict = {
 
 FIELDS = tuple(field.name for field in dataclasses.fields(Hyperparameters))
 
+# The step budget of a run when --env-steps and --updates are left out (env steps summed over worlds), per
+# task and observation: what each reference run of docs/baselines.md trains for.
+STEP_BUDGETS: dict = {
+    "capture_flag": {"pixels": 1_000_000, "state": 1_000_000},
+    "cartpole": {"pixels": 5_000_000, "state": 2_500_000},
+    "commons": {"pixels": 100_000, "state": 400_000},
+    "forage": {"pixels": 200_000, "state": 1_000_000},
+    "push": {"pixels": 800_000, "state": 1_000_000},
+    "rooms": {"pixels": 900_000, "state": 800_000},
+    "speaker_listener": {"pixels": 200_000, "state": 1_000_000},
+    "spread": {"pixels": 600_000, "state": 1_000_000},
+    "tag": {"pixels": 600_000, "state": 700_000},
+}
+DEFAULT_STEP_BUDGET = 500_000  # a task without an entry above (e.g. one a user registered)
+
+# Named sets of evaluation episodes: env seed (one episode per world of that env) and episode count.
+# "development" scored every choice made so far (shaping, hyperparameters, tries); "publication" is
+# kept for the published rows and was never used to choose anything.
+EVALUATION_SETS: dict = {
+    "development": {"seed": 1000, "episodes": 32},
+    "publication": {"seed": 7_000_000, "episodes": 64},
+}
+
+
+def step_budget(env: str, obs: str) -> int:
+    """The default step budget of a run of `env` from `obs` ("pixels" or "state")."""
+    return STEP_BUDGETS.get(env, {}).get(obs, DEFAULT_STEP_BUDGET)
+
 
 def task_hyperparameters(env: str, **overrides) -> Hyperparameters:
     """Hyperparameters() with the task's defaults, then `overrides` (None values are ignored)."""

@@ -1,0 +1,116 @@
+"""Train MAPPO on a registered task for a step budget: the library entry point of the baselines.
+
+    from marl_render.baselines import train
+    from marl_render.envs.evaluation import evaluate
+
+    run = train("spread", env_steps=200_000, seed=0)            # pixels, the task's hyperparameters
+    print(run.env_steps, run.training_seconds, run.curve[-1]["episode_return"])
+    print(evaluate("spread", run.policy(), episodes=32, seed=1000, resolution=run.hyperparameters.resolution))
+
+Training stops on its budget in env steps (summed over worlds) or updates, never on the clock, so
+the same call gives the same numbers on any machine with the same software (``max_seconds`` is an
+opt-in safety cap; a run it stops is marked ``truncated``). Greedy evaluations at fixed env-step
+checkpoints (``checkpoint_every``) record how stable the policy is over training; they never
+choose which policy is returned: that is always the final one.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+from marl_render.envs.evaluation import evaluate
+
+from .policy import GreedyPolicy
+from .ppo import MAPPO
+from .settings import EVALUATION_SETS, Hyperparameters, step_budget, task_hyperparameters
+
+
+@dataclasses.dataclass
+class TrainingRun:
+    """What ``train`` returns: the trainer (its env is closed), the per-update curve, the checkpoint
+    evaluations, and the budget and clock of the run."""
+
+    env: str
+    obs: str
+    trainer: MAPPO
+    hyperparameters: Hyperparameters
+    budget_env_steps: int
+    budget_updates: int
+    curve: list
+    checkpoints: list
+    updates: int
+    training_seconds: float  # collecting and updating, checkpoint evaluations left out
+    checkpoint_seconds: float
+    truncated: bool  # stopped by max_seconds before the budget
+
+    @property
+    def env_steps(self) -> int:
+        return self.trainer.env_steps
+
+    def policy(self) -> GreedyPolicy:
+        """A fresh greedy policy of the final actor, as ``evaluate`` takes it (one per evaluation)."""
+        hp = self.hyperparameters
+        return GreedyPolicy(self.trainer.actor_net, self.trainer.trained, self.obs, hp.frames, hp.action_repeat)
+
+
+def updates_for(env_steps: int, hp: Hyperparameters) -> int:
+    """Updates that make at least `env_steps` env steps: each steps every world rollout x action_repeat times."""
+    return math.ceil(env_steps / (hp.worlds * hp.rollout * hp.action_repeat))
+
+
+def train(env: str, *, obs: str = "pixels", env_steps: int | None = None, updates: int | None = None, seed: int = 0,
+          hyperparameters: Hyperparameters | None = None, env_options: dict | None = None,
+          train_options: dict | None = None, checkpoint_every: int = 0, checkpoint_episodes: int = 8,
+          max_seconds: float | None = None, progress=None) -> TrainingRun:
+    """Train MAPPO on task `env` from `obs` for `env_steps` env steps (rounded up to whole updates) or
+    `updates` updates (default: the task's step budget, settings.STEP_BUDGETS).
+
+    `hyperparameters` default to the task's (``task_hyperparameters(env)``); `env_options` go to the
+    training env and the checkpoint evaluations, `train_options` to the training env only (a shaped
+    training reward). Every `checkpoint_every` env steps (0: never) the greedy policy is evaluated on
+    `checkpoint_episodes` episodes of the development evaluation set. `progress(run, point)` is called
+    after every update with the curve point just added."""
+    if env_steps is not None and updates is not None:
+        raise ValueError(f"give env_steps or updates, not both (got {env_steps} and {updates})")
+    hp = hyperparameters if hyperparameters is not None else task_hyperparameters(env)
+    env_options, train_options = dict(env_options or {}), dict(train_options or {})
+    if updates is None:
+        updates = updates_for(step_budget(env, obs) if env_steps is None else env_steps, hp)
+    budget_steps = env_steps if env_steps is not None else updates * hp.worlds * hp.rollout * hp.action_repeat
+    trainer = MAPPO(env, hp, obs, seed, {**env_options, **train_options})
+    run = TrainingRun(env, obs, trainer, hp, budget_steps, updates, curve=[], checkpoints=[], updates=0,
+                      training_seconds=0.0, checkpoint_seconds=0.0, truncated=False)
+    development = EVALUATION_SETS["development"]
+    next_checkpoint = checkpoint_every
+    started = time.perf_counter()
+    try:
+        while run.updates < updates:
+            samples, ended = trainer.collect()
+            terms = trainer.update(samples)
+            run.updates += 1
+            run.training_seconds = time.perf_counter() - started - run.checkpoint_seconds
+            point = {"env_steps": trainer.env_steps, "seconds": run.training_seconds,
+                     "episode_return": sum(ended) / len(ended) if ended else None, "episodes_ended": len(ended),
+                     **terms}
+            run.curve.append(point)
+            if checkpoint_every and trainer.env_steps >= next_checkpoint:
+                evaluated = time.perf_counter()
+                score = evaluate(env, run.policy(), episodes=checkpoint_episodes, seed=development["seed"],
+                                 resolution=hp.resolution, grayscale=hp.grayscale, state_obs=obs == "state",
+                                 **env_options)
+                run.checkpoint_seconds += time.perf_counter() - evaluated
+                run.checkpoints.append({"env_steps": trainer.env_steps, "updates": run.updates,
+                                        "seconds": run.training_seconds, "evaluation_set": "development",
+                                        **{k: score[k] for k in ("mean", "std", "min", "max", "episodes")},
+                                        "per_episode": score["per_episode"]})
+                while next_checkpoint <= trainer.env_steps:
+                    next_checkpoint += checkpoint_every
+            if progress is not None:
+                progress(run, point)
+            if max_seconds is not None and time.perf_counter() - started > max_seconds and run.updates < updates:
+                run.truncated = True
+                break
+    finally:
+        trainer.close()
+    return run
