@@ -374,3 +374,51 @@ def test_interrupting_learning_accuracy_stops_its_training_run(tmp_path, sig):
         assert time.monotonic() < deadline, f"training run {child} outlived the study"
         time.sleep(0.2)
     assert not (out / "32px-seed0" / "result.json").exists()
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_ppo_loss_is_torchrl_clip_ppo_loss(precision):
+    """The learner's plain-torch loss gives TorchRL's ClipPPOLoss values and gradients (same networks,
+    a minibatch with masked actions and ratios on both sides of the clip range)."""
+    from tensordict import TensorDict
+    from tensordict.nn import TensorDictModule
+    from torchrl.modules import ProbabilisticActor
+    from torchrl.objectives import ClipPPOLoss
+
+    from marl_render.baselines.networks import Actor, CentralCritic
+    from marl_render.baselines.ppo import ppo_loss
+
+    torch.manual_seed(0)
+    actor, critic = Actor("pixels", (8, 8, 3), 3, 5, 16, precision=precision), CentralCritic(12, 3, 16)
+    n, g = 64, torch.Generator().manual_seed(1)
+    mask = torch.rand(n, 5, generator=g) < 0.7
+    mask[:, 0] = True
+    batch = dict(observation=actor.prepare(torch.randint(0, 256, (n, 8, 8, 3), dtype=torch.uint8, generator=g)),
+                 agent=torch.eye(3)[torch.randint(0, 3, (n,), generator=g)], mask=mask,
+                 global_state=torch.randn(n, 12, generator=g))
+    with torch.no_grad():
+        log_probs = actor(batch["observation"], batch["agent"], mask).log_softmax(-1)
+    action = torch.multinomial(log_probs.exp(), 1, generator=g).squeeze(-1)
+    behaviour = log_probs.gather(-1, action[:, None]).squeeze(-1) + 0.3 * torch.randn(n, generator=g)
+    batch.update(action=action, sample_log_prob=behaviour, advantage=torch.randn(n, generator=g),
+                 value_target=torch.randn(n, generator=g))
+    hp = Hyperparameters()
+    loss = ClipPPOLoss(
+        ProbabilisticActor(TensorDictModule(actor, in_keys=["observation", "agent", "mask"], out_keys=["logits"]),
+                           in_keys=["logits"], out_keys=["action"], distribution_class=torch.distributions.Categorical,
+                           return_log_prob=True, log_prob_key="sample_log_prob"),
+        TensorDictModule(critic, in_keys=["global_state", "agent"], out_keys=["state_value"]),
+        clip_epsilon=hp.clip, entropy_coeff=hp.entropy, critic_coeff=hp.critic_coef, loss_critic_type="l2",
+        normalize_advantage=True)
+    loss.set_keys(sample_log_prob="sample_log_prob")
+    theirs = loss(TensorDict({**batch, "advantage": batch["advantage"][:, None],
+                              "value_target": batch["value_target"][:, None]}, batch_size=[n]))
+    assert 0.1 < float(theirs["clip_fraction"]) < 0.9  # the clip is exercised
+    ours = ppo_loss(actor, critic, batch, hp)
+    parameters = [*actor.parameters(), *critic.parameters()]
+    for key in ("loss_objective", "loss_entropy", "loss_critic", "entropy", "explained_variance"):
+        assert float(ours[key]) == pytest.approx(float(theirs[key]), rel=1e-5, abs=1e-7), key
+    gradients = [torch.autograd.grad(out["loss_objective"] + out["loss_critic"] + out["loss_entropy"], parameters)
+                 for out in (ours, theirs)]
+    for mine, reference in zip(*gradients, strict=True):
+        torch.testing.assert_close(mine, reference, rtol=1e-4, atol=1e-6)

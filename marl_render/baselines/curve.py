@@ -1,4 +1,5 @@
-"""curve.png of a run: the training episodes' return against env steps and against wall-clock."""
+"""curve.png of a run (the training episodes' return against env steps and against wall-clock), and a
+picture comparing runs of one task (`python -m marl_render.baselines.curve --compare ...`)."""
 from __future__ import annotations
 
 
@@ -41,3 +42,58 @@ def plot_curve(result: dict, path: str) -> None:
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)
+
+
+def plot_comparison(results: dict, path: str) -> None:
+    """One picture of several runs of a task ({label: result}): the training episodes' return against
+    env steps and against wall-clock, each run's final greedy evaluation as a marker at its end."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    for (label, result), color in zip(results.items(), ("tab:blue", "tab:red", "tab:green", "tab:purple"),
+                                      strict=False):
+        points = [p for p in result["curve"] if p["episode_return"] is not None]
+        final = result["evaluation"]["policy"]
+        for ax, key, scale in ((axes[0], "env_steps", 1e-6), (axes[1], "seconds", 1 / 60)):
+            ax.plot([p[key] * scale for p in points], [p["episode_return"] for p in points], color=color,
+                    linewidth=0.8, label=f"{label}: training episodes")
+            end = (result["env_steps"] if key == "env_steps" else result["training_seconds"]) * scale
+            ax.errorbar([end], [final["mean"]], yerr=[final["std"]], color=color, marker="o", capsize=3,
+                        label=f"{label}: final greedy {final['mean']:.4g} ± {final['std']:.2g}")
+    first = next(iter(results.values()))
+    axes[0].axhline(first["evaluation"]["random"]["mean"], color="grey", linestyle="--", label="random")
+    axes[0].set_xlabel("million env steps (all worlds)")
+    axes[1].set_xlabel("wall-clock minutes of training")
+    axes[0].set_ylabel("episode return")
+    axes[1].legend(fontsize=7, loc="best")
+    figure.suptitle(f"MAPPO on {first['env']} from {first['obs']}: " + " against ".join(results), fontsize=10)
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
+def main(argv=None) -> int:
+    import argparse
+    import json
+
+    parser = argparse.ArgumentParser(prog="python -m marl_render.baselines.curve",
+                                     description="One picture comparing runs of a task: "
+                                                 "--compare old=A/result.json new=B/result.json --out cmp.png")
+    parser.add_argument("--compare", nargs="+", required=True, metavar="LABEL=RESULT_JSON")
+    parser.add_argument("--out", required=True, help="the picture (.png)")
+    args = parser.parse_args(argv)
+    results = {}
+    for item in args.compare:
+        label, sep, path = item.partition("=")
+        if not sep:
+            parser.error(f"--compare takes LABEL=RESULT_JSON, got {item!r}")
+        with open(path) as f:
+            results[label] = json.load(f)
+    plot_comparison(results, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

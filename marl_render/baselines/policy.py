@@ -21,7 +21,7 @@ class GreedyPolicy:
         self.calls = 0
         self.actions = None
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def __call__(self, env, obs: dict, generator: torch.Generator) -> torch.Tensor:
         decide = self.calls % self.action_repeat == 0
         self.calls += 1
@@ -30,7 +30,7 @@ class GreedyPolicy:
         observation = obs[self.obs_key][:, self.trained]
         stack = self.stack.reset(observation) if self.stack.stack is None else self.stack.push(observation)
         W, At = stack.shape[:2]
-        logits = self.actor(stack.flatten(0, 1), self.onehot.repeat(W, 1),
+        logits = self.actor(self.actor.prepare(stack.flatten(0, 1)), self.onehot.repeat(W, 1),
                             obs["action_mask"][:, self.trained].flatten(0, 1))
         # The opponents' actions are replaced by random ones in evaluate; 0 is only a placeholder.
         actions = torch.zeros(W, len(self.trained), dtype=torch.int64)

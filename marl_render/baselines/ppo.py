@@ -1,4 +1,4 @@
-"""MAPPO on a BatchedEnv: rollouts of W worlds at once, TorchRL's GAE and ClipPPOLoss.
+"""MAPPO on a BatchedEnv: rollouts of W worlds at once, TorchRL's GAE, the clipped PPO loss in plain torch.
 
 One actor plays every trained agent (the others, a task's ``opponents``, play uniformly random
 valid actions, as in the reference evaluation); the critic is centralised (all agents' states).
@@ -8,19 +8,31 @@ steps (rewards summed, a world that ends inside the block stops counting), then 
 whose episode ended are reset together (``reset_worlds``). A time-limit truncation is
 bootstrapped from the value of the state the episode ended in; a terminated agent is not, and
 its samples after termination (actions ignored, reward 0) are left out of the loss.
+
+The loss is TorchRL's ClipPPOLoss written out on plain tensors (``ppo_loss``; a test holds the two
+equal): per-minibatch normalised advantages, the clipped probability-ratio objective, an entropy
+bonus and a squared-error value loss. Without TensorDicts the small per-call costs are gone, and the
+rollout's forward passes run under ``torch.inference_mode``. Random numbers (actions, opponents,
+minibatches) come from the trainer's own generators, so a run depends on its seed alone.
+
+Acting and learning use separate copies of the networks: rollouts run the acting copy (whose
+running observation norms they update), an update loads those norms with its batch and trains the
+learning copy, and ``publish()`` copies the learnt weights into the acting copy. Run one after the
+other (collect, update, publish) this is plain PPO. With ``hp.overlap`` the training loop
+(training.py) collects the next rollout while the update runs in a second thread, as Sample
+Factory's APPO does: that rollout's actions come from the weights before the update, one update
+behind, and PPO's ratio is taken against those behaviour log-probabilities (stored with the
+samples) and clipped as usual.
 """
 from __future__ import annotations
 
 import contextlib
+import copy
+import math
 import time
 
 import torch
-from tensordict import TensorDict
-from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import ProbabilisticActor
-from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value.functional import generalized_advantage_estimate
 
 from marl_render.envs import make_env
@@ -90,13 +102,37 @@ class RewardScale:
         return reward / (self.var ** 0.5 + 1e-8)
 
 
+def ppo_loss(actor: Actor, critic: CentralCritic, batch: dict, hp: Hyperparameters) -> dict:
+    """ClipPPOLoss(clip_epsilon=hp.clip, entropy_coeff=hp.entropy, critic_coeff=hp.critic_coef,
+    loss_critic_type="l2", normalize_advantage=True) on a minibatch of samples, in plain torch:
+    {"loss_objective", "loss_entropy", "loss_critic", "entropy", "explained_variance"} (scalars).
+    `batch` holds observation (prepared), agent, mask, global_state, action, sample_log_prob,
+    advantage and value_target, each [N, ...]."""
+    logits = actor(batch["observation"], batch["agent"], batch["mask"])
+    log_probs = logits.log_softmax(-1)
+    log_weight = log_probs.gather(-1, batch["action"][:, None]).squeeze(-1) - batch["sample_log_prob"]
+    advantage = batch["advantage"]
+    advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(torch.finfo(torch.float32).resolution)
+    gain = torch.minimum(log_weight.exp() * advantage,
+                         log_weight.clamp(math.log1p(-hp.clip), math.log1p(hp.clip)).exp() * advantage)
+    entropy = -(log_probs.exp() * log_probs).sum(-1)  # masked actions: probability 0, finite log-probability
+    value = critic(batch["global_state"], batch["agent"]).squeeze(-1)
+    target = batch["value_target"]
+    with torch.no_grad():
+        explained = 1.0 - (target - value).var(correction=0) / (target.var(correction=0) +
+                                                                 torch.finfo(target.dtype).eps)
+    return {"loss_objective": -gain.mean(), "loss_entropy": -hp.entropy * entropy.mean(),
+            "loss_critic": hp.critic_coef * (value - target).pow(2).mean(), "entropy": entropy.detach().mean(),
+            "explained_variance": explained}
+
+
 class MAPPO:
-    """Trainer of one task: ``collect()`` a rollout, ``update(batch)``; ``actor`` is the policy
+    """Trainer of one task: ``collect()`` a rollout, ``update(batch)``; ``actor_net`` is the policy
     network (masked logits), ``obs_key`` the observation it reads ("pixels" or "state")."""
 
     def __init__(self, env_name: str, hp: Hyperparameters, obs: str, seed: int, env_kwargs: dict):
         self.hp, self.obs_key = hp, obs
-        torch.manual_seed(seed)
+        torch.manual_seed(seed)  # the networks' initial weights
         self.env = make_env(env_name, num_worlds=hp.worlds, resolution=hp.resolution, grayscale=hp.grayscale,
                             state_obs=True, seed=seed, **env_kwargs)
         env = self.env
@@ -107,6 +143,8 @@ class MAPPO:
         A = env.num_agents
         self.onehot = torch.eye(A)[self.trained]  # [At, A]
         self.generator = torch.Generator().manual_seed(seed + 1)  # the opponents' random actions
+        self.sampler = torch.Generator().manual_seed(seed + 2)  # the actor's actions
+        self.shuffler = torch.Generator().manual_seed(seed + 3)  # the minibatches (drawn in the update's thread)
         self.last_obs = env.reset(seed=seed)
         self.stack = FrameStack(hp.frames)
         self.stack.reset(self._observation(self.last_obs))
@@ -114,17 +152,12 @@ class MAPPO:
         obs_shape = tuple(self.stack.stack.shape[2:])
         self.aux_state = hp.aux_state if obs == "pixels" else 0.0
         self.actor_net = Actor(obs, obs_shape, A, env.num_actions, hp.hidden,
-                               state_dim=env.state_dim if self.aux_state else 0)
+                               state_dim=env.state_dim if self.aux_state else 0, encoder=hp.encoder,
+                               precision=hp.precision)
         self.critic_net = CentralCritic(A * env.state_dim, A, hp.hidden)
-        self.actor = ProbabilisticActor(
-            TensorDictModule(self.actor_net, in_keys=["observation", "agent", "mask"], out_keys=["logits"]),
-            in_keys=["logits"], out_keys=["action"], distribution_class=torch.distributions.Categorical,
-            return_log_prob=True, log_prob_key="sample_log_prob")
-        self.critic = TensorDictModule(self.critic_net, in_keys=["global_state", "agent"], out_keys=["state_value"])
-        self.loss = ClipPPOLoss(self.actor, self.critic, clip_epsilon=hp.clip, entropy_coeff=hp.entropy,
-                                critic_coeff=hp.critic_coef, loss_critic_type="l2", normalize_advantage=True)
-        self.loss.set_keys(sample_log_prob="sample_log_prob")
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=hp.lr, eps=1e-5)
+        self.acting_actor, self.acting_critic = copy.deepcopy(self.actor_net), copy.deepcopy(self.critic_net)
+        self.parameters = [*self.actor_net.parameters(), *self.critic_net.parameters()]
+        self.optimizer = torch.optim.Adam(self.parameters, lr=hp.lr, eps=1e-5, fused=True)  # one kernel for all
         self.reward_scale = RewardScale((env.num_worlds, self.agents), hp.gamma)
         self.running_return = torch.zeros(env.num_worlds, dtype=torch.float64)
         self.env_steps = 0  # env steps summed over worlds
@@ -139,22 +172,19 @@ class MAPPO:
         """The trained agents' observation [W, At, ...] of an obs dict."""
         return obs[self.obs_key][:, self.trained]
 
-    def _inputs(self, observation, global_state, mask) -> TensorDict:
-        """Network inputs of [..., At] samples, flattened."""
-        lead = observation.shape[:-len(self.stack.stack.shape[2:])]
-        n = lead.numel()
-        return TensorDict(observation=observation.reshape(n, *observation.shape[len(lead):]),
-                          agent=self.onehot.expand(*lead[:-1], -1, -1).reshape(n, -1),
-                          mask=mask.reshape(n, -1),
-                          global_state=global_state.reshape(n, -1),
-                          batch_size=[n])
-
     def _global_state(self, obs: dict) -> torch.Tensor:
         state = obs["state"].flatten(-2)
-        self.critic_net.norm.update(state)
+        self.acting_critic.norm.update(state)
         return state
 
-    def collect(self) -> tuple[TensorDict, list]:
+    def _values(self, global_state: torch.Tensor) -> torch.Tensor:
+        """The critic's value [W, At] of every trained agent, from the worlds' states [W, A * state_dim]."""
+        W, At = global_state.shape[0], self.agents
+        with self.clock("policy_forward"), torch.inference_mode():
+            agent = self.onehot.expand(W, -1, -1).reshape(W * At, -1)
+            return self.acting_critic(global_state.repeat_interleave(At, 0), agent).reshape(W, At)
+
+    def collect(self) -> tuple[dict, list]:
         """One rollout of hp.rollout decisions in every world: (the samples of the trained agents
         that were alive, flattened, with advantage and value_target; the returns of the episodes
         that ended, each the sum of the trained agents' rewards averaged over them)."""
@@ -168,49 +198,46 @@ class MAPPO:
         return out
 
     @torch.no_grad()
-    def _collect(self) -> tuple[TensorDict, list]:
+    def _collect(self) -> tuple[dict, list]:
         hp, env, clock = self.hp, self.env, self.clock
         T, W, At = hp.rollout, env.num_worlds, self.agents
+        agent = self.onehot.expand(W, -1, -1).reshape(W * At, -1)
         steps = []
         ended = []
         for _ in range(T):
             observation = self.stack.stack
             if self.obs_key == "state":
-                self.actor_net.encoder.update(observation)
+                self.acting_actor.encoder.update(observation)
             global_state = self._global_state(self.last_obs)
-            self.last_obs_state = self.last_obs["state"][:, self.trained]
+            own_state = self.last_obs["state"][:, self.trained]
             if self.aux_state:
-                self.actor_net.state_norm.update(self.last_obs_state)
+                self.acting_actor.state_norm.update(own_state)
             mask = self.last_obs["action_mask"][:, self.trained]
-            td = self._inputs(observation, global_state[:, None].expand(W, At, -1), mask)
-            with clock("policy_forward"), set_exploration_type(ExplorationType.RANDOM):
-                self.actor(td)
-                self.critic(td)
+            with clock("policy_forward"), torch.inference_mode():
+                logits = self.acting_actor(self.acting_actor.prepare(observation.flatten(0, 1)), agent,
+                                           mask.flatten(0, 1))
+                log_probs = logits.log_softmax(-1)
+                action = torch.multinomial(log_probs.exp(), 1, generator=self.sampler)
+                sample_log_prob = log_probs.gather(-1, action).reshape(W, At)
+                action = action.reshape(W, At)
+            value = self._values(global_state)
             actions = random_policy(env, self.last_obs, self.generator)
-            actions[:, self.trained] = td["action"].reshape(W, At)
+            actions[:, self.trained] = action
             alive = self.alive[:, self.trained].clone()
             reward, done, terminated = self._act(actions)
             bootstrap = torch.zeros(W, At)
             if bool(done.any()):  # the value of the state each ended episode stopped in
-                final = self._inputs(self.stack.stack, self._global_state(self.last_obs)[:, None].expand(W, At, -1),
-                                     mask)
-                with clock("policy_forward"):
-                    bootstrap = self.critic(final)["state_value"].reshape(W, At)
+                bootstrap = self._values(self._global_state(self.last_obs))
                 ended += (self.running_return[done] + reward[done].mean(-1).double()).tolist()
                 self._reset(done)
             self.running_return = torch.where(done, 0.0, self.running_return + reward.mean(-1).double())
-            own_state = self.last_obs_state
             steps.append(dict(observation=observation, global_state=global_state, mask=mask, own_state=own_state,
-                              action=td["action"].reshape(W, At), sample_log_prob=td["sample_log_prob"].reshape(W, At),
-                              value=td["state_value"].reshape(W, At),
+                              action=action, sample_log_prob=sample_log_prob, value=value,
                               reward=self.reward_scale(reward.double(), done[:, None] | terminated).float(),
                               done=done[:, None] | terminated, terminated=terminated, bootstrap=bootstrap,
                               world_done=done[:, None].expand(W, At), valid=alive))
         batch = {key: torch.stack([s[key] for s in steps]) for key in steps[0]}  # [T, W, ...]
-        final = self._inputs(self.stack.stack, self._global_state(self.last_obs)[:, None].expand(W, At, -1),
-                             self.last_obs["action_mask"][:, self.trained])
-        with clock("policy_forward"):
-            last_value = self.critic(final)["state_value"].reshape(1, W, At)
+        last_value = self._values(self._global_state(self.last_obs))[None]
         next_value = torch.cat((batch["value"][1:], last_value))
         next_value = torch.where(batch["world_done"], batch["bootstrap"], next_value)
 
@@ -222,15 +249,20 @@ class MAPPO:
                 hp.gamma, hp.gae_lambda, by_time(batch["value"]), by_time(next_value), by_time(batch["reward"]),
                 by_time(batch["done"]), by_time(batch["terminated"]))
 
-        def back(x):  # [W * At, T, 1] -> [T, W, At, 1]
-            return x.reshape(W, At, T, 1).permute(2, 0, 1, 3)
+        def back(x):  # [W * At, T, 1] -> [T * W * At]
+            return x.reshape(W, At, T).permute(2, 0, 1).reshape(-1)
 
-        samples = self._inputs(batch["observation"], batch["global_state"][:, :, None].expand(T, W, At, -1),
-                               batch["mask"])
-        samples.update(action=batch["action"].reshape(-1), sample_log_prob=batch["sample_log_prob"].reshape(-1),
-                       advantage=back(advantage).reshape(-1, 1), value_target=back(value_target).reshape(-1, 1),
-                       own_state=batch["own_state"].flatten(0, 2))
-        return samples[batch["valid"].reshape(-1)], ended
+        valid = batch["valid"].reshape(-1)
+        norms = {"actor": {k: v.clone() for k, v in self.acting_actor.named_buffers()},
+                 "critic": {k: v.clone() for k, v in self.acting_critic.named_buffers()}}
+        samples = {"observation": batch["observation"].flatten(0, 2),
+                   "agent": self.onehot.expand(T, W, -1, -1).flatten(0, 2),
+                   "mask": batch["mask"].flatten(0, 2),
+                   "global_state": batch["global_state"][:, :, None].expand(T, W, At, -1).flatten(0, 2),
+                   "own_state": batch["own_state"].flatten(0, 2),
+                   "action": batch["action"].reshape(-1), "sample_log_prob": batch["sample_log_prob"].reshape(-1),
+                   "advantage": back(advantage), "value_target": back(value_target)}
+        return {**{key: value[valid] for key, value in samples.items()}, "norms": norms}, ended
 
     def _act(self, actions: torch.Tensor):
         """Hold `actions` for action_repeat steps: (reward [W, At] summed until each world's episode
@@ -257,34 +289,46 @@ class MAPPO:
         self.alive |= worlds[:, None]
         self.stack.restart(self._observation(self.last_obs), worlds)
 
-    def update(self, samples: TensorDict) -> dict:
-        """hp.epochs passes of ClipPPOLoss over `samples` in hp.minibatches minibatches; the mean
+    def update(self, samples: dict) -> dict:
+        """hp.epochs passes of the PPO loss over `samples` in hp.minibatches minibatches; the mean
         of the loss terms of the last pass."""
         hp, clock = self.hp, self.clock
-        size = len(samples)
+        norms = samples["norms"]  # the observation norms the samples were collected with
+        for net, name in ((self.actor_net, "actor"), (self.critic_net, "critic")):
+            for key, buffer in net.named_buffers():
+                buffer.copy_(norms[name][key])
+        with clock("minibatch"):  # the pixels converted once for every pass
+            samples = {**{k: v for k, v in samples.items() if k != "norms"},
+                       "observation": self.actor_net.prepare(samples["observation"])}
+        size = len(samples["action"])
         minibatch = max(size // hp.minibatches, 1)
         for _ in range(hp.epochs):
             terms = []
-            for index in torch.randperm(size).split(minibatch):
+            for index in torch.randperm(size, generator=self.shuffler).split(minibatch):
                 with clock("minibatch"):
-                    minibatch_samples = samples[index]
+                    batch = {key: value.index_select(0, index) for key, value in samples.items()}
                 with clock("loss_forward_backward"):
-                    out = self.loss(minibatch_samples)
+                    out = ppo_loss(self.actor_net, self.critic_net, batch, hp)
                     total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
                     if self.aux_state:  # on the features of the forward the PPO loss just ran
-                        target = self.actor_net.state_norm(minibatch_samples["own_state"])
-                        out["loss_aux_state"] = (self.actor_net.state_head(self.actor_net.features)
+                        target = self.actor_net.state_norm(batch["own_state"])
+                        out["loss_aux_state"] = (self.actor_net.state_head(self.actor_net.features.float())
                                                  - target).pow(2).mean()
                         total = total + self.aux_state * out["loss_aux_state"]
-                    self.optimizer.zero_grad()
                     total.backward()
                 with clock("optimiser"):
-                    nn.utils.clip_grad_norm_(self.loss.parameters(), hp.max_grad_norm)
+                    nn.utils.clip_grad_norm_(self.parameters, hp.max_grad_norm, foreach=True)
                     self.optimizer.step()
-                terms.append({k: float(out[k].detach().mean()) for k in ("loss_objective", "loss_critic", "entropy",
-                                                                         "explained_variance", "loss_aux_state")
-                              if k in out.keys()})
+                    self.optimizer.zero_grad()
+                terms.append({k: float(v.detach()) for k, v in out.items()})
         return {k: sum(t[k] for t in terms) / len(terms) for k in terms[0]}
+
+    @torch.no_grad()
+    def publish(self) -> None:
+        """The learnt weights into the acting networks (their observation norms stay theirs)."""
+        for learnt, acting in ((self.actor_net, self.acting_actor), (self.critic_net, self.acting_critic)):
+            for source, target in zip(learnt.parameters(), acting.parameters(), strict=True):
+                target.copy_(source)
 
     def close(self) -> None:
         self.env.close()

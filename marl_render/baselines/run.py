@@ -51,6 +51,7 @@ from marl_render.envs import list_envs
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
 
 from .curve import plot_curve
+from .networks import ENCODERS, PRECISIONS
 from .settings import EVALUATION_SETS, FIELDS, step_budget, task_hyperparameters
 from .training import train
 
@@ -107,6 +108,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     for name, kind, *_ in RANGES:
         hp.add_argument(f"--{name}", type=kind, default=None)
     hp.add_argument("--grayscale", action="store_true", default=None, help="one-channel pixels")
+    hp.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
+                    help="collect the next rollout while the update runs (one update behind)")
+    hp.add_argument("--encoder", choices=ENCODERS, default=None, help="the actor's pixel encoder")
+    hp.add_argument("--precision", choices=list(PRECISIONS), default=None,
+                    help="the actor's compute (bfloat16: CPU autocast, float32 weights)")
     args = parser.parse_args(argv)
     check_args(parser, args)
     return args
@@ -279,7 +285,7 @@ def main(argv=None) -> int:
                     "platform": platform.platform(), "processor": platform.processor()},
         "wall_clock_seconds": time.perf_counter() - started,
         "training_seconds": run.training_seconds, "env_seconds_in_training": trainer.seconds_stepping,
-        "stage_seconds": trainer.clock.seconds,
+        "training_cpu_seconds": run.training_cpu_seconds, "stage_seconds": trainer.clock.seconds,
         "checkpoint_seconds": run.checkpoint_seconds, "evaluation_seconds": evaluation_seconds,
         "env_steps": trainer.env_steps, "updates": run.updates,
         "hyperparameters": dataclasses.asdict(hp),

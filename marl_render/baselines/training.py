@@ -15,6 +15,7 @@ choose which policy is returned: that is always the final one.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import math
 import time
@@ -41,6 +42,7 @@ class TrainingRun:
     checkpoints: list
     updates: int
     training_seconds: float  # collecting and updating, checkpoint evaluations left out
+    training_cpu_seconds: float  # CPU time of this process (all its threads, the renderer's too) in training
     checkpoint_seconds: float
     truncated: bool  # stopped by max_seconds before the budget
 
@@ -80,26 +82,38 @@ def train(env: str, *, obs: str = "pixels", env_steps: int | None = None, update
     budget_steps = env_steps if env_steps is not None else updates * hp.worlds * hp.rollout * hp.action_repeat
     trainer = MAPPO(env, hp, obs, seed, {**env_options, **train_options})
     run = TrainingRun(env, obs, trainer, hp, budget_steps, updates, curve=[], checkpoints=[], updates=0,
-                      training_seconds=0.0, checkpoint_seconds=0.0, truncated=False)
+                      training_seconds=0.0, training_cpu_seconds=0.0, checkpoint_seconds=0.0, truncated=False)
     development = EVALUATION_SETS["development"]
     next_checkpoint = checkpoint_every
-    started = time.perf_counter()
+    started, cpu_started, checkpoint_cpu = time.perf_counter(), time.process_time(), 0.0
+    learner = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="mappo-update") if hp.overlap else None
     try:
+        collected = None
         while run.updates < updates:
-            samples, ended = trainer.collect()
-            terms = trainer.update(samples)
+            samples, ended = collected or trainer.collect()
+            collected = None
+            if learner is None:
+                terms = trainer.update(samples)
+            else:  # the next rollout (with the weights before this update) while the update runs
+                update = learner.submit(trainer.update, samples)
+                if run.updates + 1 < updates:
+                    collected = trainer.collect()
+                terms = update.result()
+            trainer.publish()
             run.updates += 1
             run.training_seconds = time.perf_counter() - started - run.checkpoint_seconds
+            run.training_cpu_seconds = time.process_time() - cpu_started - checkpoint_cpu
             point = {"env_steps": trainer.env_steps, "seconds": run.training_seconds,
                      "episode_return": sum(ended) / len(ended) if ended else None, "episodes_ended": len(ended),
                      **terms}
             run.curve.append(point)
             if checkpoint_every and trainer.env_steps >= next_checkpoint:
-                evaluated = time.perf_counter()
+                evaluated, evaluated_cpu = time.perf_counter(), time.process_time()
                 score = evaluate(env, run.policy(), episodes=checkpoint_episodes, seed=development["seed"],
                                  resolution=hp.resolution, grayscale=hp.grayscale, state_obs=obs == "state",
                                  **env_options)
                 run.checkpoint_seconds += time.perf_counter() - evaluated
+                checkpoint_cpu += time.process_time() - evaluated_cpu
                 run.checkpoints.append({"env_steps": trainer.env_steps, "updates": run.updates,
                                         "seconds": run.training_seconds, "evaluation_set": "development",
                                         **{k: score[k] for k in ("mean", "std", "min", "max", "episodes")},
@@ -112,5 +126,7 @@ def train(env: str, *, obs: str = "pixels", env_steps: int | None = None, update
                 run.truncated = True
                 break
     finally:
+        if learner is not None:
+            learner.shutdown()
         trainer.close()
     return run
