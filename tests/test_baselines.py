@@ -422,3 +422,40 @@ def test_ppo_loss_is_torchrl_clip_ppo_loss(precision):
                  for out in (ours, theirs)]
     for mine, reference in zip(*gradients, strict=True):
         torch.testing.assert_close(mine, reference, rtol=1e-4, atol=1e-6)
+
+
+def test_the_training_guide_python_block_runs(tmp_path):
+    """docs/training.md's Python example, as written but for a budget that runs in seconds."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "training.md").read_text()
+    code = text.split("```python\n", 1)[1].split("```", 1)[0]
+    for written, small in (('task_hyperparameters("spread", worlds=16)',
+                            'task_hyperparameters("spread", worlds=2, rollout=4, resolution=16)'),
+                           ("env_steps=100_000", "env_steps=24"), ("checkpoint_every=25_000", "checkpoint_every=8"),
+                           ("episodes=32", "episodes=2")):
+        assert written in code, f"docs/training.md no longer contains {written!r}: update this test"
+        code = code.replace(written, small)
+    result = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    steps, updates, seconds, checkpoint = result.stdout.splitlines()[0].split()
+    assert (steps, updates) == ("24", "3") and float(seconds) > 0 and math.isfinite(float(checkpoint))
+    assert math.isfinite(float(result.stdout.splitlines()[1]))
+
+
+def test_throughput_runs_variants_in_turn_and_reads_their_results(tmp_path, capsys):
+    from marl_render.baselines import throughput
+
+    tiny = "--env spread --updates 1 --worlds 2 --resolution 8 --rollout 4"
+    assert throughput.main(["--rounds", "1", "--out", str(tmp_path), "--variant", f"plain=::{tiny}",
+                            "--variant", f"bf16=::{tiny} --precision bfloat16"]) == 0
+    summary = json.loads((tmp_path / "throughput.json").read_text())
+    assert summary == json.loads(capsys.readouterr().out)
+    assert list(summary) == ["plain", "bf16"] and summary["plain"]["ratio_to_first"] == 1.0
+    for label in ("plain", "bf16"):
+        row = summary[label]["rounds"][0]
+        assert row["env_steps"] == 8 and row["env_steps_per_second"] > 0 and 0 < row["env_share"] < 1
+    assert json.loads((tmp_path / "bf16-round0" / "result.json").read_text())["hyperparameters"]["precision"] == \
+        "bfloat16"
+    with pytest.raises(SystemExit):
+        throughput.main(["--out", str(tmp_path), "--variant", "no-separator"])

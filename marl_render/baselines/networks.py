@@ -56,25 +56,31 @@ ENCODERS = ("conv", "patch")  # PixelEncoder's layouts
 
 class PixelEncoder(nn.Module):
     """Prepared pixels [N, H, W, C] -> float [N, features], two convolutions small enough for two
-    CPU cores; works from 8 pixels per side up.
+    CPU cores.
 
-    - ``"conv"``: 4x4 stride 2 (16 channels), 3x3 stride 2 (32): the first reference runs' encoder.
-    - ``"patch"``: 4x4 stride 4 (16 channels: each 4x4 patch of the view seen once), 3x3 stride 1 (32).
-      Sized for 32-48 px: about the same features as "conv" (1152 against 1568 at 32 px) from a
-      quarter of the first layer's activations, which dominate the cost of a CPU update."""
+    - ``"conv"``: 4x4 stride 2 (16 channels), 3x3 stride 2 (32): the first reference runs' encoder;
+      from 8 pixels per side up.
+    - ``"patch"``: each 4x4 patch of the view seen once (16 channels: a 4x4 stride-4 convolution,
+      computed as one matrix product over the patches), then 3x3 stride 1 (32); from 12 pixels up.
+      Sized for 32-48 px: about the features of "conv" (1152 against 1568 at 32 px) from a quarter
+      of the first layer's activations, which dominate the cost of a CPU update."""
 
     def __init__(self, channels: int, resolution: int, kind: str = "conv"):
         super().__init__()
         if kind not in ENCODERS:
             raise ValueError(f"encoder must be one of {ENCODERS}, got {kind!r}")
-        stride = 2 if kind == "conv" else 4
-        self.net = nn.Sequential(nn.Conv2d(channels, 16, 4, stride=stride), nn.ReLU(),
-                                 nn.Conv2d(16, 32, 3, stride=2 if kind == "conv" else 1), nn.ReLU(), nn.Flatten())
-        smallest = 3 * stride + 4 - stride  # the first layer must leave 3x3 for the second
+        self.kind = kind
+        smallest = 8 if kind == "conv" else 12  # the first layer must leave 3x3 for the second
         if resolution < smallest:
             raise ValueError(f"the {kind!r} encoder needs at least {smallest} pixels per side, got {resolution}")
+        if kind == "conv":
+            self.net = nn.Sequential(nn.Conv2d(channels, 16, 4, stride=2), nn.ReLU(),
+                                     nn.Conv2d(16, 32, 3, stride=2), nn.ReLU(), nn.Flatten())
+        else:
+            self.patch = nn.Linear(16 * channels, 16)  # the same parameters and initial scale as Conv2d(C, 16, 4, 4)
+            self.net = nn.Sequential(nn.Conv2d(16, 32, 3), nn.ReLU(), nn.Flatten())
         with torch.no_grad():
-            self.features = self.net(torch.zeros(1, channels, resolution, resolution)).shape[-1]
+            self.features = self(torch.zeros(1, resolution, resolution, channels)).shape[-1]
 
     @staticmethod
     def prepare(pixels: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -82,7 +88,13 @@ class PixelEncoder(nn.Module):
         return pixels.to(dtype) / 255.0
 
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
-        return self.net(pixels.permute(0, 3, 1, 2))  # channels-last [N, C, H, W], no copy
+        if self.kind == "conv":
+            return self.net(pixels.permute(0, 3, 1, 2))  # channels-last [N, C, H, W], no copy
+        n, height, width, channels = pixels.shape
+        rows, columns = height // 4, width // 4
+        patches = (pixels[:, :4 * rows, :4 * columns].reshape(n, rows, 4, columns, 4, channels).transpose(2, 3)
+                   .reshape(n, rows, columns, 16 * channels))
+        return self.net(torch.relu(self.patch(patches)).permute(0, 3, 1, 2))
 
 
 PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}

@@ -218,7 +218,7 @@ def main(argv=None) -> int:
     hp = task_hyperparameters(args.env, **{name: getattr(args, name) for name in FIELDS})
     if hp.torch_threads == 0:  # the cores this process may use
         hp = dataclasses.replace(hp, torch_threads=len(os.sched_getaffinity(0)))
-    torch.set_num_threads(hp.torch_threads)
+    torch.set_num_threads(hp.torch_threads)  # the evaluations' too
     evaluation_set = EVALUATION_SETS[args.eval_set]
     eval_seed = evaluation_set["seed"] if args.eval_seed is None else args.eval_seed
     episodes = evaluation_set["episodes"] if args.episodes is None else args.episodes
@@ -288,7 +288,7 @@ def main(argv=None) -> int:
         "training_cpu_seconds": run.training_cpu_seconds, "stage_seconds": trainer.clock.seconds,
         "checkpoint_seconds": run.checkpoint_seconds, "evaluation_seconds": evaluation_seconds,
         "env_steps": trainer.env_steps, "updates": run.updates,
-        "hyperparameters": dataclasses.asdict(hp),
+        "hyperparameters": dataclasses.asdict(run.hyperparameters),
         "env_options": env_options, "train_options": train_options,
         "trained_agents": [n for n, t in zip(trainer.env.agent_names, trainer.trained.tolist(), strict=True) if t],
         "evaluation": {"policy": policy, **references,

@@ -18,7 +18,10 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import math
+import os
 import time
+
+import torch
 
 from marl_render.envs.evaluation import evaluate
 
@@ -72,14 +75,28 @@ def train(env: str, *, obs: str = "pixels", env_steps: int | None = None, update
     training env and the checkpoint evaluations, `train_options` to the training env only (a shaped
     training reward). Every `checkpoint_every` env steps (0: never) the greedy policy is evaluated on
     `checkpoint_episodes` episodes of the development evaluation set. `progress(run, point)` is called
-    after every update with the curve point just added."""
+    after every update with the curve point just added. Torch runs on ``hp.torch_threads`` threads
+    during the call (0: the cores this process may use; the run's hyperparameters say how many)."""
     if env_steps is not None and updates is not None:
         raise ValueError(f"give env_steps or updates, not both (got {env_steps} and {updates})")
     hp = hyperparameters if hyperparameters is not None else task_hyperparameters(env)
+    if hp.torch_threads == 0:
+        hp = dataclasses.replace(hp, torch_threads=len(os.sched_getaffinity(0)))
     env_options, train_options = dict(env_options or {}), dict(train_options or {})
     if updates is None:
         updates = updates_for(step_budget(env, obs) if env_steps is None else env_steps, hp)
     budget_steps = env_steps if env_steps is not None else updates * hp.worlds * hp.rollout * hp.action_repeat
+    threads = torch.get_num_threads()
+    torch.set_num_threads(hp.torch_threads)
+    try:
+        return _train(env, obs, hp, updates, budget_steps, seed, env_options, train_options, checkpoint_every,
+                      checkpoint_episodes, max_seconds, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train(env, obs, hp, updates, budget_steps, seed, env_options, train_options, checkpoint_every,
+           checkpoint_episodes, max_seconds, progress) -> TrainingRun:
     trainer = MAPPO(env, hp, obs, seed, {**env_options, **train_options})
     run = TrainingRun(env, obs, trainer, hp, budget_steps, updates, curve=[], checkpoints=[], updates=0,
                       training_seconds=0.0, training_cpu_seconds=0.0, checkpoint_seconds=0.0, truncated=False)
