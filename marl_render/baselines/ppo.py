@@ -142,6 +142,7 @@ class MAPPO:
         self.agents = int(self.trained.sum())
         A = env.num_agents
         self.onehot = torch.eye(A)[self.trained]  # [At, A]
+        self.trained_index = self.trained.nonzero().squeeze(1)  # index_select: a fast copy of big observations
         self.generator = torch.Generator().manual_seed(seed + 1)  # the opponents' random actions
         self.sampler = torch.Generator().manual_seed(seed + 2)  # the actor's actions
         self.shuffler = torch.Generator().manual_seed(seed + 3)  # the minibatches (drawn in the update's thread)
@@ -170,7 +171,7 @@ class MAPPO:
 
     def _observation(self, obs: dict) -> torch.Tensor:
         """The trained agents' observation [W, At, ...] of an obs dict."""
-        return obs[self.obs_key][:, self.trained]
+        return obs[self.obs_key].index_select(1, self.trained_index)
 
     def _global_state(self, obs: dict) -> torch.Tensor:
         state = obs["state"].flatten(-2)
@@ -262,7 +263,10 @@ class MAPPO:
                    "own_state": batch["own_state"].flatten(0, 2),
                    "action": batch["action"].reshape(-1), "sample_log_prob": batch["sample_log_prob"].reshape(-1),
                    "advantage": back(advantage), "value_target": back(value_target)}
-        return {**{key: value[valid] for key, value in samples.items()}, "norms": norms}, ended
+        if not bool(valid.all()):
+            index = valid.nonzero().squeeze(1)
+            samples = {key: value.index_select(0, index) for key, value in samples.items()}
+        return {**samples, "norms": norms}, ended
 
     def _act(self, actions: torch.Tensor):
         """Hold `actions` for action_repeat steps: (reward [W, At] summed until each world's episode
