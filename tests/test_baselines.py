@@ -19,7 +19,7 @@ from marl_render.baselines.settings import Hyperparameters, task_hyperparameters
 
 # 3 updates of 2 worlds x 4 decisions; checkpoints after updates 2 and 3 (16 and 24 env steps).
 TINY = ["--env-steps", "24", "--checkpoint-every", "12", "--checkpoint-episodes", "2", "--worlds", "2",
-        "--resolution", "8", "--episodes", "2", "--rollout", "4"]
+        "--resolution", "12", "--episodes", "2", "--rollout", "4"]
 # report.py still writes --budget-minutes into its reproducing commands: a cap that a tiny run never reaches
 CAP = ["--max-minutes", "30"]
 
@@ -29,7 +29,8 @@ def runs(tmp_path_factory):
     """Two tiny runs: spread from pixels, tag (random prey) from the state."""
     root = tmp_path_factory.mktemp("baselines")
     assert run.main(["--env", "spread", "--out", str(root / "spread"), *TINY, *CAP]) == 0
-    assert run.main(["--env", "tag", "--obs", "state", "--out", str(root / "tag-state"), *TINY, *CAP]) == 0
+    assert run.main(["--env", "tag", "--obs", "state", "--out", str(root / "tag-state"), *TINY, *CAP,
+                     "--no-overlap"]) == 0
     return root
 
 
@@ -50,19 +51,26 @@ def test_result_json_has_every_field(runs, folder, env, obs, trained):
     assert result["command"].startswith("python -m marl_render.baselines --env ")
     assert result["seeds"] == {"train": 0, "evaluation": 1000} and result["evaluation_set"] == "development"
     assert set(result["versions"]) >= {"marl_render", "torch", "torchrl", "tensordict"}
-    assert result["hyperparameters"] == {**vars(task_hyperparameters(env)), "worlds": 2, "resolution": 8,
-                                         "rollout": 4}
+    assert result["hyperparameters"] == {**vars(task_hyperparameters(env)), "worlds": 2, "resolution": 12,
+                                         "rollout": 4, "overlap": obs == "pixels"}
     assert len(result["trained_agents"]) == trained
     assert result["budget"] == {"env_steps": 24, "updates": 3, "max_minutes": 30}
     assert result["env_steps"] == 24 and result["updates"] == 3 and result["truncated"] is False
     for key in ("wall_clock_seconds", "training_seconds", "evaluation_seconds", "env_seconds_in_training"):
         assert isinstance(result[key], float) and result[key] > 0
     stages = result["stage_seconds"]
-    assert set(stages) == {"env", "observation", "policy_forward", "gae", "minibatch", "loss_forward_backward",
-                           "optimiser"}
-    assert all(v >= 0 for v in stages.values()) and sum(stages.values()) <= result["training_seconds"]
+    rollout = ("env", "observation", "policy_forward", "gae")
+    update = ("minibatch", "loss_forward_backward", "optimiser")
+    assert set(stages) == {*rollout, *update} and all(v >= 0 for v in stages.values())
     assert stages["env"] == result["env_seconds_in_training"]
-    assert [p["env_steps"] for p in result["curve"]] == [8, 16, 24]
+    overlap = result["hyperparameters"]["overlap"]
+    assert overlap == (obs == "pixels")  # the default, and --no-overlap for the state run
+    if overlap:  # the next rollout (its env steps counted) is collected while the update runs, beside it
+        assert [p["env_steps"] for p in result["curve"]] == [16, 24, 24]
+        assert max(sum(stages[k] for k in side) for side in (rollout, update)) <= result["training_seconds"]
+    else:
+        assert [p["env_steps"] for p in result["curve"]] == [8, 16, 24]
+        assert sum(stages.values()) <= result["training_seconds"]
     for point in result["curve"]:
         assert set(point) >= {"env_steps", "seconds", "episode_return", "episodes_ended", "entropy"}
         assert point["episode_return"] is None or isinstance(point["episode_return"], float)
@@ -121,6 +129,7 @@ def test_report_reads_the_learners_runs(runs, tmp_path):
     (["--env", "spread", "--env-option", "autoreset='next_step'"], "autoreset: not supported"),
     (["--env", "spread", "--train-option", "continuous=True"], "continuous: not supported"),
     (["--env", "spread", "--out", "/proc/self/baselines"], "--out must be a folder this process can write to"),
+    (["--env", "spread", "--resolution", "8"], "--resolution must be >= 12 for the 'patch' encoder, got 8"),
 ])
 def test_bad_arguments_are_named(args, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -225,7 +234,8 @@ def test_max_minutes_stops_training_and_marks_the_run_truncated(tmp_path):
     assert run.main(["--env", "spread", "--out", str(out), *TINY, "--env-steps", "100000000", "--max-minutes",
                      "1e-9", "--checkpoint-every", "0"]) == 0
     result = json.loads((out / "result.json").read_text())
-    assert result["truncated"] is True and result["updates"] == 1 and result["env_steps"] == 8
+    assert result["truncated"] is True and result["updates"] == 1
+    assert result["env_steps"] == 16  # the update's rollout, and the next one collected beside it
     assert result["budget"]["env_steps"] == 100_000_000 and result["budget"]["max_minutes"] == 1e-9
 
 
@@ -330,7 +340,7 @@ def test_learning_accuracy_reruns_a_truncated_or_partial_result(tmp_path):
 
     out = tmp_path / "learning"
     argv = ["--env-steps", "8", "--seeds", "0", "1", "--settings", "32px", "--episodes", "2", "--out", str(out),
-            "--worlds", "2", "--rollout", "4", "--resolution", "8", "--checkpoint-every", "0"]
+            "--worlds", "2", "--rollout", "4", "--resolution", "12", "--checkpoint-every", "0"]
     for seed, text in ((0, '{"env": "spread", "evaluation": {"poli'),
                        (1, json.dumps({"env": "spread", "truncated": True, "evaluation": {"policy": {"mean": 1.0}}}))):
         (out / f"32px-seed{seed}").mkdir(parents=True)
@@ -446,7 +456,7 @@ def test_the_training_guide_python_block_runs(tmp_path):
 def test_throughput_runs_variants_in_turn_and_reads_their_results(tmp_path, capsys):
     from marl_render.baselines import throughput
 
-    tiny = "--env spread --updates 1 --worlds 2 --resolution 8 --rollout 4"
+    tiny = "--env spread --updates 1 --worlds 2 --resolution 12 --rollout 4"
     assert throughput.main(["--rounds", "1", "--out", str(tmp_path), "--variant", f"plain=::{tiny}",
                             "--variant", f"bf16=::{tiny} --precision bfloat16"]) == 0
     summary = json.loads((tmp_path / "throughput.json").read_text())
@@ -459,3 +469,29 @@ def test_throughput_runs_variants_in_turn_and_reads_their_results(tmp_path, caps
         "bfloat16"
     with pytest.raises(SystemExit):
         throughput.main(["--out", str(tmp_path), "--variant", "no-separator"])
+
+
+@pytest.mark.parametrize("channels, resolution", [(3, 32), (6, 48), (1, 12), (3, 30)])
+def test_the_patch_encoder_first_layer_is_a_stride_4_convolution(channels, resolution):
+    """prepare() lays out 4x4 patches (bytes moved as words) and the first layer scales by 1/255: the
+    same function as Conv2d(C, 16, 4, stride=4) on pixels in [0, 1], its weights laid out alike."""
+    from torch import nn
+
+    from marl_render.baselines.networks import PixelEncoder
+
+    torch.manual_seed(0)
+    encoder = PixelEncoder(channels, resolution, "patch")
+    pixels = torch.randint(0, 256, (5, resolution, resolution, channels), dtype=torch.uint8)
+    conv = nn.Conv2d(channels, 16, 4, stride=4)
+    with torch.no_grad():
+        conv.weight.copy_(encoder.patch.weight.reshape(16, 4, 4, channels).permute(0, 3, 1, 2))
+        conv.bias.copy_(encoder.patch.bias)
+        reference = conv(pixels.permute(0, 3, 1, 2).float() / 255).permute(0, 2, 3, 1)
+        patches = encoder.prepare(pixels, torch.float32)
+        ours = nn.functional.linear(patches, encoder.patch.weight / 255.0, encoder.patch.bias)
+    assert patches.shape == (5, resolution // 4, resolution // 4, 16 * channels)
+    assert patches[1, 2, 0, :3 * channels].tolist() == pixels[1, 8, 0:3].flatten().float().tolist()
+    torch.testing.assert_close(ours, reference, rtol=0, atol=1e-6)
+    assert encoder(encoder.prepare(pixels, torch.float32)).shape == (5, encoder.features)
+    with pytest.raises(ValueError, match="at least 12 pixels per side, got 11"):
+        PixelEncoder(channels, 11, "patch")

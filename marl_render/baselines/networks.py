@@ -51,7 +51,7 @@ class RunningNorm(nn.Module):
         return ((x - self.mean) / torch.sqrt(self.var + 1e-8)).clamp(-5.0, 5.0)
 
 
-ENCODERS = ("conv", "patch")  # PixelEncoder's layouts
+ENCODERS = {"conv": 8, "patch": 12}  # PixelEncoder's layouts and the fewest pixels per side each takes
 
 
 class PixelEncoder(nn.Module):
@@ -63,14 +63,18 @@ class PixelEncoder(nn.Module):
     - ``"patch"``: each 4x4 patch of the view seen once (16 channels: a 4x4 stride-4 convolution,
       computed as one matrix product over the patches), then 3x3 stride 1 (32); from 12 pixels up.
       Sized for 32-48 px: about the features of "conv" (1152 against 1568 at 32 px) from a quarter
-      of the first layer's activations, which dominate the cost of a CPU update."""
+      of the first layer's activations, which dominate the cost of a CPU update. Its ``prepare``
+      lays the pixels out as patches once ([N, H/4, W/4, 16 C], values 0-255 in the compute dtype:
+      exact in bfloat16), and the first layer's weights carry the 1/255 (the same function as a
+      layer on pixels in [0, 1]): no pass over the pixels but the one conversion. On this CPU
+      memory traffic, not arithmetic, bounds an update."""
 
     def __init__(self, channels: int, resolution: int, kind: str = "conv"):
         super().__init__()
         if kind not in ENCODERS:
-            raise ValueError(f"encoder must be one of {ENCODERS}, got {kind!r}")
+            raise ValueError(f"encoder must be one of {list(ENCODERS)}, got {kind!r}")
         self.kind = kind
-        smallest = 8 if kind == "conv" else 12  # the first layer must leave 3x3 for the second
+        smallest = ENCODERS[kind]  # the first layer must leave 3x3 for the second
         if resolution < smallest:
             raise ValueError(f"the {kind!r} encoder needs at least {smallest} pixels per side, got {resolution}")
         if kind == "conv":
@@ -78,23 +82,30 @@ class PixelEncoder(nn.Module):
                                      nn.Conv2d(16, 32, 3, stride=2), nn.ReLU(), nn.Flatten())
         else:
             self.patch = nn.Linear(16 * channels, 16)  # the same parameters and initial scale as Conv2d(C, 16, 4, 4)
-            self.net = nn.Sequential(nn.Conv2d(16, 32, 3), nn.ReLU(), nn.Flatten())
+            self.conv = nn.Conv2d(16, 32, 3)
         with torch.no_grad():
-            self.features = self(torch.zeros(1, resolution, resolution, channels)).shape[-1]
+            zeros = torch.zeros(1, resolution, resolution, channels, dtype=torch.uint8)
+            self.features = self(self.prepare(zeros, torch.float32)).shape[-1]
 
-    @staticmethod
-    def prepare(pixels: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-        """uint8 [N, H, W, C] -> `dtype` [N, H, W, C] in [0, 1]."""
-        return pixels.to(dtype) / 255.0
+    def prepare(self, pixels: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        """uint8 [N, H, W, C] -> the input of `forward` in `dtype`: "conv" [N, H, W, C] in [0, 1];
+        "patch" [N, H/4, W/4, 16 C] in 0-255."""
+        if self.kind == "conv":
+            return pixels.to(dtype) / 255.0
+        n, height, width, channels = pixels.shape
+        rows, columns = height // 4, width // 4
+        pixels = pixels[:, :4 * rows, :4 * columns].contiguous()
+        # A patch row is 4 C bytes: moved as C int32 words, the bytes before they are widened to dtype.
+        words = pixels.view(n, 4 * rows, 4 * columns * channels).view(torch.int32)
+        patches = words.reshape(n, rows, 4, columns, channels).transpose(2, 3).contiguous().view(torch.uint8)
+        return patches.reshape(n, rows, columns, 16 * channels).to(dtype)
 
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
         if self.kind == "conv":
             return self.net(pixels.permute(0, 3, 1, 2))  # channels-last [N, C, H, W], no copy
-        n, height, width, channels = pixels.shape
-        rows, columns = height // 4, width // 4
-        patches = (pixels[:, :4 * rows, :4 * columns].reshape(n, rows, 4, columns, 4, channels).transpose(2, 3)
-                   .reshape(n, rows, columns, 16 * channels))
-        return self.net(torch.relu(self.patch(patches)).permute(0, 3, 1, 2))
+        first = torch.relu(nn.functional.linear(pixels, self.patch.weight / 255.0, self.patch.bias))
+        # Channels-last in and out of the convolution; flattened in that order, without a copy.
+        return torch.relu(self.conv(first.permute(0, 3, 1, 2))).permute(0, 2, 3, 1).flatten(1)
 
 
 PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
@@ -137,7 +148,7 @@ class Actor(nn.Module):
         """Observations [N, ...] as the env gives them -> the network's input (pixels: converted once)."""
         if self.obs == "pixels":
             return self.encoder.prepare(observation, self.dtype)
-        return observation
+        return observation.to(torch.float32)
 
     def forward(self, observation, agent, mask):
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.dtype == torch.bfloat16):

@@ -110,7 +110,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     hp.add_argument("--grayscale", action="store_true", default=None, help="one-channel pixels")
     hp.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
                     help="collect the next rollout while the update runs (one update behind)")
-    hp.add_argument("--encoder", choices=ENCODERS, default=None, help="the actor's pixel encoder")
+    hp.add_argument("--encoder", choices=list(ENCODERS), default=None, help="the actor's pixel encoder")
     hp.add_argument("--precision", choices=list(PRECISIONS), default=None,
                     help="the actor's compute (bfloat16: CPU autocast, float32 weights)")
     args = parser.parse_args(argv)
@@ -133,6 +133,10 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
         value = getattr(args, name)
         if value is not None and value < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    hp = task_hyperparameters(args.env, **{name: getattr(args, name) for name in FIELDS})
+    if args.obs == "pixels" and hp.resolution < ENCODERS[hp.encoder]:
+        parser.error(f"--resolution must be >= {ENCODERS[hp.encoder]} for the {hp.encoder!r} encoder, got "
+                     f"{hp.resolution} (--encoder conv takes {ENCODERS['conv']})")
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
         parser.error(f"--checkpoint-every must be >= 0 (0: no checkpoints), got {args.checkpoint_every}")
     if args.max_minutes is not None and not (math.isfinite(args.max_minutes) and args.max_minutes > 0):

@@ -29,12 +29,12 @@ class Hyperparameters:
     critic_coef: float = 0.5  # value loss weight
     max_grad_norm: float = 0.5
     hidden: int = 128  # width of the actor's and the critic's hidden layers
-    encoder: str = "conv"  # the actor's pixel encoder (networks.ENCODERS)
-    precision: str = "float32"  # the actor's compute: "float32", or "bfloat16" autocast (float32 weights)
+    encoder: str = "patch"  # the actor's pixel encoder (networks.ENCODERS; "conv" until issue 25)
+    precision: str = "bfloat16"  # the actor's compute: "bfloat16" autocast (float32 weights), or "float32"
     torch_threads: int = 1  # torch threads of the networks (the renderer has its own); 0: the cores available
     # Collect the next rollout while the update runs (a second thread): its actions come from the
     # weights one update behind, PPO's clipped ratio is taken against them (ppo.py).
-    overlap: bool = False
+    overlap: bool = True
     # Weight of an auxiliary loss (pixels only): the actor's pixel features predict the agent's own
     # state observation. Privileged information used in training only; the policy acts on pixels.
     aux_state: float = 0.0
