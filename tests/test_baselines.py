@@ -20,16 +20,14 @@ from marl_render.baselines.settings import Hyperparameters, task_hyperparameters
 # 3 updates of 2 worlds x 4 decisions; checkpoints after updates 2 and 3 (16 and 24 env steps).
 TINY = ["--env-steps", "24", "--checkpoint-every", "12", "--checkpoint-episodes", "2", "--worlds", "2",
         "--resolution", "12", "--episodes", "2", "--rollout", "4"]
-# report.py still writes --budget-minutes into its reproducing commands: a cap that a tiny run never reaches
-CAP = ["--max-minutes", "30"]
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """Two tiny runs: spread from pixels, tag (random prey) from the state."""
     root = tmp_path_factory.mktemp("baselines")
-    assert run.main(["--env", "spread", "--out", str(root / "spread"), *TINY, *CAP]) == 0
-    assert run.main(["--env", "tag", "--obs", "state", "--out", str(root / "tag-state"), *TINY, *CAP,
+    assert run.main(["--env", "spread", "--out", str(root / "spread"), *TINY]) == 0
+    assert run.main(["--env", "tag", "--obs", "state", "--out", str(root / "tag-state"), *TINY,
                      "--no-overlap"]) == 0
     return root
 
@@ -54,7 +52,7 @@ def test_result_json_has_every_field(runs, folder, env, obs, trained):
     assert result["hyperparameters"] == {**vars(task_hyperparameters(env)), "worlds": 2, "resolution": 12,
                                          "rollout": 4, "overlap": obs == "pixels"}
     assert len(result["trained_agents"]) == trained
-    assert result["budget"] == {"env_steps": 24, "updates": 3, "max_minutes": 30}
+    assert result["budget"] == {"env_steps": 24, "updates": 3, "max_minutes": None}
     assert result["env_steps"] == 24 and result["updates"] == 3 and result["truncated"] is False
     for key in ("wall_clock_seconds", "training_seconds", "evaluation_seconds", "env_seconds_in_training"):
         assert isinstance(result[key], float) and result[key] > 0
@@ -83,12 +81,73 @@ def test_result_json_has_every_field(runs, folder, env, obs, trained):
         assert len(result["evaluation"][policy]["evaluated_agents"]) == trained
 
 
+@pytest.mark.parametrize("folder, env, obs", [("spread", "spread", "pixels"), ("tag-state", "tag", "state")])
+def test_the_saved_actor_is_the_policy_that_was_scored(runs, folder, env, obs):
+    """actor.pt, loaded into a fresh actor, plays the final evaluation's episodes return for return: the
+    row is the run's own final network (with --overlap and without)."""
+    from marl_render.baselines.policy import GreedyPolicy
+    from marl_render.baselines.ppo import MAPPO
+    from marl_render.envs.evaluation import evaluate
+
+    result = json.loads((runs / folder / "result.json").read_text())
+    hp = Hyperparameters(**result["hyperparameters"])
+    trainer = MAPPO(env, hp, obs, 1, result["env_options"])  # another seed: other initial weights
+    trainer.close()
+    trainer.actor_net.load_state_dict(torch.load(runs / folder / "actor.pt"))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(hp.torch_threads)
+    try:
+        score = evaluate(env, GreedyPolicy(trainer.actor_net, trainer.trained, obs, hp.frames, hp.action_repeat),
+                         episodes=2, seed=result["seeds"]["evaluation"], resolution=hp.resolution,
+                         grayscale=hp.grayscale, state_obs=obs == "state", **result["env_options"])
+    finally:
+        torch.set_num_threads(threads)
+    assert score["per_episode"] == result["evaluation"]["policy"]["per_episode"]
+
+
+def test_overlap_scores_the_last_learnt_weights_and_each_seed_its_own():
+    """With --overlap the rollouts act one update behind, but the policy a run returns (and scores) holds
+    the weights of its last update, and the acting copy has them too once training ends."""
+    from marl_render.baselines import train
+
+    hp = task_hyperparameters("spread", worlds=2, rollout=4, resolution=12, overlap=True)
+    def snapshot(run_, point):
+        run_.snapshots = [*getattr(run_, "snapshots", []),
+                          {k: v.clone() for k, v in run_.trainer.actor_net.state_dict().items()}]
+
+    finals = {}
+    for seed in (0, 1):
+        run_ = train("spread", updates=3, seed=seed, hyperparameters=hp, progress=snapshot)
+        final = run_.policy().actor.state_dict()
+        assert len(run_.snapshots) == 3
+        assert all(torch.equal(final[k], run_.snapshots[-1][k]) for k in final)
+        assert not all(torch.equal(final[k], run_.snapshots[-2][k]) for k in final)  # the last update changed it
+        acting = dict(run_.trainer.acting_actor.named_parameters())
+        assert all(torch.equal(acting[k], p) for k, p in run_.trainer.actor_net.named_parameters())
+        finals[seed] = final
+    assert not torch.equal(finals[0]["head.4.weight"], finals[1]["head.4.weight"])
+
+
 def test_curve_png_is_written(runs):
     with Image.open(runs / "spread" / "curve.png") as image:
         assert image.format == "PNG"
         pixels = np.asarray(image.convert("L"))
     assert pixels.shape[0] > 200 and pixels.shape[1] > 400
     assert pixels.min() < 100 < pixels.max()  # lines drawn on a light background
+
+
+def test_curve_compare_draws_runs_of_a_task_in_one_picture(runs, tmp_path, capsys):
+    from marl_render.baselines import curve
+
+    spread = str(runs / "spread" / "result.json")
+    out = tmp_path / "compare.png"
+    assert curve.main(["--compare", f"old={spread}", f"new={spread}", "--out", str(out)]) == 0
+    pixels = np.asarray(Image.open(out).convert("L"))
+    assert pixels.shape[0] > 200 and pixels.shape[1] > 400 and pixels.min() < 100 < pixels.max()
+    with pytest.raises(SystemExit):
+        curve.main(["--compare", spread, "--out", str(tmp_path / "bad.png")])
+    assert "--compare takes LABEL=RESULT_JSON, got" in capsys.readouterr().err
+    assert not (tmp_path / "bad.png").exists()
 
 
 def test_report_reads_the_learners_runs(runs, tmp_path):
@@ -138,14 +197,16 @@ def test_bad_arguments_are_named(args, message, capsys):
     assert message in capsys.readouterr().err
 
 
-def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys):
+def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    def no_work(*args, **kwargs):
+        raise AssertionError("an env was evaluated or trained before the arguments were checked")
+    monkeypatch.setattr(run, "evaluate", no_work)
+    monkeypatch.setattr(run, "train", no_work)
     taken = tmp_path / "result"
     taken.write_text("not a folder")
     for out in (taken, taken / "below"):
-        started = time.perf_counter()
         with pytest.raises(SystemExit):
             run.main(["--env", "spread", "--out", str(out), *TINY])
-        assert time.perf_counter() - started < 5  # refused by the parser: no env was built, nothing trained
         assert "--out must be a folder this process can write to" in capsys.readouterr().err
     assert taken.read_text() == "not a folder"
     (tmp_path / "new").mkdir()
@@ -224,8 +285,8 @@ def test_a_missing_matplotlib_stops_the_run_at_once_naming_the_extra(tmp_path):
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 1
     assert result.stderr.strip().splitlines() == [
-        "python -m marl_render.baselines draws curve.png with matplotlib, which is not installed: "
-        "pip install 'marl-render[bench]'"]
+        "error: python -m marl_render.baselines (its curve.png) needs matplotlib, which is not installed: "
+        "pip install 'marl-render[plots]'"]
     assert not (tmp_path / "run").exists()
 
 

@@ -7,6 +7,7 @@ import pytest
 from PIL import Image
 
 from marl_render.baselines import marl_eval, published, report, run, stats
+from marl_render.baselines.settings import step_budget
 from marl_render.envs import list_envs
 
 BUDGET = 100_000
@@ -249,10 +250,10 @@ def test_published_commands_cover_every_task_and_seed():
                 line = " ".join(argv)
                 assert f"--seed {seed} --env-steps {entry.env_steps} --eval-set publication" in line
                 assert line.endswith(f"--out docs/baselines/{published.folder(env, obs)}/seed{seed}")
-                # Everything but the step budget and the evaluation set is an option the learner has today.
-                i = argv.index(published.BUDGET_FLAG)
-                args = run.parse_args(argv[:i] + argv[i + 4:])
+                assert entry.env_steps == step_budget(env, obs)  # one table of budgets: the learner's
+                args = run.parse_args(argv)  # the whole command, as the learner reads it
                 assert (args.env, args.obs, args.seed) == (env, obs, seed)
+                assert (args.env_steps, args.updates, args.eval_set) == (entry.env_steps, None, "publication")
                 assert dict(args.env_option) == dict(entry.env_options)
                 assert dict(args.train_option) == dict(entry.train_options)
                 assert all(getattr(args, k) == v for k, v in entry.hyperparameters.items())

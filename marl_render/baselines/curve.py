@@ -2,14 +2,24 @@
 picture comparing runs of one task (`python -m marl_render.baselines.curve --compare ...`)."""
 from __future__ import annotations
 
+import argparse
+import json
 
-def plot_curve(result: dict, path: str) -> None:
-    try:
+from marl_render.extras import needs_extra
+
+
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend; MissingExtraError naming the plots extra without it."""
+    with needs_extra("plots", "the baselines' curves"):
         import matplotlib
-    except ImportError as exc:  # an optional dependency (the "bench" extra)
-        raise ImportError("curve.png needs matplotlib: pip install 'marl-render[bench]'") from exc
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_curve(result: dict, path: str) -> None:
+    plt = pyplot()
 
     points = [p for p in result["curve"] if p["episode_return"] is not None]
     shaped = ", ".join(f"{k}={v}" for k, v in result.get("train_options", {}).items())
@@ -46,10 +56,9 @@ def plot_curve(result: dict, path: str) -> None:
 
 def plot_comparison(results: dict, path: str) -> None:
     """One picture of several runs of a task ({label: result}): the training episodes' return against
-    env steps and against wall-clock, each run's final greedy evaluation as a marker at its end."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    env steps and against wall-clock, each run's greedy checkpoints (if any) and its final greedy
+    evaluation as a marker at its end."""
+    plt = pyplot()
 
     figure, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
     for (label, result), color in zip(results.items(), ("tab:blue", "tab:red", "tab:green", "tab:purple"),
@@ -59,6 +68,10 @@ def plot_comparison(results: dict, path: str) -> None:
         for ax, key, scale in ((axes[0], "env_steps", 1e-6), (axes[1], "seconds", 1 / 60)):
             ax.plot([p[key] * scale for p in points], [p["episode_return"] for p in points], color=color,
                     linewidth=0.8, label=f"{label}: training episodes")
+            checkpoints = result.get("checkpoints", [])
+            if checkpoints:
+                ax.plot([c[key] * scale for c in checkpoints], [c["mean"] for c in checkpoints], color=color,
+                        marker="s", markersize=3, linestyle="none", label=f"{label}: greedy checkpoints")
             end = (result["env_steps"] if key == "env_steps" else result["training_seconds"]) * scale
             ax.errorbar([end], [final["mean"]], yerr=[final["std"]], color=color, marker="o", capsize=3,
                         label=f"{label}: final greedy {final['mean']:.4g} ± {final['std']:.2g}")
@@ -75,9 +88,6 @@ def plot_comparison(results: dict, path: str) -> None:
 
 
 def main(argv=None) -> int:
-    import argparse
-    import json
-
     parser = argparse.ArgumentParser(prog="python -m marl_render.baselines.curve",
                                      description="One picture comparing runs of a task: "
                                                  "--compare old=A/result.json new=B/result.json --out cmp.png")

@@ -14,9 +14,9 @@ reward) and the hyperparameters that differ from the task's defaults (settings.p
 ``--run`` keeps a run whose result.json exists, so an interrupted batch resumes; delete a run's
 folder to redo it.
 
-PLACEHOLDER budgets: the env steps below are those the wall-clock-budgeted runs of seed 0 reached
-on 2 CPU cores before the step budgets (docs/baselines/*/result.json as of the switch). The
-coordinator sets the published budgets once the faster trainer has landed.
+The step budgets are the learner's own (``settings.STEP_BUDGETS``, what ``python -m
+marl_render.baselines`` trains for when no budget is given): one table, so a published command
+and a plain run of the task train alike. docs/training.md says how they were chosen.
 """
 from __future__ import annotations
 
@@ -26,10 +26,13 @@ import shlex
 import subprocess
 import sys
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import MappingProxyType
 
 from marl_render.envs import list_envs
+
+from .settings import step_budget
 
 SEEDS = (0, 1, 2)
 EVALUATION_SET = "publication"  # its env seed and number of episodes are the learner's (run.py)
@@ -55,23 +58,23 @@ class Published:
             object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
 
 
-def _entry(env_steps: int, state_steps: int, *, state_resolution: int = 8, **options) -> dict:
-    """A task's pixels and state entries: the same options; the state run renders tiny views
-    (its actor never sees them)."""
-    return {"pixels": Published(env_steps, **options),
-            "state": Published(state_steps, **options, hyperparameters={"resolution": state_resolution})}
+def _entry(env: str, *, state_resolution: int = 8, **options) -> dict:
+    """A task's pixels and state entries: the same options, the learner's step budgets
+    (settings.STEP_BUDGETS); the state run renders tiny views (its actor never sees them)."""
+    return {"pixels": Published(step_budget(env, "pixels"), **options),
+            "state": Published(step_budget(env, "state"), **options, hyperparameters={"resolution": state_resolution})}
 
 
-RUNS: dict[str, dict[str, Published]] = {  # PLACEHOLDER env steps, see the module's docstring
-    "capture_flag": _entry(951_296, 966_656, env_options={"num_agents": 4}, train_options={"shaping": 0.5}),
-    "cartpole": _entry(5_226_496, 2_490_368, state_resolution=16),
-    "commons": _entry(92_160, 403_456),
-    "forage": _entry(179_200, 1_013_760),
-    "push": _entry(763_904, 939_008, train_options={"shaping": 1.0}),
-    "rooms": _entry(880_640, 794_624, train_options={"explore_reward": 0.1}),
-    "speaker_listener": _entry(167_936, 1_039_360),
-    "spread": _entry(573_440, 1_047_552),
-    "tag": _entry(542_720, 702_464, train_options={"shaping": 0.05}),
+RUNS: dict[str, dict[str, Published]] = {
+    "capture_flag": _entry("capture_flag", env_options={"num_agents": 4}, train_options={"shaping": 0.5}),
+    "cartpole": _entry("cartpole", state_resolution=16),
+    "commons": _entry("commons"),
+    "forage": _entry("forage"),
+    "push": _entry("push", train_options={"shaping": 1.0}),
+    "rooms": _entry("rooms", train_options={"explore_reward": 0.1}),
+    "speaker_listener": _entry("speaker_listener"),
+    "spread": _entry("spread"),
+    "tag": _entry("tag", train_options={"shaping": 0.05}),
 }
 
 
@@ -126,25 +129,45 @@ def check_complete() -> None:
                          f"unknown tasks {unknown}")
 
 
+def run_quietly(command: list[str]) -> int:
+    """Run one training, its output in its folder's train.log (runs at a time would interleave theirs)."""
+    out = Path(command[command.index("--out") + 1])
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"started {out}", flush=True)
+    with open(out / "train.log", "w") as log:
+        code = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
+    print(f"{'finished' if code == 0 else f'FAILED ({code})'} {out}", flush=True)
+    return code
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m marl_render.baselines.published", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", action="store_true", help="run every command whose result.json is missing, "
                                                            "then write the report")
     parser.add_argument("--root", default=ROOT, help="folder of the runs (default: %(default)s)")
+    parser.add_argument("--jobs", type=int, default=1, help="runs at a time with --run (default: 1; each run "
+                                                            "uses one torch thread, so up to the cores)")
     args = parser.parse_args(argv)
+    if args.jobs < 1:
+        parser.error(f"--jobs must be >= 1, got {args.jobs}")
     check_complete()
     if not args.run:
         print("\n".join(commands(args.root)))
         return 0
-    for env in RUNS:
+    pending = []
+    for seed in SEEDS:  # seed by seed, so that a batch cut short leaves whole seeds of every task
         for obs in OBSERVATIONS:
-            for seed in SEEDS:
+            for env in RUNS:
                 if (run_folder(args.root, env, obs, seed) / "result.json").is_file():
                     print(f"kept {run_folder(args.root, env, obs, seed)}", flush=True)
-                    continue
-                subprocess.run([sys.executable, "-m", "marl_render.baselines", *run_argv(env, obs, seed, args.root)],
-                               check=True)
+                else:
+                    pending.append([sys.executable, "-m", "marl_render.baselines", *run_argv(env, obs, seed, args.root)])
+    with ThreadPoolExecutor(args.jobs) as pool:  # threads only wait on the runs' processes
+        failed = [" ".join(c[2:]) for c, code in zip(pending, pool.map(run_quietly, pending)) if code != 0]
+    if failed:
+        print("failed (rerun --run to retry them):\n  " + "\n  ".join(failed), file=sys.stderr)
+        return 1
     return subprocess.run([sys.executable, "-m", "marl_render.baselines.report", "--results", args.root],
                           check=False).returncode
 

@@ -49,6 +49,7 @@ import torch
 
 from marl_render.envs import list_envs
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
+from marl_render.extras import command_needs_extra
 
 from .curve import plot_curve
 from .networks import ENCODERS, PRECISIONS
@@ -183,12 +184,9 @@ def env_option(text: str) -> tuple:
 
 
 def require_matplotlib() -> None:
-    """Exit at once, with the extra to install, when curve.png could not be drawn at the end."""
-    try:
+    """Exit at once (one line naming the extra, status 1) when curve.png could not be drawn at the end."""
+    with command_needs_extra("plots", "python -m marl_render.baselines (its curve.png)"):
         import matplotlib  # noqa: F401 (only its presence is checked here)
-    except ImportError:
-        raise SystemExit("python -m marl_render.baselines draws curve.png with matplotlib, which is not installed: "
-                         "pip install 'marl-render[bench]'") from None
 
 
 def versions() -> dict:

@@ -11,6 +11,10 @@ this checkout) picks the code, so an older commit's worktree can run beside this
 come from each run's result.json: env steps per second of training (env_steps / training_seconds),
 the env's share of it, and the stage shares. Prints one JSON object (medians and every round) and
 writes it to OUT/throughput.json.
+
+``--cpus 1`` pins every run to CPU 1 (``os.sched_setaffinity``; torch's threads, the renderer's and
+the overlapped update then share that core): two instances on CPUs 0 and 1 measure the setting of
+two trainings at a time, one core each.
 """
 from __future__ import annotations
 
@@ -29,9 +33,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--variant", action="append", required=True, metavar="LABEL=PYTHONPATH::ARGS")
     parser.add_argument("--rounds", type=int, default=3, help="runs of each variant (default: 3)")
     parser.add_argument("--out", required=True, help="folder of the runs and throughput.json")
+    parser.add_argument("--cpus", type=int, nargs="+", default=None, help="CPUs every run is pinned to "
+                                                                         "(default: those of this process)")
     args = parser.parse_args(argv)
     if args.rounds < 1:
         parser.error(f"--rounds must be >= 1, got {args.rounds}")
+    available = os.sched_getaffinity(0)
+    if args.cpus is not None and not set(args.cpus) <= available:
+        parser.error(f"--cpus must be among this process's CPUs {sorted(available)}, got {args.cpus}")
     variants = {}
     for text in args.variant:
         label, sep, rest = text.partition("=")
@@ -43,18 +52,20 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
-def run_once(label: str, path: str, options: list, folder: Path) -> dict:
+def run_once(path: str, options: list, folder: Path, cpus: list | None) -> dict:
     env = dict(os.environ, **({"PYTHONPATH": path} if path else {}))
     load = os.getloadavg()[0]
     command = [sys.executable, "-m", "marl_render.baselines", *options, "--episodes", "2", "--checkpoint-every", "0",
                "--out", str(folder.resolve())]
-    subprocess.run(command, env=env, check=True, capture_output=True, cwd=path or None)
+    subprocess.run(command, env=env, check=True, capture_output=True, cwd=path or None,
+                   preexec_fn=None if cpus is None else lambda: os.sched_setaffinity(0, cpus))
     result = json.loads((folder / "result.json").read_text())
     seconds = result["training_seconds"]
     return {"env_steps_per_second": result["env_steps"] / seconds, "env_share": result["env_seconds_in_training"]
             / seconds, "stage_shares": {k: v / seconds for k, v in result.get("stage_seconds", {}).items()},
             "training_seconds": seconds, "training_cpu_seconds": result.get("training_cpu_seconds"),
-            "env_steps": result["env_steps"], "load_average_1min": load}
+            "env_steps": result["env_steps"], "load_average_1min": load,
+            "torch_threads": result["hyperparameters"].get("torch_threads"), "cpus": cpus}
 
 
 def main(argv=None) -> int:
@@ -62,7 +73,7 @@ def main(argv=None) -> int:
     runs: dict = {label: [] for label in args.variants}
     for round_ in range(args.rounds):
         for label, (path, options) in args.variants.items():
-            runs[label].append(run_once(label, path, options, Path(args.out) / f"{label}-round{round_}"))
+            runs[label].append(run_once(path, options, Path(args.out) / f"{label}-round{round_}", args.cpus))
             speed = runs[label][-1]["env_steps_per_second"]
             print(f"round {round_} {label}: {speed:,.0f} env steps/s", file=sys.stderr, flush=True)
     first = statistics.median(r["env_steps_per_second"] for r in next(iter(runs.values())))
