@@ -274,11 +274,36 @@ def test_published_main_lists_and_runs_what_is_missing(tmp_path, monkeypatch, ca
     kept.mkdir(parents=True)
     (kept / "result.json").write_text("{}")
     calls = []
-    monkeypatch.setattr(published.subprocess, "run",
-                        lambda argv, check: calls.append(argv) or published.subprocess.CompletedProcess(argv, 0))
+
+    def fake_run(argv, **kwargs):
+        calls.append(argv)
+        return published.subprocess.CompletedProcess(argv, 0)
+    monkeypatch.setattr(published.subprocess, "run", fake_run)
     assert published.main(["--run", "--root", str(tmp_path)]) == 0
     learner = [argv[3:] for argv in calls if argv[2] == "marl_render.baselines"]
-    expected = [published.run_argv(env, obs, seed, tmp_path) for env in published.RUNS for obs in published.OBSERVATIONS
-                for seed in published.SEEDS if (env, obs, seed) != ("spread", "state", 1)]
-    assert learner == expected
+    expected = [published.run_argv(env, obs, seed, tmp_path) for seed in published.SEEDS
+                for obs in published.OBSERVATIONS for env in published.RUNS
+                if (env, obs, seed) != ("spread", "state", 1)]
+    assert learner == expected  # seed by seed: a batch cut short leaves whole seeds of every task
     assert calls[-1][2:] == ["marl_render.baselines.report", "--results", str(tmp_path)]
+    assert (published.run_folder(tmp_path, "tag", "pixels", 2) / "train.log").is_file()
+
+
+def test_published_run_reports_failed_runs_and_skips_the_report(tmp_path, monkeypatch, capsys):
+    calls = []
+
+    def failing_run(argv, **kwargs):
+        calls.append(argv)
+        return published.subprocess.CompletedProcess(argv, 3 if "cartpole" in argv else 0)
+    monkeypatch.setattr(published.subprocess, "run", failing_run)
+    assert published.main(["--run", "--jobs", "2", "--root", str(tmp_path)]) == 1
+    assert not any(argv[2] == "marl_render.baselines.report" for argv in calls)
+    assert len(calls) == len(published.RUNS) * len(published.OBSERVATIONS) * len(published.SEEDS)
+    failed = capsys.readouterr().err
+    assert failed.count("--env cartpole") == len(published.OBSERVATIONS) * len(published.SEEDS)
+
+
+def test_published_jobs_below_one_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        published.main(["--run", "--jobs", "0"])
+    assert "--jobs must be >= 1, got 0" in capsys.readouterr().err

@@ -162,9 +162,10 @@ def main(argv=None) -> int:
                 if (run_folder(args.root, env, obs, seed) / "result.json").is_file():
                     print(f"kept {run_folder(args.root, env, obs, seed)}", flush=True)
                 else:
-                    pending.append([sys.executable, "-m", "marl_render.baselines", *run_argv(env, obs, seed, args.root)])
+                    pending.append([sys.executable, "-m", "marl_render.baselines",
+                                    *run_argv(env, obs, seed, args.root)])
     with ThreadPoolExecutor(args.jobs) as pool:  # threads only wait on the runs' processes
-        failed = [" ".join(c[2:]) for c, code in zip(pending, pool.map(run_quietly, pending)) if code != 0]
+        failed = [" ".join(c[2:]) for c, code in zip(pending, pool.map(run_quietly, pending), strict=True) if code != 0]
     if failed:
         print("failed (rerun --run to retry them):\n  " + "\n  ".join(failed), file=sys.stderr)
         return 1
