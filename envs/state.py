@@ -64,8 +64,8 @@ def check_bounds(state: dict, bounds: dict, label: str = "state[{key!r}]") -> No
         value = state[key]
         if not value.numel():
             continue
-        lo = torch.as_tensor(low, dtype=torch.float64)
-        hi = torch.as_tensor(high, dtype=torch.float64)
+        lo = torch.as_tensor(low, dtype=torch.float64, device=value.device)  # the env's device (CUDA too)
+        hi = torch.as_tensor(high, dtype=torch.float64, device=value.device)
         wide = value.to(torch.float64)  # int64 counters compared exactly enough; no overflow in the test
         if bool(((wide < lo) | (wide > hi)).any()):
             raise ValueError(f"{label.format(key=key)} must be within [{_bound(low)}, {_bound(high)}], got values in "

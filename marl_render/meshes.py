@@ -241,6 +241,7 @@ except (OSError, AttributeError):  # elsewhere the parent's timeout still bounds
     pass
 if os.getppid() != int(sys.argv[5]):  # the parent died before the line above: nobody waits for the result
     sys.exit(3)
+sys.path[:0] = sys.argv[6].split(os.pathsep)  # the parent's: -I drops PYTHONPATH, where an install may live
 spec = importlib.util.spec_from_file_location("marl_render_model_child", sys.argv[1])
 module = importlib.util.module_from_spec(spec)
 sys.modules[spec.name] = module
@@ -286,7 +287,7 @@ def parse_model_file(path, name: str, *, skinned: bool, timeout: float | None = 
         output = os.path.join(folder, "arrays.npz")
         try:
             child = subprocess.run([sys.executable, "-I", "-c", _CHILD_BOOTSTRAP, __file__, path, output, writer,
-                                    str(os.getpid())],
+                                    str(os.getpid()), os.pathsep.join(p for p in sys.path if p)],
                                    stdin=subprocess.DEVNULL, capture_output=True, timeout=timeout, cwd=folder)
         except subprocess.TimeoutExpired:
             raise ValueError(f"{name}: model file {path!r} was still loading after {timeout:g} s; refused (raise "

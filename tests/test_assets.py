@@ -342,7 +342,8 @@ def test_a_child_whose_parent_died_before_it_started_watching_exits_at_once(tmp_
     output = tmp_path / "arrays.npz"
     parent = os.getpid() if parent_alive else 1
     done = subprocess.run([sys.executable, "-I", "-c", meshes._CHILD_BOOTSTRAP, meshes.__file__,
-                           str(quad_egg(tmp_path / "quad.egg")), str(output), "_write_model_arrays", str(parent)],
+                           str(quad_egg(tmp_path / "quad.egg")), str(output), "_write_model_arrays", str(parent),
+                           os.pathsep.join(sys.path)],
                           capture_output=True, timeout=120, cwd=tmp_path)
     assert (done.returncode, output.exists()) == ((0, True) if parent_alive else (3, False)), done.stderr[-2000:]
 
@@ -390,3 +391,22 @@ def test_an_unusable_interpreter_is_named_not_the_model_file(tmp_path, monkeypat
     monkeypatch.setattr(sys, "executable", base)
     with pytest.raises(RuntimeError, match=r"(numpy|panda3d) cannot be imported by .*install it for that interpreter"):
         mr.load_model(model)
+
+
+def test_the_model_parser_imports_what_its_parent_imports(tmp_path):
+    """The parser child runs isolated (-I), which drops PYTHONPATH: an install that lives only there
+    (the GPU kit's `pip install --target`) found no panda3d in the child. Here a bare interpreter
+    reaches every package through sys.path entries that the parent added itself."""
+    import venv
+
+    bare = tmp_path / "bare"
+    venv.EnvBuilder(with_pip=False).create(bare)
+    code = ("import site, sys; [site.addsitedir(p) for p in sys.argv[1:]]\n"
+            "from marl_render.meshes import parse_model_file\n"
+            f"path, arrays = parse_model_file({str(quad_egg(tmp_path / 'quad.egg'))!r}, 'model', skinned=False)\n"
+            "print(len(arrays['triangles']))")
+    sites = [p for p in sys.path if p.endswith("site-packages")]
+    done = subprocess.run([str(bare / "bin" / "python"), "-c", code, *sites], capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["2"]
