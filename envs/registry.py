@@ -23,6 +23,7 @@ from gymnasium.envs.registration import registry as gymnasium_ids
 from marl_render.validation import describe
 
 from .core import BatchedEnv
+from .focal import FocalEnv
 from .options import OPTION_NAMES, EnvOptions
 from .scenario import Scenario
 
@@ -115,12 +116,39 @@ def split_kwargs(scenario: type[Scenario], kwargs: dict) -> tuple:
     return options, params
 
 
-def make_env(name, **kwargs) -> BatchedEnv:
+def make_env(name, *, heldout=None, background=None, **kwargs):
     """The batched core of task `name` (a registered name or a Scenario subclass), built with
-    `kwargs`: the driver's options (EnvOptions) and the task's own keywords (its Params)."""
+    `kwargs`: the driver's options (EnvOptions) and the task's own keywords (its Params).
+
+    With `heldout` (a name of ``marl_render.heldout.list_heldout()`` or a HeldOutScenario) or
+    `background` (a Population of bots by role), a focal-only env (envs/focal.py) over that core:
+    only the focal agents are exposed, bots play the others."""
     scenario = env_class(name)
+    if heldout is not None and background is not None:
+        raise ValueError("pass heldout (a held-out scenario, which brings its own bots) or background (a Population), "
+                         "not both")
+    if heldout is not None:
+        # Imported here: marl_render.heldout imports the bots, which import this package.
+        from marl_render.heldout import heldout_scenario
+
+        held = heldout_scenario(heldout)
+        if held.task != scenario.name and env_class(held.task) is not scenario:
+            raise ValueError(f"heldout {held.name!r} is a scenario of {held.task!r}, not of {scenario.name!r}")
+        fixed = held.env_kwargs()
+        clash = sorted(k for k in set(fixed) & set(kwargs) if kwargs[k] != fixed[k])
+        if clash:
+            raise ValueError(f"heldout {held.name!r} fixes {clash} to {[fixed[k] for k in clash]}; got "
+                             f"{[kwargs[k] for k in clash]}")
+        kwargs = {**kwargs, **fixed}
     options, params = split_kwargs(scenario, kwargs)
-    return BatchedEnv(scenario, options, params)
+    core = BatchedEnv(scenario, options, params)
+    if heldout is None and background is None:
+        return core
+    try:
+        return FocalEnv(core, held.population(core.seed) if heldout is not None else background)
+    except BaseException:
+        core.close()
+        raise
 
 
 for _name in _REGISTRY:  # the built-in tasks' gymnasium ids

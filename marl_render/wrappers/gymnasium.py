@@ -69,6 +69,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from marl_render.envs.core import BatchedEnv
+from marl_render.envs.focal import FocalEnv
 from marl_render.envs.registry import env_class, make_env, split_kwargs
 from marl_render.validation import describe, positive_int, unpicklable
 from marl_render.wrappers import spaces as spaces_from_spec
@@ -247,7 +248,7 @@ class MarlRenderVectorEnv(VectorEnv):
     ``autoreset`` gives the autoreset mode."""
 
     def __init__(self, env, *, action_mask: bool = False, render_mode: str | None = None):
-        if not isinstance(env, BatchedEnv):
+        if not isinstance(env, (BatchedEnv, FocalEnv)):
             raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(env)}")
         if env.closed:

@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from marl_render.envs.core import BatchedEnv
+from marl_render.envs.focal import FocalEnv
 from marl_render.envs.registry import make_env
 from marl_render.extras import needs_extra
 from marl_render.validation import describe
@@ -128,7 +129,7 @@ class JaxEnv:
     """
 
     def __init__(self, core):
-        if not isinstance(core, BatchedEnv):
+        if not isinstance(core, (BatchedEnv, FocalEnv)):
             raise TypeError(f"core must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(core)}")
         _check_jax_backend(core.device)

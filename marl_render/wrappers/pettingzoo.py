@@ -83,6 +83,7 @@ import torch
 from gymnasium import spaces
 
 from marl_render.envs.core import BatchedEnv
+from marl_render.envs.focal import FocalEnv
 from marl_render.envs.registry import make_env
 from marl_render.validation import describe
 from marl_render.wrappers import spaces as spaces_from_spec
@@ -189,7 +190,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
 
     def __init__(self, env, *, render_mode: str | None = None, action_mask: bool = False,
                  departed_actions: str = "ignore", unknown_options: str = "ignore", black_death: bool = False):
-        if not isinstance(env, BatchedEnv):
+        if not isinstance(env, (BatchedEnv, FocalEnv)):
             raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(env)}")
         if env.num_worlds != 1:

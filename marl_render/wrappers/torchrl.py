@@ -84,6 +84,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import MarlGroupMapType, check_marl_grouping
 
 from marl_render.envs.core import BatchedEnv
+from marl_render.envs.focal import FocalEnv
 from marl_render.envs.registry import make_env
 from marl_render.validation import describe, unpicklable
 
@@ -165,7 +166,7 @@ class MarlRenderTorchRLEnv(EnvBase):
     resolved {group: [agent names]}."""
 
     def __init__(self, env, group_map="team"):
-        if not isinstance(env, BatchedEnv):
+        if not isinstance(env, (BatchedEnv, FocalEnv)):
             raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(env)}")
         if env.autoreset:

@@ -1,0 +1,264 @@
+"""A focal-only env: the driver simulates every slot, bots play the background ones, and only the
+focal agents are exposed (agent names, groups, spec, observations, rewards, dones).
+
+    from marl_render.envs import make_env
+    env = make_env("tag", num_worlds=64, heldout="tag/prey_vs_interceptors")   # a held-out scenario
+    env = make_env("tag", num_worlds=64, background=Population({"prey": [make_bot("tag", "heuristic")]}))
+    env.agent_names                  # the focal agents only (here the predators)
+    obs = env.reset(seed=0)          # obs[key]: [W, F, ...] for the F focal agents
+    obs, reward, terminated, truncated, info = env.step(actions)    # actions [W, F]
+    info["background_reward"]        # float32 [W]: the background slots' mean reward of the step
+
+Every front end takes the same keywords (``make_parallel_env("tag", heldout=...)``,
+``make_vec_env``, ``make_torchrl_env``, ``make_sb3_env``, RLlib's env_config): they see a
+``FocalEnv`` where they would see the driver, with the same methods and attributes.
+
+At every reset of a world (reset, reset_worlds, or an autoreset inside step) the world samples one
+bot per background slot, with replacement, from the bots of the slot's team (its role), with the
+env's own generator: deterministic for a seed, different across worlds. A step calls each distinct
+bot once, over every (world, slot) pair it plays (``bot_calls`` counts the calls). Background bots
+see their own slots' observations or read the simulation state; the frames of background slots are
+still rendered (the renderer draws every agent's view in the same pass).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from marl_render.validation import describe
+
+from .core import BatchedEnv
+
+# The driver's attributes a focal-only env shares unchanged (settings of the whole batch).
+SHARED = ("name", "num_worlds", "resolution", "continuous", "num_actions", "action_dim", "action_meanings",
+          "obs_keys", "state_dim", "max_steps", "dt", "device", "seed", "autoreset", "pixel_channels", "depth",
+          "far", "state_obs", "lidar_rays", "lidar_range", "grayscale", "enforce_action_mask", "scenario",
+          "renderer", "physics", "physics_compiled", "context", "agent_range", "background", "fov_y", "near",
+          "overview_resolution", "overview_fov_y", "arena_half_extent", "appearance", "appearance_ids",
+          "torch_threads", "generator", "step_count", "sim", "closed")
+
+
+class Population:
+    """Background bots by role: ``{team: [Policy, ...]}`` (marl_render/policies.py). The slots of
+    those teams are background, unless `focal` (agent names) says which agents are focal; every
+    other slot must belong to a team listed here."""
+
+    def __init__(self, bots_by_role: dict, focal=None):
+        if not isinstance(bots_by_role, dict) or not bots_by_role:
+            raise TypeError(f"bots_by_role must be a non-empty dict {{team: [policies]}}, got {describe(bots_by_role)}")
+        for team, bots in bots_by_role.items():
+            if not isinstance(bots, (list, tuple)) or not bots or not all(hasattr(b, "act") for b in bots):
+                raise TypeError(f"bots_by_role[{team!r}] must be a non-empty list of policies (objects with act), "
+                                f"got {describe(bots)}")
+        self.bots_by_role = {team: list(bots) for team, bots in bots_by_role.items()}
+        self.focal = None if focal is None else tuple(focal)
+
+    def __repr__(self):
+        roles = {team: [getattr(b, "name", type(b).__name__) for b in bots] for team, bots in self.bots_by_role.items()}
+        return f"Population({roles}, focal={self.focal})"
+
+
+class FocalEnv:
+    """The driver `core` with its background slots played by `population`; see the module docstring."""
+
+    def __init__(self, core: BatchedEnv, population: Population):
+        if not isinstance(core, BatchedEnv):
+            raise TypeError(f"core must be a BatchedEnv (marl_render.envs.make_env), got {describe(core)}")
+        if not isinstance(population, Population):
+            raise TypeError(f"background must be a marl_render.envs.Population, got {describe(population)}")
+        team_of = {name: team for team, names in core.groups.items() for name in names}
+        focal = population.focal
+        if focal is None:
+            unknown = sorted(set(population.bots_by_role) - set(core.groups))
+            if unknown:
+                raise ValueError(f"background names teams {unknown} that {core.name} does not have; its teams: "
+                                 f"{list(core.groups)}")
+            focal = [n for n in core.agent_names if team_of[n] not in population.bots_by_role]
+        unknown = [n for n in focal if n not in team_of]
+        if unknown or len(set(focal)) != len(focal):
+            raise ValueError(f"focal must name distinct agents of {core.name} {list(core.agent_names)}, got {list(focal)}")
+        background = [n for n in core.agent_names if n not in focal]
+        if not focal or not background:
+            raise ValueError(f"a focal-only env needs at least one focal and one background agent; focal {list(focal)}, "
+                             f"background {background}")
+        unplayed = sorted({team_of[n] for n in background} - set(population.bots_by_role))
+        if unplayed:
+            raise ValueError(f"background has no bots for team(s) {unplayed}, whose agents "
+                             f"{[n for n in background if team_of[n] in unplayed]} are not focal")
+        self.core, self.population = core, population
+        index = {name: i for i, name in enumerate(core.agent_names)}
+        self.agent_names = [n for n in core.agent_names if n in focal]  # in the task's order
+        self.focal_slots = torch.tensor([index[n] for n in self.agent_names])
+        self.background_names = background
+        self.background_slots = torch.tensor([index[n] for n in background])
+        self.num_agents = len(self.agent_names)
+        self.groups = {team: [n for n in names if n in focal] for team, names in core.groups.items()
+                       if any(n in focal for n in names)}
+        # Distinct bots, and for each background slot the bots of its role (padded; counts say how many).
+        self.bots = []
+        for bots in population.bots_by_role.values():
+            self.bots += [b for b in bots if not any(b is known for known in self.bots)]
+        roles = [[next(k for k, known in enumerate(self.bots) if known is b)
+                  for b in population.bots_by_role[team_of[n]]] for n in background]
+        width = max(len(r) for r in roles)
+        self._candidates = torch.tensor([r + [r[0]] * (width - len(r)) for r in roles])  # [B, K]
+        self._counts = torch.tensor([len(r) for r in roles])  # [B]
+        self.info_keys = {**core.info_keys, "background_reward": torch.float32}
+        self.spec = dataclasses.replace(core.spec, agent_names=tuple(self.agent_names), groups=self.groups,
+                                        info={**core.spec.info, "background_reward": torch.float32})
+        self.bot_generator = torch.Generator().manual_seed(core.seed + 1)
+        self.assignment = torch.zeros(core.num_worlds, len(background), dtype=torch.int64)  # [W, B] bot index
+        self.bot_calls = 0  # act calls made on bots (a step makes at most one per distinct bot)
+        self._pairs = []
+        self._obs = None
+
+    def __getattr__(self, name):
+        if name in SHARED:
+            return getattr(self.core, name)
+        raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
+
+    # ------------------------------------------------------------------ the driver's API, focal slots only
+    @property
+    def alive(self) -> torch.Tensor:
+        return self.core.alive[:, self.focal_slots]
+
+    def reset(self, seed: int | None = None) -> dict:
+        obs = self.core.reset(seed=seed)  # checks the seed before anything changes
+        if seed is not None:
+            self.bot_generator.manual_seed(seed + 1)
+        self._restart(torch.ones(self.num_worlds, dtype=torch.bool), obs)
+        return self._focal(obs)
+
+    def reset_worlds(self, mask, seed: int | None = None) -> dict:
+        obs = self.core.reset_worlds(mask, seed=seed)
+        if seed is not None:
+            self.bot_generator.manual_seed(seed + 1)
+        self._restart(torch.as_tensor(mask).cpu(), obs)
+        return self._focal(obs)
+
+    def step(self, actions):
+        actions = self.check_actions(actions)
+        if self._obs is None:
+            self.core.step(actions)  # the driver's own error: reset() first
+        full = self._background_actions()
+        full[:, self.focal_slots] = actions
+        obs, reward, terminated, truncated, info = self.core.step(full)
+        info["background_reward"] = reward[:, self.background_slots].mean(1)
+        if "final_obs" in info:
+            info["final_obs"] = self._focal(info["final_obs"])
+        if "autoreset_worlds" in info and bool(info["autoreset_worlds"].any()):
+            self._restart(info["autoreset_worlds"].cpu(), obs)
+        self._obs = obs
+        focal = self.focal_slots
+        return self._focal(obs), reward[:, focal], terminated[:, focal], truncated[:, focal], info
+
+    def check_actions(self, actions) -> torch.Tensor:
+        """Focal actions [W, F] (or [W, F, action_dim]) checked as the driver checks its own."""
+        W, F = self.num_worlds, self.num_agents
+        shape = (W, F, self.action_dim) if self.continuous else (W, F)
+        given = tuple(getattr(actions, "shape", ()))
+        if not isinstance(actions, (torch.Tensor, list, tuple)) and not hasattr(actions, "shape"):
+            raise TypeError(f"actions must be a tensor of shape {list(shape)} (worlds, focal agents "
+                            f"{self.agent_names}), got {describe(actions)}")
+        actions = torch.as_tensor(actions).detach()
+        if tuple(actions.shape) != shape:
+            raise ValueError(f"actions must have shape {list(shape)} (worlds, focal agents {self.agent_names}), "
+                             f"got {list(given or actions.shape)}")
+        full = torch.zeros((W, self.core.num_agents, *shape[2:]), dtype=actions.dtype)
+        full[:, self.focal_slots] = actions
+        return self.core.check_actions(full)[:, self.focal_slots]
+
+    def episode_over(self) -> torch.Tensor:
+        return self.core.episode_over()
+
+    def random_actions(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        return self.core.random_actions(generator)[:, self.focal_slots]
+
+    def heuristic_actions(self) -> torch.Tensor:
+        return self.core.heuristic_actions()[:, self.focal_slots]
+
+    def state_observation(self) -> torch.Tensor:
+        return self.core.state_observation()[:, self.focal_slots]
+
+    def render_overview(self, resolution=None) -> torch.Tensor:
+        return self.core.render_overview(resolution)
+
+    def get_state(self) -> dict:
+        """The driver's state plus the worlds' bots ("background_bots" [W, B]) and the bots' generator
+        ("background_rng"). Bots' own memories (an actor's frame stack) are not part of it."""
+        return {**self.core.get_state(), "background_bots": self.assignment.clone(),
+                "background_rng": self.bot_generator.get_state()}
+
+    def set_state(self, state: dict) -> None:
+        if not isinstance(state, dict) or "background_bots" not in state or "background_rng" not in state:
+            raise ValueError("state must be a dict from this focal-only env's get_state(), with 'background_bots' "
+                             "and 'background_rng'")
+        state = dict(state)
+        bots, rng = state.pop("background_bots"), state.pop("background_rng")
+        if not (isinstance(bots, torch.Tensor) and bots.shape == self.assignment.shape and bots.dtype == torch.int64
+                and bool(((bots >= 0) & (bots < len(self.bots))).all())):
+            raise ValueError(f"state['background_bots'] must be int64 {list(self.assignment.shape)} in "
+                             f"[0, {len(self.bots)}), got {describe(bots)}")
+        torch.Generator().set_state(rng)  # an invalid state fails here, before anything changes
+        self.core.set_state(state)
+        self.assignment = bots.clone()
+        self.bot_generator.set_state(rng)
+        self._obs = None  # the bots act on the next observation: reset() or step() needs one
+        self._pairs = self._pairs_of(self.assignment)
+
+    def close(self) -> None:
+        self.core.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __repr__(self):
+        return f"FocalEnv({self.core!r}, focal={self.agent_names}, background={self.population!r})"
+
+    # ------------------------------------------------------------------ internals
+    def sampled_bots(self) -> list:
+        """[W][B] names of the bots playing each world's background slots."""
+        names = [getattr(b, "name", type(b).__name__) for b in self.bots]
+        return [[names[k] for k in row] for row in self.assignment.tolist()]
+
+    def _restart(self, worlds: torch.Tensor, obs: dict) -> None:
+        """New bots for the worlds of mask [W], sampled per slot from its role (one draw per world
+        and slot); their memories cleared."""
+        W, B = self.assignment.shape
+        draw = (torch.rand(W, B, generator=self.bot_generator) * self._counts).long()
+        fresh = self._candidates.gather(1, draw.T).T  # [W, B]
+        self.assignment = torch.where(worlds[:, None], fresh, self.assignment)
+        self._pairs = self._pairs_of(self.assignment)
+        for bot in self.bots:
+            bot.reset(self.core, worlds)
+        self._obs = obs
+
+    def _pairs_of(self, assignment: torch.Tensor) -> list:
+        """[(bot, worlds [P], slots [P])] for each distinct bot that plays somewhere."""
+        pairs = []
+        for k, bot in enumerate(self.bots):
+            worlds, column = (assignment == k).nonzero(as_tuple=True)
+            if len(worlds):
+                pairs.append((bot, worlds, self.background_slots[column]))
+        return pairs
+
+    def _background_actions(self) -> torch.Tensor:
+        """Actions [W, A, ...] with every background slot's bot action (focal slots 0)."""
+        W, A = self.num_worlds, self.core.num_agents
+        if self.continuous:
+            full = torch.zeros(W, A, self.action_dim)
+        else:
+            full = torch.zeros(W, A, dtype=torch.int64)
+        for bot, worlds, slots in self._pairs:
+            needs = getattr(bot, "needs", ())
+            seen = {key: value[worlds, slots] for key, value in self._obs.items() if key in needs}
+            full[worlds, slots] = bot.act(self.core, seen, worlds, slots).to(full.dtype)
+            self.bot_calls += 1
+        return full
+
+    def _focal(self, obs: dict) -> dict:
+        return {key: value[:, self.focal_slots] for key, value in obs.items()}

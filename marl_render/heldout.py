@@ -1,0 +1,129 @@
+"""Held-out scenarios in Melting Pot's sense: a task, its parameters, which slots are focal, and the
+background bots by role, all drawn from the task's test population (marl_render/bots.py).
+
+    list_heldout()                       # every scenario's name, e.g. "tag/prey_vs_interceptors"
+    HELDOUT["tag/prey_vs_interceptors"]  # its HeldOutScenario
+    make_env("tag", heldout="tag/prey_vs_interceptors", num_worlds=32)   # its focal-only env
+
+Tags: "resident" when the focal agents are the majority of the slots, else "visitor".
+"""
+from __future__ import annotations
+
+import dataclasses
+
+from marl_render.envs.focal import Population
+
+from .bots import POPULATIONS, make_bot
+
+
+@dataclasses.dataclass(frozen=True)
+class HeldOutScenario:
+    """A task with focal slots and test bots on the others (named so as not to be taken for the
+    task class ``Scenario``). `focal`: agent names; `bots_by_role`: team -> test bot names;
+    `params`: the task's keywords (make_env's); `num_agents`: the slot count it is defined for."""
+
+    name: str
+    task: str
+    description: str
+    num_agents: int
+    focal: tuple
+    bots_by_role: dict
+    params: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def tags(self) -> tuple:
+        return ("resident",) if 2 * len(self.focal) > self.num_agents else ("visitor",)
+
+    def population(self, seed: int = 0) -> Population:
+        """A fresh population of this scenario's bots (seeded: the randomised variants' generators)."""
+        return Population({team: [make_bot(self.task, name, seed + 1000 * i + j) for j, name in enumerate(names)]
+                           for i, (team, names) in enumerate(self.bots_by_role.items())}, focal=self.focal)
+
+    def env_kwargs(self) -> dict:
+        return {"num_agents": self.num_agents, **self.params}
+
+
+def _names(prefix: str, indices) -> tuple:
+    return tuple(f"{prefix}_{i}" for i in indices)
+
+
+_SCENARIOS = [
+    HeldOutScenario("tag/prey_vs_interceptors", "tag", "one focal prey against predators that aim ahead or wait",
+                    4, _names("prey", [0]), {"predator": ("interceptor", "lazy_predator")}),
+    HeldOutScenario("tag/predators_vs_wanderers", "tag", "focal predators hunt prey that wander or hide in corners",
+                    4, _names("predator", range(3)), {"prey": ("wandering_prey", "corner_prey")}),
+    HeldOutScenario("tag/pair_with_interceptor", "tag",
+                    "two focal predators with an interceptor teammate, against a wandering or hiding prey",
+                    4, _names("predator", range(2)), {"predator": ("interceptor",),
+                                                      "prey": ("wandering_prey", "corner_prey")}),
+    HeldOutScenario("spread/two_with_nearest", "spread",
+                    "two focal agents with one partner that takes its nearest landmark or idles half the time",
+                    3, _names("agent", range(2)), {"agents": ("nearest_landmark", "lazy0.5")}),
+    HeldOutScenario("spread/one_among_nearest", "spread",
+                    "one focal agent among two partners that take their nearest landmark",
+                    3, _names("agent", [0]), {"agents": ("nearest_landmark",)}),
+    HeldOutScenario("spread/two_with_wanderer", "spread", "two focal agents with one partner that wanders",
+                    3, _names("agent", range(2)), {"agents": ("wanderer",)}),
+    HeldOutScenario("speaker_listener/permuted_speaker", "speaker_listener",
+                    "a focal listener with a speaker whose lamp code is permuted (convention following)",
+                    2, ("listener_0",), {"speaker": ("permuted_speaker",)}),
+    HeldOutScenario("speaker_listener/noisy_speaker", "speaker_listener",
+                    "a focal listener with a speaker that shows a random colour half the time",
+                    2, ("listener_0",), {"speaker": ("noisy0.5",)}),
+    HeldOutScenario("speaker_listener/deaf_listener", "speaker_listener",
+                    "a focal speaker with a listener that ignores the lamp", 2, ("speaker_0",),
+                    {"listener": ("first_target_listener",)}),
+    HeldOutScenario("commons/resident_with_greedy", "commons",
+                    "four focal harvesters with one greedy or tagging visitor", 5, _names("agent", range(4)),
+                    {"agents": ("greedy", "tagger")}),
+    HeldOutScenario("commons/visitor_among_taggers", "commons",
+                    "one focal harvester among four greedy harvesters that zap", 5, _names("agent", [0]),
+                    {"agents": ("tagger", "greedy")}),
+    HeldOutScenario("commons/resident_with_lazy", "commons", "three focal harvesters with two that idle half the time",
+                    5, _names("agent", range(3)), {"agents": ("lazy0.5",)}),
+    HeldOutScenario("push/red_vs_chasers", "push", "focal red team against ball chasers or goalkeepers",
+                    4, _names("red", range(2)), {"blue": ("ball_chaser", "goalkeeper")}),
+    HeldOutScenario("push/blue_vs_chasers", "push", "focal blue team against ball chasers or goalkeepers",
+                    4, _names("blue", range(2)), {"red": ("ball_chaser", "goalkeeper")}),
+    HeldOutScenario("push/with_lazy_teammate", "push",
+                    "one focal red player with an idle-half-the-time teammate, against ball chasers",
+                    4, ("red_0",), {"red": ("lazy0.5",), "blue": ("ball_chaser",)}),
+    HeldOutScenario("capture_flag/red_vs_attackers", "capture_flag",
+                    "focal red team against a team that only attacks or only defends", 16, _names("red", range(8)),
+                    {"blue": ("all_attack", "all_defend")}),
+    HeldOutScenario("capture_flag/blue_vs_defenders", "capture_flag",
+                    "focal blue team against a team that only defends or idles half the time",
+                    16, _names("blue", range(8)), {"red": ("all_defend", "lazy0.5")}),
+    HeldOutScenario("capture_flag/resident_red", "capture_flag",
+                    "focal red team and half of blue, with four blue attackers", 16,
+                    _names("red", range(8)) + _names("blue", range(4)), {"blue": ("all_attack",)}),
+    HeldOutScenario("forage/two_with_wanderer", "forage", "two focal foragers with one that wanders",
+                    3, _names("agent", range(2)), {"agents": ("wanderer",)}),
+    HeldOutScenario("forage/one_among_noisy", "forage", "one focal forager among two that act at random half the time",
+                    3, _names("agent", [0]), {"agents": ("noisy0.5", "lazy0.5")}),
+    HeldOutScenario("forage/two_with_lazy", "forage", "two focal foragers with one that idles half the time",
+                    3, _names("agent", range(2)), {"agents": ("lazy0.5",)}),
+    HeldOutScenario("rooms/with_wanderer", "rooms", "a focal explorer with a partner that wanders",
+                    2, ("agent_0",), {"agents": ("wanderer",)}),
+    HeldOutScenario("rooms/with_lazy", "rooms", "a focal explorer with a partner that idles half the time",
+                    2, ("agent_0",), {"agents": ("lazy0.5",)}),
+    HeldOutScenario("rooms/with_noisy", "rooms", "a focal explorer with a partner that acts at random half the time",
+                    2, ("agent_0",), {"agents": ("noisy0.5",)}),
+]
+HELDOUT: dict = {s.name: s for s in _SCENARIOS}
+
+
+def list_heldout(task: str | None = None) -> list:
+    """Names of the held-out scenarios (of `task` only, if given), in registry order."""
+    if task is not None and task not in POPULATIONS:
+        raise ValueError(f"task must be one of the multi-agent tasks {sorted(POPULATIONS)}, got {task!r}")
+    return [s.name for s in _SCENARIOS if task is None or s.task == task]
+
+
+def heldout_scenario(name) -> HeldOutScenario:
+    if isinstance(name, HeldOutScenario):
+        return name
+    if name not in HELDOUT:
+        raise ValueError(f"heldout must be one of the held-out scenarios {list(HELDOUT)} (or a HeldOutScenario), "
+                         f"got {name!r}")
+    return HELDOUT[name]

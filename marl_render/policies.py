@@ -1,0 +1,172 @@
+"""Policies as objects: what plays a slot of an env, focal or background.
+
+A policy acts for any set of (world, slot) pairs of a driver (``marl_render.envs.make_env``) at
+once: one call per step covers every pair it plays, in every world, so a population of bots costs
+one batched call per distinct bot, never a loop over worlds.
+
+    policy = load_policy("docs/baselines/tag/seed0")      # a run folder of python -m marl_render.baselines
+    policy = heuristic_policy()                           # the task's scripted heuristic
+    actions = policy.act(env, obs, worlds, slots)         # [P] (or [P, action_dim]) for P pairs
+
+- ``env`` is the full driver (``BatchedEnv``): scripted bots read its simulation state
+  (``env.sim``, ``env.alive``, ``env.step_count``), as Melting Pot's puppets read their cues.
+- ``obs`` holds, for the keys in ``policy.needs``, the observations of exactly those pairs,
+  ``[P, ...]``: a policy sees only what its own slots see.
+- ``worlds``, ``slots``: int64 [P], the pairs it plays (slot = the agent's index in the task).
+- ``reset(env, worlds)`` (bool [W]) is called when those worlds start a new episode: recurrent state
+  (frame stacks, held actions) is kept per (world, slot) and cleared there.
+
+``needs`` names the observation keys it reads ("pixels", "state", "action_mask"); "sim" means it
+reads the driver's simulation state instead. Task-specific bots (heuristic variants, the training
+and test populations) are in marl_render/bots.py; a self-play snapshot is an ``ActorPolicy``.
+"""
+from __future__ import annotations
+
+import json
+import os
+
+import torch
+
+from marl_render.baselines.networks import Actor
+from marl_render.validation import describe
+
+
+class Policy:
+    """The interface: ``act(env, obs, worlds, slots)`` and ``reset(env, worlds)``; see the module docstring."""
+
+    name: str = "policy"
+    needs: frozenset = frozenset()
+    env_kwargs: dict = {}  # make_env keywords this policy requires of the env it plays (resolution, ...)
+
+    def reset(self, env, worlds: torch.Tensor) -> None:
+        """Worlds (bool [W]) that start a new episode: forget what was kept for them. Stateless: nothing."""
+
+    def act(self, env, obs: dict, worlds: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def __repr__(self):
+        return f"{type(self).__name__}({self.name!r})"
+
+
+class RandomPolicy(Policy):
+    """Uniformly random valid actions (among those the action mask allows), from its own generator."""
+
+    needs = frozenset({"action_mask"})
+
+    def __init__(self, seed: int = 0, name: str = "random"):
+        self.name, self.generator = name, torch.Generator().manual_seed(seed)
+
+    def act(self, env, obs, worlds, slots):
+        if env.continuous:
+            return torch.rand(len(worlds), env.action_dim, generator=self.generator) * 2 - 1
+        mask = obs["action_mask"].to(torch.float32)
+        if not len(worlds):
+            return torch.zeros(0, dtype=torch.int64)
+        return torch.multinomial(mask, 1, generator=self.generator)[:, 0]
+
+
+class ScriptedPolicy(Policy):
+    """A bot that reads the simulation state: ``script(env)`` returns actions for every agent of every
+    world ([W, A] or [W, A, action_dim]), of which the pairs played are taken."""
+
+    needs = frozenset({"sim"})
+
+    def __init__(self, name: str, script, description: str = ""):
+        self.name, self.script, self.description = name, script, description
+
+    def act(self, env, obs, worlds, slots):
+        return self.script(env)[worlds, slots]
+
+
+def heuristic_policy() -> ScriptedPolicy:
+    """The task's own scripted heuristic (``Scenario.heuristic``), the 1 of the normalised score."""
+    return ScriptedPolicy("heuristic", lambda env: env.scenario.heuristic(env.sim, env.alive),
+                          "the task's scripted heuristic")
+
+
+class ActorPolicy(Policy):
+    """A trained actor (marl_render/baselines/networks.py) playing greedily, with the trainer's frame
+    stack and action repeat kept per (world, slot). One network plays every slot it is given: its
+    agent input is the slot's one-hot among the task's agents, as in training."""
+
+    def __init__(self, actor: Actor, *, name: str, obs_key: str, frames: int, action_repeat: int,
+                 num_agents: int, env_kwargs: dict):
+        self.actor, self.name, self.obs_key = actor.eval(), name, obs_key
+        self.frames, self.action_repeat, self.num_agents = frames, action_repeat, num_agents
+        self.needs = frozenset({obs_key, "action_mask"})
+        self.env_kwargs = env_kwargs
+        self.stack = self.held = self.fresh = None  # [W, A, ...] once the first call shows W and A
+
+    def reset(self, env, worlds):
+        if self.fresh is not None:
+            self.fresh |= worlds.cpu()[:, None]
+
+    @torch.inference_mode(False)
+    @torch.no_grad()
+    def act(self, env, obs, worlds, slots):
+        if env.num_agents != self.num_agents:
+            raise ValueError(f"policy {self.name!r} was trained with {self.num_agents} agents; env {env.name!r} has "
+                             f"{env.num_agents}")
+        observation = obs[self.obs_key]
+        if self.stack is None or self.stack.shape[0] != env.num_worlds:
+            W, A = env.num_worlds, env.num_agents
+            self.stack = observation.new_zeros((W, A, *observation.shape[1:-1], observation.shape[-1] * self.frames))
+            self.held = torch.zeros(W, A, dtype=torch.int64)
+            self.fresh = torch.ones(W, A, dtype=torch.bool)
+        decide = env.step_count[worlds].cpu() % self.action_repeat == 0
+        fresh = self.fresh[worlds, slots]
+        pushed = torch.cat((self.stack[worlds, slots][..., observation.shape[-1]:], observation), -1)
+        stack = torch.where(fresh.view(-1, *[1] * (observation.ndim - 1)),
+                            torch.cat([observation] * self.frames, -1), pushed)
+        self.stack[worlds, slots] = stack
+        self.fresh[worlds, slots] = False
+        agent = torch.eye(self.num_agents)[slots]
+        logits = self.actor(self.actor.prepare(stack), agent, obs["action_mask"])
+        chosen = torch.where(decide | fresh, logits.argmax(-1), self.held[worlds, slots])
+        self.held[worlds, slots] = chosen
+        return chosen
+
+
+def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
+    """The greedy policy of a run folder that ``python -m marl_render.baselines`` wrote (its
+    result.json and actor.pt); `name` defaults to the folder's path. ``policy.env_kwargs`` holds the
+    resolution, grayscale and state_obs the actor needs: build the env with them."""
+    if not isinstance(run_folder, (str, os.PathLike)):
+        raise TypeError(f"run_folder must be a path (str), got {describe(run_folder)}")
+    paths = {f: os.path.join(run_folder, f) for f in ("result.json", "actor.pt")}
+    missing = [f for f, path in paths.items() if not os.path.isfile(path)]
+    if missing:
+        raise FileNotFoundError(f"run_folder {str(run_folder)!r} must hold result.json and actor.pt (written by "
+                                f"python -m marl_render.baselines); missing: {missing}")
+    with open(paths["result.json"]) as f:
+        try:
+            result = json.load(f)
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{paths['result.json']} is not valid JSON: {error}") from error
+    try:
+        hp, obs_key = result["hyperparameters"], result["obs"]
+        resolution, grayscale = int(hp["resolution"]), bool(hp.get("grayscale", False))
+        frames, action_repeat = int(hp.get("frames", 1)), int(hp.get("action_repeat", 1))
+    except (KeyError, TypeError, ValueError) as error:
+        raise ValueError(f"{paths['result.json']} lacks the run's settings (obs, hyperparameters with resolution): "
+                         f"{error!r}") from error
+    weights = torch.load(paths["actor.pt"], map_location="cpu", weights_only=True)
+    if not isinstance(weights, dict) or "head.0.weight" not in weights or "head.4.weight" not in weights:
+        raise ValueError(f"{paths['actor.pt']} is not an actor's state_dict (marl_render/baselines/networks.py)")
+    channels = 1 if grayscale else 3
+    if obs_key == "pixels":
+        shape = (resolution, resolution, channels * frames)
+    else:
+        shape = (int(weights["encoder.mean"].shape[0]),)
+    state_dim = int(weights["state_head.weight"].shape[0]) if "state_head.weight" in weights else 0
+    num_actions, inputs = int(weights["head.4.weight"].shape[0]), int(weights["head.0.weight"].shape[1])
+    # The "conv" encoder and float32 compute were the only ones before the trainer recorded them.
+    encoder, precision = hp.get("encoder", "conv"), hp.get("precision", "float32")
+    probe = Actor(obs_key, shape, 0, num_actions, int(hp["hidden"]), encoder=encoder)
+    features = probe.encoder.features if obs_key == "pixels" else shape[0]
+    actor = Actor(obs_key, shape, inputs - features, num_actions, int(hp["hidden"]), state_dim=state_dim,
+                  encoder=encoder, precision=precision)
+    actor.load_state_dict(weights)
+    env_kwargs = {"resolution": resolution, "grayscale": grayscale} if obs_key == "pixels" else {"state_obs": True}
+    return ActorPolicy(actor, name=name or str(run_folder), obs_key=obs_key, frames=frames,
+                       action_repeat=action_repeat, num_agents=inputs - features, env_kwargs=env_kwargs)
