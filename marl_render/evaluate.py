@@ -1,0 +1,423 @@
+"""One evaluation of a focal policy on held-out scenarios, one score.
+
+    python -m marl_render.evaluate --list
+    python -m marl_render.evaluate --policy heuristic --scenario tag --out out/heuristic_tag
+    python -m marl_render.evaluate --policy docs/baselines/tag/seed0 --scenario all --out out/mappo_tag
+    python -m marl_render.evaluate --docs            # regenerates docs/heldout.md and docs/crossplay.md
+
+A policy is ``random``, ``heuristic``, a heuristic variant of the task (a bot name of
+marl_render/bots.py, e.g. ``interceptor``) or a run folder of ``python -m marl_render.baselines``
+(``load_policy``). A scenario is a held-out scenario's name, a task's name (its scenarios) or ``all``.
+
+Each scenario plays `episodes` episodes at once (one per world of its focal-only env, no autoreset,
+the task's default length). A row holds the focal per-capita return (the focal agents' summed
+reward over the episode, averaged over them; mean and std over episodes), the background's per-capita
+return, the bots that were sampled (slots played, summed over episodes), and the normalised score
+(score - random) / (heuristic - random) with the returns of random and heuristic focal players on the
+same scenario and seed. With the same policy, scenario and seed the numbers are the same.
+
+``--out PREFIX`` writes PREFIX.json and PREFIX.csv (one row per scenario); without it the JSON is
+printed.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import glob
+import json
+import math
+import os
+import sys
+
+import numpy as np
+import torch
+
+from marl_render.bots import POPULATIONS, bot_names, make_bot
+from marl_render.elo import elo_ratings
+from marl_render.envs import Population, env_class, make_env
+from marl_render.heldout import HELDOUT, heldout_scenario, list_heldout
+from marl_render.policies import Policy, RandomPolicy, load_policy
+
+COMPETITIVE = ("tag", "push", "capture_flag")  # the cross-play tasks: team A (rows) against team B (columns)
+SIDES = {"tag": ("predator", "prey"), "push": ("red", "blue"), "capture_flag": ("red", "blue")}
+DOCS_EPISODES, CROSSPLAY_EPISODES, DOCS_SEED, DOCS_RESOLUTION = 32, 16, 0, 16
+
+
+def make_policy(spec, task: str, seed: int = 0) -> Policy:
+    """A fresh focal policy from `spec`: a Policy (returned as it is), "random", "heuristic", a bot
+    name of `task`, or a run folder."""
+    if isinstance(spec, Policy):
+        return spec
+    if spec == "random":
+        return RandomPolicy(seed + 1)
+    if spec in bot_names(task):
+        return make_bot(task, spec, seed + 2)
+    if isinstance(spec, str) and os.path.isdir(spec):
+        return load_policy(spec)
+    raise ValueError(f"policy must be 'random', 'heuristic', one of {task}'s heuristic variants {bot_names(task)} "
+                     f"or a run folder of python -m marl_render.baselines, got {spec!r}")
+
+
+def play(env, policy: Policy) -> dict:
+    """One episode per world of the focal-only env `env` with `policy` on its focal slots: per-world
+    focal and background per-capita returns (float64 [W]) and the bots each world sampled."""
+    W, F = env.num_worlds, env.num_agents
+    worlds = torch.arange(W).repeat_interleave(F)
+    slots = env.focal_slots.repeat(W)
+    obs = env.reset(seed=env.seed)
+    policy.reset(env.core, torch.ones(W, dtype=torch.bool))
+    focal = torch.zeros(W, dtype=torch.float64)
+    background = torch.zeros(W, dtype=torch.float64)
+    running = torch.ones(W, dtype=torch.bool)
+    for _ in range(env.max_steps):
+        seen = {key: value.flatten(0, 1) for key, value in obs.items() if key in policy.needs}
+        actions = policy.act(env.core, seen, worlds, slots).reshape(W, F, *env.spec.action.shape)
+        obs, reward, terminated, truncated, info = env.step(actions)
+        focal += reward.sum(1).to(torch.float64) / F * running
+        background += info["background_reward"].to(torch.float64) * running
+        running &= ~info["done_worlds"]
+        if not bool(running.any()):
+            break
+    return {"focal": focal, "background": background, "bots": env.sampled_bots()}
+
+
+def _env(task: str, episodes: int, seed: int, resolution: int, policy: Policy, **kwargs):
+    return make_env(task, num_worlds=episodes, seed=seed, **{"resolution": resolution, **policy.env_kwargs,
+                                                             **kwargs})
+
+
+def scenario_returns(spec, scenario, *, episodes: int = 32, seed: int = 0, resolution: int = 16) -> dict:
+    """play() of policy `spec` on held-out `scenario`."""
+    scenario = heldout_scenario(scenario)
+    policy = make_policy(spec, scenario.task, seed)
+    with _env(scenario.task, episodes, seed, resolution, policy, heldout=scenario) as env:
+        return play(env, policy)
+
+
+def training_condition(spec, scenario, *, episodes: int = 32, seed: int = 0, resolution: int = 16) -> dict:
+    """play() of policy `spec` on the focal slots of `scenario` in the condition the reference trainer
+    trains in: its partners (the background slots of the focal agents' teams, or every slot of a
+    cooperative task) are copies of itself, opponents play random actions."""
+    scenario = heldout_scenario(scenario)
+    policy = make_policy(spec, scenario.task, seed)
+    focal_teams = {team for team, names in _teams(scenario.task, scenario.num_agents).items()
+                   if set(names) & set(scenario.focal)}
+    competitive = bool(getattr(env_class(scenario.task), "opponents", ()))
+    roles = {team: [RandomPolicy(seed + 3) if competitive and team not in focal_teams else policy]
+             for team in scenario.bots_by_role}
+    with _env(scenario.task, episodes, seed, resolution, policy, num_agents=scenario.num_agents, **scenario.params,
+              background=Population(roles, focal=scenario.focal)) as env:
+        return play(env, policy)
+
+
+def _teams(task: str, num_agents: int) -> dict:
+    with make_env(task, num_worlds=1, resolution=8, num_agents=num_agents) as env:
+        return dict(env.groups)
+
+
+def _summary(values: torch.Tensor) -> tuple:
+    return float(values.mean()), float(values.std(unbiased=False))
+
+
+def _bot_counts(bots: list) -> dict:
+    counts: dict = {}
+    for row in bots:
+        for name in row:
+            counts[name] = counts.get(name, 0) + 1
+    return dict(sorted(counts.items()))
+
+
+def normalised(value: float, random: float, heuristic: float) -> float:
+    """0 at random focal players, 1 at heuristic ones; NaN where the two are equal."""
+    return (value - random) / (heuristic - random) if heuristic != random else math.nan
+
+
+def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: int = 16,
+             references: dict | None = None, gap: bool = False) -> list:
+    """One row per scenario (see the module docstring); `references` caches the random and heuristic
+    returns per scenario between calls; `gap` adds the training condition's return."""
+    if episodes < 2:
+        raise ValueError(f"episodes must be >= 2 (a mean and a std over episodes), got {episodes}")
+    references = {} if references is None else references
+    rows = []
+    for name in scenarios:
+        scenario = heldout_scenario(name)
+        result = scenario_returns(spec, scenario, episodes=episodes, seed=seed, resolution=resolution)
+        for label in ("random", "heuristic"):
+            key = (scenario.name, label, episodes, seed, resolution)
+            if key not in references:
+                same = label == spec
+                references[key] = result if same else scenario_returns(label, scenario, episodes=episodes, seed=seed,
+                                                                      resolution=resolution)
+        mean, std = _summary(result["focal"])
+        random = float(references[(scenario.name, "random", episodes, seed, resolution)]["focal"].mean())
+        heuristic = float(references[(scenario.name, "heuristic", episodes, seed, resolution)]["focal"].mean())
+        row = {"scenario": scenario.name, "task": scenario.task, "tags": " ".join(scenario.tags),
+               "policy": spec if isinstance(spec, str) else spec.name, "episodes": episodes, "seed": seed, "focal_return_mean": mean, "focal_return_std": std,
+               "background_return_mean": _summary(result["background"])[0],
+               "background_return_std": _summary(result["background"])[1],
+               "random_return": random, "heuristic_return": heuristic,
+               "normalised_score": normalised(mean, random, heuristic),
+               "bots_sampled": _bot_counts(result["bots"])}
+        if gap:
+            trained = training_condition(spec, scenario, episodes=episodes, seed=seed, resolution=resolution)
+            row["training_condition_return"] = float(trained["focal"].mean())
+            row["generalisation_gap"] = row["training_condition_return"] - mean
+        rows.append(row)
+    return rows
+
+
+def scenario_names(which: str) -> list:
+    """A scenario's name, a task's name (its scenarios) or "all"."""
+    if which == "all":
+        return list_heldout()
+    if which in POPULATIONS:
+        return list_heldout(which)
+    return [heldout_scenario(which).name]
+
+
+def write(rows: list, prefix: str) -> None:
+    folder = os.path.dirname(prefix)
+    if folder:
+        os.makedirs(folder, exist_ok=True)
+    with open(prefix + ".json", "w") as f:
+        json.dump(rows, f, indent=1)
+    with open(prefix + ".csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({**row, "bots_sampled": json.dumps(row["bots_sampled"])})
+
+
+def listing() -> str:
+    lines = []
+    for name in list_heldout():
+        s = HELDOUT[name]
+        bots = "; ".join(f"{team}: {', '.join(names)}" for team, names in s.bots_by_role.items())
+        lines.append(f"{name}  [{', '.join(s.tags)}]  focal {', '.join(s.focal)}  background {bots}\n"
+                     f"    {s.description}")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ cross-play
+def crossplay(task: str, roster: dict, *, episodes: int = 16, seed: int = 0, resolution: int = 16) -> dict:
+    """Every policy of `roster` ({label: spec}) as team A against every one as team B (SIDES[task]):
+    returns [i, j] of both teams (per capita), win/draw counts (the team with the higher per-capita
+    return wins the episode) and Elo ratings anchored at the first policy (random)."""
+    side_a, side_b = SIDES[task]
+    labels = list(roster)
+    n = len(labels)
+    returns_a, returns_b = np.zeros((n, n)), np.zeros((n, n))
+    wins, draws = np.zeros((n, n)), np.zeros((n, n))
+    with make_env(task, num_worlds=1, resolution=8) as probe:
+        focal = probe.groups[side_a]
+    for i, row in enumerate(labels):
+        for j, column in enumerate(labels):
+            a = make_policy(roster[row], task, seed)
+            b = make_policy(roster[column], task, seed + 7)
+            with _env(task, episodes, seed, resolution, a, background=Population({side_b: [b]}, focal=focal)) as env:
+                result = play(env, a)
+            returns_a[i, j], returns_b[i, j] = float(result["focal"].mean()), float(result["background"].mean())
+            difference = result["focal"] - result["background"]
+            wins[i, j] += float((difference > 1e-9).sum())
+            wins[j, i] += float((difference < -1e-9).sum())
+            draws[i, j] += float((difference.abs() <= 1e-9).sum())
+    win_rate = (wins + 0.5 * (draws + draws.T)) / np.maximum(wins + wins.T + draws + draws.T, 1)
+    return {"task": task, "sides": [side_a, side_b], "policies": labels, "episodes": episodes, "seed": seed,
+            "returns_a": returns_a.tolist(), "returns_b": returns_b.tolist(), "wins": wins.tolist(),
+            "draws": draws.tolist(), "win_rate": win_rate.tolist(), "elo": elo_ratings(wins, draws).tolist()}
+
+
+def crossplay_roster(task: str, runs: list, snapshots: list = ()) -> dict:
+    """{label: policy spec}: random first (the Elo anchor), the heuristic and its variants, the MAPPO
+    run folders of `task` among `runs`, then self-play snapshots (run folders) of `task`."""
+    roster = {"random": "random", **{name: name for name in bot_names(task)}}
+    for folder in [*runs, *snapshots]:
+        roster[f"mappo:{os.path.relpath(folder)}"] = folder
+    return roster
+
+
+def baseline_runs(root: str = "docs/baselines", obs: str = "pixels") -> dict:
+    """{task: [run folders]} of the reference runs under `root` that hold an actor.pt (from `obs`)."""
+    runs: dict = {}
+    for actor in sorted(glob.glob(os.path.join(root, "**", "actor.pt"), recursive=True)):
+        folder = os.path.dirname(actor)
+        try:
+            with open(os.path.join(folder, "result.json")) as f:
+                result = json.load(f)
+        except (OSError, json.JSONDecodeError):
+            continue
+        if result.get("obs") == obs and result.get("env") in POPULATIONS:
+            runs.setdefault(result["env"], []).append(folder)
+    return runs
+
+
+# ------------------------------------------------------------------ the published pages
+def heatmap(result: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rate = np.array(result["win_rate"])
+    labels = result["policies"]
+    figure, axis = plt.subplots(figsize=(1.0 + 0.6 * len(labels), 0.8 + 0.5 * len(labels)))
+    image = axis.imshow(rate, vmin=0, vmax=1, cmap="RdBu")
+    axis.set_xticks(range(len(labels)), labels, rotation=60, ha="right", fontsize=7)
+    axis.set_yticks(range(len(labels)), labels, fontsize=7)
+    for i in range(len(labels)):
+        for j in range(len(labels)):
+            axis.text(j, i, f"{rate[i, j]:.2f}", ha="center", va="center", fontsize=6)
+    side_a, side_b = result["sides"]
+    axis.set_xlabel(f"column policy as {side_b}")
+    axis.set_ylabel(f"row policy as {side_a}")
+    axis.set_title(f"{result['task']}: win rate of the row policy", fontsize=9)
+    figure.colorbar(image, ax=axis, fraction=0.04)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def _fmt(value: float) -> str:
+    return "n/a" if not math.isfinite(value) else f"{value:.2f}"
+
+
+def heldout_page(rows_by_policy: dict, command: str, note: str) -> str:
+    lines = ["# Held-out scenarios: focal policies with bots they never met", "",
+             "Generated by `marl_render/evaluate.py` (do not edit by hand). Reproduce with:", "",
+             f"    {command}", "", note, "",
+             "Each row: the focal agents' per-capita episode return (mean ± std over episodes, one per world), "
+             "the normalised score (0 = random focal players, 1 = heuristic focal players on the same scenario "
+             "and seed), the return in the training condition (the same focal slots, partners played by the "
+             "policy itself, opponents random: how the reference trainer trains) and the generalisation gap "
+             "(training condition minus held-out). Scenarios and bots: `python -m marl_render.evaluate --list`.",
+             ""]
+    for policy, rows in rows_by_policy.items():
+        lines += [f"## {policy}", "", "| scenario | tags | focal return | background return | score | "
+                  "training condition | gap | bots sampled |", "|---|---|---:|---:|---:|---:|---:|---|"]
+        for r in rows:
+            bots = ", ".join(f"{k} {v}" for k, v in r["bots_sampled"].items())
+            lines.append(f"| {r['scenario']} | {r['tags']} | {_fmt(r['focal_return_mean'])} ± "
+                         f"{_fmt(r['focal_return_std'])} | {_fmt(r['background_return_mean'])} | "
+                         f"{_fmt(r['normalised_score'])} | {_fmt(r.get('training_condition_return', math.nan))} | "
+                         f"{_fmt(r.get('generalisation_gap', math.nan))} | {bots} |")
+        gaps = [r["generalisation_gap"] for r in rows if "generalisation_gap" in r]
+        if gaps:
+            lines += ["", f"Mean generalisation gap over {len(gaps)} scenarios: {np.mean(gaps):.2f}."]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def crossplay_page(results: list, command: str, note: str) -> str:
+    lines = ["# Cross-play: every policy against every other, competitive tasks", "",
+             "Generated by `marl_render/evaluate.py` (do not edit by hand). Reproduce with:", "",
+             f"    {command}", "", note, "",
+             "Rows play the first team, columns the second. An episode is won by the team with the higher "
+             "per-capita return (equal returns: a draw, half a win each). Elo: maximum likelihood over all "
+             "episodes of both orders (Hunter's MM iteration, OpenSpiel's method, 0.1 smoothing wins), "
+             "anchored at random = 0. Self-play snapshots join the roster as run folders "
+             "(`crossplay_roster(task, runs, snapshots)`).", ""]
+    for result in results:
+        task, labels = result["task"], result["policies"]
+        side_a, side_b = result["sides"]
+        lines += [f"## {task} ({side_a} vs {side_b}, {result['episodes']} episodes per pair)", "",
+                  f"![{task} cross-play](crossplay/{task}.png)", "", "| Elo | policy |", "|---:|---|"]
+        for rating, label in sorted(zip(result["elo"], labels, strict=True), reverse=True):
+            lines.append(f"| {rating:.0f} | {label} |")
+        lines += ["", f"Per-capita return of the row team ({side_a}):", "",
+                  "| row \\ column | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
+        for label, values in zip(labels, result["returns_a"], strict=True):
+            lines.append(f"| {label} | " + " | ".join(f"{v:.2f}" for v in values) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_episodes: int = CROSSPLAY_EPISODES,
+            seed: int = DOCS_SEED, resolution: int = DOCS_RESOLUTION, tasks=None, snapshots: dict | None = None) -> None:
+    """Writes docs/heldout.md, docs/crossplay.md, their data (docs/heldout/*.json, *.csv) and the
+    heatmaps (docs/crossplay/*.png) from random, the heuristic and the MAPPO pixel runs of
+    docs/baselines that hold an actor.pt; `snapshots` {task: [run folders]} adds self-play
+    snapshots to the cross-play rosters."""
+    tasks = list(POPULATIONS) if tasks is None else list(tasks)
+    runs = baseline_runs(os.path.join(docs, "baselines"))
+    command = (f"python -m marl_render.evaluate --docs --episodes {episodes} --crossplay-episodes "
+               f"{crossplay_episodes} --seed {seed} --resolution {resolution}")
+    found = sum(len(v) for v in runs.values())
+    note = (f"Policies: random, the heuristic and {found} MAPPO pixel run(s) of docs/baselines with an actor.pt"
+            + ("" if found else " (none of the published runs keeps its actor.pt yet: rerun this command once "
+                                 "they do)") + f". Resolution {resolution} px, seed {seed}.")
+    scenarios = [name for task in tasks for name in list_heldout(task)]
+    references: dict = {}
+    rows_by_policy = {label: evaluate(label, scenarios, episodes=episodes, seed=seed, resolution=resolution,
+                                      references=references, gap=True) for label in ("random", "heuristic")}
+    for task, folders in runs.items():
+        for folder in folders:
+            if task in tasks:
+                rows_by_policy[f"MAPPO {os.path.relpath(folder)}"] = evaluate(
+                    folder, list_heldout(task), episodes=episodes, seed=seed, resolution=resolution,
+                    references=references, gap=True)
+    os.makedirs(os.path.join(docs, "heldout"), exist_ok=True)
+    for label, rows in rows_by_policy.items():
+        write(rows, os.path.join(docs, "heldout", label.replace("MAPPO ", "mappo_").replace("/", "_")))
+    with open(os.path.join(docs, "heldout.md"), "w") as f:
+        f.write(heldout_page(rows_by_policy, command, note))
+    results = []
+    os.makedirs(os.path.join(docs, "crossplay"), exist_ok=True)
+    for task in COMPETITIVE:
+        if task not in tasks:
+            continue
+        roster = crossplay_roster(task, runs.get(task, []), (snapshots or {}).get(task, []))
+        result = crossplay(task, roster, episodes=crossplay_episodes, seed=seed, resolution=resolution)
+        with open(os.path.join(docs, "crossplay", f"{task}.json"), "w") as f:
+            json.dump(result, f, indent=1)
+        heatmap(result, os.path.join(docs, "crossplay", f"{task}.png"))
+        results.append(result)
+    with open(os.path.join(docs, "crossplay.md"), "w") as f:
+        f.write(crossplay_page(results, command, note))
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help keeps the docstring's layout and shows every option's default."""
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m marl_render.evaluate", description=__doc__,
+                                     formatter_class=HelpFormatter)
+    parser.add_argument("--list", action="store_true", help="print every held-out scenario, its tags and bots")
+    parser.add_argument("--policy", help="random, heuristic, a heuristic variant or a run folder")
+    parser.add_argument("--scenario", default="all", help="a held-out scenario, a task (its scenarios) or all")
+    parser.add_argument("--episodes", type=int, default=32, help="episodes per scenario (one per world)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the envs, the bots and random players")
+    parser.add_argument("--resolution", type=int, default=16, help="pixels per side (a run folder's own wins)")
+    parser.add_argument("--gap", action="store_true", help="also play the training condition (generalisation gap)")
+    parser.add_argument("--out", help="write OUT.json and OUT.csv instead of printing JSON")
+    parser.add_argument("--docs", action="store_true", help="regenerate docs/heldout.md and docs/crossplay.md")
+    parser.add_argument("--crossplay-episodes", type=int, default=CROSSPLAY_EPISODES,
+                        help="--docs: episodes per cross-play pair")
+    parser.add_argument("--task", nargs="+", default=None, help="--docs: only these tasks")
+    args = parser.parse_args(argv)
+    if args.list:
+        print(listing())
+        return 0
+    if args.docs:
+        publish(episodes=args.episodes, crossplay_episodes=args.crossplay_episodes, seed=args.seed,
+                resolution=args.resolution, tasks=args.task)
+        return 0
+    if args.policy is None:
+        parser.error("--policy is required (or --list, or --docs)")
+    try:
+        scenarios = scenario_names(args.scenario)
+        rows = evaluate(args.policy, scenarios, episodes=args.episodes, seed=args.seed, resolution=args.resolution,
+                        gap=args.gap)
+    except (ValueError, FileNotFoundError) as error:
+        parser.error(str(error))
+    if args.out:
+        write(rows, args.out)
+        print(f"wrote {args.out}.json and {args.out}.csv ({len(rows)} scenarios)")
+    else:
+        print(json.dumps(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
