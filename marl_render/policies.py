@@ -121,7 +121,9 @@ class ActorPolicy(Policy):
         self.stack[worlds, slots] = stack
         self.fresh[worlds, slots] = False
         agent = torch.eye(self.num_agents)[slots]
-        logits = self.actor(self.actor.prepare(stack), agent, obs["action_mask"])
+        # The trainer's Actor since issue 25 converts observations with prepare(); the earlier one took them as they are.
+        prepared = self.actor.prepare(stack) if hasattr(self.actor, "prepare") else stack
+        logits = self.actor(prepared, agent, obs["action_mask"])
         chosen = torch.where(decide | fresh, logits.argmax(-1), self.held[worlds, slots])
         self.held[worlds, slots] = chosen
         return chosen
@@ -160,12 +162,12 @@ def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
         shape = (int(weights["encoder.mean"].shape[0]),)
     state_dim = int(weights["state_head.weight"].shape[0]) if "state_head.weight" in weights else 0
     num_actions, inputs = int(weights["head.4.weight"].shape[0]), int(weights["head.0.weight"].shape[1])
-    # The "conv" encoder and float32 compute were the only ones before the trainer recorded them.
-    encoder, precision = hp.get("encoder", "conv"), hp.get("precision", "float32")
-    probe = Actor(obs_key, shape, 0, num_actions, int(hp["hidden"]), encoder=encoder)
+    # The "conv" encoder and float32 compute were the only ones before the trainer recorded them (and
+    # its Actor took no such arguments): only other choices are passed on.
+    choices = {key: hp[key] for key, old in (("encoder", "conv"), ("precision", "float32")) if hp.get(key, old) != old}
+    probe = Actor(obs_key, shape, 0, num_actions, int(hp["hidden"]), **choices)
     features = probe.encoder.features if obs_key == "pixels" else shape[0]
-    actor = Actor(obs_key, shape, inputs - features, num_actions, int(hp["hidden"]), state_dim=state_dim,
-                  encoder=encoder, precision=precision)
+    actor = Actor(obs_key, shape, inputs - features, num_actions, int(hp["hidden"]), state_dim=state_dim, **choices)
     actor.load_state_dict(weights)
     env_kwargs = {"resolution": resolution, "grayscale": grayscale} if obs_key == "pixels" else {"state_obs": True}
     return ActorPolicy(actor, name=name or str(run_folder), obs_key=obs_key, frames=frames,

@@ -1,0 +1,231 @@
+"""Policies, bots, held-out scenarios and their focal-only envs, the evaluation CLI and Elo."""
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from pettingzoo.test import parallel_api_test
+from torchrl.envs.utils import check_env_specs
+
+from marl_render import evaluate as evaluation
+from marl_render.baselines.networks import Actor
+from marl_render.bots import POPULATIONS, bot_names, make_bot
+from marl_render.elo import elo_ratings, win_probability
+from marl_render.envs import FocalEnv, Population, list_envs, make_env
+from marl_render.heldout import HELDOUT, list_heldout
+from marl_render.policies import RandomPolicy, load_policy
+from marl_render.wrappers.gymnasium import make_vec_env
+from marl_render.wrappers.pettingzoo import make_parallel_env
+from marl_render.wrappers.sb3 import make_sb3_env
+from marl_render.wrappers.torchrl import make_torchrl_env
+
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+
+
+def test_list_names_at_least_three_tagged_scenarios_per_multi_agent_task(capsys):
+    assert evaluation.main(["--list"]) == 0
+    printed = capsys.readouterr().out
+    multi_agent = [name for name in list_envs() if name != "cartpole"]
+    assert sorted(POPULATIONS) == sorted(multi_agent)
+    assert len(list_heldout()) >= 24
+    for task in multi_agent:
+        assert len(list_heldout(task)) >= 3, task
+    for name in list_heldout():
+        scenario = HELDOUT[name]
+        assert re.search(rf"^{re.escape(name)}  \[(resident|visitor)\]", printed, re.M), name
+        assert scenario.description and scenario.description in printed
+        assert scenario.tags == (("resident",) if 2 * len(scenario.focal) > scenario.num_agents else ("visitor",))
+
+
+def test_no_test_bot_is_in_a_training_population_and_scenarios_use_test_bots_only():
+    for task, population in POPULATIONS.items():
+        assert population["train"] and population["test"]
+        assert not set(population["train"]) & set(population["test"]), task
+    for scenario in HELDOUT.values():
+        for names in scenario.bots_by_role.values():
+            assert set(names) <= set(POPULATIONS[scenario.task]["test"]), scenario.name
+            assert not set(names) & set(POPULATIONS[scenario.task]["train"]), scenario.name
+
+
+@pytest.mark.parametrize("name", list_heldout())
+def test_every_scenario_through_pettingzoo_torchrl_and_the_vector_env(name):
+    scenario = HELDOUT[name]
+    with make_env(scenario.task, heldout=name, num_worlds=1, resolution=8) as core:
+        full = make_env(scenario.task, num_worlds=1, resolution=8, **scenario.env_kwargs())
+        background = [n for n in full.agent_names if n not in scenario.focal]
+        full.close()
+        assert list(core.agent_names) == [n for n in scenario.focal]
+        assert not set(core.agent_names) & set(background)  # background slots are never agents
+    env = make_parallel_env(scenario.task, heldout=name, resolution=8, max_steps=12)
+    try:
+        parallel_api_test(env)
+        assert set(env.possible_agents) == set(scenario.focal)
+    finally:
+        env.close()
+    torchrl_env = make_torchrl_env(scenario.task, heldout=name, num_worlds=2, resolution=8, max_steps=12)
+    try:
+        check_env_specs(torchrl_env)
+        agents = [n for names in torchrl_env.group_map.values() for n in names]
+        assert sorted(agents) == sorted(scenario.focal)
+    finally:
+        torchrl_env.close()
+    vector = make_vec_env(scenario.task, 2, heldout=name, resolution=8)
+    try:
+        obs, _ = vector.reset(seed=1)
+        F = len(scenario.focal)
+        assert vector.num_envs == 2 * F and obs.shape == (2 * F, 8, 8, 3)
+        obs, reward, terminated, truncated, _ = vector.step(vector.action_space.sample())
+        assert obs.shape == (2 * F, 8, 8, 3) and reward.shape == (2 * F,)
+    finally:
+        vector.close()
+
+
+def test_sb3_vec_env_exposes_only_the_focal_agents():
+    env = make_sb3_env("tag", num_worlds=2, heldout="tag/prey_vs_interceptors", resolution=8)
+    try:
+        assert env.num_envs == 2  # 2 worlds x 1 focal prey
+        env.reset()
+        env.step_async(np.zeros(2, dtype=np.int64))
+        obs, reward, done, info = env.step_wait()
+        assert obs.shape[0] == 2 and reward.shape == (2,)
+    finally:
+        env.close()
+
+
+def test_bots_differ_across_worlds_and_a_step_calls_each_distinct_bot_once():
+    with make_env("tag", heldout="tag/pair_with_interceptor", num_worlds=16, resolution=8, seed=3) as env:
+        env.reset(seed=3)
+        prey = [row[1] for row in env.sampled_bots()]  # slot order: predator_2, prey_0
+        assert set(prey) == {"wandering_prey", "corner_prey"}
+        assert all(row[0] == "interceptor" for row in env.sampled_bots())
+        for _ in range(3):
+            before = env.bot_calls
+            obs, reward, terminated, truncated, info = env.step(env.random_actions())
+            assert env.bot_calls - before == 3  # interceptor, wandering_prey, corner_prey: one call each
+        assert obs["pixels"].shape == (16, 2, 8, 8, 3) and reward.shape == (16, 2) and info["background_reward"].shape == (16,)
+        # the caught prey's -10 shows in the background's reward, never in the focal rewards
+        assert torch.equal(env.alive, env.core.alive[:, :2])
+
+
+def test_bots_are_resampled_at_reset_deterministically_for_a_seed():
+    def draws(seed):
+        with make_env("push", heldout="push/red_vs_chasers", num_worlds=8, resolution=8, seed=seed) as env:
+            first = env.reset(seed=seed) and env.sampled_bots()
+            second = env.reset() and env.sampled_bots()
+            return first, second
+    a, b = draws(5), draws(5)
+    assert a == b and a[0] != a[1]
+    assert draws(6)[0] != a[0]
+
+
+def test_focal_env_refuses_bad_actions_and_populations_without_changing_anything():
+    with make_env("tag", heldout="tag/predators_vs_wanderers", num_worlds=2, resolution=8) as env:
+        env.reset(seed=0)
+        state = env.get_state()
+        with pytest.raises(ValueError, match=r"actions must have shape \[2, 3\].*predator_0"):
+            env.step(torch.zeros(2, 4, dtype=torch.int64))
+        with pytest.raises(ValueError, match="actions must be"):
+            env.step(torch.full((2, 3), 9))
+        after = env.get_state()
+        assert all(torch.equal(state[k], after[k]) for k in state if isinstance(state[k], torch.Tensor))
+    with pytest.raises(ValueError, match="no bots for team"):
+        make_env("tag", num_worlds=1, resolution=8, background=Population({"prey": [RandomPolicy()]},
+                                                                           focal=["predator_0"]))
+    with pytest.raises(ValueError, match="not of 'push'"):
+        make_env("push", heldout="tag/prey_vs_interceptors", num_worlds=1)
+    with pytest.raises(ValueError, match="fixes"):
+        make_env("tag", heldout="tag/prey_vs_interceptors", num_agents=6, num_worlds=1)
+
+
+def test_training_with_a_background_population_of_training_bots():
+    bots = [make_bot("tag", name) for name in POPULATIONS["tag"]["train"]]
+    with make_env("tag", num_worlds=4, resolution=8, background=Population({"prey": bots})) as env:
+        assert isinstance(env, FocalEnv) and env.agent_names == ["predator_0", "predator_1", "predator_2"]
+        obs = env.reset(seed=1)
+        assert obs["pixels"].shape == (4, 3, 8, 8, 3)
+        env.step(env.heuristic_actions())
+
+
+def test_seeded_evaluation_is_deterministic_and_scores_heuristic_at_one():
+    rows = evaluation.evaluate("heuristic", ["spread/two_with_wanderer"], episodes=4, resolution=8)
+    again = evaluation.evaluate("heuristic", ["spread/two_with_wanderer"], episodes=4, resolution=8)
+    assert rows == again
+    assert rows[0]["normalised_score"] == 1.0 and rows[0]["bots_sampled"] == {"wanderer": 4}
+    random_rows = evaluation.evaluate("random", ["spread/two_with_wanderer"], episodes=4, resolution=8)
+    assert random_rows[0]["normalised_score"] == 0.0
+    assert random_rows[0]["focal_return_mean"] < rows[0]["focal_return_mean"]
+
+
+def test_evaluate_cli_writes_json_and_csv(tmp_path):
+    out = tmp_path / "rows"
+    assert evaluation.main(["--policy", "nearest_landmark", "--scenario", "spread/one_among_nearest",
+                            "--episodes", "2", "--resolution", "8", "--out", str(out)]) == 0
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert [r["scenario"] for r in rows] == ["spread/one_among_nearest"]
+    assert (tmp_path / "rows.csv").read_text().splitlines()[0].startswith("scenario,task,tags,policy")
+    with pytest.raises(SystemExit):
+        evaluation.main(["--policy", "no_such_bot", "--scenario", "spread", "--episodes", "2"])
+
+
+def test_elo_recovers_known_ratings():
+    # 3 beats 1 of 4 games against the anchor: 400 log10(3) above it, by maximum likelihood.
+    ratings = elo_ratings([[0, 1], [3, 0]], smoothing=0.0)
+    assert ratings[0] == 0 and ratings[1] == pytest.approx(400 * math.log10(3), abs=1e-6)
+    truth = np.array([0.0, 150.0, -80.0])
+    wins = np.array([[0 if i == j else 1e6 * win_probability(truth[i], truth[j]) for j in range(3)]
+                     for i in range(3)])
+    assert elo_ratings(wins, smoothing=0.0) == pytest.approx(truth, abs=1e-3)
+    with pytest.raises(ValueError, match="wins must be a square matrix"):
+        elo_ratings([[0, 1, 2]])
+
+
+def _saved_run(folder: Path, task: str = "tag") -> None:
+    """A run folder as python -m marl_render.baselines writes it (result.json + actor.pt)."""
+    folder.mkdir(parents=True)
+    hp = {"resolution": 16, "grayscale": False, "frames": 2, "action_repeat": 2, "hidden": 16, "encoder": "conv",
+          "precision": "float32"}
+    torch.manual_seed(0)
+    actor = Actor("pixels", (16, 16, 6), 4, 5, 16)
+    torch.save(actor.state_dict(), folder / "actor.pt")
+    (folder / "result.json").write_text(json.dumps({"env": task, "obs": "pixels", "hyperparameters": hp,
+                                                    "trained_agents": ["predator_0", "predator_1", "predator_2"]}))
+
+
+def test_load_policy_plays_held_out_scenarios(tmp_path):
+    _saved_run(tmp_path / "run")
+    policy = load_policy(str(tmp_path / "run"))
+    assert policy.env_kwargs == {"resolution": 16, "grayscale": False}
+    rows = evaluation.evaluate(str(tmp_path / "run"), ["tag/predators_vs_wanderers"], episodes=2)
+    again = evaluation.evaluate(str(tmp_path / "run"), ["tag/predators_vs_wanderers"], episodes=2)
+    assert rows == again and math.isfinite(rows[0]["focal_return_mean"])
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "result.json").write_text("{")
+    with pytest.raises(FileNotFoundError, match="actor.pt"):
+        load_policy(str(tmp_path / "broken"))
+
+
+def test_documented_example_evaluates_a_saved_policy(tmp_path, monkeypatch):
+    page = (DOCS / "populations.md").read_text()
+    example = re.search(r"```python\n(.*?)```", page, re.S).group(1)
+    monkeypatch.chdir(tmp_path)
+    _saved_run(tmp_path / "runs" / "tag")
+    namespace: dict = {}
+    exec(compile(example, "docs/populations.md", "exec"), namespace)
+    assert [row["scenario"] for row in namespace["rows"]] == list_heldout("tag")
+
+
+def test_every_bot_acts_validly_in_its_task():
+    for task in POPULATIONS:
+        with make_env(task, num_worlds=3, resolution=8) as env:
+            env.reset(seed=0)
+            worlds = torch.arange(3).repeat_interleave(env.num_agents)
+            slots = torch.arange(env.num_agents).repeat(3)
+            obs = {k: v.flatten(0, 1) for k, v in env.reset(seed=0).items()}
+            for name in bot_names(task):
+                actions = make_bot(task, name).act(env, obs, worlds, slots)
+                env.check_actions(actions.reshape(3, env.num_agents))
