@@ -20,9 +20,9 @@ from .registry import env_class, list_envs, make_env, register_env
 from .scenario import Layout, NoParams, Scenario, Step, numbered
 from .spec import ActionSpec, ArraySpec, EnvSpec
 
-__all__ = ["ActionSpec", "ArenaScenario", "ArenaState", "ArraySpec", "BatchedEnv", "EnvOptions", "EnvSpec", "FocalEnv", "Layout",
-           "NoParams", "OBS_KEYS", "Population", "Prop", "Scenario", "Static", "Step", "env_class", "list_envs", "make_env",
-           "numbered", "register_env"]
+__all__ = ["ActionSpec", "ArenaScenario", "ArenaState", "ArraySpec", "BatchedEnv", "EnvOptions", "EnvSpec", "FocalEnv",
+           "Layout", "NoParams", "OBS_KEYS", "Population", "Prop", "Scenario", "Static", "Step", "env_class", "list_envs",
+           "make_env", "numbered", "register_env"]
 
 # The front ends (marl_render/wrappers/) are exported lazily, so that importing
 # marl_render.envs never imports pettingzoo or torchrl: public name -> "module:attribute".

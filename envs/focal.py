@@ -77,11 +77,12 @@ class FocalEnv:
             focal = [n for n in core.agent_names if team_of[n] not in population.bots_by_role]
         unknown = [n for n in focal if n not in team_of]
         if unknown or len(set(focal)) != len(focal):
-            raise ValueError(f"focal must name distinct agents of {core.name} {list(core.agent_names)}, got {list(focal)}")
+            raise ValueError(f"focal must name distinct agents of {core.name} {list(core.agent_names)}, "
+                             f"got {list(focal)}")
         background = [n for n in core.agent_names if n not in focal]
         if not focal or not background:
-            raise ValueError(f"a focal-only env needs at least one focal and one background agent; focal {list(focal)}, "
-                             f"background {background}")
+            raise ValueError(f"a focal-only env needs at least one focal and one background agent; focal "
+                             f"{list(focal)}, background {background}")
         unplayed = sorted({team_of[n] for n in background} - set(population.bots_by_role))
         if unplayed:
             raise ValueError(f"background has no bots for team(s) {unplayed}, whose agents "

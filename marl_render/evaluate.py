@@ -81,20 +81,22 @@ def play(env, policy: Policy) -> dict:
     return {"focal": focal, "background": background, "bots": env.sampled_bots()}
 
 
-def _env(task: str, episodes: int, seed: int, resolution: int, policy: Policy, **kwargs):
-    return make_env(task, num_worlds=episodes, seed=seed, **{"resolution": resolution, **policy.env_kwargs,
-                                                             **kwargs})
+def _env(task: str, episodes: int, seed: int, resolution: int, policy: Policy, max_steps=None, **kwargs):
+    return make_env(task, num_worlds=episodes, seed=seed, max_steps=max_steps,
+                    **{"resolution": resolution, **policy.env_kwargs, **kwargs})
 
 
-def scenario_returns(spec, scenario, *, episodes: int = 32, seed: int = 0, resolution: int = 16) -> dict:
+def scenario_returns(spec, scenario, *, episodes: int = 32, seed: int = 0, resolution: int = 16,
+                     max_steps: int | None = None) -> dict:
     """play() of policy `spec` on held-out `scenario`."""
     scenario = heldout_scenario(scenario)
     policy = make_policy(spec, scenario.task, seed)
-    with _env(scenario.task, episodes, seed, resolution, policy, heldout=scenario) as env:
+    with _env(scenario.task, episodes, seed, resolution, policy, max_steps, heldout=scenario) as env:
         return play(env, policy)
 
 
-def training_condition(spec, scenario, *, episodes: int = 32, seed: int = 0, resolution: int = 16) -> dict:
+def training_condition(spec, scenario, *, episodes: int = 32, seed: int = 0, resolution: int = 16,
+                       max_steps: int | None = None) -> dict:
     """play() of policy `spec` on the focal slots of `scenario` in the condition the reference trainer
     trains in: its partners (the background slots of the focal agents' teams, or every slot of a
     cooperative task) are copies of itself, opponents play random actions."""
@@ -105,7 +107,8 @@ def training_condition(spec, scenario, *, episodes: int = 32, seed: int = 0, res
     competitive = bool(getattr(env_class(scenario.task), "opponents", ()))
     roles = {team: [RandomPolicy(seed + 3) if competitive and team not in focal_teams else policy]
              for team in scenario.bots_by_role}
-    with _env(scenario.task, episodes, seed, resolution, policy, num_agents=scenario.num_agents, **scenario.params,
+    with _env(scenario.task, episodes, seed, resolution, policy, max_steps, num_agents=scenario.num_agents,
+              **scenario.params,
               background=Population(roles, focal=scenario.focal)) as env:
         return play(env, policy)
 
@@ -132,35 +135,36 @@ def normalised(value: float, random: float, heuristic: float) -> float:
     return (value - random) / (heuristic - random) if heuristic != random else math.nan
 
 
-def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: int = 16,
+def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: int = 16, max_steps: int | None = None,
              references: dict | None = None, gap: bool = False) -> list:
     """One row per scenario (see the module docstring); `references` caches the random and heuristic
-    returns per scenario between calls; `gap` adds the training condition's return."""
+    returns per scenario between calls; `gap` adds the training condition's return; `max_steps`
+    shortens the episodes (None: the task's length, the published protocol)."""
     if episodes < 2:
         raise ValueError(f"episodes must be >= 2 (a mean and a std over episodes), got {episodes}")
     references = {} if references is None else references
     rows = []
     for name in scenarios:
         scenario = heldout_scenario(name)
-        result = scenario_returns(spec, scenario, episodes=episodes, seed=seed, resolution=resolution)
+        same = dict(episodes=episodes, seed=seed, resolution=resolution, max_steps=max_steps)
+        result = scenario_returns(spec, scenario, **same)
         for label in ("random", "heuristic"):
-            key = (scenario.name, label, episodes, seed, resolution)
+            key = (scenario.name, label, *same.values())
             if key not in references:
-                same = label == spec
-                references[key] = result if same else scenario_returns(label, scenario, episodes=episodes, seed=seed,
-                                                                      resolution=resolution)
+                references[key] = result if label == spec else scenario_returns(label, scenario, **same)
         mean, std = _summary(result["focal"])
-        random = float(references[(scenario.name, "random", episodes, seed, resolution)]["focal"].mean())
-        heuristic = float(references[(scenario.name, "heuristic", episodes, seed, resolution)]["focal"].mean())
+        random, heuristic = (float(references[(scenario.name, label, *same.values())]["focal"].mean())
+                             for label in ("random", "heuristic"))
         row = {"scenario": scenario.name, "task": scenario.task, "tags": " ".join(scenario.tags),
-               "policy": spec if isinstance(spec, str) else spec.name, "episodes": episodes, "seed": seed, "focal_return_mean": mean, "focal_return_std": std,
+               "policy": spec if isinstance(spec, str) else spec.name, "episodes": episodes, "seed": seed,
+               "focal_return_mean": mean, "focal_return_std": std,
                "background_return_mean": _summary(result["background"])[0],
                "background_return_std": _summary(result["background"])[1],
                "random_return": random, "heuristic_return": heuristic,
                "normalised_score": normalised(mean, random, heuristic),
                "bots_sampled": _bot_counts(result["bots"])}
         if gap:
-            trained = training_condition(spec, scenario, episodes=episodes, seed=seed, resolution=resolution)
+            trained = training_condition(spec, scenario, **same)
             row["training_condition_return"] = float(trained["focal"].mean())
             row["generalisation_gap"] = row["training_condition_return"] - mean
         rows.append(row)
@@ -333,7 +337,8 @@ def crossplay_page(results: list, command: str, note: str) -> str:
 
 
 def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_episodes: int = CROSSPLAY_EPISODES,
-            seed: int = DOCS_SEED, resolution: int = DOCS_RESOLUTION, tasks=None, snapshots: dict | None = None) -> None:
+            seed: int = DOCS_SEED, resolution: int = DOCS_RESOLUTION, tasks=None,
+            snapshots: dict | None = None) -> None:
     """Writes docs/heldout.md, docs/crossplay.md, their data (docs/heldout/*.json, *.csv) and the
     heatmaps (docs/crossplay/*.png) from random, the heuristic and the MAPPO pixel runs of
     docs/baselines that hold an actor.pt; `snapshots` {task: [run folders]} adds self-play
@@ -389,6 +394,7 @@ def main(argv=None) -> int:
     parser.add_argument("--episodes", type=int, default=32, help="episodes per scenario (one per world)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the envs, the bots and random players")
     parser.add_argument("--resolution", type=int, default=16, help="pixels per side (a run folder's own wins)")
+    parser.add_argument("--max-steps", type=int, default=None, help="shorter episodes (default: the task's length)")
     parser.add_argument("--gap", action="store_true", help="also play the training condition (generalisation gap)")
     parser.add_argument("--out", help="write OUT.json and OUT.csv instead of printing JSON")
     parser.add_argument("--docs", action="store_true", help="regenerate docs/heldout.md and docs/crossplay.md")
@@ -408,7 +414,7 @@ def main(argv=None) -> int:
     try:
         scenarios = scenario_names(args.scenario)
         rows = evaluate(args.policy, scenarios, episodes=args.episodes, seed=args.seed, resolution=args.resolution,
-                        gap=args.gap)
+                        max_steps=args.max_steps, gap=args.gap)
     except (ValueError, FileNotFoundError) as error:
         parser.error(str(error))
     if args.out:

@@ -121,7 +121,7 @@ class ActorPolicy(Policy):
         self.stack[worlds, slots] = stack
         self.fresh[worlds, slots] = False
         agent = torch.eye(self.num_agents)[slots]
-        # The trainer's Actor since issue 25 converts observations with prepare(); the earlier one took them as they are.
+        # The trainer's Actor since issue 25 converts observations with prepare(); the earlier one took them as given.
         prepared = self.actor.prepare(stack) if hasattr(self.actor, "prepare") else stack
         logits = self.actor(prepared, agent, obs["action_mask"])
         chosen = torch.where(decide | fresh, logits.argmax(-1), self.held[worlds, slots])

@@ -107,7 +107,8 @@ def test_bots_differ_across_worlds_and_a_step_calls_each_distinct_bot_once():
             before = env.bot_calls
             obs, reward, terminated, truncated, info = env.step(env.random_actions())
             assert env.bot_calls - before == 3  # interceptor, wandering_prey, corner_prey: one call each
-        assert obs["pixels"].shape == (16, 2, 8, 8, 3) and reward.shape == (16, 2) and info["background_reward"].shape == (16,)
+        assert obs["pixels"].shape == (16, 2, 8, 8, 3) and reward.shape == (16, 2)
+        assert info["background_reward"].shape == (16,)
         # the caught prey's -10 shows in the background's reward, never in the focal rewards
         assert torch.equal(env.alive, env.core.alive[:, :2])
 
@@ -152,11 +153,11 @@ def test_training_with_a_background_population_of_training_bots():
 
 
 def test_seeded_evaluation_is_deterministic_and_scores_heuristic_at_one():
-    rows = evaluation.evaluate("heuristic", ["spread/two_with_wanderer"], episodes=4, resolution=8)
-    again = evaluation.evaluate("heuristic", ["spread/two_with_wanderer"], episodes=4, resolution=8)
+    rows = evaluation.evaluate("heuristic", ["spread/two_with_wanderer"], episodes=4, resolution=8, max_steps=40)
+    again = evaluation.evaluate("heuristic", ["spread/two_with_wanderer"], episodes=4, resolution=8, max_steps=40)
     assert rows == again
     assert rows[0]["normalised_score"] == 1.0 and rows[0]["bots_sampled"] == {"wanderer": 4}
-    random_rows = evaluation.evaluate("random", ["spread/two_with_wanderer"], episodes=4, resolution=8)
+    random_rows = evaluation.evaluate("random", ["spread/two_with_wanderer"], episodes=4, resolution=8, max_steps=40)
     assert random_rows[0]["normalised_score"] == 0.0
     assert random_rows[0]["focal_return_mean"] < rows[0]["focal_return_mean"]
 
@@ -164,7 +165,7 @@ def test_seeded_evaluation_is_deterministic_and_scores_heuristic_at_one():
 def test_evaluate_cli_writes_json_and_csv(tmp_path):
     out = tmp_path / "rows"
     assert evaluation.main(["--policy", "nearest_landmark", "--scenario", "spread/one_among_nearest",
-                            "--episodes", "2", "--resolution", "8", "--out", str(out)]) == 0
+                            "--episodes", "2", "--resolution", "8", "--max-steps", "10", "--out", str(out)]) == 0
     rows = json.loads((tmp_path / "rows.json").read_text())
     assert [r["scenario"] for r in rows] == ["spread/one_among_nearest"]
     assert (tmp_path / "rows.csv").read_text().splitlines()[0].startswith("scenario,task,tags,policy")
@@ -200,8 +201,9 @@ def test_load_policy_plays_held_out_scenarios(tmp_path):
     _saved_run(tmp_path / "run")
     policy = load_policy(str(tmp_path / "run"))
     assert policy.env_kwargs == {"resolution": 16, "grayscale": False}
-    rows = evaluation.evaluate(str(tmp_path / "run"), ["tag/predators_vs_wanderers"], episodes=2)
-    again = evaluation.evaluate(str(tmp_path / "run"), ["tag/predators_vs_wanderers"], episodes=2)
+    references: dict = {}  # random's and the heuristic's rows, computed once
+    rows, again = (evaluation.evaluate(str(tmp_path / "run"), ["tag/predators_vs_wanderers"], episodes=2, max_steps=30,
+                                       references=references) for _ in range(2))
     assert rows == again and math.isfinite(rows[0]["focal_return_mean"])
     (tmp_path / "broken").mkdir()
     (tmp_path / "broken" / "result.json").write_text("{")
