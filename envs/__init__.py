@@ -21,8 +21,8 @@ from .scenario import Layout, NoParams, Scenario, Step, numbered
 from .spec import ActionSpec, ArraySpec, EnvSpec
 
 __all__ = ["ActionSpec", "ArenaScenario", "ArenaState", "ArraySpec", "BatchedEnv", "EnvOptions", "EnvSpec", "FocalEnv",
-           "Layout", "NoParams", "OBS_KEYS", "Population", "Prop", "Scenario", "Static", "Step", "env_class", "list_envs",
-           "make_env", "numbered", "register_env"]
+           "Layout", "NoParams", "OBS_KEYS", "Population", "Prop", "Scenario", "Static", "Step", "env_class",
+           "list_envs", "make_env", "numbered", "register_env"]
 
 # The front ends (marl_render/wrappers/) are exported lazily, so that importing
 # marl_render.envs never imports pettingzoo or torchrl: public name -> "module:attribute".
