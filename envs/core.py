@@ -21,6 +21,8 @@ Data contract (W worlds, A agents, H x Wpx pixels)::
       "lidar"        float32 [W, A, rays]        lidar=rays (arena tasks): distance to the first
                                                   wall, box or body along each ray / lidar_range,
                                                   capped at 1 (envs/sight.py)
+      "agent_id"     float32 [W, A, A + teams]   agent_ids=True: the agent's one-hot index, then its
+                                                  team's (one policy playing several roles)
       "action_mask"  bool    [W, A, num_actions] discrete envs (all True where no action
                                                   can be invalid); advice unless
                                                   enforce_action_mask=True (envs/masking.py)
@@ -108,7 +110,7 @@ from .options import EnvOptions
 from .rendering import EnvRenderer, check_memory
 from .scenario import MAX_COUNT, Layout, Scenario
 
-OBS_KEYS = ("pixels", "depth", "state", "lidar", "action_mask")
+OBS_KEYS = ("pixels", "depth", "state", "lidar", "agent_id", "action_mask")
 DRIVER_INFO = ("step_count", "done_worlds", "autoreset_worlds", "final_obs")  # info names the driver fills in
 
 
@@ -207,6 +209,7 @@ class BatchedEnv:
         self.pixel_channels = 1 if self.grayscale else 3
         self.lidar_rays, self.lidar_range = check.lidar(options.lidar, options.lidar_range, scenario)
         self.enforce_action_mask = check.flag("enforce_action_mask", options.enforce_action_mask)
+        self.agent_ids = check.flag("agent_ids", options.agent_ids)
         if self.enforce_action_mask and self.continuous:
             raise ValueError("enforce_action_mask applies to discrete actions (continuous=False), which have an "
                              "action mask; got enforce_action_mask=True with continuous=True")
@@ -241,8 +244,12 @@ class BatchedEnv:
         self.sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
         self._check_scenario()
         self.obs_keys = tuple(k for k, on in (("pixels", True), ("depth", self.depth), ("state", self.state_obs),
-                                              ("lidar", self.lidar_rays > 0), ("action_mask", not self.continuous))
+                                              ("lidar", self.lidar_rays > 0), ("agent_id", self.agent_ids),
+                                              ("action_mask", not self.continuous))
                               if on)
+        team_index = torch.tensor([t for t, names in enumerate(self.groups.values()) for _ in names])
+        self._ids = torch.cat((torch.eye(self.num_agents), torch.nn.functional.one_hot(team_index, len(self.groups))),
+                              -1).to(self.device, torch.float32)  # [A, A + teams]: see "agent_id"
         self.spec = env_spec.build(self)
         W, A = self.num_worlds, self.num_agents
         self.alive = torch.ones(W, A, dtype=torch.bool, device=self.device)
@@ -775,6 +782,8 @@ class BatchedEnv:
             obs["state"] = self._state_obs(sim, alive)
         if self.lidar_rays:
             obs["lidar"] = self._lidar_obs(sim)
+        if self.agent_ids:
+            obs["agent_id"] = self._ids.expand(self.num_worlds, -1, -1).clone()
         if not self.continuous:
             mask = self._action_mask(sim, alive)
             # The default hook makes a new tensor every call; a task's own may return a constant or a

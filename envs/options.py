@@ -53,6 +53,9 @@ class EnvOptions:
     # each divided by lidar_range (m; None: the arena's diagonal) and capped at 1 (envs/sight.py).
     lidar: int = 0
     lidar_range: float | None = None
+    # The obs key "agent_id", float32 [W, A, A + teams]: the agent's one-hot index, then its team's. For
+    # one policy that plays several roles through a front end that hides who is who (the vector env, SB3).
+    agent_ids: bool = False
     # Refuse a step whose actions the action mask forbids (ValueError, nothing changes); default: the
     # mask is advice that policies may read (envs/masking.py).
     enforce_action_mask: bool = False

@@ -78,6 +78,8 @@ def build(env) -> EnvSpec:
         observations["state"] = ArraySpec((env.state_dim,), torch.float32, -float("inf"), float("inf"))
     if env.lidar_rays:
         observations["lidar"] = ArraySpec((env.lidar_rays,), torch.float32, 0.0, 1.0)
+    if env.agent_ids:  # the agent's one-hot index among A, then its team's
+        observations["agent_id"] = ArraySpec((env.num_agents + len(env.groups),), torch.float32, 0.0, 1.0)
     if not env.continuous:
         observations["action_mask"] = ArraySpec((env.num_actions,), torch.bool, 0, 1)
     if env.continuous:

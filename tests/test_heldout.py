@@ -231,3 +231,25 @@ def test_every_bot_acts_validly_in_its_task():
             for name in bot_names(task):
                 actions = make_bot(task, name).act(env, obs, worlds, slots)
                 env.check_actions(actions.reshape(3, env.num_agents))
+
+
+def test_agent_ids_tell_one_shared_policy_which_role_each_entry_plays():
+    vector = make_vec_env("tag", 2, resolution=8, agent_ids=True)
+    try:
+        obs, _ = vector.reset(seed=0)
+        ids = obs["agent_id"]  # entries: world 0's agents, then world 1's; 4 agents then 2 teams
+        assert ids.shape == (8, 6) and ids.dtype == np.float32
+        expected = np.concatenate((np.eye(4), [[1, 0], [1, 0], [1, 0], [0, 1]]), 1)
+        np.testing.assert_array_equal(ids, np.concatenate((expected, expected)))
+        obs, *_ = vector.step(vector.action_space.sample())
+        np.testing.assert_array_equal(obs["agent_id"][4:], expected)
+    finally:
+        vector.close()
+    env = make_torchrl_env("push", num_worlds=2, resolution=8, agent_ids=True, heldout="push/red_vs_chasers")
+    try:
+        check_env_specs(env)
+        assert env.reset()["red", "agent_id"].shape == (2, 2, 6)
+    finally:
+        env.close()
+    with make_env("tag", num_worlds=1, resolution=8) as plain:
+        assert "agent_id" not in plain.reset()  # off by default
