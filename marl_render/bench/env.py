@@ -39,6 +39,8 @@ def add_arguments(parser):
     parser.add_argument("--resolution", type=positive_int_argument, nargs="+", default=[64])
     parser.add_argument("--steps", type=positive_int_argument, default=30, help="timed steps per front end")
     parser.add_argument("--continuous", action="store_true")
+    parser.add_argument("--heldout", default=None, help="a held-out scenario of --env: its focal-only env, bots "
+                        "included (agents and agent-frames count the focal agents)")
     parser.add_argument("--device", default="cpu",
                         help="torch device of the env's tensors (e.g. cuda); the GL device is chosen by EGL")
     parser.add_argument("--api", nargs="+", choices=APIS, default=["core"],
@@ -108,8 +110,10 @@ def draw_actions(core, count: int, seed: int = 0) -> list:
 
 
 def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, continuous=False,
-            apis=("core",), device: str = "cpu") -> list:
+            apis=("core",), device: str = "cpu", heldout: str | None = None) -> list:
     kwargs = {"num_worlds": worlds, "resolution": resolution, "continuous": continuous, "seed": 0, "device": device}
+    if heldout is not None:
+        kwargs["heldout"] = heldout
     # CUDA work is asynchronous: wait for it before reading the clock, or a step is timed short.
     synchronize = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
     if agents is not None:
@@ -140,7 +144,8 @@ def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, co
         rows = []
         for stepper in steppers:
             per_step = seconds[stepper.api] / steps
-            row = {"env": name, "api": stepper.api, "worlds": worlds, "agents": core.num_agents,
+            row = {"env": name if heldout is None else f"{name} heldout={heldout}", "api": stepper.api,
+                   "worlds": worlds, "agents": core.num_agents,
                    "resolution": resolution, "device": str(core.device), "ms_per_step": per_step * 1e3,
                    "env_steps_per_s": worlds / per_step,
                    "agent_frames_per_s": worlds * core.num_agents / per_step,
@@ -173,5 +178,5 @@ def run(args) -> dict:
         each = "default" if agents is None else agents
         progress(f"env {name}: {worlds} worlds of {each} agents at {resolution}px, {args.steps} steps "
                  f"through {', '.join(apis)}")
-        rows += measure(name, worlds, resolution, args.steps, agents, args.continuous, apis, args.device)
+        rows += measure(name, worlds, resolution, args.steps, agents, args.continuous, apis, args.device, args.heldout)
     return {"benchmark": "env", "machine": machine(), "results": rows}
