@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from pettingzoo.test import parallel_api_test
+from pettingzoo.test import api_test, parallel_api_test
 from torchrl.envs.utils import check_env_specs
 
 from marl_render import evaluate as evaluation
@@ -20,7 +20,8 @@ from marl_render.envs import FocalEnv, Population, list_envs, make_env
 from marl_render.heldout import HELDOUT, list_heldout
 from marl_render.policies import RandomPolicy, load_policy
 from marl_render.wrappers.gymnasium import make_vec_env
-from marl_render.wrappers.pettingzoo import make_parallel_env
+from marl_render.wrappers.pettingzoo import make_aec_env, make_parallel_env
+from marl_render.wrappers.rllib import make_rllib_env
 from marl_render.wrappers.sb3 import make_sb3_env
 from marl_render.wrappers.torchrl import make_torchrl_env
 
@@ -85,7 +86,7 @@ def test_every_scenario_through_pettingzoo_torchrl_and_the_vector_env(name):
         vector.close()
 
 
-def test_sb3_vec_env_exposes_only_the_focal_agents():
+def test_sb3_rllib_and_aec_envs_expose_only_the_focal_agents():
     env = make_sb3_env("tag", num_worlds=2, heldout="tag/prey_vs_interceptors", resolution=8)
     try:
         assert env.num_envs == 2  # 2 worlds x 1 focal prey
@@ -95,6 +96,19 @@ def test_sb3_vec_env_exposes_only_the_focal_agents():
         assert obs.shape[0] == 2 and reward.shape == (2,)
     finally:
         env.close()
+    rllib = make_rllib_env({"env": "push", "heldout": "push/blue_vs_chasers", "num_worlds": 2, "resolution": 8,
+                            "num_envs": 4})  # 2 worlds x 2 focal blue players
+    try:
+        obs, _ = rllib.reset(seed=0)
+        assert obs.shape == (4, 8, 8, 3) and obs.dtype == np.float32
+    finally:
+        rllib.close()
+    aec = make_aec_env("speaker_listener", heldout="speaker_listener/permuted_speaker", resolution=8, max_steps=10)
+    try:
+        api_test(aec)
+        assert aec.possible_agents == ["listener_0"]
+    finally:
+        aec.close()
 
 
 def test_bots_differ_across_worlds_and_a_step_calls_each_distinct_bot_once():
