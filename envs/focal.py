@@ -23,6 +23,8 @@ still rendered (the renderer draws every agent's view in the same pass).
 from __future__ import annotations
 
 import dataclasses
+import functools
+import threading
 
 import torch
 
@@ -37,6 +39,16 @@ SHARED = ("name", "num_worlds", "resolution", "continuous", "num_actions", "acti
           "renderer", "physics", "physics_compiled", "context", "agent_range", "background", "fov_y", "near",
           "overview_resolution", "overview_fov_y", "arena_half_extent", "appearance", "appearance_ids",
           "torch_threads", "generator", "step_count", "sim", "closed")
+
+
+def _one_at_a_time(method):
+    """A call that changes the env: one at a time (the driver's lock covers the driver's part; the bots'
+    assignment and memories are this env's)."""
+    @functools.wraps(method)
+    def call(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+    return call
 
 
 class Population:
@@ -112,7 +124,8 @@ class FocalEnv:
         self.assignment = torch.zeros(core.num_worlds, len(background), dtype=torch.int64)  # [W, B] bot index
         self.bot_calls = 0  # act calls made on bots (a step makes at most one per distinct bot)
         self._pairs = []
-        self._obs = None
+        self._obs = None  # the full obs the bots act on (None: before reset, or after set_state)
+        self._lock = threading.RLock()
 
     def __getattr__(self, name):
         if name in SHARED:
@@ -124,6 +137,7 @@ class FocalEnv:
     def alive(self) -> torch.Tensor:
         return self.core.alive[:, self.focal_slots]
 
+    @_one_at_a_time
     def reset(self, seed: int | None = None) -> dict:
         obs = self.core.reset(seed=seed)  # checks the seed before anything changes
         if seed is not None:
@@ -131,6 +145,7 @@ class FocalEnv:
         self._restart(torch.ones(self.num_worlds, dtype=torch.bool), obs)
         return self._focal(obs)
 
+    @_one_at_a_time
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
         obs = self.core.reset_worlds(mask, seed=seed)
         if seed is not None:
@@ -138,10 +153,11 @@ class FocalEnv:
         self._restart(torch.as_tensor(mask).cpu(), obs)
         return self._focal(obs)
 
+    @_one_at_a_time
     def step(self, actions):
         actions = self.check_actions(actions)
         if self._obs is None:
-            self.core.step(actions)  # the driver's own error: reset() first
+            self._check_bots_can_act()
         full = self._background_actions()
         full[:, self.focal_slots] = actions
         obs, reward, terminated, truncated, info = self.core.step(full)
@@ -191,6 +207,7 @@ class FocalEnv:
         return {**self.core.get_state(), "background_bots": self.assignment.clone(),
                 "background_rng": self.bot_generator.get_state()}
 
+    @_one_at_a_time
     def set_state(self, state: dict) -> None:
         if not isinstance(state, dict) or "background_bots" not in state or "background_rng" not in state:
             raise ValueError("state must be a dict from this focal-only env's get_state(), with 'background_bots' "
@@ -205,7 +222,7 @@ class FocalEnv:
         self.core.set_state(state)
         self.assignment = bots.clone()
         self.bot_generator.set_state(rng)
-        self._obs = None  # the bots act on the next observation: reset() or step() needs one
+        self._obs = None  # no observation of this state yet: bots that read the simulation state act on
         self._pairs = self._pairs_of(self.assignment)
 
     def close(self) -> None:
@@ -238,6 +255,15 @@ class FocalEnv:
             bot.reset(self.core, worlds)
         self._obs = obs
 
+    def _check_bots_can_act(self) -> None:
+        """Before the first reset, or after set_state with bots that read observations: RuntimeError."""
+        if self.core._needs_reset:
+            raise RuntimeError(f"call reset() before using this focal-only {self.name} env")
+        seeing = [getattr(b, "name", repr(b)) for b in self.bots if set(getattr(b, "needs", ())) - {"sim"}]
+        if seeing:
+            raise RuntimeError(f"after set_state the bots {seeing} have no observation to act on; call reset() or "
+                               f"use bots that read the simulation state")
+
     def _pairs_of(self, assignment: torch.Tensor) -> list:
         """[(bot, worlds [P], slots [P])] for each distinct bot that plays somewhere."""
         pairs = []
@@ -256,7 +282,7 @@ class FocalEnv:
             full = torch.zeros(W, A, dtype=torch.int64)
         for bot, worlds, slots in self._pairs:
             needs = getattr(bot, "needs", ())
-            seen = {key: value[worlds, slots] for key, value in self._obs.items() if key in needs}
+            seen = {key: value[worlds, slots] for key, value in (self._obs or {}).items() if key in needs}
             full[worlds, slots] = bot.act(self.core, seen, worlds, slots).to(full.dtype)
             self.bot_calls += 1
         return full

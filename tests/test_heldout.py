@@ -157,6 +157,22 @@ def test_focal_env_refuses_bad_actions_and_populations_without_changing_anything
         make_env("tag", heldout="tag/prey_vs_interceptors", num_agents=6, num_worlds=1)
 
 
+def test_focal_env_state_round_trip_and_step_before_reset():
+    with make_env("push", heldout="push/red_vs_chasers", num_worlds=4, resolution=8, seed=2) as env:
+        with pytest.raises(RuntimeError, match="reset"):
+            env.step(torch.zeros(4, 2, dtype=torch.int64))
+        env.reset(seed=2)
+        state, bots = env.get_state(), env.sampled_bots()
+        actions = [env.random_actions(torch.Generator().manual_seed(k)) for k in range(4)]
+        first = [env.step(a)[0]["pixels"] for a in actions]
+        env.set_state(state)  # the bots (ball chasers, goalkeepers) read the simulation state only
+        assert env.sampled_bots() == bots
+        again = [env.step(a)[0]["pixels"] for a in actions]
+        assert all(torch.equal(a, b) for a, b in zip(first, again, strict=True))
+        with pytest.raises(ValueError, match="background_bots"):
+            env.set_state({**state, "background_bots": state["background_bots"] + 5})
+
+
 def test_training_with_a_background_population_of_training_bots():
     bots = [make_bot("tag", name) for name in POPULATIONS["tag"]["train"]]
     with make_env("tag", num_worlds=4, resolution=8, background=Population({"prey": bots})) as env:
