@@ -283,3 +283,15 @@ def test_agent_ids_tell_one_shared_policy_which_role_each_entry_plays():
         env.close()
     with make_env("tag", num_worlds=1, resolution=8) as plain:
         assert "agent_id" not in plain.reset()  # off by default
+
+
+def test_jax_env_of_a_held_out_scenario():
+    jnp = pytest.importorskip("jax.numpy")
+    from marl_render.envs import make_jax_env
+
+    env = make_jax_env("tag", num_worlds=2, heldout="tag/prey_vs_interceptors", resolution=8)
+    try:
+        assert env.reset(seed=0)["pixels"].shape == (2, 1, 8, 8, 3)
+        assert env.step(jnp.zeros((2, 1), dtype=jnp.int32))[1].shape == (2, 1)
+    finally:
+        env.close()
