@@ -389,6 +389,8 @@ def test_an_unusable_interpreter_is_named_not_the_model_file(tmp_path, monkeypat
     if probe is None or probe.returncode == 0:
         pytest.skip("no interpreter without numpy / panda3d at hand")
     monkeypatch.setattr(sys, "executable", base)
+    # the child also gets the parent's sys.path: without the venv's packages there, as a parent would be
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if "site-packages" not in p])
     with pytest.raises(RuntimeError, match=r"(numpy|panda3d) cannot be imported by .*install it for that interpreter"):
         mr.load_model(model)
 
