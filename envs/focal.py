@@ -158,9 +158,14 @@ class FocalEnv:
         actions = self.check_actions(actions)
         if self._obs is None:
             self._check_bots_can_act()
-        full = self._background_actions()
-        full[:, self.focal_slots] = actions
-        obs, reward, terminated, truncated, info = self.core.step(full)
+        rngs = self._bot_rngs()  # a rejected step must leave the bots' own generators as they were
+        try:
+            full = self._background_actions()
+            full[:, self.focal_slots] = actions
+            obs, reward, terminated, truncated, info = self.core.step(full)
+        except BaseException:
+            self._set_bot_rngs(rngs)
+            raise
         info["background_reward"] = reward[:, self.background_slots].mean(1)
         if "final_obs" in info:
             info["final_obs"] = self._focal(info["final_obs"])
@@ -202,26 +207,30 @@ class FocalEnv:
         return self.core.render_overview(resolution)
 
     def get_state(self) -> dict:
-        """The driver's state plus the worlds' bots ("background_bots" [W, B]) and the bots' generator
-        ("background_rng"). Bots' own memories (an actor's frame stack) are not part of it."""
+        """The driver's state plus the worlds' bots ("background_bots" [W, B]), the generator that
+        draws them ("background_rng") and each distinct bot's own generator ("bot_rngs", None for a
+        bot without one: a bot's random state is its ``generator`` attribute, if a torch.Generator).
+        Bots' own memories (an actor's frame stack) are not part of it."""
         return {**self.core.get_state(), "background_bots": self.assignment.clone(),
-                "background_rng": self.bot_generator.get_state()}
+                "background_rng": self.bot_generator.get_state(), "bot_rngs": self._bot_rngs()}
 
     @_one_at_a_time
     def set_state(self, state: dict) -> None:
-        if not isinstance(state, dict) or "background_bots" not in state or "background_rng" not in state:
-            raise ValueError("state must be a dict from this focal-only env's get_state(), with 'background_bots' "
-                             "and 'background_rng'")
+        keys = ("background_bots", "background_rng", "bot_rngs")
+        if not isinstance(state, dict) or any(k not in state for k in keys):
+            raise ValueError(f"state must be a dict from this focal-only env's get_state(), with {list(keys)}")
         state = dict(state)
-        bots, rng = state.pop("background_bots"), state.pop("background_rng")
+        bots, rng, bot_rngs = (state.pop(k) for k in keys)
         if not (isinstance(bots, torch.Tensor) and bots.shape == self.assignment.shape and bots.dtype == torch.int64
                 and bool(((bots >= 0) & (bots < len(self.bots))).all())):
             raise ValueError(f"state['background_bots'] must be int64 {list(self.assignment.shape)} in "
                              f"[0, {len(self.bots)}), got {describe(bots)}")
         torch.Generator().set_state(rng)  # an invalid state fails here, before anything changes
+        self._check_bot_rngs(bot_rngs)
         self.core.set_state(state)
         self.assignment = bots.clone()
         self.bot_generator.set_state(rng)
+        self._set_bot_rngs(bot_rngs)
         self._obs = None  # no observation of this state yet: bots that read the simulation state act on
         self._pairs = self._pairs_of(self.assignment)
 
@@ -254,6 +263,26 @@ class FocalEnv:
         for bot in self.bots:
             bot.reset(self.core, worlds)
         self._obs = obs
+
+    def _bot_rngs(self) -> list:
+        """[K] each distinct bot's generator state (a uint8 tensor), None for a bot without one."""
+        return [b.generator.get_state() if isinstance(getattr(b, "generator", None), torch.Generator) else None
+                for b in self.bots]
+
+    def _check_bot_rngs(self, rngs) -> None:
+        expected = ["None" if r is None else "generator state" for r in self._bot_rngs()]
+        if not isinstance(rngs, list) or len(rngs) != len(self.bots) or any(
+                (r is None) != (e == "None") for r, e in zip(rngs, expected, strict=True)):
+            raise ValueError(f"state['bot_rngs'] must be a list of {len(self.bots)} entries ({expected}), "
+                             f"got {describe(rngs)}")
+        for r in rngs:
+            if r is not None:
+                torch.Generator().set_state(r)  # an invalid state fails here, before anything changes
+
+    def _set_bot_rngs(self, rngs: list) -> None:
+        for bot, r in zip(self.bots, rngs, strict=True):
+            if r is not None:
+                bot.generator.set_state(r)
 
     def _check_bots_can_act(self) -> None:
         """Before the first reset, or after set_state with bots that read observations: RuntimeError."""
