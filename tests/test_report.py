@@ -1,6 +1,7 @@
 """The baselines report (docs/baselines.md, the pictures, marl_eval.json) on synthetic result.json
 files of the step-budget schema written here, the runs' folders, and the published commands."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -299,8 +300,11 @@ def test_published_run_reports_failed_runs_and_skips_the_report(tmp_path, monkey
     assert published.main(["--run", "--jobs", "2", "--root", str(tmp_path)]) == 1
     assert not any(argv[2] == "marl_render.baselines.report" for argv in calls)
     assert len(calls) == len(published.RUNS) * len(published.OBSERVATIONS) * len(published.SEEDS)
-    failed = capsys.readouterr().err
-    assert failed.count("--env cartpole") == len(published.OBSERVATIONS) * len(published.SEEDS)
+    captured = capsys.readouterr()
+    assert captured.err.count("--env cartpole") == len(published.OBSERVATIONS) * len(published.SEEDS)
+    progress = captured.out.splitlines()  # two runs' threads: still one whole line per event
+    assert len(progress) == 2 * len(calls)
+    assert all(re.fullmatch(r"(started|finished|FAILED \(3\)) \S+/seed\d", line) for line in progress), progress
 
 
 def test_published_jobs_below_one_is_refused(capsys):

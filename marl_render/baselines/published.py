@@ -133,11 +133,18 @@ def run_quietly(command: list[str]) -> int:
     """Run one training, its output in its folder's train.log (runs at a time would interleave theirs)."""
     out = Path(command[command.index("--out") + 1])
     out.mkdir(parents=True, exist_ok=True)
-    print(f"started {out}", flush=True)
+    say(f"started {out}")
     with open(out / "train.log", "w") as log:
         code = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
-    print(f"{'finished' if code == 0 else f'FAILED ({code})'} {out}", flush=True)
+    say(f"{'finished' if code == 0 else f'FAILED ({code})'} {out}")
     return code
+
+
+def say(line: str) -> None:
+    """One line in one write: print() writes the text and its newline apart, so two runs' threads
+    interleaved their lines ("started Astarted B")."""
+    sys.stdout.write(line + "\n")
+    sys.stdout.flush()
 
 
 def main(argv=None) -> int:
