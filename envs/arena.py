@@ -10,7 +10,7 @@ its scene as data, so its file holds only rules:
         self.setup_arena({"agents": numbered("agent", self.num_agents)}, state_dim=..., radius=0.15,
                          max_speed=2.0)
     def initial_state(self): return self.at_rest(zeros [W, A, 2], zeros [W, A], landmarks=zeros [W, L, 2])
-    def spawn(self, generator): ...          # a new episode in every world, e.g. by at_rest(...)
+    def spawn_level(self, draws): ...        # a new episode in every world, e.g. by at_rest(...)
     def rules(self, before, moved, actions, alive, generator):  # -> (state, reward, terminated, info)
     def props(self):                         # what else is drawn, and which state field it follows
         return [Prop("landmarks", disc_mesh(), count=L, position="landmarks", height=0.02, ...)]

@@ -154,17 +154,17 @@ class CaptureFlag(ArenaScenario):
             raise ValueError(f"state['carrier'][:, 0] (red's flag) must be -1 or a blue agent in "
                              f"[{self.team_size}, {self.num_agents - 1}]: a team never carries its own flag")
 
-    def spawn(self, generator):
-        W, N, T, g = self.num_worlds, self.num_agents, self.team_size, generator
+    def spawn_level(self, draws):
+        W, N, T = self.num_worlds, self.num_agents, self.team_size
         cols, rows = SPAWN_GRID
         cell = torch.tensor([2 * ARENA[0] / cols, (ARENA[1] - MIDLINE_GAP) / rows])
-        order = torch.rand(W, 2, cols * rows, generator=g).argsort(-1)[..., :T].reshape(W, N)
+        order = draws.rand("cells", (W, 2, cols * rows)).argsort(-1)[..., :T].reshape(W, N)
         centre = (torch.stack((order % cols, order // cols), -1) + 0.5) * cell
         reach = cell / 2 - (RADIUS + 0.05)
-        pos = centre + (torch.rand(W, N, 2, generator=g) * 2 - 1) * reach
+        pos = centre + (draws.rand("offset", (W, N, 2)) * 2 - 1) * reach
         side = self.side.cpu()
         pos = torch.stack((pos[..., 0] - ARENA[0], side * (pos[..., 1] + MIDLINE_GAP)), -1)
-        yaw = (self.team.cpu() * math.pi) + (torch.rand(W, N, generator=g) * 2 - 1) * (math.pi / 4)
+        yaw = (self.team.cpu() * math.pi) + (draws.rand("yaw", (W, N)) * 2 - 1) * (math.pi / 4)
         return self.at_rest(pos, scenery.wrap_angle(yaw), carrier=torch.full((W, 2), -1),
                             captures=torch.zeros(W, 2, dtype=torch.int64))
 

@@ -112,11 +112,11 @@ class CartPoleBalance(Scenario):
         return {"qstate": ((-SLIDER_LIMIT, -free, -free, -free), (SLIDER_LIMIT, free, free, free)),
                 "last_control": (-1.0, 1.0)}
 
-    def spawn(self, generator):
-        W, g = self.num_worlds, generator
-        x = torch.rand(W, generator=g, dtype=torch.float64) * 0.2 - 0.1
-        theta = torch.rand(W, generator=g, dtype=torch.float64) * 0.068 - 0.034
-        qvel = 0.01 * torch.randn(W, 2, generator=g, dtype=torch.float64)
+    def spawn_level(self, draws):
+        W = self.num_worlds
+        x = draws.rand("x", (W,), dtype=torch.float64) * 0.2 - 0.1
+        theta = draws.rand("theta", (W,), dtype=torch.float64) * 0.068 - 0.034
+        qvel = 0.01 * draws.randn("qvel", (W, 2), dtype=torch.float64)
         fresh = torch.cat((x[:, None], theta[:, None], qvel), 1).to(self.device)
         return CartPoleState(qstate=fresh, last_control=torch.zeros(W, dtype=torch.float64, device=self.device))
 

@@ -150,10 +150,10 @@ class Commons(ArenaScenario):
         if bool(((depleted == 0) | (depleted > steps)).any()):
             raise ValueError("state['depleted_at'] must be -1 (apples left) or a step in [1, state['steps']]")
 
-    def spawn(self, generator):
-        W, N, g = self.num_worlds, self.num_agents, generator
-        pos = scenery.cell_spawn(g, W, torch.full((N,), AGENT_RADIUS + 0.05), SPAWN_GRID, ARENA)
-        return self._fresh(pos, (torch.rand(W, N, generator=g) * 2 - 1) * math.pi)
+    def spawn_level(self, draws):
+        W, N = self.num_worlds, self.num_agents
+        pos = scenery.cell_spawn(draws, W, torch.full((N,), AGENT_RADIUS + 0.05), SPAWN_GRID, ARENA)
+        return self._fresh(pos, (draws.rand("yaw", (W, N)) * 2 - 1) * math.pi)
 
     def props(self):
         return [Prop("apples", mr.sphere(segments=10, rings=5), count=self.num_apples, height=APPLE_RADIUS,

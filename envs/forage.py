@@ -43,6 +43,7 @@ from marl_render.validation import COUNT_LIMIT, FLOAT32_MAX, positive_int, rewar
 
 from . import scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered
+from .levels import Draws, GeneratorDraws
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.3  # items spawn in |x|, |y| <= SPAWN
@@ -106,10 +107,10 @@ class Forage(ArenaScenario):
         return [Prop("items", mr.sphere(segments=10, rings=5), count=self.num_items, position="items",
                      height=ITEM_HEIGHT, active=item_available, scale=(2 * ITEM_RADIUS,) * 3, color=ITEM_COLOR)]
 
-    def _item_spawn(self, agent_pos: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        """Random item positions [W, I, 2] clear of agent_pos [W, N, 2]."""
+    def _item_spawn(self, agent_pos: torch.Tensor, draws: Draws) -> torch.Tensor:
+        """Random item positions [W, I, 2] clear of agent_pos [W, N, 2] (at resets and respawns)."""
         W, I, M = self.num_worlds, self.num_items, RESPAWN_CANDIDATES  # noqa: E741 (I: items, the shape letter)
-        candidates = ((torch.rand(W, I * M, 2, generator=generator) * 2 - 1) * SPAWN).to(self.device)
+        candidates = ((draws.rand("items", (W, I * M, 2)) * 2 - 1) * SPAWN).to(self.device)
         clear = (torch.cdist(candidates, agent_pos) > RESPAWN_CLEARANCE).all(-1).reshape(W, I, M)
         clear[..., -1] = True  # fallback: the last candidate
         pick = clear.to(torch.uint8).argmax(-1)  # the first clear candidate
@@ -119,18 +120,18 @@ class Forage(ArenaScenario):
         return {**super().state_bounds(), "items": self.inside_walls(), "item_timer": (0, self.params.respawn_delay),
                 "team_score": (0.0, FLOAT32_MAX)}  # a sum of rewards >= 0, growing while a world keeps stepping
 
-    def spawn(self, generator):
-        W, N, g = self.num_worlds, self.num_agents, generator
-        pos = scenery.cell_spawn(g, W, torch.full((N,), AGENT_RADIUS + 0.05), SPAWN_GRID, ARENA).to(self.device)
-        yaw = (torch.rand(W, N, generator=g) * 2 - 1) * math.pi
-        return self.at_rest(pos, yaw, items=self._item_spawn(pos, g),
+    def spawn_level(self, draws):
+        W, N = self.num_worlds, self.num_agents
+        pos = scenery.cell_spawn(draws, W, torch.full((N,), AGENT_RADIUS + 0.05), SPAWN_GRID, ARENA).to(self.device)
+        yaw = (draws.rand("yaw", (W, N)) * 2 - 1) * math.pi
+        return self.at_rest(pos, yaw, items=self._item_spawn(pos, draws),
                             item_timer=torch.zeros(W, self.num_items, dtype=torch.int64), team_score=torch.zeros(W))
 
     def rules(self, before, moved, actions, alive, generator):
         # Items away count down; those reaching 0 come back somewhere clear of the agents.
         timer = (before.item_timer - 1).clamp_min(0)
         back = (before.item_timer > 0) & (timer == 0)
-        items = torch.where(back[..., None], self._item_spawn(moved.pos, generator), before.items)
+        items = torch.where(back[..., None], self._item_spawn(moved.pos, GeneratorDraws(generator)), before.items)
         # Collection: the closest live agent touching an available item takes it.
         dist = torch.cdist(moved.pos, items)  # [W, N, I]
         touching = (dist < REACH) & (timer == 0)[:, None, :] & alive[:, :, None]

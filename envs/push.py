@@ -142,18 +142,18 @@ class Push(ArenaScenario):
         return goals() + [Prop("ball", mr.sphere(segments=10, rings=5), count=1, position=ball_position,
                                height=BALL_RADIUS, scale=(2 * BALL_RADIUS,) * 3, color=BALL_COLOR)]
 
-    def spawn(self, generator):
-        W, N, g = self.num_worlds, self.num_agents, generator
+    def spawn_level(self, draws):
+        W, N = self.num_worlds, self.num_agents
         T = N // 2
         # Each team's agents take the T lanes across the pitch in a random order (so they never
         # overlap), with a random x inside the lane that keeps SPAWN_CLEARANCE to its borders.
-        lane = torch.rand(W, 2, T, generator=g).argsort(-1).reshape(W, N).to(self.device)
-        u = torch.rand(W, N, 3, generator=g).to(self.device)
+        lane = draws.rand("lanes", (W, 2, T)).argsort(-1).reshape(W, N).to(self.device)
+        u = draws.rand("spots", (W, N, 3)).to(self.device)
         width = 2 * SPAWN_X / T
         x = (lane + 0.5) * width - SPAWN_X + (u[..., 0] * 2 - 1) * max(0.0, width / 2 - AGENT_RADIUS - SPAWN_CLEARANCE)
         y = -self.side * (SPAWN_Y[0] + u[..., 1] * (SPAWN_Y[1] - SPAWN_Y[0]))  # own half
         yaw = torch.where(self.is_red, 0.0, math.pi) + (u[..., 2] * 2 - 1) * SPAWN_YAW_JITTER
-        ball = ((torch.rand(W, 1, 2, generator=g) * 2 - 1) * torch.tensor([0.3, 0.1])).to(self.device)
+        ball = ((draws.rand("ball", (W, 1, 2)) * 2 - 1) * torch.tensor([0.3, 0.1])).to(self.device)
         return self.at_rest(torch.cat((torch.stack((x, y), -1), ball), 1), scenery.wrap_angle(yaw))
 
     def rules(self, before, moved, actions, alive, generator):

@@ -192,16 +192,16 @@ class Rooms(ArenaScenario):
         return {**super().state_bounds(), "door": (-DOOR_RANGE, DOOR_RANGE), "goal": self.inside_walls(),
                 "home": (0, GRID * GRID - 1)}
 
-    def spawn(self, generator):
-        W, N, g = self.num_worlds, self.num_agents, generator
-        home = torch.randint(GRID * GRID, (W,), generator=g)
-        goal_room = (home + 1 + torch.randint(GRID * GRID - 1, (W,), generator=g)) % (GRID * GRID)
-        goal = (torch.rand(W, 1, 2, generator=g) * 2 - 1) * (ROOM / 2 - GOAL_MARGIN)
-        door = (torch.rand(W, 12, generator=g) * 2 - 1) * DOOR_RANGE
-        wall_open = torch.rand(W, 12, generator=g) < self.params.open_wall
+    def spawn_level(self, draws):
+        W, N = self.num_worlds, self.num_agents
+        home = draws.randint("home", GRID * GRID, (W,))
+        goal_room = (home + 1 + draws.randint("goal_room", GRID * GRID - 1, (W,))) % (GRID * GRID)
+        goal = (draws.rand("goal", (W, 1, 2)) * 2 - 1) * (ROOM / 2 - GOAL_MARGIN)
+        door = (draws.rand("doors", (W, 12)) * 2 - 1) * DOOR_RANGE
+        wall_open = draws.rand("open_walls", (W, 12)) < self.params.open_wall
         inside = ROOM / 2 - WALL_THICKNESS / 2  # quarters of the home room, clear of its walls
-        pos = scenery.cell_spawn(g, W, torch.full((N,), AGENT_RADIUS + 0.1), 2, inside)
-        yaw = (torch.rand(W, N, generator=g) * 2 - 1) * math.pi
+        pos = scenery.cell_spawn(draws, W, torch.full((N,), AGENT_RADIUS + 0.1), 2, inside)
+        yaw = (draws.rand("yaw", (W, N)) * 2 - 1) * math.pi
         home, goal_room = home.to(self.device), goal_room.to(self.device)
         goal = goal.to(self.device) + self.room_centre(goal_room)[:, None]
         return self.at_rest(pos.to(self.device) + self.room_centre(home)[:, None], yaw, door=door,

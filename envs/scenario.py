@@ -14,7 +14,7 @@ once per env and then only answers questions about states it is handed; it never
             self.discrete_actions(("noop", "left", "right"))
             self.state_dim = 4
         def initial_state(self): ...          # a state of the right shapes (zeros will do)
-        def spawn(self, generator): ...       # a new episode in every world
+        def spawn_level(self, draws): ...     # a new episode in every world (or spawn(generator))
         def step(self, state, actions, alive, generator): ...  # -> (state, reward, terminated, info)
         def observation(self, state, alive): ...     # the "state" observation [W, A, state_dim]
         def build_scene(self, scene, overview): ...  # static geometry, groups, cameras
@@ -37,6 +37,7 @@ import torch
 
 from . import scenery
 from . import state as explicit_state
+from .levels import Draws, GeneratorDraws
 
 STATE_LIMIT = 1e6  # default bound of float state fields in set_state: float32 math on them (squares, sums) stays finite
 MAX_COUNT = 2 ** 62  # bound of counters that grow while a world keeps stepping without autoreset
@@ -146,10 +147,32 @@ class Scenario(abc.ABC):
         """A state of the right shapes and dtypes, before any episode (zeros will do): it is the
         template set_state checks against."""
 
-    @abc.abstractmethod
     def spawn(self, generator: torch.Generator):
         """A new episode in every world, sampled with `generator` (the driver keeps it only in the
-        worlds being reset)."""
+        worlds being reset). By default spawn_level's draws from the generator; a task may override
+        this instead of spawn_level (it then has no levels: see envs/levels.py)."""
+        if type(self).spawn_level is Scenario.spawn_level:
+            raise NotImplementedError(f"{type(self).__name__} must implement spawn_level(draws) or spawn(generator)")
+        return self.spawn_level(GeneratorDraws(generator))
+
+    def spawn_level(self, draws: Draws):
+        """A new episode in every world, every random number drawn from `draws` (envs/levels.py:
+        draws.rand / randn / randint(stream, ...), the worlds first, one stream name per purpose).
+        With levels= the draws of world w are a pure function of its level id; without, they are
+        the env's generator's, in call order."""
+        raise NotImplementedError(f"{type(self).__name__} has no spawn_level(draws), so no levels")
+
+    @classmethod
+    def has_levels(cls) -> bool:
+        """Whether the task draws its resets from a Draws (spawn_level), as levels= needs: the most
+        derived of spawn / spawn_level is spawn_level (a subclass that overrides spawn(generator)
+        of a task with levels has none: its spawn would be bypassed)."""
+        for klass in cls.__mro__:
+            if "spawn_level" in vars(klass):
+                return klass is not Scenario
+            if "spawn" in vars(klass):
+                return False
+        return False
 
     @abc.abstractmethod
     def step(self, state, actions: torch.Tensor, alive: torch.Tensor, generator: torch.Generator) -> Step:

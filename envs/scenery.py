@@ -136,10 +136,9 @@ def top_down_camera(half_extent=(1.5, 1.5), fov_y: float = math.radians(60.0), t
     return eye, target
 
 
-def cell_spawn(generator: torch.Generator, num_worlds: int, margin: torch.Tensor, grid: int,
-               half_extent: float) -> torch.Tensor:
-    """Random positions [W, C, 2] (CPU) of C = len(margin) objects in distinct cells of a grid x grid
-    tiling of |x|, |y| <= half_extent, in a random order of cells per world.
+def cell_spawn(draws, num_worlds: int, margin: torch.Tensor, grid: int, half_extent: float) -> torch.Tensor:
+    """Random positions [W, C, 2] (CPU, from draws: envs/levels.py) of C = len(margin) objects in
+    distinct cells of a grid x grid tiling of |x|, |y| <= half_extent, in a random order of cells per world.
 
     Object c stays at least margin[c] inside its cell's borders, so objects whose footprint
     fits in a circle of radius margin[c] never overlap each other or the walls, and two
@@ -147,7 +146,7 @@ def cell_spawn(generator: torch.Generator, num_worlds: int, margin: torch.Tensor
     """
     C = margin.shape[0]
     cell = 2 * half_extent / grid
-    order = torch.rand(num_worlds, grid * grid, generator=generator).argsort(-1)[:, :C]
+    order = draws.rand("cells.order", (num_worlds, grid * grid)).argsort(-1)[:, :C]
     centre = (torch.stack((order % grid, order // grid), -1) + 0.5) * cell - half_extent
     reach = (cell / 2 - margin).clamp_min(0)[:, None]  # [C, 1]
-    return centre + (torch.rand(num_worlds, C, 2, generator=generator) * 2 - 1) * reach
+    return centre + (draws.rand("cells.offset", (num_worlds, C, 2)) * 2 - 1) * reach

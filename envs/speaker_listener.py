@@ -106,14 +106,14 @@ class SpeakerListener(ArenaScenario):
         K = self.num_targets
         return {**super().state_bounds(), "targets": self.inside_walls(), "goal": (0, K - 1), "lamp": (-1, K - 1)}
 
-    def spawn(self, generator):
-        W, K, g = self.num_worlds, self.num_targets, generator
-        cells = scenery.cell_spawn(g, W, torch.full((K + 1,), 0.3), 3, 1.2)  # targets and listener, apart
+    def spawn_level(self, draws):
+        W, K = self.num_worlds, self.num_targets
+        cells = scenery.cell_spawn(draws, W, torch.full((K + 1,), 0.3), 3, 1.2)  # targets and listener, apart
         targets, listener = cells[:, :K], cells[:, K:]
         speaker = torch.tensor(SPEAKER_POS).expand(W, 1, 2)
-        yaw = torch.stack((torch.zeros(W), (torch.rand(W, generator=g) * 2 - 1) * math.pi), -1)
+        yaw = torch.stack((torch.zeros(W), (draws.rand("yaw", (W,)) * 2 - 1) * math.pi), -1)
         return self.at_rest(torch.cat((speaker, listener), 1), yaw, targets=targets,
-                            goal=torch.randint(K, (W,), generator=g), lamp=torch.full((W,), -1, dtype=torch.int64))
+                            goal=draws.randint("goal", K, (W,)), lamp=torch.full((W,), -1, dtype=torch.int64))
 
     def rules(self, before, moved, actions, alive, generator):
         if self.continuous:

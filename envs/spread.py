@@ -95,11 +95,11 @@ class Spread(ArenaScenario):
     def state_bounds(self):
         return {**super().state_bounds(), "landmarks": self.inside_walls()}
 
-    def spawn(self, generator):
-        W, N, L, g = self.num_worlds, self.num_agents, self.num_landmarks, generator
-        pos = (torch.rand(W, N, 2, generator=g) * 2 - 1) * SPAWN
-        yaw = (torch.rand(W, N, generator=g) * 2 - 1) * math.pi
-        landmarks = (torch.rand(W, L, 2, generator=g) * 2 - 1) * SPAWN
+    def spawn_level(self, draws):
+        W, N, L = self.num_worlds, self.num_agents, self.num_landmarks
+        pos = (draws.rand("agents", (W, N, 2)) * 2 - 1) * SPAWN
+        yaw = (draws.rand("yaw", (W, N)) * 2 - 1) * math.pi
+        landmarks = (draws.rand("landmarks", (W, L, 2)) * 2 - 1) * SPAWN
         return self.at_rest(pos, yaw, landmarks=landmarks)
 
     def rules(self, before, moved, actions, alive, generator):

@@ -169,13 +169,13 @@ class Tag(ArenaScenario):
     def state_bounds(self):
         return {**super().state_bounds(), "obstacle_center": self.inside_walls()}
 
-    def spawn(self, generator):
+    def spawn_level(self, draws):
         # Obstacles and agents each get their own random cell of the grid (see cell_spawn): nothing
         # overlaps at the start and no predator starts within a catch of a prey.
-        W, N, K, g = self.num_worlds, self.num_agents, self.num_obstacles, generator
-        pos = scenery.cell_spawn(g, W, self._spawn_margin, self._spawn_grid, ARENA)
-        angle = (torch.rand(W, K, generator=g) * 2 - 1) * (math.pi / 4)
-        yaw = (torch.rand(W, N, generator=g) * 2 - 1) * math.pi
+        W, N, K = self.num_worlds, self.num_agents, self.num_obstacles
+        pos = scenery.cell_spawn(draws, W, self._spawn_margin, self._spawn_grid, ARENA)
+        angle = (draws.rand("obstacle_angle", (W, K)) * 2 - 1) * (math.pi / 4)
+        yaw = (draws.rand("yaw", (W, N)) * 2 - 1) * math.pi
         return self.at_rest(pos[:, K:], yaw, obstacle_center=pos[:, :K], obstacle_angle=angle,
                             shown=torch.ones(W, N, dtype=torch.bool))
 
