@@ -102,6 +102,7 @@ from marl_render.shadows import atlas_layout
 from marl_render.threads import limited_threads, thread_count
 from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, unpicklable
 
+from . import levels as level_sets
 from . import masking
 from . import options as check
 from . import spec as env_spec
@@ -111,7 +112,8 @@ from .rendering import EnvRenderer, check_memory
 from .scenario import MAX_COUNT, Layout, Scenario
 
 OBS_KEYS = ("pixels", "depth", "state", "lidar", "agent_id", "action_mask")
-DRIVER_INFO = ("step_count", "done_worlds", "autoreset_worlds", "final_obs")  # info names the driver fills in
+DRIVER_INFO = ("step_count", "done_worlds", "autoreset_worlds", "final_obs", "level",
+               "final_level")  # info names the driver fills in
 
 
 def _from_user(name: str, value):
@@ -161,8 +163,9 @@ class BatchedEnv:
     enforce_action_mask (refuse forbidden actions: envs/masking.py), and appearance (None: off;
     "train", "heldout" or a marl_render.Appearance: each world's light, sky, floor and wall colours
     and patterns, object colour jitter and camera jitter, drawn at every reset of the world from its
-    appearance_ids, see docs/appearance.md), `params` an instance of the scenario's Params (None:
-    its defaults).
+    appearance_ids, see docs/appearance.md), levels (None: resets draw from the env's generator; else
+    the levels the worlds play, each reset a pure function of its level id: envs/levels.py), `params`
+    an instance of the scenario's Params (None: its defaults).
 
     Attributes: scenario, spec (the EnvSpec every front end translates), name, num_worlds (W),
     num_agents (A), agent_names, groups (team -> agent names, in agent-index order), resolution
@@ -171,10 +174,11 @@ class BatchedEnv:
     renderer, physics (PhysicsConfig or None), physics_compiled (compile_physics took effect),
     lidar_rays, lidar_range, enforce_action_mask,
     sim (the simulation state), alive [W, A] bool,
-    step_count [W] int64, appearance (None or the Appearance), appearance_ids ([W] int64 or None); and
+    step_count [W] int64, appearance (None or the Appearance), appearance_ids ([W] int64 or None),
+    levels (None or the level sampler, envs/levels.py), level_ids ([W] int64 or None); and
     the scenario's camera settings (background, fov_y, near, far,
     overview_resolution, overview_fov_y, arena_half_extent) and agent_range.
-    Methods: reset, reset_worlds, step, check_actions, episode_over, random_actions,
+    Methods: reset, reset_worlds, reset_to_level, step, check_actions, episode_over, random_actions,
     heuristic_actions, render_overview, state_observation, get_state, set_state, close.
     """
 
@@ -224,6 +228,11 @@ class BatchedEnv:
         effects = ("lighting", "depth") if self.depth else ("lighting",)
         effects += ("shadows",) if self.shadows else ()
         self.appearance = check.appearance(options.appearance)  # None, or the Appearance of the worlds' looks
+        self.levels = level_sets.as_sampler(options.levels)  # None (off), or the level sampler
+        if self.levels is not None and not scenario.has_levels():
+            raise ValueError(f"levels={describe(options.levels)} needs a task whose resets draw from "
+                             f"spawn_level(draws) (envs/levels.py); {scenario.__name__} implements only "
+                             f"spawn(generator): levels must be None for it")
         effects += ("appearance",) if self.appearance is not None else ()
         if self.shadows:  # an atlas GL cannot hold is named as such, not as a memory shortage
             atlas_layout(self.num_worlds, self.shadows.resolution, self.context.info().max_framebuffer_size)
@@ -250,13 +259,17 @@ class BatchedEnv:
         team_index = torch.tensor([t for t, names in enumerate(self.groups.values()) for _ in names])
         self._ids = torch.cat((torch.eye(self.num_agents), torch.nn.functional.one_hot(team_index, len(self.groups))),
                               -1).to(self.device, torch.float32)  # [A, A + teams]: see "agent_id"
-        self.spec = env_spec.build(self)
         W, A = self.num_worlds, self.num_agents
         self.alive = torch.ones(W, A, dtype=torch.bool, device=self.device)
         self.step_count = torch.zeros(W, dtype=torch.int64, device=self.device)
-        # [W] int64 (CPU): the id each world's look is drawn from (appearance on), from the env's
-        # generator at every reset of the world. It will become the world's level id (issue 27).
+        # [W] int64 (CPU): the id each world's look is drawn from (appearance on): its level id with
+        # levels on, else drawn from the env's generator at every reset of the world.
         self.appearance_ids = torch.zeros(W, dtype=torch.int64) if self.appearance is not None else None
+        # [W] int64 (CPU): the level each world plays (levels on), else None.
+        self._level_ids = torch.zeros(W, dtype=torch.int64) if self.levels is not None else None
+        if self.levels is not None:  # the driver's info entry, after the task's were checked
+            self.info_keys["level"] = torch.int64
+        self.spec = env_spec.build(self)
         self._needs_reset = True
         with limited_threads(self.torch_threads):
             self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=effects,
@@ -273,6 +286,11 @@ class BatchedEnv:
                 self.views.close()
                 raise
         self._closed = False
+
+    @property
+    def level_ids(self) -> torch.Tensor | None:
+        """int64 [W] (a copy): the level each world plays, with levels on (envs/levels.py); else None."""
+        return None if self._level_ids is None else self._level_ids.clone()
 
     @property
     def physics_compiled(self) -> bool:
@@ -301,11 +319,11 @@ class BatchedEnv:
         seed = check.seed("seed", seed)
         with limited_threads(self.torch_threads), self._all_or_nothing():
             self._reseed(seed)
-            sim, step_count, alive, looks = self._respawned(
+            sim, step_count, alive, looks, levels = self._respawned(
                 torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), self.sim, self.step_count,
-                self.alive, self.appearance_ids)
+                self.alive, self.appearance_ids, self._level_ids)
             obs = self._observe(sim, alive, full=True)
-            self._commit(sim, alive, step_count, looks)
+            self._commit(sim, alive, step_count, looks, levels)
             self._needs_reset = False
             return obs
 
@@ -317,17 +335,40 @@ class BatchedEnv:
         self._check_open()
         self._check_process()
         self._check_started()
+        mask = self._world_mask(mask)
+        seed = check.seed("seed", seed)
+        return self._reset_some(mask, seed, None)
+
+    @_env_call
+    def reset_to_level(self, mask, level_ids) -> dict:
+        """Reset the worlds where mask [W] (bool) is True to the levels level_ids [W] (int64, read
+        where mask is True; each in [0, 2**62)); returns obs of all worlds. Needs levels= (any set:
+        the ids given need not be in it, so a curriculum or an evaluation may pick any level)."""
+        self._check_open()
+        self._check_process()
+        self._check_started()
+        if self.levels is None:
+            raise ValueError(f"reset_to_level needs an env built with levels= (envs/levels.py), and this "
+                             f"{type(self.scenario).__name__} env has levels=None")
+        mask = self._world_mask(mask)
+        chosen = level_sets.check_level_ids("level_ids", _from_user("level_ids", level_ids), self.num_worlds,
+                                            where=mask.cpu())
+        return self._reset_some(mask, None, chosen)
+
+    def _world_mask(self, mask) -> torch.Tensor:
         mask = as_tensor("mask", _from_user("mask", mask), dtype_kind="bool")
         if tuple(mask.shape) != (self.num_worlds,):
             raise ValueError(f"mask must be a bool tensor of shape [{self.num_worlds}] (num_worlds), "
                              f"got shape {list(mask.shape)}")
-        seed = check.seed("seed", seed)
+        return mask.to(self.device)
+
+    def _reset_some(self, mask: torch.Tensor, seed: int | None, chosen: torch.Tensor | None) -> dict:
         with limited_threads(self.torch_threads), self._all_or_nothing():
             self._reseed(seed)
-            sim, step_count, alive, looks = self._respawned(mask.to(self.device), self.sim, self.step_count,
-                                                            self.alive, self.appearance_ids)
+            sim, step_count, alive, looks, levels = self._respawned(mask, self.sim, self.step_count, self.alive,
+                                                                    self.appearance_ids, self._level_ids, chosen)
             obs = self._observe(sim, alive, full=True)
-            self._commit(sim, alive, step_count, looks)
+            self._commit(sim, alive, step_count, looks, levels)
             return obs
 
     @_env_call
@@ -359,9 +400,9 @@ class BatchedEnv:
         reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         alive = alive_before & ~terminated
         step_count = self.step_count + 1
-        restarted, looks = bool(restart.any()), self.appearance_ids
+        restarted, looks, levels = bool(restart.any()), self.appearance_ids, self._level_ids
         if restarted:  # alive again, step_count 0: not terminated, not truncated
-            sim, step_count, alive, looks = self._respawned(restart, sim, step_count, alive, looks)
+            sim, step_count, alive, looks, levels = self._respawned(restart, sim, step_count, alive, looks, levels)
         terminated = ~alive
         truncated = (step_count >= self.max_steps)[:, None] & alive
         done_worlds = (terminated | truncated).all(dim=1)
@@ -377,9 +418,14 @@ class BatchedEnv:
             info["final_obs"] = dict(obs)
             info["autoreset_worlds"] = done_worlds.clone()
             if bool(done_worlds.any()):
-                sim, step_count, alive, looks = self._respawned(done_worlds, sim, step_count, alive, looks)
+                if levels is not None:
+                    info["final_level"] = levels.to(self.device)
+                sim, step_count, alive, looks, levels = self._respawned(done_worlds, sim, step_count, alive, looks,
+                                                                        levels)
                 obs = self._observe(sim, alive, full=True)
-        self._commit(sim, alive, step_count, looks)
+        if levels is not None:  # the level of the episode the returned obs belong to
+            info["level"] = levels.to(self.device, copy=True)
+        self._commit(sim, alive, step_count, looks, levels)
         return obs, reward, terminated, truncated, info
 
     def episode_over(self) -> torch.Tensor:
@@ -509,6 +555,12 @@ class BatchedEnv:
         rng = state.pop("rng")
         step_count, alive = state.pop("step_count"), state.pop("alive")
         looks = state.pop("appearance_ids", None)  # with appearance on: any int64 is an id
+        levels = state.pop("level_ids", None)
+        if levels is not None:
+            levels = level_sets.check_level_ids("state['level_ids']", levels, self.num_worlds)
+            if looks is not None and not torch.equal(looks, levels):
+                raise ValueError("state['appearance_ids'] must equal state['level_ids'] with levels on (a level "
+                                 "fixes the look of its world)")
         self._check_values(state, "state[{key!r}]")
         try:
             torch.Generator().set_state(rng)
@@ -520,7 +572,7 @@ class BatchedEnv:
             if looks is not None:
                 self.views.set_appearance(looks)
             self.views.sync(sim, full=True)  # per-episode instance data (landmarks, ...) changed too
-            self._commit(sim, alive, step_count, looks)
+            self._commit(sim, alive, step_count, looks, levels)
             self.generator.set_state(rng)
             self._needs_reset = False
 
@@ -563,6 +615,8 @@ class BatchedEnv:
         counters = {"step_count": self.step_count, "alive": self.alive}
         if self.appearance is not None:
             counters["appearance_ids"] = self.appearance_ids
+        if self.levels is not None:
+            counters["level_ids"] = self._level_ids
         return counters
 
     def _action_mask(self, sim, alive: torch.Tensor) -> torch.Tensor:
@@ -700,8 +754,10 @@ class BatchedEnv:
         return {**{f"state.{name}": value for name, value in explicit_state.fields(self.sim).items()},
                 "alive": self.alive, "step_count": self.step_count}
 
-    def _commit(self, sim, alive: torch.Tensor, step_count: torch.Tensor, looks: torch.Tensor | None) -> None:
+    def _commit(self, sim, alive: torch.Tensor, step_count: torch.Tensor, looks: torch.Tensor | None,
+                levels: torch.Tensor | None) -> None:
         self.sim, self.alive, self.step_count, self.appearance_ids = sim, alive, step_count, looks
+        self._level_ids = levels
 
     def _reseed(self, seed: int | None) -> None:
         if seed is not None:
@@ -709,19 +765,31 @@ class BatchedEnv:
             self.generator.manual_seed(seed)
 
     def _respawned(self, mask: torch.Tensor, sim, step_count: torch.Tensor, alive: torch.Tensor,
-                   looks: torch.Tensor | None) -> tuple:
-        """(sim, step_count, alive, looks) with a new episode in the worlds of mask [W] (spawn's state,
-        checked; with appearance on, new appearance ids there, which the renderer takes now)."""
-        where = f"{type(self.scenario).__name__}.spawn"
-        fresh = self.scenario.spawn(self.generator)
+                   looks: torch.Tensor | None, levels: torch.Tensor | None, chosen=None) -> tuple:
+        """(sim, step_count, alive, looks, levels) with a new episode in the worlds of mask [W] (spawn's
+        state, checked; with levels on, the levels `chosen` [W] there (None: the level sampler's); with
+        appearance on, new appearance ids there, which the renderer takes now)."""
+        if levels is None:
+            where = f"{type(self.scenario).__name__}.spawn"
+            fresh = self.scenario.spawn(self.generator)
+        else:
+            where = f"{type(self.scenario).__name__}.spawn_level"
+            if chosen is None:
+                chosen = level_sets.check_level_ids(f"levels={self.levels!r}'s sample({self.num_worlds}, generator)",
+                                                    self.levels.sample(self.num_worlds, self.generator),
+                                                    self.num_worlds)
+            levels = torch.where(mask.cpu(), chosen, levels)
+            keys = level_sets.level_keys(levels, self.name, self.scenario.params, self.num_agents)
+            fresh = self.scenario.spawn_level(level_sets.KeyedDraws(keys))
         self._check_state(where, fresh)
         self._check_values(explicit_state.fields(fresh), where + "'s state.{key}")
         if looks is not None:  # drawn after spawn: the first layouts match those with appearance off
-            fresh_ids = torch.randint(-2 ** 63, 2 ** 63 - 1, (self.num_worlds,), generator=self.generator)
+            fresh_ids = levels if levels is not None else torch.randint(
+                -2 ** 63, 2 ** 63 - 1, (self.num_worlds,), generator=self.generator)
             looks = torch.where(mask.cpu(), fresh_ids, looks)
             self.views.set_appearance(looks, mask.cpu())
         return (explicit_state.select_worlds(mask, fresh, sim),
-                torch.where(mask, torch.zeros_like(step_count), step_count), alive | mask[:, None], looks)
+                torch.where(mask, torch.zeros_like(step_count), step_count), alive | mask[:, None], looks, levels)
 
     def _check_open(self):
         if self._closed:
@@ -747,10 +815,11 @@ class BatchedEnv:
         W, A = self.num_worlds, self.num_agents
         _check_tensor(f"{where}'s reward", reward, (W, A), "float", self.device)
         _check_tensor(f"{where}'s terminated", terminated, (W, A), "bool", self.device)
-        if not isinstance(info, dict) or set(info) != set(self.info_keys):
-            raise ValueError(f"{where}'s info must be a dict with the keys of info_keys {sorted(self.info_keys)}, "
+        task_keys = self.scenario.info_keys
+        if not isinstance(info, dict) or set(info) != set(task_keys):
+            raise ValueError(f"{where}'s info must be a dict with the keys of info_keys {sorted(task_keys)}, "
                              f"got {sorted(info) if isinstance(info, dict) else describe(info)}")
-        for key, dtype in self.info_keys.items():
+        for key, dtype in task_keys.items():
             _check_tensor(f"{where}'s info[{key!r}]", info[key], (W,), dtype, self.device)
         # A finite sum proves every value finite in one reduction (isfinite().all() costs ~4x more);
         # a sum that overflowed is checked in full.

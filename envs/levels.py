@@ -190,8 +190,9 @@ def as_sampler(value):
     raise TypeError(f"levels must be {want}, got {describe(value)}")
 
 
-def check_level_ids(name: str, ids: torch.Tensor, num_worlds: int) -> torch.Tensor:
-    """ids as int64 [W] on the CPU, each in [0, LEVEL_LIMIT); else TypeError / ValueError naming `name`."""
+def check_level_ids(name: str, ids: torch.Tensor, num_worlds: int, where: torch.Tensor | None = None) -> torch.Tensor:
+    """ids as int64 [W] on the CPU, each in [0, LEVEL_LIMIT) (only those where `where` [W] is True are
+    read; the others are returned as 0); else TypeError / ValueError naming `name`."""
     if not isinstance(ids, torch.Tensor):
         raise TypeError(f"{name} must be an int64 tensor of shape [{num_worlds}], got {describe(ids)}")
     if ids.is_floating_point() or ids.is_complex() or ids.dtype == torch.bool or ids.dtype in (
@@ -200,6 +201,8 @@ def check_level_ids(name: str, ids: torch.Tensor, num_worlds: int) -> torch.Tens
     if tuple(ids.shape) != (num_worlds,):
         raise ValueError(f"{name} must be an int64 tensor of shape [{num_worlds}], got shape {list(ids.shape)}")
     ids = ids.detach().to("cpu", torch.int64)
+    if where is not None:
+        ids = torch.where(where, ids, 0)
     if bool(((ids < 0) | (ids >= LEVEL_LIMIT)).any()):
         raise ValueError(f"{name} must hold level ids in [0, {LEVEL_LIMIT}), got values in "
                          f"[{int(ids.min())}, {int(ids.max())}]")

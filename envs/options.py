@@ -61,6 +61,9 @@ class EnvOptions:
     enforce_action_mask: bool = False
     # Per-world looks (marl_render/appearance.py): None (off), "train", "heldout" or a marl_render.Appearance.
     appearance: object = None
+    # Levels (envs/levels.py): None (off: resets draw from the env's generator), a train set (an int n,
+    # a range or a list of ids), "train", "test", "published", or a level sampler.
+    levels: object = None
 
 
 OPTION_NAMES = frozenset(field.name for field in dataclasses.fields(EnvOptions))
