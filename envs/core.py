@@ -340,10 +340,11 @@ class BatchedEnv:
         return self._reset_some(mask, seed, None)
 
     @_env_call
-    def reset_to_level(self, mask, level_ids) -> dict:
+    def reset_to_level(self, mask, level_ids, seed: int | None = None) -> dict:
         """Reset the worlds where mask [W] (bool) is True to the levels level_ids [W] (int64, read
         where mask is True; each in [0, 2**62)); returns obs of all worlds. Needs levels= (any set:
-        the ids given need not be in it, so a curriculum or an evaluation may pick any level)."""
+        the ids given need not be in it, so a curriculum or an evaluation may pick any level).
+        `seed` (optional) re-seeds the env's generator (the step-time draws that follow)."""
         self._check_open()
         self._check_process()
         self._check_started()
@@ -353,7 +354,7 @@ class BatchedEnv:
         mask = self._world_mask(mask)
         chosen = level_sets.check_level_ids("level_ids", _from_user("level_ids", level_ids), self.num_worlds,
                                             where=mask.cpu())
-        return self._reset_some(mask, None, chosen)
+        return self._reset_some(mask, check.seed("seed", seed), chosen)
 
     def _world_mask(self, mask) -> torch.Tensor:
         mask = as_tensor("mask", _from_user("mask", mask), dtype_kind="bool")

@@ -35,6 +35,12 @@ Autoreset: ``autoreset_mode`` (a ``gymnasium.vector.AutoresetMode``; stored in
 * ``DISABLED``: nothing resets by itself; ``reset(options={"reset_mask": mask})`` resets
   the worlds of the entries where the bool [num_envs] mask is True.
 
+Levels (an env built with ``levels=``, envs/levels.py): ``reset(options={"level_ids": ids})``
+resets worlds to chosen levels (the core's ``reset_to_level``): ``ids`` is an int64 numpy array
+of shape (num_worlds,), one level per world (not per entry: a world resets with all its agents),
+read where ``reset_mask`` is True (all worlds without one). Infos then carry ``level`` (the level
+of each entry's world) at every step and at reset. SB3: ``set_options({"level_ids": ids})``.
+
 Agents that leave before their world ends (tag's caught prey): an entry's episode is its
 world's episode. From the step its agent leaves until its world's episode ends, the
 entry's observation is zeros (supersuit's "black death") and its reward 0; it reports
@@ -70,6 +76,7 @@ from gymnasium.vector.utils import batch_space
 
 from marl_render.envs.core import BatchedEnv
 from marl_render.envs.focal import FocalEnv
+from marl_render.envs.levels import check_level_ids
 from marl_render.envs.registry import env_class, make_env, split_kwargs
 from marl_render.validation import describe, positive_int, unpicklable
 from marl_render.wrappers import spaces as spaces_from_spec
@@ -78,7 +85,7 @@ RENDER_MODES = ("rgb_array",)
 CORE_AUTORESET = {AutoresetMode.NEXT_STEP: "next_step", AutoresetMode.SAME_STEP: "same_step",
                   AutoresetMode.DISABLED: False}
 _MODE_OF_CORE = {mode: autoreset for autoreset, mode in CORE_AUTORESET.items()}
-_NOT_STEP_INFO = ("done_worlds", "autoreset_worlds", "final_obs")  # carried by the step's own outputs
+_NOT_STEP_INFO = ("done_worlds", "autoreset_worlds", "final_obs", "final_level")  # carried by the step's own outputs
 _VECTOR_ONLY = ("autoreset_mode", "action_mask", "render_mode")  # make_vec_env's own keywords, not make_env's
 
 
@@ -281,10 +288,18 @@ class MarlRenderVectorEnv(VectorEnv):
                             f"seeds are not supported), got {describe(seed)}")
         seed = None if seed is None else int(seed)  # gymnasium's own seeding takes Python ints only
         worlds = self._reset_mask(options)
-        obs = self.core.reset(seed=seed) if worlds is None else self.core.reset_worlds(worlds, seed=seed)
+        levels = self._level_ids(options, worlds)
+        if levels is not None:
+            if not self._started:  # a first reset is a full one
+                self.core.reset(seed=seed)
+            obs = self.core.reset_to_level(torch.ones(self.num_worlds, dtype=torch.bool) if worlds is None
+                                           else worlds, levels, seed=None if not self._started else seed)
+        else:
+            obs = self.core.reset(seed=seed) if worlds is None else self.core.reset_worlds(worlds, seed=seed)
         super().reset(seed=seed)
         self._started = True
-        return self._observations(obs), {}
+        infos = {} if self.core.levels is None else _masked({"level": self._entries(self.core.level_ids)}, None)
+        return self._observations(obs), infos
 
     def step(self, actions):
         """(observations, rewards, terminations, truncations, infos), one entry per (world, agent)."""
@@ -338,6 +353,21 @@ class MarlRenderVectorEnv(VectorEnv):
             raise ValueError(f"options['reset_mask'] must be {want}: a world resets with all of its agents")
         return torch.from_numpy(per_world[:, 0].copy())
 
+    def _level_ids(self, options, worlds: torch.Tensor | None) -> torch.Tensor | None:
+        """int64 [W] levels from options["level_ids"] (numpy int, shape (num_worlds,)); None if absent."""
+        if not isinstance(options, dict) or "level_ids" not in options:
+            return None
+        if self.core.levels is None:
+            raise ValueError("options['level_ids'] needs an env built with levels= (envs/levels.py)")
+        ids = options["level_ids"]
+        want = f"an int64 numpy array of shape ({self.num_worlds},) (num_worlds: one level per world)"
+        if not isinstance(ids, np.ndarray) or not np.issubdtype(ids.dtype, np.integer):
+            raise TypeError(f"options['level_ids'] must be {want}, got {describe(ids)}")
+        if ids.shape != (self.num_worlds,):
+            raise ValueError(f"options['level_ids'] must be {want}, got shape {ids.shape}")
+        return check_level_ids("options['level_ids']", torch.from_numpy(ids.astype(np.int64)), self.num_worlds,
+                               where=worlds)
+
     def _actions(self, actions):
         """The actions as the core's [W, A(, action_dim)] batch (the core checks dtype and values)."""
         if not isinstance(actions, (torch.Tensor, np.ndarray)):
@@ -385,6 +415,8 @@ class MarlRenderVectorEnv(VectorEnv):
         infos = _masked(step_info, None if without is None else ~without)
         if mode == AutoresetMode.SAME_STEP and without.any():
             final_obs = self._observations_of_final(info["final_obs"], without)
+            if "final_level" in info:  # the ended episodes' levels, not the new ones
+                step_info["level"] = self._entries(info["final_level"])
             infos.update(final_obs=final_obs, _final_obs=without.copy(),
                          final_info=_masked(step_info, without), _final_info=without.copy())
         return infos

@@ -41,6 +41,10 @@ entries of this world as Python scalars (or numpy arrays): ``step_count`` and th
 own statistics of the step (spread's ``collisions`` and ``coverage``, forage's ``collected``
 and ``team_score``, tag's ``caught`` and ``prey_left``, push's ``goal``).
 
+Levels (built with ``levels=``, envs/levels.py): ``reset(options={"level": k})`` starts level k
+(an int in [0, 2**62); the core's ``reset_to_level``), ``reset()`` one the level sampler picks;
+infos (reset's too) then carry ``level``, the level being played.
+
 Rendering (``render_mode``): ``"rgb_array"``: ``render()`` returns uint8 [H, W, 3], every
 agent's last view (upscaled) and the top-down overview side by side. ``"human"``: that
 frame is shown in a matplotlib window after every ``reset`` and ``step`` (and by
@@ -84,13 +88,14 @@ from gymnasium import spaces
 
 from marl_render.envs.core import BatchedEnv
 from marl_render.envs.focal import FocalEnv
+from marl_render.envs.levels import check_level_ids
 from marl_render.envs.registry import make_env
 from marl_render.validation import describe
 from marl_render.wrappers import spaces as spaces_from_spec
 from marl_render.wrappers.window import Window
 
 RENDER_MODES = ("human", "rgb_array")
-KNOWN_OPTIONS: frozenset = frozenset()  # reset(options=...) keys this env understands
+KNOWN_OPTIONS: frozenset = frozenset({"level"})  # reset(options=...) keys this env understands
 _POLICIES = ("raise", "ignore")  # the default is "ignore"; the strict "raise" is opt-in
 _GAP = 2  # pixels between the tiles of render()
 _GAP_COLOR = 40
@@ -249,13 +254,28 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None):
         """(observations, infos) of a new episode; `seed` re-seeds the core's generator."""
         self._check_options(options)
+        level = self._level_option(options)
         obs = self.core.reset(seed=seed)  # validates seed before changing anything
+        if level is not None:
+            obs = self.core.reset_to_level(torch.ones(1, dtype=torch.bool), level)
         self._started = True
         self.agents = [a for a, alive in zip(self.possible_agents, self.core.alive[0].tolist(), strict=True) if alive]
         observations = self._observations(obs, self.agents)
         if self.render_mode == "human":
             self.render()
-        return observations, {agent: {} for agent in self.agents}
+        info = {} if self.core.levels is None else {"level": int(self.core.level_ids[0])}
+        return observations, {agent: dict(info) for agent in self.agents}
+
+    def _level_option(self, options) -> torch.Tensor | None:
+        """options["level"] as the core's level_ids [1], checked; None if not given."""
+        if options is None or "level" not in options:
+            return None
+        if self.core.levels is None:
+            raise ValueError("options['level'] needs an env built with levels= (envs/levels.py)")
+        level = options["level"]
+        if isinstance(level, (bool, np.bool_)) or not isinstance(level, (int, np.integer)):
+            raise TypeError(f"options['level'] must be an int level id, got {describe(level)}")
+        return check_level_ids("options['level']", torch.tensor([int(level)]), 1)
 
     def step(self, actions: dict):
         """(observations, rewards, terminations, truncations, infos) of the agents that were

@@ -20,7 +20,8 @@ the vector env (or of its core) once and repeats it per index; ``env_method`` ca
 method once and repeats its result; ``set_attr`` sets it once (indices are checked against
 ``[0, num_envs)``); ``seed(s)`` (one int) seeds the next reset with ``s`` (the core's one
 generator draws for every world); ``set_options(options)`` passes one options dict (e.g.
-``{"reset_mask": mask}``) to the next reset, the same for every entry.
+``{"reset_mask": mask}``, or ``{"level_ids": ids}`` for an env built with ``levels=``: see
+marl_render.wrappers.gymnasium) to the next reset, the same for every entry.
 
 Resolution: SB3's ``CnnPolicy`` uses its ``NatureCNN`` (8x8 stride 4, 4x4 stride 2, 3x3 stride 1
 convolutions), which needs at least 36 pixels on each side: below that (e.g. 35 x 35 or 48 x 35) it

@@ -59,6 +59,11 @@ Resets: the core is built with ``autoreset=False``; TorchRL decides when to rese
 raises before anything changes); a world is reset where it is True. Worlds not reset are
 left untouched (bit-identical state, the same pixels).
 
+Levels (built with ``levels=``, envs/levels.py): a root ``"level_ids"`` int64 [W] in the reset
+tensordict resets worlds to those levels (the core's ``reset_to_level``; read where ``"_reset"``
+is True, all worlds without it): ``env.reset(TensorDict({"level_ids": ids}, batch_size=[W]))``.
+``("info", "level")`` [W] is the level each world plays, after every reset and step.
+
 Seeding: ``env.set_seed(s)`` re-seeds the core's generator at the next reset (full or
 partial), so ``set_seed(s); reset()`` is reproducible. Device: the core's device (CPU by
 default); every tensor is produced there.
@@ -85,6 +90,7 @@ from torchrl.envs.utils import MarlGroupMapType, check_marl_grouping
 
 from marl_render.envs.core import BatchedEnv
 from marl_render.envs.focal import FocalEnv
+from marl_render.envs.levels import check_level_ids
 from marl_render.envs.registry import make_env
 from marl_render.validation import describe, unpicklable
 
@@ -226,16 +232,25 @@ class MarlRenderTorchRLEnv(EnvBase):
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         core = self.core
         mask = self._reset_mask(tensordict)
+        levels = self._level_ids(tensordict, mask)
         seed, self._next_seed = self._next_seed, None
-        if mask is None or not self._started:
-            obs = core.reset(seed=seed)
-            self._started = True
+        chosen = torch.ones(core.num_worlds, dtype=torch.bool) if mask is None else mask
+        if levels is not None and self._started:
+            obs = core.reset_to_level(chosen, levels, seed=seed)
         else:
-            obs = core.reset_worlds(mask, seed=seed)
+            if mask is None or not self._started:
+                obs = core.reset(seed=seed)
+                self._started = True
+            else:
+                obs = core.reset_worlds(mask, seed=seed)
+            if levels is not None:  # a first reset: every world, then the chosen levels
+                obs = core.reset_to_level(chosen, levels)
         terminated = ~core.alive
         truncated = core.alive & core.episode_over()[:, None]
         info = {name: torch.zeros(core.num_worlds, dtype=dtype, device=self.device)
                 for name, dtype in core.info_keys.items()}
+        if core.levels is not None:
+            info["level"] = core.level_ids.to(self.device)
         return self._output(obs, None, terminated, truncated, info)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -270,6 +285,15 @@ class MarlRenderTorchRLEnv(EnvBase):
         if not ok or tuple(action.shape) != shape:
             raise ValueError(f"({group!r}, 'action') must be {want} of shape {list(shape)}, got {describe(action)}")
         return action
+
+    def _level_ids(self, tensordict, mask: torch.Tensor | None) -> torch.Tensor | None:
+        """int64 [W] from the root "level_ids" of the reset tensordict (checked), or None."""
+        if tensordict is None or "level_ids" not in tensordict.keys():
+            return None
+        if self.core.levels is None:
+            raise ValueError("a 'level_ids' reset entry needs an env built with levels= (envs/levels.py)")
+        return check_level_ids("tensordict['level_ids']", tensordict.get("level_ids"), self.core.num_worlds,
+                               where=None if mask is None else mask.cpu())
 
     def _reset_mask(self, tensordict) -> torch.Tensor | None:
         """[W] bool of the worlds to reset, or None for a full reset. Raises on a malformed
