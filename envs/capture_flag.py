@@ -92,6 +92,8 @@ class CaptureFlag(ArenaScenario):
 
     name = "capture_flag"
     Params = CaptureFlagParams
+    # Team sizes (num_agents is both teams): more agents to coordinate and to get past.
+    difficulties = {"easy": {"num_agents": 4}, "medium": {}, "hard": {"num_agents": 32}}
     State = CaptureFlagState
     default_num_agents = 16
     agent_range = (4, 64)

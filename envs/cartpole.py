@@ -72,6 +72,9 @@ class CartPoleBalance(Scenario):
     default_num_agents = 1
     agent_range = (1, 1)
     default_max_steps = 1000
+    default_max_steps = 1000
+    # How long the pole must stay up.
+    difficulties = {"easy": {"max_steps": 200}, "medium": {}, "hard": {"max_steps": 2000}}
     default_resolution = 64
     dt = CARTPOLE["timestep"]  # one RK4 step per env step
     physics_terms = frozenset()  # own dynamics (cartpole_dynamics.cartpole_step); no planar terms

@@ -105,6 +105,9 @@ class Commons(ArenaScenario):
 
     name = "commons"
     Params = CommonsParams
+    # How fast apples regrow (by present neighbours): a forgiving or an unforgiving commons.
+    difficulties = {"easy": {"regrowth": (0.0, 0.01, 0.04, 0.1)}, "medium": {},
+                    "hard": {"regrowth": (0.0, 0.0025, 0.01, 0.025)}}
     State = CommonsState
     default_num_agents = 5
     agent_range = (2, 12)

@@ -82,6 +82,9 @@ class Forage(ArenaScenario):
 
     name = "forage"
     Params = ForageParams
+    # Fewer items that come back later: more searching per reward.
+    difficulties = {"easy": {"num_items": 12, "respawn_delay": 5}, "medium": {},
+                    "hard": {"num_items": 2, "respawn_delay": 30}}
     State = ForageState
     default_num_agents = 3
     agent_range = (1, 12)

@@ -109,6 +109,8 @@ class Push(ArenaScenario):
 
     name = "push"
     Params = PushParams
+    # A shaped reward for moving the ball towards the goal, or half the time to score.
+    difficulties = {"easy": {"shaping": 0.5}, "medium": {}, "hard": {"max_steps": 100}}
     default_num_agents = 4
     agent_range = (2, 12)
     default_max_steps = 200

@@ -107,13 +107,29 @@ def split_kwargs(scenario: type[Scenario], kwargs: dict) -> tuple:
         raise TypeError(f"{scenario.__name__}.Params must be a dataclass of the task's keywords (with their "
                         f"defaults), got {describe(scenario.Params)}")
     param_names = {field.name for field in dataclasses.fields(scenario.Params)}
+    kwargs = with_difficulty(scenario, kwargs)
     unknown = sorted(set(kwargs) - OPTION_NAMES - param_names)
     if unknown:
         raise TypeError(f"make_env({scenario.name!r}) got unknown keyword argument(s) {unknown}; "
-                        f"accepted: {sorted(OPTION_NAMES | param_names)}")
+                        f"accepted: {sorted(OPTION_NAMES | param_names | {'difficulty'})}")
     options = EnvOptions(**{k: v for k, v in kwargs.items() if k in OPTION_NAMES})
     params = scenario.Params(**{k: v for k, v in kwargs.items() if k in param_names})
     return options, params
+
+
+def with_difficulty(scenario: type[Scenario], kwargs: dict) -> dict:
+    """kwargs with difficulty= replaced by its preset's keywords (Scenario.difficulties); the
+    keywords given explicitly win over the preset's."""
+    if kwargs.get("difficulty") is None:
+        return {k: v for k, v in kwargs.items() if k != "difficulty"}
+    difficulty, presets = kwargs["difficulty"], scenario.difficulties
+    if not presets:
+        raise ValueError(f"difficulty={difficulty!r}: {scenario.__name__} has no difficulty presets "
+                         f"(Scenario.difficulties is empty); pass its keywords instead")
+    if not isinstance(difficulty, str) or difficulty not in presets:
+        raise ValueError(f"difficulty must be one of {sorted(presets)} (or None), got {describe(difficulty)}")
+    explicit = {k: v for k, v in kwargs.items() if k != "difficulty"}
+    return {**presets[difficulty], **explicit}
 
 
 def make_env(name, *, heldout=None, background=None, **kwargs):

@@ -150,6 +150,8 @@ class Rooms(ArenaScenario):
 
     name = "rooms"
     Params = RoomsParams
+    # Open wall slots make the goal easier to reach; "hard" has only the doors.
+    difficulties = {"easy": {"open_wall": 0.6}, "medium": {}, "hard": {"open_wall": 0.0}}
     State = RoomsState
     default_num_agents = 2
     agent_range = (1, 4)

@@ -90,6 +90,9 @@ class Scenario(abc.ABC):
     default_num_agents: int = 1
     agent_range: tuple = (1, 64)  # allowed num_agents (inclusive)
     default_max_steps: int = 100
+    # Named presets, difficulty="easy" | "medium" | "hard": make_env keywords (the task's Params or
+    # the env's options) that explicit keywords override; "medium" is the defaults. {}: none.
+    difficulties: dict = {}
     default_resolution = 64
     dt: float = 0.1  # simulated seconds per step (a front end plays episodes back at 1 / dt frames/s)
     physics_terms: frozenset = frozenset()  # envs/planar.py terms this task computes

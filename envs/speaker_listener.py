@@ -67,6 +67,8 @@ class SpeakerListener(ArenaScenario):
 
     name = "speaker_listener"
     Params = SpeakerListenerParams
+    # Targets the speaker must tell apart.
+    difficulties = {"easy": {"num_targets": 2}, "medium": {}, "hard": {"num_targets": 6}}
     State = SpeakerListenerState
     default_num_agents = 2
     agent_range = (2, 2)

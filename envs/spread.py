@@ -65,6 +65,8 @@ class Spread(ArenaScenario):
 
     name = "spread"
     Params = SpreadParams
+    # Landmarks to cover (medium: one per agent).
+    difficulties = {"easy": {"num_landmarks": 2}, "medium": {}, "hard": {"num_landmarks": 6}}
     State = SpreadState
     default_num_agents = 3
     agent_range = (1, 12)

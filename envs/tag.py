@@ -103,6 +103,8 @@ class Tag(ArenaScenario):
 
     name = "tag"
     Params = TagParams
+    # Obstacles block the predators' view and path.
+    difficulties = {"easy": {"num_obstacles": 0}, "medium": {}, "hard": {"num_obstacles": 6}}
     State = TagState
     default_num_agents = 4
     agent_range = (2, 16)
