@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+import re
 import runpy
 import warnings
 
@@ -21,6 +22,7 @@ warnings.filterwarnings("ignore", message="The given NumPy array is not writable
 
 TASKS = ("capture_flag", "cartpole", "commons", "forage", "push", "rooms", "speaker_listener", "spread", "tag")
 DIGESTS = pathlib.Path(__file__).parent / "data" / "default_path_digests.json"
+DOC = pathlib.Path(__file__).resolve().parents[1] / "docs" / "levels.md"
 
 
 def world_state(env, world: int) -> dict:
@@ -268,3 +270,12 @@ def test_levels_through_the_vector_env_and_sb3():
     venv.reset()
     assert venv.get_attr("level_ids")[0].tolist() == [7, 7]
     venv.close()
+
+
+def test_the_levels_page_runs_as_written(capsys):
+    """docs/levels.md: every python block runs (its asserts are the checks: the same level in two
+    slots is the same picture, the front ends' level entries, the curriculum's levels)."""
+    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+    assert len(blocks) == 3
+    for block in blocks:
+        exec(compile(block, str(DOC), "exec"), {})
