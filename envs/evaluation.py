@@ -1,6 +1,8 @@
 """Episode returns of a policy: the reference numbers of every task (random and scripted heuristic).
 
     python -m marl_render.envs.evaluation --env all --episodes 32 --json
+    python -m marl_render.envs.evaluation --env all --difficulty all --json   # every preset
+    python -m marl_render.envs.evaluation --env rooms --levels published        # on the published test levels
 
 For each task it plays `episodes` episodes at once (one per world, no autoreset, the task's
 default length) with the scripted heuristic (``Scenario.heuristic``, which reads the state)
@@ -82,12 +84,13 @@ def _expand_like(agent_mask: torch.Tensor, actions: torch.Tensor) -> torch.Tenso
     return mask[..., None].expand_as(actions) if actions.ndim == 3 else mask
 
 
-def reference_returns(name: str, episodes: int = 32, seed: int = 0) -> dict:
-    """{"heuristic": ..., "random": ...} of task `name` at its defaults."""
+def reference_returns(name: str, episodes: int = 32, seed: int = 0, **kwargs) -> dict:
+    """{"heuristic": ..., "random": ...} of task `name` at its defaults, or with make_env `kwargs`
+    (difficulty=, levels=, ...)."""
     out = {}
     for label, policy in (("heuristic", heuristic_policy), ("random", random_policy)):
         start = time.perf_counter()
-        out[label] = evaluate(name, policy, episodes=episodes, seed=seed)
+        out[label] = evaluate(name, policy, episodes=episodes, seed=seed, **kwargs)
         out[label]["seconds"] = round(time.perf_counter() - start, 2)
     return out
 
@@ -102,6 +105,9 @@ def main(argv=None) -> int:
     parser.add_argument("--env", nargs="+", default=["all"], help="task names, or all")
     parser.add_argument("--episodes", type=int, default=32, help="episodes per policy (one per world)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the envs and the random policy")
+    parser.add_argument("--difficulty", choices=("easy", "medium", "hard", "all"), default=None,
+                        help="a difficulty preset (all: {task: {preset: returns}}); none: the defaults")
+    parser.add_argument("--levels", default=None, help="levels= of the envs (train, test, published or a count n)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     args = parser.parse_args(argv)
     if args.episodes < 1:
@@ -109,12 +115,20 @@ def main(argv=None) -> int:
     names = list_envs() if args.env == ["all"] else args.env
     for name in names:
         env_class(name)  # an unknown name fails now, listing the known ones
+    extra = {} if args.levels is None else {"levels": int(args.levels) if args.levels.isdigit() else args.levels}
     results = {}
     for name in names:
         print(f"evaluating {name} ...", file=sys.stderr, flush=True)
-        results[name] = reference_returns(name, args.episodes, args.seed)
+        if args.difficulty == "all":
+            results[name] = {preset: reference_returns(name, args.episodes, args.seed, difficulty=preset, **extra)
+                             for preset in ("easy", "medium", "hard")}
+            continue
+        results[name] = reference_returns(name, args.episodes, args.seed, difficulty=args.difficulty, **extra)
     if args.json:
         print(json.dumps(results))
+    elif args.difficulty == "all":
+        for preset in ("easy", "medium", "hard"):
+            print(f"{preset}:\n{markdown_table({name: r[preset] for name, r in results.items()})}")
     else:
         print(markdown_table(results))
     return 0

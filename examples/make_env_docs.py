@@ -9,7 +9,9 @@ step info (from a step), the PettingZoo spaces and the TorchRL specs; the rules 
 env module's own docstring. The picture of each env (OUT/envs/NAME.png) is every agent's
 view of one world after a seeded reset (PICTURE_SEEDS, or --seed), labelled, beside the
 overview camera; OUT/envs/appearance.png is one world under four train and four held-out
-appearances (the `appearance` option, docs/appearance.md).
+appearances (the `appearance` option, docs/appearance.md); OUT/envs/NAME-difficulty.png is the
+overview of one world at each difficulty preset, whose random and heuristic returns come from
+docs/difficulty_returns.json (written by the evaluation command the page names).
 
 Only the one-line summaries of reward and episode end, the meaning of the continuous action
 dimensions and of the info keys are written here by hand (the code has no names for them);
@@ -36,6 +38,9 @@ WORLDS = 2  # worlds of the envs built here; shapes print it as "W"
 PICTURE_SEEDS = {"tag": 3}  # reset seeds of the pictures (default 0): tag's 0 shows the predators only walls
 PICTURE_HEIGHT = 256  # views are enlarged (nearest neighbour, at least 2x) to a column at least this high
 APPEARANCE_ENV, APPEARANCE_IDS = "spread", (1, 2, 3, 4)  # the appearances picture: one world, these ids per split
+DIFFICULTIES = ("easy", "medium", "hard")
+DIFFICULTY_COMMAND = ("python -m marl_render.envs.evaluation --env all --difficulty all --json "
+                      "> docs/difficulty_returns.json")
 
 SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
     "cartpole": ("dm_control's balance reward in [0, 1] per step: upright x centred x small control "
@@ -229,6 +234,38 @@ def appearance_picture(path: str) -> None:
     Image.fromarray(np.concatenate(rows, axis=0)).save(path, optimize=True)
 
 
+def difficulty_picture(name: str, seed: int, path: str) -> None:
+    """The overview of one world after reset(seed) at each difficulty preset, side by side, labelled."""
+    cells = []
+    for preset in DIFFICULTIES:
+        with make_env(name, num_worlds=1, difficulty=preset) as env:
+            env.reset(seed=seed)
+            image = Image.fromarray(env.render_overview()[0].numpy())
+        font = ImageFont.load_default(size=max(9, image.height // 12))
+        ImageDraw.Draw(image).text((4, 2), preset, font=font, fill="white", stroke_width=1, stroke_fill="black")
+        cells.append(np.asarray(image))
+    Image.fromarray(np.concatenate(cells, axis=1)).save(path, optimize=True)
+
+
+def difficulty_lines(name: str, seed: int, returns: dict, picture_dir: str | None) -> list:
+    """The "Difficulty presets" part of a task's section: picture, keywords and returns."""
+    if picture_dir is not None:
+        difficulty_picture(name, seed, os.path.join(picture_dir, f"{name}-difficulty.png"))
+    presets = env_class(name).difficulties
+    rows = []
+    for preset in DIFFICULTIES:
+        h, r = returns[name][preset]["heuristic"], returns[name][preset]["random"]
+        keywords = ", ".join(f"`{k}={v!r}`" for k, v in presets[preset].items()) or "the defaults"
+        rows.append((f"`{preset}`", keywords, f"{h['mean']:.2f} ± {h['std']:.2f}", f"{r['mean']:.2f} ± {r['std']:.2f}"))
+    return (["### Difficulty presets", "",
+             f"`make_env({name!r}, difficulty=...)` (explicit keywords override the preset's). Returns as in the "
+             f"reference table ({returns[name]['easy']['heuristic']['episodes']} episodes); reproduce with "
+             f"`{DIFFICULTY_COMMAND}`.", "",
+             f"![{name} at the easy, medium and hard presets](envs/{name}-difficulty.png)", "",
+             f"*The overview of one world after `reset(seed={seed})` at each preset.*", ""]
+            + table(("preset", "keywords", "heuristic", "random"), rows))
+
+
 def appearance_section(picture_dir: str | None) -> list:
     if picture_dir is not None:
         appearance_picture(os.path.join(picture_dir, "appearance.png"))
@@ -249,7 +286,7 @@ def picture_scale(env) -> int:
     return max(2, -(-PICTURE_HEIGHT // (env.num_agents * env.resolution[0])))
 
 
-def env_section(name: str, seed: int | None, picture_dir: str | None) -> list:
+def env_section(name: str, seed: int | None, picture_dir: str | None, difficulty_returns: dict) -> list:
     cls = env_class(name)
     seed = PICTURE_SEEDS.get(name, 0) if seed is None else seed
     if name not in SUMMARY:
@@ -286,6 +323,7 @@ def env_section(name: str, seed: int | None, picture_dir: str | None) -> list:
                   f"(`make_env({name!r}, num_worlds=W)`), shapes at the defaults:", ""]
         lines += table(("key", "shape", "dtype", "present"), obs_rows)
         lines += ["", "### Actions", ""] + actions(env, name)
+    lines += [""] + difficulty_lines(name, seed, difficulty_returns, picture_dir)
     lines += ["", "### Step info", "", "`info = env.step(actions)[4]`, episode statistics included:", ""]
     lines += table(("key", "shape", "dtype", "meaning"), info_rows)
     lines += ["", "### Front ends", ""] + front_ends(name)
@@ -324,8 +362,13 @@ def page(seed: int | None, picture_dir: str | None) -> str:
     lines += table(("env", "agents", "max_steps", "reward", "episode end"), rows) + [""]
     lines += reference_returns(names)
     lines += appearance_section(picture_dir)
+    with open(os.path.join(os.path.dirname(__file__), "..", "docs", "difficulty_returns.json")) as f:
+        difficulty_returns = json.load(f)
+    absent = sorted(set(names) - set(difficulty_returns))
+    if absent:
+        raise KeyError(f"docs/difficulty_returns.json has no row for {absent}: run `{DIFFICULTY_COMMAND}`")
     for name in names:
-        lines += env_section(name, seed, picture_dir)
+        lines += env_section(name, seed, picture_dir, difficulty_returns)
     return "\n".join(lines)
 
 

@@ -279,3 +279,13 @@ def test_the_levels_page_runs_as_written(capsys):
     assert len(blocks) == 3
     for block in blocks:
         exec(compile(block, str(DOC), "exec"), {})
+
+
+def test_the_jax_front_end_refuses_levels_it_would_cut_to_32_bits():
+    jax = pytest.importorskip("jax")
+    from marl_render.envs import make_jax_env  # noqa: PLC0415 (jax is an optional extra)
+
+    if jax.config.jax_enable_x64:
+        pytest.skip("64-bit JAX is on in this process")
+    with pytest.raises(ValueError, match="levels= with the JAX front end needs 64-bit JAX"):
+        make_jax_env("spread", resolution=8, levels=5)

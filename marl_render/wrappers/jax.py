@@ -133,6 +133,10 @@ class JaxEnv:
             raise TypeError(f"core must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(core)}")
         _check_jax_backend(core.device)
+        if core.levels is not None and not jax.config.jax_enable_x64:
+            # Level ids reach 2**62: JAX's default 32-bit conversion of info["level"] would wrap them.
+            raise ValueError("levels= with the JAX front end needs 64-bit JAX (jax.config.update('jax_enable_x64', "
+                             "True)): level ids are int64 and JAX would cut info['level'] to 32 bits")
         self.core = core
         for attribute in CORE_ATTRIBUTES:
             setattr(self, attribute, getattr(core, attribute))
