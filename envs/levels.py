@@ -38,6 +38,9 @@ always drew. A task that only implements ``spawn(generator)`` still works, witho
 """
 from __future__ import annotations
 
+import numbers
+
+import numpy as np
 import torch
 
 from marl_render.keyed_random import KeyedRandom, derive_keys
@@ -160,12 +163,12 @@ def as_sampler(value):
         if value not in NAMED:
             raise ValueError(f"levels must be {want}, got {value!r}")
         return named_set(value)
-    if isinstance(value, bool):
+    if isinstance(value, (bool, np.bool_)):
         raise TypeError(f"levels must be {want}, got {describe(value)}")
-    if isinstance(value, int):
-        if not 1 <= value <= TEST_START:
+    if isinstance(value, numbers.Integral):
+        if not 1 <= int(value) <= TEST_START:
             raise ValueError(f"levels must be {want}, got {value}")
-        return train_set(value)
+        return train_set(int(value))
     if callable(getattr(value, "sample", None)) and not isinstance(value, (list, tuple, range, torch.Tensor)):
         return value
     if isinstance(value, range) and value.step == 1:
@@ -241,6 +244,9 @@ class PrioritisedLevelReplay:
         """Record the score of each level in level_ids [n] (the latest episode's score replaces the old)."""
         level_ids = torch.as_tensor(level_ids).reshape(-1)
         scores = torch.as_tensor(scores, dtype=torch.float64).reshape(-1)
+        if level_ids.is_floating_point() or level_ids.dtype == torch.bool:
+            raise TypeError(f"update needs integer level_ids, got dtype {level_ids.dtype}")
+        level_ids = level_ids.to(torch.int64)
         if level_ids.shape != scores.shape or not bool(torch.isfinite(scores).all()):
             raise ValueError(f"update needs level_ids and finite scores of the same shape [n], got shapes "
                              f"{list(level_ids.shape)} and {list(scores.shape)}")
