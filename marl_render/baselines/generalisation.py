@@ -1,0 +1,226 @@
+"""The generalisation gap, Procgen's protocol for multi-agent 3D: MAPPO from pixels trained on a
+finite train set of levels and on the unbounded train distribution, each policy evaluated on train
+levels, on test levels, and on test levels under held-out appearances, beside random and the
+heuristic on the same test levels (envs/levels.py, marl_render/appearance.py).
+
+    python -m marl_render.baselines.generalisation run --task forage --condition levels200 --seed 0
+    python -m marl_render.baselines.generalisation run --all --jobs 2     # every run not done yet
+    python -m marl_render.baselines.generalisation report                # docs/generalisation.md
+
+Training: the task's hyperparameters (settings.py), one torch thread, appearance "train" (every
+level's look drawn from its id, from the train hue sectors and patterns), ``levels=200`` (ids
+0..199) or ``levels="train"`` (every id below 2**40), for STUDY_STEPS env steps: a fraction of
+the published budgets, so that the study fits a shared 2-core machine (see the page).
+
+Evaluation (EVALUATION episodes, env seed EVALUATION_SEED, one episode per world, greedy policy):
+
+* train levels: the training condition's own levels and looks;
+* test levels: ``levels="published"`` (the frozen test set: ids from 2**40 on, never trained on),
+  train looks;
+* test levels, held-out looks: the same levels under ``appearance="heldout"`` (sky, floor and wall
+  hues and patterns that never appear in training).
+
+Random and the heuristic play the same test levels (appearance changes neither). Each run writes
+ROOT/TASK/CONDITION/seedS/result.json; ROOT/TASK/references.json holds random and the heuristic.
+"""
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import dataclasses
+import json
+import os
+import shlex
+import subprocess
+import sys
+import time
+
+import numpy as np
+import torch
+
+from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
+
+from . import stats
+from .settings import task_hyperparameters
+from .training import train
+
+ROOT = "docs/generalisation"
+PAGE = "docs/generalisation.md"
+STUDY_STEPS = {"forage": 60_000, "speaker_listener": 60_000, "rooms": 120_000}  # env steps per run
+CONDITIONS = {"levels200": 200, "unbounded": "train"}  # the training levels= of each condition
+SEEDS = (0, 1, 2)
+EVALUATION_SEED, EVALUATION = 1000, 32
+SETS = {  # evaluation set -> make_env keywords (None: the condition's own training levels)
+    "train levels": {"levels": None, "appearance": "train"},
+    "test levels": {"levels": "published", "appearance": "train"},
+    "test levels, held-out looks": {"levels": "published", "appearance": "heldout"},
+}
+
+
+def run_folder(root: str, task: str, condition: str, seed: int) -> str:
+    return os.path.join(root, task, condition, f"seed{seed}")
+
+
+def command(task: str, condition: str, seed: int) -> str:
+    return f"python -m marl_render.baselines.generalisation run --task {task} --condition {condition} --seed {seed}"
+
+
+def evaluations(task: str, policy_for, condition_levels, resolution: int, episodes: int) -> dict:
+    """{set name: evaluate(...)} of the policies `policy_for()` makes (a fresh one per set)."""
+    out = {}
+    for name, keywords in SETS.items():
+        levels = condition_levels if keywords["levels"] is None else keywords["levels"]
+        out[name] = evaluate(task, policy_for(), episodes=episodes, seed=EVALUATION_SEED, resolution=resolution,
+                             levels=levels, appearance=keywords["appearance"])
+    return out
+
+
+def run_one(task: str, condition: str, seed: int, *, root: str = ROOT, env_steps: int | None = None,
+            episodes: int = EVALUATION, **hyperparameters) -> dict:
+    """Train one policy of `condition` and evaluate it on every set; writes and returns its result."""
+    if condition not in CONDITIONS:
+        raise ValueError(f"condition must be one of {list(CONDITIONS)}, got {condition!r}")
+    hp = task_hyperparameters(task, torch_threads=1, **hyperparameters)
+    steps = STUDY_STEPS.get(task, 60_000) if env_steps is None else env_steps
+    started = time.perf_counter()
+    run = train(task, env_steps=steps, seed=seed, hyperparameters=hp, env_options={"appearance": "train"},
+                train_options={"levels": CONDITIONS[condition]})
+    result = {"task": task, "condition": condition, "training_levels": CONDITIONS[condition], "seed": seed,
+              "command": command(task, condition, seed), "env_steps": run.env_steps,
+              "training_seconds": run.training_seconds, "training_cpu_seconds": run.training_cpu_seconds,
+              "hyperparameters": dataclasses.asdict(hp), "load_average_1min_end": os.getloadavg()[0],
+              "evaluation": {name: {k: r[k] for k in ("mean", "std", "episodes")}
+                             for name, r in evaluations(task, run.policy, CONDITIONS[condition], hp.resolution,
+                                                        episodes).items()}}
+    result["wall_clock_seconds"] = time.perf_counter() - started
+    folder = run_folder(root, task, condition, seed)
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, "result.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    return result
+
+
+def references(task: str, *, root: str = ROOT, episodes: int = EVALUATION) -> dict:
+    """Random and the heuristic on the test levels (written once per task)."""
+    resolution = task_hyperparameters(task).resolution
+    out = {name: {k: r[k] for k in ("mean", "std", "episodes")} for name, r in (
+        (label, evaluate(task, policy, episodes=episodes, seed=EVALUATION_SEED, resolution=resolution,
+                         levels="published"))
+        for label, policy in (("random", random_policy), ("heuristic", heuristic_policy)))}
+    os.makedirs(os.path.join(root, task), exist_ok=True)
+    with open(os.path.join(root, task, "references.json"), "w") as f:
+        json.dump(out, f, indent=1)
+    return out
+
+
+def missing_runs(root: str = ROOT) -> list:
+    return [(task, condition, seed) for seed in SEEDS for task in STUDY_STEPS for condition in CONDITIONS
+            if not os.path.exists(os.path.join(run_folder(root, task, condition, seed), "result.json"))]
+
+
+def run_all(root: str, jobs: int) -> None:
+    """Every missing run, `jobs` at a time, each in its own process (one torch thread each), niced."""
+    for task in STUDY_STEPS:
+        if not os.path.exists(os.path.join(root, task, "references.json")):
+            references(task, root=root)
+    todo = missing_runs(root)
+
+    def one(job):
+        task, condition, seed = job
+        subprocess.run(["nice", "-n", "5", sys.executable, "-m", "marl_render.baselines.generalisation", "run",
+                        "--task", task, "--condition", condition, "--seed", str(seed), "--root", root], check=True)
+
+    with concurrent.futures.ThreadPoolExecutor(jobs) as pool:
+        for job, _ in zip(todo, pool.map(one, todo), strict=True):
+            print(f"done {job}", flush=True)
+
+
+def interval(values: list) -> str:
+    """mean [95% bootstrap interval over seeds] (stats.py, rliable's percentile bootstrap)."""
+    if len(values) < 2:
+        return f"{values[0]:.2f} (1 seed)" if values else "-"
+    estimate = stats.stratified_bootstrap(np.asarray(values, dtype=np.float64)[:, None], stats.mean, reps=5000)
+    return f"{estimate.point:.2f} [{estimate.low:.2f}, {estimate.high:.2f}]"
+
+
+def report(root: str = ROOT, page: str = PAGE) -> str:
+    """docs/generalisation.md from the runs' result.json files."""
+    lines = ["# The generalisation gap: unseen levels and unseen looks", "",
+             "<!-- Generated by python -m marl_render.baselines.generalisation report from docs/generalisation/; "
+             "do not edit by hand. -->", "",
+             "Procgen's protocol for multi-agent 3D from pixels: MAPPO (marl_render.baselines, the task's "
+             "hyperparameters, one torch thread) trained on a finite train set of 200 levels (`levels=200`) or on "
+             "the unbounded train distribution (`levels=\"train\"`), with per-level appearances from the train "
+             "split (`appearance=\"train\"`), then its greedy policy evaluated on train levels, on the frozen "
+             f"published test levels (`levels=\"published\"`, ids from 2**40 on, never trained on) and on the same "
+             f"test levels under held-out appearances (`appearance=\"heldout\"`). Each cell: mean episode return "
+             f"over {len(SEEDS)} training seeds with a 95% percentile bootstrap interval over seeds "
+             f"(marl_render/baselines/stats.py); each seed's return is the mean of {EVALUATION} evaluation "
+             f"episodes (env seed {EVALUATION_SEED}). Random and the heuristic play the same test levels.", ""]
+    for task, steps in STUDY_STEPS.items():
+        refs_path = os.path.join(root, task, "references.json")
+        if not os.path.exists(refs_path):
+            continue
+        with open(refs_path) as f:
+            refs = json.load(f)
+        lines += [f"## {task}", "", f"Budget: {steps:,} env steps per run.", "",
+                  "| trained on | " + " | ".join(SETS) + " | seeds | CPU s per run |",
+                  "|---|" + "---:|" * (len(SETS) + 2)]
+        commands = []
+        for condition, levels in CONDITIONS.items():
+            results = []
+            for seed in SEEDS:
+                path = os.path.join(run_folder(root, task, condition, seed), "result.json")
+                if os.path.exists(path):
+                    with open(path) as f:
+                        results.append(json.load(f))
+                    commands.append(results[-1]["command"])
+            cells = [interval([r["evaluation"][name]["mean"] for r in results]) for name in SETS]
+            cpu = f"{np.mean([r['training_cpu_seconds'] for r in results]):.0f}" if results else "-"
+            lines.append(f"| `levels={levels!r}` | " + " | ".join(cells) + f" | {len(results)} | {cpu} |")
+        for label in ("random", "heuristic"):
+            lines.append(f"| {label} (test levels) | - | {refs[label]['mean']:.2f} ± {refs[label]['std']:.2f} | "
+                         f"- | - | - |")
+        lines += ["", "Commands (each writes docs/generalisation/TASK/CONDITION/seedS/result.json):", "", "```"]
+        lines += commands + [f"python -m marl_render.baselines.generalisation references --task {task}", "```", ""]
+    text = "\n".join(lines)
+    with open(page, "w") as f:
+        f.write(text)
+    return text
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m marl_render.baselines.generalisation", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("action", choices=("run", "references", "report"))
+    parser.add_argument("--task", choices=list(STUDY_STEPS), default=None)
+    parser.add_argument("--condition", choices=list(CONDITIONS), default=None)
+    parser.add_argument("--seed", type=int, default=None)
+    parser.add_argument("--all", action="store_true", help="run: every missing run and reference")
+    parser.add_argument("--jobs", type=int, choices=(1, 2), default=1, help="run --all: runs at a time")
+    parser.add_argument("--root", default=ROOT, help="folder of the runs")
+    args = parser.parse_args(argv)
+    if args.action == "run" and not args.all and None in (args.task, args.condition, args.seed):
+        parser.error("run needs --task, --condition and --seed (or --all)")
+    if args.action == "references" and args.task is None:
+        parser.error("references needs --task")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    torch.set_num_threads(1)
+    if args.action == "report":
+        report(args.root)
+    elif args.action == "references":
+        references(args.task, root=args.root)
+    elif args.all:
+        print("commands:", *(shlex.join(command(*job).split()) for job in missing_runs(args.root)), sep="\n")
+        run_all(args.root, args.jobs)
+    else:
+        run_one(args.task, args.condition, args.seed, root=args.root)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
