@@ -289,3 +289,18 @@ def test_the_jax_front_end_refuses_levels_it_would_cut_to_32_bits():
         pytest.skip("64-bit JAX is on in this process")
     with pytest.raises(ValueError, match="levels= with the JAX front end needs 64-bit JAX"):
         make_jax_env("spread", resolution=8, levels=5)
+
+
+def test_the_generalisation_study_runs_end_to_end(tmp_path):
+    """One tiny run of the study (1 update, 2 episodes per set) and its report: every evaluation set
+    and the references appear, with the command that reproduces the run (never what it reaches)."""
+    from marl_render.baselines import generalisation  # noqa: PLC0415 (the learner: only this test needs it)
+
+    result = generalisation.run_one("speaker_listener", "levels200", 0, root=str(tmp_path), env_steps=1, episodes=2,
+                                    worlds=2, rollout=2)
+    assert set(result["evaluation"]) == set(generalisation.SETS) and result["training_levels"] == 200
+    assert all(r["episodes"] == 2 for r in result["evaluation"].values())
+    generalisation.references("speaker_listener", root=str(tmp_path), episodes=2)
+    text = generalisation.report(str(tmp_path), str(tmp_path / "page.md"))
+    assert "## speaker_listener" in text and "| `levels=200` |" in text and "heuristic (test levels)" in text
+    assert generalisation.command("speaker_listener", "levels200", 0) in text
