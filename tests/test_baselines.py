@@ -360,16 +360,22 @@ def test_learning_accuracy_study_runs_and_reports(tmp_path):
 def test_env_and_train_options_reach_the_envs(tmp_path):
     out = tmp_path / "push"
     assert run.main(["--env", "push", "--out", str(out), *TINY, "--env-steps", "8", "--train-option", "shaping=0.5",
-                     "--env-option", "max_steps=20"]) == 0
+                     "--env-option", "max_steps=20", "--levels", "5", "--eval-levels", "published",
+                     "--appearance", "train"]) == 0
     result = json.loads((out / "result.json").read_text())
-    assert result["env_options"] == {"max_steps": 20} and result["train_options"] == {"shaping": 0.5}
-    assert "--train-option shaping=0.5" in result["command"]
+    assert result["env_options"] == {"max_steps": 20, "appearance": "train"}
+    assert result["train_options"] == {"shaping": 0.5, "levels": 5} and result["evaluation_levels"] == "published"
+    assert "--train-option shaping=0.5" in result["command"] and "--levels 5" in result["command"]
 
 
 @pytest.mark.parametrize(("args", "message"), [
     (["--train-option", "shaping"], "expected KEY=VALUE"),
     (["--env-option", "max_steps=twenty"], "must be a Python literal"),
     (["--env-option", "resolution=16"], "set it with the learner's own option"),
+    (["--train-option", "levels=5"], "set it with the learner's own option --levels / --eval-levels"),
+    (["--levels", "0"], "expected a count n >= 1 or one of ['train', 'test', 'published']"),
+    (["--eval-levels", "easy"], "expected a count n >= 1"),
+    (["--appearance", "test"], "invalid choice"),
 ])
 def test_bad_env_options_are_named(args, message, capsys):
     with pytest.raises(SystemExit):

@@ -26,6 +26,12 @@ task's keyword or an accuracy knob: ``multisamples=4``, ``physics_substeps=4``);
 ``shaping=1``: the evaluations keep the task's own reward, so the table compares like with like).
 VALUE is a Python literal (``1``, ``0.5``, ``True``, ``'x'``).
 
+Levels and looks (docs/levels.md, docs/generalisation.md): ``--levels N`` (or ``train``, ``test``,
+``published``) trains on those levels; ``--eval-levels`` sets the levels of the evaluations
+(default: none, the env's default resets; ``published`` for the frozen test levels);
+``--appearance train`` (or ``heldout``) draws every world's look from its level (training and
+evaluation). ``python -m marl_render.baselines.generalisation`` runs the train/test study.
+
 Writes OUT/actor.pt (the actor's state_dict), then OUT/result.json (env, seeds, evaluation set,
 budget, versions, env steps, wall-clock and its stages, hyperparameters, the training curve, the
 checkpoints, the evaluations with every episode's return), each atomically, and last OUT/curve.png.
@@ -49,6 +55,7 @@ import torch
 
 from marl_render.envs import list_envs
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
+from marl_render.envs.levels import NAMED as NAMED_LEVELS
 from marl_render.extras import command_needs_extra
 
 from .curve import plot_curve
@@ -60,7 +67,8 @@ PROGRESS_SECONDS = 10.0  # at most one progress line per this many seconds
 CHECKPOINTS = 10  # default checkpoint evaluations over a run: one every budget / CHECKPOINTS env steps
 # Env options the learner sets itself, or that its bootstrapping and action sampling do not support.
 RESERVED_OPTIONS = {"num_worlds": "--worlds", "resolution": "--resolution", "grayscale": "--grayscale",
-                    "state_obs": "--obs", "seed": "--seed"}
+                    "state_obs": "--obs", "seed": "--seed", "levels": "--levels / --eval-levels",
+                    "appearance": "--appearance"}
 REFUSED_OPTIONS = {"autoreset": "the learner resets ended worlds itself (it needs autoreset=False to bootstrap "
                                 "truncated episodes from their last state)",
                    "continuous": "the learner samples discrete actions"}
@@ -105,6 +113,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="env keyword for training and evaluation (repeatable)")
     parser.add_argument("--train-option", action="append", default=[], metavar="KEY=VALUE", type=env_option,
                         help="env keyword for the training env only, e.g. a shaped reward (repeatable)")
+    parser.add_argument("--levels", type=levels_option, default=None,
+                        help="levels of the training env: a count n (levels 0..n-1), train, test or published")
+    parser.add_argument("--eval-levels", type=levels_option, default=None,
+                        help="levels of the evaluations (default: none, the default resets)")
+    parser.add_argument("--appearance", choices=("train", "heldout"), default=None,
+                        help="per-level looks in training and evaluation (default: off)")
     hp = parser.add_argument_group("hyperparameters (default: the task's, see settings.py)")
     for name, kind, *_ in RANGES:
         hp.add_argument(f"--{name}", type=kind, default=None)
@@ -171,6 +185,15 @@ def writable_folder(path: str) -> str | None:
     return None
 
 
+def levels_option(text: str):
+    """--levels / --eval-levels: a count n >= 1, or one of the named sets (envs/levels.py)."""
+    if text.isdigit() and int(text) >= 1:
+        return int(text)
+    if text in NAMED_LEVELS:
+        return text
+    raise argparse.ArgumentTypeError(f"expected a count n >= 1 or one of {list(NAMED_LEVELS)}, got {text!r}")
+
+
 def env_option(text: str) -> tuple:
     """KEY=VALUE -> (KEY, the Python literal VALUE)."""
     key, sep, value = text.partition("=")
@@ -232,8 +255,13 @@ def main(argv=None) -> int:
           f"{f'{args.updates} updates' if args.updates else f'{env_steps:,} env steps'}, {hp}", flush=True)
 
     env_options, train_options = dict(args.env_option), dict(args.train_option)
+    if args.appearance is not None:
+        env_options["appearance"] = args.appearance
+    if args.levels is not None:
+        train_options["levels"] = args.levels
     eval_kwargs = dict(episodes=episodes, seed=eval_seed, resolution=hp.resolution, grayscale=hp.grayscale,
-                       state_obs=args.obs == "state", **env_options)
+                       state_obs=args.obs == "state", **env_options,
+                       **({} if args.eval_levels is None else {"levels": args.eval_levels}))
     references = {name: evaluate(args.env, policy, **eval_kwargs)
                   for name, policy in (("random", random_policy), ("heuristic", heuristic_policy))}
     print(f"random {references['random']['mean']:.4g} ± {references['random']['std']:.2g}, heuristic "
@@ -291,7 +319,7 @@ def main(argv=None) -> int:
         "checkpoint_seconds": run.checkpoint_seconds, "evaluation_seconds": evaluation_seconds,
         "env_steps": trainer.env_steps, "updates": run.updates,
         "hyperparameters": dataclasses.asdict(run.hyperparameters),
-        "env_options": env_options, "train_options": train_options,
+        "env_options": env_options, "train_options": train_options, "evaluation_levels": args.eval_levels,
         "trained_agents": [n for n, t in zip(trainer.env.agent_names, trainer.trained.tolist(), strict=True) if t],
         "evaluation": {"policy": policy, **references,
                        "return": "sum of the evaluated agents' rewards over an episode, averaged over them; "
