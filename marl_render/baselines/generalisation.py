@@ -166,7 +166,11 @@ def report(root: str = ROOT, page: str = PAGE) -> str:
             continue
         with open(refs_path) as f:
             refs = json.load(f)
-        lines += [f"## {task}", "", f"Budget: {steps:,} env steps per run.", "",
+        shaping = TRAIN_OPTIONS.get(task)
+        budget = f"Budget: {steps:,} env steps per run" + (
+            f", trained with {', '.join(f'`{k}={v}`' for k, v in shaping.items())} (evaluated on the task's own "
+            f"reward)." if shaping else ".")
+        lines += [f"## {task}", "", budget, "",
                   "| trained on | " + " | ".join(SETS) + " | seeds | CPU s per run |",
                   "|---|" + "---:|" * (len(SETS) + 2)]
         commands = []
