@@ -173,7 +173,7 @@ def report(root: str = ROOT, page: str = PAGE) -> str:
         lines += [f"## {task}", "", budget, "",
                   "| trained on | " + " | ".join(SETS) + " | seeds | CPU s per run |",
                   "|---|" + "---:|" * (len(SETS) + 2)]
-        commands = []
+        commands, everything = [], []
         for condition, levels in CONDITIONS.items():
             results = []
             for seed in SEEDS:
@@ -182,12 +182,15 @@ def report(root: str = ROOT, page: str = PAGE) -> str:
                     with open(path) as f:
                         results.append(json.load(f))
                     commands.append(results[-1]["command"])
+            everything += results
             cells = [interval([r["evaluation"][name]["mean"] for r in results]) for name in SETS]
             cpu = f"{np.mean([r['training_cpu_seconds'] for r in results]):.0f}" if results else "-"
             lines.append(f"| `levels={levels!r}` | " + " | ".join(cells) + f" | {len(results)} | {cpu} |")
         for label in ("random", "heuristic"):
             lines.append(f"| {label} (test levels) | - | {refs[label]['mean']:.2f} ± {refs[label]['std']:.2f} | "
                          f"- | - | - |")
+        beat = [r for r in everything if r["evaluation"]["test levels"]["mean"] > refs["random"]["mean"]]
+        lines += ["", f"Runs whose return on the test levels beats random's: {len(beat)} of {len(everything)}."]
         lines += ["", "Commands (each writes docs/generalisation/TASK/CONDITION/seedS/result.json):", "", "```"]
         lines += commands + [f"python -m marl_render.baselines.generalisation references --task {task}", "```", ""]
     text = "\n".join(lines)
