@@ -38,7 +38,7 @@ SHARED = ("name", "num_worlds", "resolution", "continuous", "num_actions", "acti
           "far", "state_obs", "lidar_rays", "lidar_range", "grayscale", "enforce_action_mask", "scenario",
           "renderer", "physics", "physics_compiled", "context", "agent_range", "background", "fov_y", "near",
           "overview_resolution", "overview_fov_y", "arena_half_extent", "appearance", "appearance_ids",
-          "torch_threads", "generator", "step_count", "sim", "closed")
+          "torch_threads", "generator", "step_count", "sim", "closed", "levels", "level_ids")
 
 
 def _one_at_a_time(method):
@@ -148,6 +148,15 @@ class FocalEnv:
     @_one_at_a_time
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
         obs = self.core.reset_worlds(mask, seed=seed)
+        if seed is not None:
+            self.bot_generator.manual_seed(seed + 1)
+        self._restart(torch.as_tensor(mask).cpu(), obs)
+        return self._focal(obs)
+
+    @_one_at_a_time
+    def reset_to_level(self, mask, level_ids, seed: int | None = None) -> dict:
+        """The core's reset_to_level (envs/levels.py), then new bots for those worlds."""
+        obs = self.core.reset_to_level(mask, level_ids, seed=seed)
         if seed is not None:
             self.bot_generator.manual_seed(seed + 1)
         self._restart(torch.as_tensor(mask).cpu(), obs)

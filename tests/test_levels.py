@@ -238,6 +238,20 @@ def test_levels_through_pettingzoo():
     env.close()
 
 
+def test_levels_on_a_held_out_scenario():
+    """A focal-only env (marl_render.heldout's bots in the other slots) plays levels as its core does."""
+    with make_env("tag", heldout="tag/prey_vs_interceptors", num_worlds=2, resolution=8, levels="test") as env:
+        env.reset(seed=0)
+        obs = env.reset_to_level(torch.tensor([True, True]), torch.tensor([5, 5]))
+        assert env.level_ids.tolist() == [5, 5]
+        assert torch.equal(obs["pixels"][0], obs["pixels"][1])  # one level, one start: the same view
+        env.step(torch.zeros(2, 1, dtype=torch.int64))  # the bots act on the new worlds
+    env = make_parallel_env("tag", heldout="tag/prey_vs_interceptors", resolution=8, levels="published")
+    _, infos = env.reset(options={"level": 77})
+    assert [info["level"] for info in infos.values()] == [77]
+    env.close()
+
+
 def test_levels_through_torchrl():
     env = make_torchrl_env("spread", num_worlds=3, resolution=8, levels=10)
     td = env.reset()
