@@ -37,12 +37,12 @@ DIST_TOOLS := build==1.6.1 twine==7.0.0 cffconvert==2.0.0
 GPU_KIT ?= .gpu-kit
 PYBATCHRENDER_CLONE ?= $(PYBATCHRENDER_VENV)/src/pybatchrender
 
-.PHONY: demo test test-benchmarl test-rllib bench baselines bench-peers peers-venvs meltingpot-venv mpe-venv \
+.PHONY: demo test docs test-benchmarl test-rllib bench baselines bench-peers peers-venvs meltingpot-venv mpe-venv \
 	pybatchrender-venv dist gpu-kit clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[bench,test,video,jax,sb3,gltf,plots]"
+	$(VENV)/bin/pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[bench,docs,test,video,jax,sb3,gltf,plots]"
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -51,6 +51,13 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q
+
+# The docs site (Sphinx + MyST + furo, docs/conf.py) into out/docs/index.html: offline (no intersphinx),
+# nitpicky, every warning an error. tests/test_docs.py keeps the build green with Sphinx's dummy builder.
+DOCS_OUT ?= out/docs
+docs: $(STAMP)
+	$(PY) -m sphinx -b html -n -W --keep-going -q docs $(DOCS_OUT)
+	@echo "open $(DOCS_OUT)/index.html"
 
 # Second matrix entry: BenchMARL, the torchrl it pins and the CPU torch, in their own venv.
 # BenchMARL is installed without its dependencies, which follow by name minus torchvision

@@ -25,6 +25,7 @@ import inspect
 import json
 import math
 import os
+import re
 import sys
 
 import numpy as np
@@ -37,6 +38,7 @@ from record_video import frame_image  # examples/record_video.py: labelled views
 WORLDS = 2  # worlds of the envs built here; shapes print it as "W"
 PICTURE_SEEDS = {"tag": 3}  # reset seeds of the pictures (default 0): tag's 0 shows the predators only walls
 PICTURE_HEIGHT = 256  # views are enlarged (nearest neighbour, at least 2x) to a column at least this high
+DOCS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs")
 APPEARANCE_ENV, APPEARANCE_IDS = "spread", (1, 2, 3, 4)  # the appearances picture: one world, these ids per split
 DIFFICULTIES = ("easy", "medium", "hard")
 DIFFICULTY_COMMAND = ("python -m marl_render.envs.evaluation --env all --difficulty all --json "
@@ -280,6 +282,35 @@ def appearance_section(picture_dir: str | None) -> list:
             f"*`{APPEARANCE_ENV}` after `reset(seed=0)`, the same state in every world, under appearance ids {ids} "
             "of the train split (top) and of the held-out split (bottom): each world's agents' views beside its "
             "overview.*", ""]
+
+
+def montage(path: str, tile: int = 128) -> None:
+    """The landing page's picture: agent 0's own view of each task after its picture reset, enlarged
+    to `tile` px (nearest neighbour) and labelled with the task's name, in one row."""
+    tiles = []
+    for name in list_envs():
+        with make_env(name, num_worlds=1, seed=0) as env:
+            view = env.reset(seed=PICTURE_SEEDS.get(name, 0))["pixels"][0, 0]
+        image = Image.fromarray(view.numpy()).resize((tile, tile), Image.Resampling.NEAREST)
+        ImageDraw.Draw(image).text((4, tile - 4), name, font=ImageFont.load_default(size=12), fill="white",
+                                   stroke_width=1, stroke_fill="black", anchor="ld")
+        tiles.append(np.asarray(image))
+    Image.fromarray(np.concatenate(tiles, axis=1)).save(path, optimize=True)
+
+
+def authoring_picture(path: str) -> None:
+    """docs/authoring.md's picture: its tutorial task (rendezvous, defined by the page's blocks before
+    section 6, run as written) after reset(seed=0): agent 0's view beside the overview."""
+    with open(os.path.join(DOCS, "authoring.md")) as f:
+        tutorial = f.read().split("## 6. A second task")[0]
+    blocks = re.findall(r"```python\n(.*?)```", tutorial, flags=re.S)
+    exec(compile("".join(blocks[:-1]), "docs/authoring.md", "exec"), {"__name__": "authoring_tutorial"})
+    with make_env("rendezvous", num_worlds=1, seed=0) as env:
+        pixels = env.reset(seed=0)["pixels"][0, :1]
+        scale = picture_scale(env) * env.num_agents
+        font = ImageFont.load_default(size=max(9, env.resolution[0] * scale // 10))
+        image = frame_image(pixels, env.render_overview()[0], env.agent_names[:1], scale, font)
+    Image.fromarray(image).save(path, optimize=True)
 
 
 def picture_scale(env) -> int:

@@ -30,6 +30,7 @@ EXTRAS = {
     "sb3": ("stable_baselines3",),
     "gltf": ("gltf",),
     "human": ("matplotlib",),
+    "docs": ("sphinx", "myst_parser", "furo", "sphinx_copybutton", "sphinx_design"),  # make docs
 }
 
 

@@ -202,7 +202,7 @@ class BatchRenderer:
     # ------------------------------------------------------------------ state (kept by the packer)
     @property
     def world_origin(self) -> torch.Tensor:
-        """[W, 3] float64: each world's origin, which instance rows are relative to."""
+        """Each world's origin, float64 [W, 3], which instance rows are relative to."""
         return self.packer.world_origin
 
     @property
@@ -629,7 +629,7 @@ class BatchRenderer:
 
     @property
     def granted_multisamples(self) -> int:
-        """MSAA samples the GL gave the framebuffers (never fewer than asked: the constructor refuses that)."""
+        """MSAA samples the GL gave the framebuffers; never fewer than asked, as the constructor refuses that."""
         self._check_open()
         return min(p.buffer.get_fb_properties().get_multisamples() for p in self._passes)
 

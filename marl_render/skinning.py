@@ -80,7 +80,7 @@ class SkinnedMesh(MeshData):
 
     @functools.cached_property
     def levels(self) -> tuple:
-        """Joint indices grouped by depth (roots first): the order forward kinematics runs in."""
+        """Joint indices grouped by depth, roots first, in the order forward kinematics runs."""
         depth = np.full(self.num_joints, -1)
         depth[self.parents == -1] = 0
         for level in range(1, self.num_joints + 1):
@@ -96,7 +96,7 @@ class SkinnedMesh(MeshData):
 
     @functools.cached_property
     def influences(self) -> int:
-        """The most joints any vertex follows (non-zero weights): the shader blends only that many."""
+        """The most joints any vertex follows with a non-zero weight; the shader blends only that many."""
         return max(int((self.skin_weights > 0).sum(1).max(initial=1)), 1)
 
     @functools.cached_property

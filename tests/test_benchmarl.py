@@ -160,12 +160,12 @@ def test_a_registered_task_of_ones_own_is_a_benchmarl_task():
 
 
 def test_the_readme_snippet_runs_as_written(tmp_path):
-    """README.md's BenchMARL block, copied as is: csv logs (no wandb), done in a few minutes."""
+    """docs/benchmarl.md's BenchMARL block, copied as is: csv logs (no wandb), done in a few minutes."""
     from readme_snippets import run_snippet, side_venv_snippets
 
-    (line, code), = side_venv_snippets("benchmarl")
+    (where, code), = side_venv_snippets("benchmarl")
     result = run_snippet(code, tmp_path, timeout=240)
-    assert result.returncode == 0, f"README.md line {line}:\n{result.stderr[-3000:]}"
+    assert result.returncode == 0, f"{where}:\n{result.stderr[-3000:]}"
     rewards = list(tmp_path.rglob("scalars/collection_reward_episode_reward_mean.csv"))
     assert len(rewards) == 1 and len(rewards[0].read_text().splitlines()) == 3  # one row per iteration
     assert list(tmp_path.rglob("scalars/eval_reward_episode_reward_mean.csv"))

@@ -570,7 +570,7 @@ def test_torchrl_pettingzoo_wrapper():
 
 
 def test_tag_through_torchrl_pettingzoo_wrapper_recipe():
-    # The README's recipe, on tag with two prey: the first catch removes one prey, the episode goes on.
+    # docs/pettingzoo.md's recipe, on tag with two prey: the first catch removes one prey, the episode goes on.
     from torchrl.envs import PettingZooWrapper
     from torchrl.envs.utils import check_env_specs
 
@@ -626,10 +626,10 @@ def test_pickling_rebuilds_the_same_configuration():
     bare.close()
 
 
-# ---------------------------------------------------------------------- supersuit's vector env (README recipe)
+# ----------------------------------------------------------- supersuit's vector env (docs/pettingzoo.md's recipe)
 @pytest.mark.parametrize("name", ENVS)
 def test_supersuit_vector_recipe_runs_through_catches_and_time_limits(name):
-    """The README's supersuit recipe (black_death=True + pettingzoo_env_to_vec_env_v1 +
+    """docs/pettingzoo.md's supersuit recipe (black_death=True + pettingzoo_env_to_vec_env_v1 +
     concat_vec_envs_v1) runs a few hundred steps on every env: through time-limit ends and, in
     tag, a prey caught mid-episode (before, supersuit's black_death_v3 never saw a time-limit end
     and the next step raised "the episode is over")."""

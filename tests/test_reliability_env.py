@@ -211,7 +211,7 @@ ESTIMATE_POINTS = [("spread", 10000, 1, 0, False), ("cartpole", 2000, 64, 0, Fal
 @pytest.mark.parametrize("name, worlds, resolution, shadow_map, depth", ESTIMATE_POINTS)
 def test_the_estimate_is_within_25_percent_of_the_measured_peak(name, worlds, resolution, shadow_map, depth):
     """Peak RSS of building, resetting and stepping a batch, in a fresh process, against the
-    guard's estimate: within the README's ±25% (the old guard counted 3 bytes a world at 1x1)."""
+    guard's estimate: within docs/reliability.md's ±25% (the old guard counted 3 bytes a world at 1x1)."""
     code = textwrap.dedent(f"""
         import resource, torch
         import marl_render as mr

@@ -1,5 +1,5 @@
 """RLlib front end (marl_render/wrappers/rllib.py): the env creator and its float pixels run
-everywhere; PPO on RLlib and the README's RLlib block run where Ray is installed, which
+everywhere; PPO on RLlib and docs/rllib.md's block run where Ray is installed, which
 `make test-rllib` arranges in .venv-rllib (Ray pins gymnasium 1.2.2, the main venv has 1.4.0)."""
 from __future__ import annotations
 
@@ -99,7 +99,7 @@ def test_the_readme_snippet_runs_as_written(tmp_path):
     pytest.importorskip("ray.rllib", reason="RLlib is not installed (make test-rllib runs these tests)")
     from readme_snippets import run_snippet, side_venv_snippets
 
-    (line, code), = side_venv_snippets("rllib")
+    (where, code), = side_venv_snippets("rllib")
     result = run_snippet(code, tmp_path, timeout=240)
-    assert result.returncode == 0, f"README.md line {line}:\n{result.stderr[-3000:]}"
+    assert result.returncode == 0, f"{where}:\n{result.stderr[-3000:]}"
     assert np.isfinite(float(result.stdout.strip().splitlines()[-1]))

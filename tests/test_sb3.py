@@ -165,7 +165,7 @@ def test_indices_out_of_range_raise():
 
 
 def test_default_cnn_policy_needs_36_pixels_a_side():
-    """What the SB3 docs here say (marl_render/wrappers/sb3.py, README): NatureCNN takes 36 x 36, not 35."""
+    """What the SB3 docs here say (marl_render/wrappers/sb3.py, docs/sb3.md): NatureCNN takes 36 x 36, not 35."""
     for resolution, fits in ((NATURE_CNN_MIN_SIZE, True), ((48, NATURE_CNN_MIN_SIZE - 1), False)):
         venv = make_sb3_env("cartpole", num_worlds=1, resolution=resolution)
         try:

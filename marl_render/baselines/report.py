@@ -1,4 +1,4 @@
-"""docs/baselines.md (and README's summary table) from the runs' result.json files.
+"""docs/baselines.md (and the summary table of docs/results.md) from the runs' result.json files.
 
     python -m marl_render.baselines.report      # reads docs/baselines/<task>[-state]/seed<k>/result.json
 
@@ -10,7 +10,7 @@ Then the normalised scores across tasks, and per task and observation the comman
 run, the greedy checkpoints along training and a picture of the curves across seeds. Also
 writes RESULTS/<task>[-state]/curves.png, RESULTS/aggregate.png, RESULTS/marl_eval.json (the
 runs in marl-eval's layout) and, between the markers ``<!-- baselines:start -->`` and
-``<!-- baselines:end -->``, README.md's table (--readme '' leaves README alone).
+``<!-- baselines:end -->``, docs/results.md's table (--readme PAGE names another page, '' none).
 
 Runs from before the step budgets (RESULTS/<task>[-state|-seedK]/result.json) are read where a
 task and observation has no run in seed folders yet.
@@ -450,7 +450,7 @@ def main(argv=None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--results", default="docs/baselines", help="folder of the runs' folders")
     parser.add_argument("--out", default="docs/baselines.md", help="the document to write")
-    parser.add_argument("--readme", default="README.md", help="README whose table to rewrite ('' for none)")
+    parser.add_argument("--readme", default="docs/results.md", help="page whose summary table to rewrite ('' for none)")
     args = parser.parse_args(argv)
     results_root, out = Path(args.results), Path(args.out)
     if not results_root.is_dir():

@@ -1,4 +1,4 @@
-"""PettingZoo front end: one world of a BatchedEnv as a ``pettingzoo.ParallelEnv``.
+"""PettingZoo front end: one world of a BatchedEnv as a ``pettingzoo.ParallelEnv``::
 
     from marl_render.wrappers.pettingzoo import make_parallel_env
     env = make_parallel_env("spread", resolution=32, render_mode="rgb_array")

@@ -4,7 +4,7 @@
     env = make_torchrl_env("spread", num_worlds=64, group_map="team", resolution=32)
     td = env.rollout(100, break_when_any_done=False)   # random policy, auto partial resets
 
-Layout (batch_size [W], W = num_worlds; a group of N agents):
+Layout (batch_size [W], W = num_worlds; a group of N agents)::
 
     (group, "pixels")       uint8   [W, N, H, Wpx, C]  Bounded(0, 255); C = 3, or 1 with grayscale=True
     (group, "depth")        float32 [W, N, H, Wpx]     Bounded(0, far)       depth=True
