@@ -69,7 +69,7 @@ TEAMS = ("red", "blue")
 
 @dataclasses.dataclass(frozen=True)
 class CaptureFlagParams:
-    capture_reward: float = 1.0
+    capture_reward: float = 1.0  # to every agent of a team per capture it scores; minus it for the other team's
     captures_to_win: int = 0  # 0: the episode only truncates
     k_nearest: int = 4  # teammates / opponents in the state observation
     shaping: float = 0.0  # weight of the progress towards the next capture (0: off)

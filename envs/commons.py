@@ -80,7 +80,7 @@ def apple_layout() -> torch.Tensor:
 @dataclasses.dataclass(frozen=True)
 class CommonsParams:
     regrowth: tuple = (0.0, 0.005, 0.02, 0.05)  # probability per step for 0, 1, 2, >= 3 neighbours
-    tag_timeout: int = 25
+    tag_timeout: int = 25  # steps a zapped agent stays out of the game
 
     def __post_init__(self):
         r = self.regrowth

@@ -60,8 +60,8 @@ RESPAWN_CANDIDATES = 8
 @dataclasses.dataclass(frozen=True)
 class ForageParams:
     num_items: int | None = None  # 1 to 32; None: 2 x num_agents (at most 32)
-    respawn_delay: int = 10
-    item_reward: float = 1.0
+    respawn_delay: int = 10  # steps before a collected item comes back
+    item_reward: float = 1.0  # to the agent that collects an item
 
     def __post_init__(self):
         if self.num_items is not None and positive_int("num_items", self.num_items) > 32:

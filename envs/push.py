@@ -96,8 +96,8 @@ def goals() -> list:
 
 @dataclasses.dataclass(frozen=True)
 class PushParams:
-    goal_reward: float = 1.0
-    shaping: float = 0.0
+    goal_reward: float = 1.0  # to every agent of the scoring team; minus it for the other team
+    shaping: float = 0.0  # weight of the zero-sum reward for the ball's progress (0: off)
 
     def __post_init__(self):
         reward_weight("goal_reward", self.goal_reward)

@@ -119,10 +119,10 @@ TABLES = _layout_tables()
 
 @dataclasses.dataclass(frozen=True)
 class RoomsParams:
-    return_home: bool = False
+    return_home: bool = False  # a finder must also come back to the home room
     open_wall: float = 0.2  # probability that a wall slot has no wall
-    found_reward: float = 1.0
-    step_penalty: float = 0.0
+    found_reward: float = 1.0  # when the goal is first reached (with return_home: again once home)
+    step_penalty: float = 0.0  # subtracted every step
     explore_reward: float = 0.0  # per room first entered this episode (0: off)
 
     def __post_init__(self):

@@ -45,7 +45,7 @@ CONTACT_TOLERANCE = 0.02  # a pair "collides" while its gap is below this (m)
 @dataclasses.dataclass(frozen=True)
 class SpreadParams:
     num_landmarks: int | None = None  # 1 to 12; None: one per agent
-    collision_penalty: float = 1.0
+    collision_penalty: float = 1.0  # per pair of agents touching, per step
 
     def __post_init__(self):
         if self.num_landmarks is not None:

@@ -75,10 +75,10 @@ SPAWN_CLEARANCE = 0.05  # spawned bodies keep this much space to their spawn cel
 @dataclasses.dataclass(frozen=True)
 class TagParams:
     num_predators: int | None = None  # team sizes: see the module docstring
-    num_prey: int | None = None
+    num_prey: int | None = None  # team size of the prey (None: the default split)
     num_obstacles: int = 2  # 0 to 8
-    catch_reward: float = 10.0
-    shaping: float = 0.0
+    catch_reward: float = 10.0  # to each predator per prey caught; minus it for the caught prey
+    shaping: float = 0.0  # weight of the distance shaping: predators nearer prey, prey farther (0: off)
 
     def __post_init__(self):
         if self.num_predators is not None:

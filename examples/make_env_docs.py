@@ -1,23 +1,31 @@
-"""Write the environment reference, docs/envs.md, and its pictures, from the environments themselves.
+"""Write the task pages of the docs from the tasks themselves: docs/envs.md (the index) and one
+card per task, docs/envs/NAME.md, with its picture NAME.png and animation NAME.gif.
 
-    python examples/make_env_docs.py [--out docs] [--seed S]
+    python examples/make_env_docs.py [--out docs] [--seed S] [--no-animations]
 
-For every env in ``list_envs()`` it builds the env with its defaults and reads what the page
-shows from the objects: observation keys, shapes and dtypes (from a reset), actions, agent
-names and teams, defaults, physics terms and settings, the keys, shapes and dtypes of the
-step info (from a step), the PettingZoo spaces and the TorchRL specs; the rules are the
-env module's own docstring. The picture of each env (OUT/envs/NAME.png) is every agent's
-view of one world after a seeded reset (PICTURE_SEEDS, or --seed), labelled, beside the
-overview camera; OUT/envs/appearance.png is one world under four train and four held-out
-appearances (the `appearance` option, docs/appearance.md); OUT/envs/NAME-difficulty.png is the
-overview of one world at each difficulty preset, whose random and heuristic returns come from
-docs/difficulty_returns.json (written by the evaluation command the page names).
+For every env in ``list_envs()`` it builds the env with its defaults and reads what a card
+shows from the objects: the task's Params (defaults, and the comment beside each field as its
+meaning), observation keys, shapes, dtypes and values (from a reset), actions, agent names and
+teams, physics terms and settings, the keys, shapes and dtypes of the step info (from a step),
+the PettingZoo spaces and the TorchRL specs; the rules are the env module's own docstring; the
+returns come from docs/reference_returns.json and the runs in docs/baselines, the speed from
+docs/bench/env_all.json. The picture of each env (OUT/envs/NAME.png) is every agent's view of
+one world after a seeded reset (PICTURE_SEEDS, or --seed), labelled, beside the overview
+camera; its animation (NAME.gif) one episode of the heuristic, the first two agents' views beside
+the overview. OUT/envs/appearance.png is one world under four train and four held-out
+appearances (the `appearance` option, docs/appearance.md); OUT/montage.png, the landing page's
+picture, is one agent's view of each task; OUT/authoring.png is docs/authoring.md's task.
+OUT/envs/NAME-difficulty.png is the overview of one world at each difficulty preset, whose
+random and heuristic returns come from docs/difficulty_returns.json (written by the evaluation
+command the card names).
 
+``card(name, seed, picture_dir)`` makes the same card for any registered task, a user's too.
 Only the one-line summaries of reward and episode end, the meaning of the continuous action
-dimensions and of the info keys are written here by hand (the code has no names for them);
-an env or info key without one stops the script with an error naming this file.
+dimensions and of the info keys are written here by hand (the code has no names for them); a
+built-in env or info key without one stops the script with an error naming this file (a
+user's task gets blank cells).
 
-tests/test_examples.py runs this script and fails when docs/envs.md differs from its output.
+tests/test_examples.py runs this script and fails when a page differs from its output.
 """
 import argparse
 import dataclasses
@@ -27,16 +35,19 @@ import math
 import os
 import re
 import sys
+from pathlib import Path
 
 import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
+from marl_render.baselines import report
 from marl_render.envs import env_class, list_envs, make_env, make_parallel_env, make_torchrl_env
 from record_video import frame_image  # examples/record_video.py: labelled views beside the overview
 
 WORLDS = 2  # worlds of the envs built here; shapes print it as "W"
 PICTURE_SEEDS = {"tag": 3}  # reset seeds of the pictures (default 0): tag's 0 shows the predators only walls
+ANIMATION_FRAMES = 40  # at most this many frames of an episode in a card's GIF (every k-th step)
 PICTURE_HEIGHT = 256  # views are enlarged (nearest neighbour, at least 2x) to a column at least this high
 DOCS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs")
 APPEARANCE_ENV, APPEARANCE_IDS = "spread", (1, 2, 3, 4)  # the appearances picture: one world, these ids per split
@@ -145,8 +156,11 @@ def physics_text(env) -> str:
 
 
 def docstring_parts(cls) -> tuple:
-    """(title, rules) of the env's module docstring: its first line, and the rest."""
-    doc = inspect.getdoc(sys.modules[cls.__module__]) or ""
+    """(title, rules) of the env's module docstring (a user's task: its class docstring, where it has
+    one of its own): its first line, and the rest."""
+    own = cls.__dict__.get("__doc__")
+    doc = inspect.cleandoc(own) if own and not builtin(cls) else inspect.getdoc(sys.modules[cls.__module__])
+    doc = doc or ""
     title, _, rules = doc.partition("\n")
     return title.strip(), rules.strip()
 
@@ -155,14 +169,29 @@ def observations(name: str):
     """Rows of the observation table and the step info table, from a reset and one step."""
     with make_env(name, num_worlds=WORLDS, state_obs=True, depth=True, seed=0) as env:
         obs = env.reset()
-        obs_rows = [(f"`{key}`", shape(value.shape), dtype(value.dtype), CONDITION[key]) for key, value in obs.items()]
+        obs_rows = [(f"`{key}`", shape(value.shape), dtype(value.dtype), value_range(value),
+                     CONDITION.get(key, "always")) for key, value in obs.items()]
         info = env.step(env.random_actions(torch.Generator().manual_seed(0)))[-1]
     info_rows = []
     for key, value in info.items():
-        if key not in INFO:
+        if key not in INFO and builtin(name):
             raise missing("INFO", key)
-        info_rows.append((f"`{key}`", shape(value.shape), dtype(value.dtype), INFO[key]))
+        info_rows.append((f"`{key}`", shape(value.shape), dtype(value.dtype), INFO.get(key, "")))
     return obs_rows, info_rows
+
+
+def value_range(value: torch.Tensor) -> str:
+    """The values a key held at that reset: "[low, high]", or "False / True" for bools."""
+    if value.dtype == torch.bool:
+        return " / ".join(str(v) for v in sorted({bool(v) for v in value.unique()}))
+    return f"[{value.min().item():.3g}, {value.max().item():.3g}]"
+
+
+def builtin(task) -> bool:
+    """A task (its name or class) of the suite (envs/), whose card must explain every key; a user's
+    task gets blanks."""
+    cls = env_class(task) if isinstance(task, str) else task
+    return cls.__module__.startswith("marl_render.envs.")
 
 
 def actions(env, name: str) -> list:
@@ -170,7 +199,7 @@ def actions(env, name: str) -> list:
              f"[0, {env.num_actions}).", ""]
     lines += table(("action", "meaning"), [(i, f"`{m}`") for i, m in enumerate(env.action_meanings)])
     with make_env(name, num_worlds=WORLDS, continuous=True) as continuous:
-        dims = CONTINUOUS_DIMS.get(name)
+        dims = CONTINUOUS_DIMS.get(name, ("",) * continuous.action_dim if not builtin(name) else None)
         if dims is None or len(dims) != continuous.action_dim:
             raise missing("CONTINUOUS_DIMS", name)
         dims_shape = shape((WORLDS, env.num_agents, continuous.action_dim))
@@ -249,21 +278,28 @@ def difficulty_picture(name: str, seed: int, path: str) -> None:
     Image.fromarray(np.concatenate(cells, axis=1)).save(path, optimize=True)
 
 
-def difficulty_lines(name: str, seed: int, returns: dict, picture_dir: str | None) -> list:
-    """The "Difficulty presets" part of a task's section: picture, keywords and returns."""
+def difficulty_lines(name: str, seed: int, picture_dir: str | None) -> list:
+    """The "Difficulty presets" part of a task's card: picture, keywords and returns (none for a task
+    without presets)."""
+    presets = env_class(name).difficulties
+    if not presets:
+        return []
+    with open(os.path.join(DOCS, "difficulty_returns.json")) as f:
+        returns = json.load(f)
+    if name not in returns:
+        raise KeyError(f"docs/difficulty_returns.json has no row for {name!r}: run `{DIFFICULTY_COMMAND}`")
     if picture_dir is not None:
         difficulty_picture(name, seed, os.path.join(picture_dir, f"{name}-difficulty.png"))
-    presets = env_class(name).difficulties
     rows = []
     for preset in DIFFICULTIES:
         h, r = returns[name][preset]["heuristic"], returns[name][preset]["random"]
         keywords = ", ".join(f"`{k}={v!r}`" for k, v in presets[preset].items()) or "the defaults"
         rows.append((f"`{preset}`", keywords, f"{h['mean']:.2f} ± {h['std']:.2f}", f"{r['mean']:.2f} ± {r['std']:.2f}"))
-    return (["### Difficulty presets", "",
+    return (["", "## Difficulty presets", "",
              f"`make_env({name!r}, difficulty=...)` (explicit keywords override the preset's). Returns as in the "
              f"reference table ({returns[name]['easy']['heuristic']['episodes']} episodes); reproduce with "
              f"`{DIFFICULTY_COMMAND}`.", "",
-             f"![{name} at the easy, medium and hard presets](envs/{name}-difficulty.png)", "",
+             f"![{name} at the easy, medium and hard presets]({name}-difficulty.png)", "",
              f"*The overview of one world after `reset(seed={seed})` at each preset.*", ""]
             + table(("preset", "keywords", "heuristic", "random"), rows))
 
@@ -317,27 +353,36 @@ def picture_scale(env) -> int:
     return max(2, -(-PICTURE_HEIGHT // (env.num_agents * env.resolution[0])))
 
 
-def env_section(name: str, seed: int | None, picture_dir: str | None, difficulty_returns: dict) -> list:
+def card(name: str, seed: int | None, picture_dir: str | None, animate: bool = True) -> str:
+    """The task card envs/NAME.md of any registered task, from its class: facts, Params, returns, speed,
+    observations, actions, step info, front ends and rules. With `picture_dir` it also draws the
+    picture NAME.png and (`animate`) the animation NAME.gif there."""
     cls = env_class(name)
     seed = PICTURE_SEEDS.get(name, 0) if seed is None else seed
-    if name not in SUMMARY:
+    if name not in SUMMARY and builtin(name):
         raise missing("SUMMARY", name)
-    reward, episode = SUMMARY[name]
+    reward, episode = SUMMARY.get(name, ("see the rules below",) * 2)
     title, rules = docstring_parts(cls)
     obs_rows, info_rows = observations(name)
     with make_env(name, num_worlds=WORLDS) as env:
         low, high = cls.agent_range
         H, W = env.resolution
         oh, ow = cls.overview_resolution
-        lines = [f"## {name}", "", title, ""]
+        lines = [f"# {name}", "", "<!-- Generated by examples/make_env_docs.py from the task's class. -->", "",
+                 title, ""]
         if picture_dir is not None:
             picture(env, seed, os.path.join(picture_dir, f"{name}.png"))
-        lines += [f"![{name}: every agent's view of one world, and the overview](envs/{name}.png)", "",
+        lines += [f"![{name}: every agent's view of one world, and the overview]({name}.png)", "",
                   f"*Every agent's view (left, {H}x{W} shown at {picture_scale(env)}x) of one world after "
-                  f"`reset(seed={seed})`, and the overview camera (right, `render_overview()`).*", ""]
+                  f"`reset(seed={seed})`, and the overview camera (right, `render_overview()`).*", "",
+                  f"![{name}: one episode of the heuristic]({name}.gif)", "",
+                  f"*One episode of the scripted heuristic (`env.heuristic_actions()`) after `reset(seed={seed})`: "
+                  "the first two agents' views beside the overview, one frame every "
+                  f"{animation_stride(env)} steps.*", ""]
         teams = "; ".join(f"`{team}`: {', '.join(agents)}" for team, agents in env.groups.items())
         facts = [
             ("class", f"`{cls.__module__}.{cls.__name__}`"),
+            ("make", f"`make_env({name!r}, num_worlds=W)`"),
             ("agents (default)", f"{env.num_agents} ({f'`num_agents` {low} to {high}' if high > low else 'fixed'})"),
             ("teams (groups)", teams),
             ("max_steps", env.max_steps),
@@ -345,21 +390,114 @@ def env_section(name: str, seed: int | None, picture_dir: str | None, difficulty
             ("camera", f"field of view {math.degrees(cls.fov_y):g} degrees (vertical), near {cls.near:g} m, "
                        f"far {cls.far:g} m"),
             ("physics", physics_text(env)),
-            ("own keyword arguments", own_kwargs(cls)),
             ("reward", reward),
             ("episode end", episode),
         ]
         lines += table(("", ""), [(f"**{k}**", v) for k, v in facts])
-        lines += ["", "### Observations", "", "`obs = env.reset()` / `env.step(actions)[0]` of the batched core "
-                  f"(`make_env({name!r}, num_worlds=W)`), shapes at the defaults:", ""]
-        lines += table(("key", "shape", "dtype", "present"), obs_rows)
-        lines += ["", "### Actions", ""] + actions(env, name)
-    lines += [""] + difficulty_lines(name, seed, difficulty_returns, picture_dir)
-    lines += ["", "### Step info", "", "`info = env.step(actions)[4]`, episode statistics included:", ""]
+        lines += ["", "## Parameters", "", f"The task's own keywords, `{cls.__name__}.Params` (a frozen dataclass; "
+                  "`make_env` passes them on, beside the options every task takes):", ""]
+        lines += params_table(cls)
+        lines += ["", "## Returns", ""] + returns_section(name)
+        lines += ["", "## Speed", ""] + speed_section(name)
+        lines += ["", "## Observations", "", "`obs = env.reset()` / `env.step(actions)[0]` of the batched core "
+                  f"(`make_env({name!r}, num_worlds=W)`), shapes at the defaults; values as at `reset(seed=0)`:", ""]
+        lines += table(("key", "shape", "dtype", "values", "present"), obs_rows)
+        lines += ["", "## Actions", ""] + actions(env, name)
+        if picture_dir is not None and animate:
+            animation(env, seed, os.path.join(picture_dir, f"{name}.gif"))
+    lines += difficulty_lines(name, seed, picture_dir)
+    lines += ["", "## Step info", "", "`info = env.step(actions)[4]`, episode statistics included:", ""]
     lines += table(("key", "shape", "dtype", "meaning"), info_rows)
-    lines += ["", "### Front ends", ""] + front_ends(name)
-    lines += ["", f"### Rules (the docstring of `envs/{name}.py`)", "", rules, ""]
-    return lines
+    lines += ["", "## Front ends", ""] + front_ends(name)
+    lines += ["", "## Rules (the docstring of the task's module)", "", rules or "(none)", ""]
+    return "\n".join(lines)
+
+
+def params_table(cls) -> list:
+    """One row per field of the task's Params: its default and the comment after it in the source
+    (what it means), or the line of a comment above it."""
+    fields = dataclasses.fields(cls.Params)
+    if not fields:
+        return ["None: the task has no keywords of its own."]
+    meanings = {}
+    try:
+        source = inspect.getsource(cls.Params).splitlines()
+    except (OSError, TypeError):  # defined where no source is kept (an interactive session)
+        source = []
+    for number, line in enumerate(source):
+        match = re.match(r"\s+(\w+)\s*:[^=#]*(?:=[^#]*)?(?:#\s*(.*))?$", line)
+        if match and match.group(1) in {f.name for f in fields}:
+            above = source[number - 1].strip() if number else ""
+            meanings[match.group(1)] = match.group(2) or (above[1:].strip() if above.startswith("#") else "")
+    rows = [(f"`{f.name}`", f"`{f.default!r}`" if f.default is not dataclasses.MISSING else "required",
+             meanings.get(f.name, "")) for f in fields]
+    return table(("keyword", "default", "meaning"), rows)
+
+
+def returns_section(name: str) -> list:
+    """Random, heuristic and learned returns: docs/reference_returns.json and the runs in docs/baselines."""
+    with open(os.path.join(DOCS, "reference_returns.json")) as f:
+        reference = json.load(f).get(name)
+    runs = report.load_results(Path(DOCS) / "baselines").get(name, {})
+    if reference is None and not runs:
+        return ["Not measured yet: `python -m marl_render.envs.evaluation --env " + name + "` gives random and "
+                "heuristic; `python -m marl_render.baselines --env " + name + "` trains a policy."]
+    rows = []
+    if reference is not None:
+        for policy in ("random", "heuristic"):
+            r = reference[policy]
+            rows.append((policy, f"{r['mean']:.3g} ± {r['std']:.2g}", r["episodes"], "`python -m marl_render.envs."
+                         f"evaluation --env {name}`"))
+    for obs, results in sorted(runs.items()):
+        seeds = [r["evaluation"]["policy"] for r in results]
+        values = " / ".join(f"{s['mean']:.3g} ± {s['std']:.2g}" for s in seeds)
+        folders = ", ".join(f"`docs/baselines/{r['relative']}`" for r in results)
+        rows.append((f"MAPPO from {obs}, {len(seeds)} seed{'s' * (len(seeds) > 1)}", values, seeds[0]["episodes"],
+                     f"runs (result.json, command, curve): {folders}"))
+    return (["Episode return of the evaluated agents (mean ± std over episodes; the learned policies greedy, one "
+             "entry per training seed; "
+             "learning results: [results](../results.md), [baselines](../baselines.md)):", ""]
+            + table(("policy", "return", "episodes", "made by"), rows))
+
+
+def speed_section(name: str) -> list:
+    """The task's row of `bench env --env all` (docs/bench/env_all.json)."""
+    with open(os.path.join(DOCS, "bench", "env_all.json")) as f:
+        bench = json.load(f)
+    rows = [r for r in bench["results"] if r["env"] == name and r.get("api", "core") == "core"]
+    if not rows:
+        return [f"Not measured: `python -m marl_render.bench env --env {name} --worlds 256 --json`."]
+    r = rows[0]
+    machine = bench["machine"]
+    return [f"`python -m marl_render.bench env --env all --worlds {r['worlds']}` ({machine['gl_renderer']}, "
+            f"{machine['cpu_threads']} CPU threads, `docs/bench/env_all.json`): "
+            f"**{r['env_steps_per_s']:,.0f} env steps/s**, "
+            f"{r['agent_frames_per_s']:,.0f} agent frames/s at {r['worlds']} worlds x {r['agents']} agents of "
+            f"{r['resolution']} px, {r['ms_per_step']:.1f} ms a step, {r['render_share']:.0%} of it in the renderer "
+            "([performance](../performance.md))."]
+
+
+def animation_stride(env) -> int:
+    return max(1, -(-env.max_steps // ANIMATION_FRAMES))
+
+
+def animation(env, seed: int, path: str) -> None:
+    """One episode of the heuristic in world 0 after reset(seed): the first two agents' views (2x) beside
+    the overview, every animation_stride-th step, as a GIF of 64 colours (at most ~250 KB)."""
+    obs = env.reset(seed=seed)
+    shown, stride = env.agent_names[:2], animation_stride(env)
+    font = ImageFont.load_default(size=12)
+    frames = []
+    for step in range(env.max_steps):
+        if step % stride == 0:
+            overview = env.render_overview(resolution=(2 * len(shown) * env.resolution[0],) * 2)[0]
+            image = frame_image(obs["pixels"][0, :len(shown)], overview, shown, 2, font)
+            frames.append(Image.fromarray(image).quantize(colors=64, method=Image.Quantize.MEDIANCUT))
+        obs = env.step(env.heuristic_actions())[0]
+        if bool(env.episode_over()[0]):
+            break
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=max(50, 1000 * stride // 20), loop=0,
+                   optimize=True)
 
 
 def page(seed: int | None, picture_dir: str | None) -> str:
@@ -374,7 +512,8 @@ def page(seed: int | None, picture_dir: str | None) -> str:
              "`shadows` (False, True: the arena's shadows, or a `marl_render.Shadows`), `device`, `seed`, "
              "`autoreset`, `grayscale`, the accuracy knobs `multisamples`, `supersample` and `physics_substeps` "
              "(what they cost: docs/accuracy/), and `compile_physics` (cartpole: its physics kernel through "
-             "`torch.compile`, within 1e-12 of the default path; README, \"Compiled physics\"); arena tasks "
+             "`torch.compile`, within 1e-12 of the default path; docs/performance.md, \"Compiled physics\"); "
+             "arena tasks "
              "also take `lidar` (rays of the obs key `lidar`, float32 [W, A, rays] in [0, 1]) and `lidar_range`, "
              "and discrete ones `enforce_action_mask` (a step refuses actions the mask forbids; by default the "
              "mask is advice: docs/authoring.md); every task takes `appearance` (None, `\"train\"`, "
@@ -389,17 +528,16 @@ def page(seed: int | None, picture_dir: str | None) -> str:
         if name not in SUMMARY:
             raise missing("SUMMARY", name)
         cls = env_class(name)
-        rows.append((f"[`{name}`](#{name})", cls.default_num_agents, cls.default_max_steps, *SUMMARY[name]))
+        rows.append((f"[`{name}`](envs/{name}.md)", cls.default_num_agents, cls.default_max_steps, *SUMMARY[name]))
     lines += table(("env", "agents", "max_steps", "reward", "episode end"), rows) + [""]
+    lines += ["Each task has a card generated from its class (`python examples/make_env_docs.py`): its parameters, "
+              "a picture and an animation of the heuristic, its returns and speed, observations, actions, step info, "
+              "front-end spaces and rules. A task you register (`register_env`) gets the same card from "
+              "`make_env_docs.card(name, ...)`. New to the suite? Start with `cartpole` (one agent, dense reward), "
+              "then `spread` (cooperation, the standard MARL task), then the team games.", ""]
     lines += reference_returns(names)
     lines += appearance_section(picture_dir)
-    with open(os.path.join(os.path.dirname(__file__), "..", "docs", "difficulty_returns.json")) as f:
-        difficulty_returns = json.load(f)
-    absent = sorted(set(names) - set(difficulty_returns))
-    if absent:
-        raise KeyError(f"docs/difficulty_returns.json has no row for {absent}: run `{DIFFICULTY_COMMAND}`")
-    for name in names:
-        lines += env_section(name, seed, picture_dir, difficulty_returns)
+    lines += ["```{toctree}", ":hidden:", ""] + [f"envs/{name}" for name in names] + ["```", ""]
     return "\n".join(lines)
 
 
@@ -433,7 +571,10 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
-    parser.add_argument("--out", default="docs", help="folder for envs.md and envs/NAME.png")
+    parser.add_argument("--out", default="docs", help="folder for envs.md, envs/NAME.md, .png and .gif, montage.png "
+                                                      "and authoring.png")
+    parser.add_argument("--no-animations", dest="animations", action="store_false",
+                        help="leave the GIFs out (the pages are the same; a GIF takes seconds per task)")
     parser.add_argument("--seed", type=int, default=None, help="reset seed of every picture; none: "
                                                                  f"{PICTURE_SEEDS}, else 0")
     return parser.parse_args(argv)
@@ -443,11 +584,16 @@ def main(argv=None) -> None:
     args = parse_args(argv)
     picture_dir = os.path.join(args.out, "envs")
     os.makedirs(picture_dir, exist_ok=True)
-    text = page(args.seed, picture_dir)
-    path = os.path.join(args.out, "envs.md")
-    with open(path, "w") as f:
-        f.write(text)
-    print(f"wrote {path} and {len(list_envs())} pictures in {picture_dir}")
+    pages = {os.path.join(args.out, "envs.md"): page(args.seed, picture_dir)}
+    for name in list_envs():
+        pages[os.path.join(picture_dir, f"{name}.md")] = card(name, args.seed, picture_dir, args.animations)
+    for path, text in pages.items():
+        with open(path, "w") as f:
+            f.write(text)
+    montage(os.path.join(args.out, "montage.png"))
+    authoring_picture(os.path.join(args.out, "authoring.png"))
+    print(f"wrote {len(pages)} pages, the pictures{' and animations' * args.animations} in {picture_dir}, "
+          f"montage.png and authoring.png")
 
 
 if __name__ == "__main__":

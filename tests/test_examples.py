@@ -248,12 +248,14 @@ def test_train_mappo_reports_episode_returns_of_the_worlds_given(tmp_path):
 def test_env_docs_are_up_to_date(tmp_path):
     from marl_render.envs import list_envs
 
-    run("make_env_docs.py", "--out", tmp_path, cwd=tmp_path)
+    run("make_env_docs.py", "--out", tmp_path, "--no-animations", cwd=tmp_path)  # tests/test_docs.py checks the GIFs
     written = (tmp_path / "envs.md").read_text()
     committed = (ROOT / "docs" / "envs.md").read_text()
     assert written == committed, "docs/envs.md is out of date: run python examples/make_env_docs.py"
     for name in list_envs():
-        assert f"](envs/{name}.png)" in written and f"\n## {name}\n" in written
+        card = (tmp_path / "envs" / f"{name}.md").read_text()
+        assert card == (ROOT / "docs" / "envs" / f"{name}.md").read_text(), f"docs/envs/{name}.md is out of date"
+        assert f"](envs/{name}.md)" in written and f"]({name}.png)" in card and f"]({name}.gif)" in card
         picture = png(tmp_path / "envs" / f"{name}.png")
         assert picture.shape[0] >= 256 and picture.std() > 10
         assert png(ROOT / "docs" / "envs" / f"{name}.png").shape == picture.shape
