@@ -16,6 +16,7 @@ SIDE_VENVS = {"benchmarl", "rllib"}  # the side venvs whose tests run their bloc
 BUDGETS = {  # text in a block -> the same with a budget that runs in seconds
     "n_steps=128, batch_size=256, device=\"cpu\").learn(100_000)":
         "n_steps=8, batch_size=256, device=\"cpu\").learn(256)",
+    '"--updates", "20",': '"--updates", "1",',  # docs/evaluate.md's run, to have a folder to load
 }
 
 # Runs each block given on stdin (a JSON list of [name, code]) in a fresh namespace; prints a JSON
