@@ -41,6 +41,6 @@ nitpick_ignore_regex = [
     ("py:class", r"(torch|numpy|jax|jaxlib|argparse|abc|gymnasium|spaces|pettingzoo|torchrl|tensordict"
                  r"|stable_baselines3)(\..*)?"),
     ("py:class", r"marl_render\.(backend\.(GLInfo|Settings)|scene\.(StaticGroup|InstanceGroup)"
-                 r"|envs\.planar\.(Obstacles|BodyState)|baselines\.(ppo\.MAPPO|policy\.GreedyPolicy))"),
+                 r"|envs\.planar\.(Obstacles|BodyState)|envs\.levels\.Draws|baselines\.(ppo\.MAPPO|policy\.GreedyPolicy))"),
     ("py:class", r"Actor"),  # marl_render.baselines.networks.Actor, held by ActorPolicy
 ]

@@ -289,7 +289,7 @@ class BatchedEnv:
 
     @property
     def level_ids(self) -> torch.Tensor | None:
-        """int64 [W] (a copy): the level each world plays, with levels on (envs/levels.py); else None."""
+        """The level each world plays, int64 [W] (a copy), with levels on (envs/levels.py); else None."""
         return None if self._level_ids is None else self._level_ids.clone()
 
     @property
