@@ -313,7 +313,12 @@ class BatchedEnv:
     # ================================================================== public API
     @_env_call
     def reset(self, seed: int | None = None) -> dict:
-        """Reset every world; `seed` (optional) re-seeds the env's generator first."""
+        """Reset every world; `seed` (optional) re-seeds the env's generator first.
+
+        Returns the observations {key: tensor}: "pixels" uint8 [W, A, H, Wpx, 3] (1 channel with
+        grayscale), "action_mask" bool [W, A, num_actions] (discrete actions), and where asked for
+        "depth" float32 [W, A, H, Wpx], "state" float32 [W, A, state_dim], "lidar" float32
+        [W, A, rays]. Each task's card (docs/envs/NAME.md) lists its keys, shapes and values."""
         self._check_open()
         self._check_process()
         seed = check.seed("seed", seed)
@@ -374,7 +379,12 @@ class BatchedEnv:
 
     @_env_call
     def step(self, actions):
-        """Advance all worlds one step: (obs, reward, terminated, truncated, info)."""
+        """Advance all worlds one step: (obs, reward, terminated, truncated, info).
+
+        `actions`: int64 [W, A] in [0, num_actions) (discrete), or float32 [W, A, action_dim] in
+        [-1, 1] (``continuous=True``); a bad one raises before anything changes. Returns obs as
+        reset's, reward float32 [W, A], terminated and truncated bool [W, A], and info {name: [W]
+        tensor} (the step count, ``done_worlds`` and the task's episode statistics)."""
         self._check_open()
         self._check_process()
         self._check_started()
