@@ -21,6 +21,7 @@ TESTED_ELSEWHERE = {  # page -> the test that runs its blocks
     "docs/authoring.md": "tests/test_authoring.py",
     "docs/training.md": "tests/test_baselines.py",
     "docs/populations.md": "tests/test_heldout.py",
+    "docs/levels.md": "tests/test_levels.py",
 }
 
 
