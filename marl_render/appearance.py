@@ -46,7 +46,9 @@ PATTERNS = ("plain", "checker", "stripes", "dots", "bricks")  # shaders/batch.fr
 TRAIN_PATTERNS = (0, 1, 2)
 HELDOUT_PATTERNS = (3, 4)
 # Per pattern: (cells along u per cell along v, shift along u per row, line threshold, weights of
-# the terms a, b, ab) of surface_pattern (cells are 1 / pattern_scale metres along v).
+# the terms a, b, ab: a and b are 1 past the threshold along u and along v within a cell) (cells are
+# 1 / pattern_scale metres along v). The rows hold the factors they leave (pattern_factors), which
+# batch.frag's surface_pattern picks from.
 PATTERN_TERMS = torch.tensor([
     [1.0, 0.0, 0.5, 0.0, 0.0, 0.0],  # plain
     [1.0, 0.0, 0.5, 1.0, 1.0, -2.0],  # checker: a xor b
@@ -76,6 +78,16 @@ PATTERN_CONTRAST = (0.15, 0.35)
 COLUMNS = {"sector": 3, "within_sector": 3, "saturation": 3, "value": 3, "light": 2, "intensity": 2, "tint_hue": 2,
            "tint_saturation": 2, "pattern": 2, "pattern_scale": 2, "pattern_contrast": 2, "jitter": 6}
 DRAWS = sum(COLUMNS.values())
+
+
+def pattern_factors(weights: torch.Tensor) -> torch.Tensor:
+    """[..., 3] float32: the factors a pattern leaves of a surface's colour past its line threshold
+    along u only, v only and both, 1 - (weights . (a, b, ab)) for the weights [..., 3] of its terms a,
+    b and ab. In float32, as batch.frag once computed them per fragment: each partial sum of the
+    weights (multiples of one contrast by 0, +-1 or -2) is exact, so the factors are bit for bit
+    what that formula gave."""
+    a, b, ab = weights.to(torch.float32).unbind(-1)
+    return torch.stack((1 - a, 1 - b, 1 - (a + b + ab)), -1)
 
 
 def color_transform_terms(hue_shift: torch.Tensor, saturation: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
@@ -211,7 +223,7 @@ class AppearanceRows:
             scale = v["pattern_scale"][:, index]
             first = field[f"{surface}_pattern"].texel
             rows[:, first] = torch.stack((scale * terms[:, 0], scale, terms[:, 1], terms[:, 2]), -1).to(torch.float32)
-            rows[:, first + 1, :3] = (terms[:, 3:] * v["pattern_contrast"][:, index:index + 1]).to(torch.float32)
+            rows[:, first + 1, :3] = pattern_factors(terms[:, 3:] * v["pattern_contrast"][:, index:index + 1])
         terms = color_transform_terms(v["hue_shift"], v["saturation"], v["value"])
         for index, name in enumerate(("transform_a", "transform_b", "transform_c")):
             put(name, terms[:, index])

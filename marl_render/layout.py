@@ -96,7 +96,8 @@ VIEW_PROJECTION_TEXELS = 4
 
 # One row per world of the "appearance" effect (appearance.py): its light, sky, the colours and
 # patterns of its floor and walls (rgb, w = 1: replaces the instance colour; a pattern is two
-# texels: cells per metre along u and v, row shift, line threshold; weights of its terms) and the
+# texels: cells per metre along u and v, row shift, line threshold; the factors it leaves past the
+# threshold along u, v and both, appearance.pattern_factors) and the
 # colour transform of everything else, rgb' = a rgb + b mean(rgb) + c ((1, 1, 1) x rgb)
 # (appearance.color_transform_terms: hue, saturation and value in three numbers). a, b and c sit
 # beside the light, whose texels a lit vertex fetches anyway.

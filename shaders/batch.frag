@@ -31,7 +31,6 @@
 #ifdef APPEARANCE_SURFACE
 #define v_surface g_surface
 #define v_pattern g_pattern
-#define v_shift g_shift
 #endif
 #endif
 #ifdef OUTPUT_DEPTH
@@ -61,8 +60,7 @@ uniform vec3 ambient_color;
 #endif
 #ifdef APPEARANCE_SURFACE
 in vec2 v_surface;       // pattern coordinates, in cells
-flat in vec4 v_pattern;  // term weights (u lines, v lines, both; contrast included) and line threshold
-flat in float v_shift;   // shift along u per row of cells
+flat in vec4 v_pattern;  // factors past the line threshold along u only, v only, both (contrast included); threshold
 #endif
 #if defined(EFFECT_FOG) || defined(OUTPUT_DEPTH) || defined(LOG_DEPTH)
 in float v_depth;
@@ -160,14 +158,15 @@ float light_visibility() {
 
 #ifdef APPEARANCE_SURFACE
 // The factor a floor's or wall's pattern leaves of its colour, from where the fragment lies (no
-// texture). One branch-free formula for every pattern (llvmpipe would run every branch anyway):
-// a and b are 1 past the threshold along u and v within a cell, the weights combine them.
-// appearance.py sets them per pattern: checker a + b - 2ab, stripes a, dots ab, bricks
-// a + b - ab with every other row shifted by half a cell; plain all 0.
+// texture). One formula for every pattern, no branch (llvmpipe would run every branch anyway):
+// whether the fragment lies past the threshold along u and along v within its cell picks one of
+// four factors, 1 where it is past neither. appearance.py sets them per pattern (checker: u or v
+// but not both, stripes: u, dots: both, bricks: u or v with every other row shifted by half a
+// cell v_color.a; plain: all 1).
 float surface_pattern() {
-    vec2 p = vec2(v_surface.x + v_shift * floor(v_surface.y), v_surface.y);
-    vec2 ab = step(vec2(v_pattern.w), fract(p));
-    return 1.0 - dot(v_pattern.xyz, vec3(ab, ab.x * ab.y));
+    vec2 inside = fract(vec2(v_surface.x + v_color.a * floor(v_surface.y), v_surface.y));
+    bvec2 past = greaterThanEqual(inside, vec2(v_pattern.w));
+    return past.y ? (past.x ? v_pattern.z : v_pattern.y) : (past.x ? v_pattern.x : 1.0);
 }
 #endif
 

@@ -51,8 +51,6 @@ in vec2 v_surface[];
 out vec2 g_surface;
 flat in vec4 v_pattern[];
 flat out vec4 g_pattern;
-flat in float v_shift[];
-flat out float g_shift;
 #endif
 in vec3 v_clip[];              // (x, y, w) before the move into the tile
 flat in vec2 v_tile_origin[];
@@ -99,7 +97,6 @@ void main() {
 #ifdef APPEARANCE_SURFACE
         g_surface = v_surface[i];
         g_pattern = v_pattern[i];
-        g_shift = v_shift[i];
 #endif
         depth_plane = plane;
         depth_tile = vec4(v_tile_origin[i], w_range);

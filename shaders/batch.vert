@@ -52,9 +52,11 @@ flat out vec3 v_look_light_color;
 flat out vec3 v_look_ambient;
 #endif
 #ifdef APPEARANCE_SURFACE
-out vec2 v_surface;       // a floor's or wall's pattern coordinates (cells) at the vertex
-flat out vec4 v_pattern;  // its pattern's term weights (u lines, v lines, both) and line threshold
-flat out float v_shift;   // its pattern's shift along u per row of cells (bricks)
+// A floor's or wall's pattern coordinates (cells) at the vertex; its pattern's shift along u per row
+// of cells (bricks) travels in v_color.a, which the fragment stage has no other use for (one flat
+// input fewer: llvmpipe sets up and loads each input per block of pixels).
+out vec2 v_surface;
+flat out vec4 v_pattern;  // the factors its pattern leaves past the line threshold along u, v, both; the threshold
 #endif
 #endif
 #if defined(EFFECT_FOG) || defined(OUTPUT_DEPTH) || defined(LOG_DEPTH)
@@ -129,7 +131,7 @@ void main() {
                       texelFetch(appearance, look + APPEARANCE_TRANSFORM_C).APPEARANCE_TRANSFORM_C_LANES);
 #ifdef APPEARANCE_SURFACE
     vec4 cells = vec4(0.0);  // (cells per metre along u and v, shift, threshold) of a floor or wall
-    v_pattern = vec4(0.0);
+    v_pattern = vec4(1.0);   // no role: nothing past a threshold of 1, and every factor 1
 #endif
     if (role == 0) {
         // Not a floor or wall: the world's colour transform (hue, saturation and value jitter),
@@ -199,7 +201,7 @@ void main() {
     // of them constant) and up. Linear in the position, so interpolating it is exact.
     v_surface = (role == 1 ? world_position.xy : vec2(world_position.x + world_position.y, world_position.z))
               * cells.xy;
-    v_shift = cells.z;
+    v_color.a = cells.z;
 #endif
     vec4 clip = view_projection * vec4(world_position, 1.0);
 
