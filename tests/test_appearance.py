@@ -176,6 +176,20 @@ def test_every_pattern_draws_something_different():
     assert len(images) == len(looks.PATTERNS)
 
 
+def test_pattern_factors_are_the_weighted_sum_bit_for_bit():
+    """The factor past the threshold along u only, v only and both is, in float32, exactly
+    1 - (weights . (a, b, ab)) for every pattern and contrast: what the shader computed per fragment."""
+    contrast = torch.tensor([0.15, 0.2345678, 0.35, 1 / 3, 1.0], dtype=F64)
+    weights = (looks.PATTERN_TERMS[:, None, 3:] * contrast[None, :, None]).to(torch.float32)  # [patterns, C, 3]
+    factors = looks.pattern_factors(weights)
+    assert factors.dtype == torch.float32 and factors.shape == (len(looks.PATTERNS), len(contrast), 3)
+    for column, (a, b) in enumerate(((1.0, 0.0), (0.0, 1.0), (1.0, 1.0))):
+        terms = torch.tensor([a, b, a * b], dtype=torch.float32)
+        summed = weights[..., 0] * terms[0] + weights[..., 1] * terms[1] + weights[..., 2] * terms[2]
+        assert torch.equal(factors[..., column], 1 - summed)
+    assert torch.equal(factors[0], torch.ones(len(contrast), 3))  # plain leaves every colour as it is
+
+
 def test_the_colour_transform_rotates_hue_and_scales_saturation_and_value():
     """A third of a turn permutes the channels (r, g, b) -> (b, r, g); saturation 0 leaves the grey of
     the mean; value scales; floors and walls (roles) are not transformed."""
