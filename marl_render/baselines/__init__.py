@@ -1,4 +1,4 @@
-"""Reference results: every task learned from pixels, one command per task::
+"""Reference results: every task trained from pixels, one command per task::
 
     python -m marl_render.baselines --env spread                  # the task's step budget, out/baselines/spread/
     python -m marl_render.baselines --env cartpole --env-steps 2000000 --out docs/baselines/cartpole
