@@ -23,6 +23,10 @@ other (collect, update, publish) this is plain PPO. With ``hp.overlap`` the trai
 Factory's APPO does: that rollout's actions come from the weights before the update, one update
 behind, and PPO's ratio is taken against those behaviour log-probabilities (stored with the
 samples) and clipped as usual.
+
+With ``self_play`` (selfplay.py) the actor plays every team: in each world the slots of one team
+act with the learner and give the samples, the other teams' slots are played by frozen snapshots
+of the actor from a pool. Without it nothing of the above changes (the same numbers for a seed).
 """
 from __future__ import annotations
 
@@ -39,6 +43,7 @@ from marl_render.envs import make_env
 from marl_render.envs.evaluation import opponent_mask, random_policy
 
 from .networks import Actor, CentralCritic, merge_moments
+from .selfplay import SelfPlay, SnapshotPool, team_index
 from .settings import Hyperparameters
 
 
@@ -130,7 +135,8 @@ class MAPPO:
     """Trainer of one task: ``collect()`` a rollout, ``update(batch)``; ``actor_net`` is the policy
     network (masked logits), ``obs_key`` the observation it reads ("pixels" or "state")."""
 
-    def __init__(self, env_name: str, hp: Hyperparameters, obs: str, seed: int, env_kwargs: dict):
+    def __init__(self, env_name: str, hp: Hyperparameters, obs: str, seed: int, env_kwargs: dict,
+                 self_play: SelfPlay | None = None):
         self.hp, self.obs_key = hp, obs
         torch.manual_seed(seed)  # the networks' initial weights
         self.env = make_env(env_name, num_worlds=hp.worlds, resolution=hp.resolution, grayscale=hp.grayscale,
@@ -138,7 +144,10 @@ class MAPPO:
         env = self.env
         if env.continuous:
             raise ValueError(f"the baselines learn discrete actions; {env_name!r} was built continuous")
-        self.trained = ~opponent_mask(env)  # [A] bool: the agents the actor plays
+        self.evaluated = ~opponent_mask(env)  # [A] bool: the agents a reference evaluation scores
+        teams = team_index(env.groups) if self_play is not None else None  # ValueError for one team
+        # [A] bool: the agents the actor plays (in self-play every one, each world's learning team learning)
+        self.trained = self.evaluated if self_play is None else torch.ones(env.num_agents, dtype=torch.bool)
         self.agents = int(self.trained.sum())
         A = env.num_agents
         self.onehot = torch.eye(A)[self.trained]  # [At, A]
@@ -163,6 +172,11 @@ class MAPPO:
         self.running_return = torch.zeros(env.num_worlds, dtype=torch.float64)
         self.env_steps = 0  # env steps summed over worlds
         self.clock = StageClock()
+        self.pool = None
+        if self_play is not None:  # the untrained actor is snapshot 0, every world's first opponent
+            self.pool = SnapshotPool(self_play, teams, env.num_worlds, seed + 4)
+            self.pool.add(self.acting_actor, 0, 0)
+            self.pool.start()
 
     @property
     def seconds_stepping(self) -> float:
@@ -225,13 +239,23 @@ class MAPPO:
             actions = random_policy(env, self.last_obs, self.generator)
             actions[:, self.trained] = action
             alive = self.alive[:, self.trained].clone()
+            learner = None
+            if self.pool is not None:  # the opponents' slots: snapshots act, and give no samples
+                learner = self.pool.learner_slots()
+                with clock("policy_forward"), torch.inference_mode():
+                    actions = self.pool.act(observation, self.onehot, self.last_obs["action_mask"], actions)
+                alive &= learner
             reward, done, terminated = self._act(actions)
+            # An episode's return: the per-capita reward of the agents the actor plays (in self-play, of the
+            # world's learning team).
+            per_capita = reward.mean(-1) if learner is None else (reward * learner).sum(-1) / learner.sum(-1)
             bootstrap = torch.zeros(W, At)
             if bool(done.any()):  # the value of the state each ended episode stopped in
                 bootstrap = self._values(self._global_state(self.last_obs))
-                ended += (self.running_return[done] + reward[done].mean(-1).double()).tolist()
+                ending = reward[done].mean(-1) if learner is None else per_capita[done]
+                ended += (self.running_return[done] + ending.double()).tolist()
                 self._reset(done)
-            self.running_return = torch.where(done, 0.0, self.running_return + reward.mean(-1).double())
+            self.running_return = torch.where(done, 0.0, self.running_return + per_capita.double())
             steps.append(dict(observation=observation, global_state=global_state, mask=mask, own_state=own_state,
                               action=action, sample_log_prob=sample_log_prob, value=value,
                               reward=self.reward_scale(reward.double(), done[:, None] | terminated).float(),
@@ -283,6 +307,8 @@ class MAPPO:
             self.alive &= ~term
             done |= info["done_worlds"]
             self.env_steps += W
+        if self.pool is not None:
+            self.pool.count(self.hp.action_repeat, done)
         self.last_obs = obs
         self.stack.push(self._observation(obs))
         return reward, done, terminated
@@ -292,6 +318,8 @@ class MAPPO:
             self.last_obs = self.env.reset_worlds(worlds)
         self.alive |= worlds[:, None]
         self.stack.restart(self._observation(self.last_obs), worlds)
+        if self.pool is not None:
+            self.pool.redraw(worlds, self.env_steps)
 
     def update(self, samples: dict) -> dict:
         """hp.epochs passes of the PPO loss over `samples` in hp.minibatches minibatches; the mean

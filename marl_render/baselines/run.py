@@ -36,6 +36,16 @@ Writes OUT/actor.pt (the actor's state_dict), then OUT/result.json (env, seeds, 
 budget, versions, env steps, wall-clock and its stages, hyperparameters, the training curve, the
 checkpoints, the evaluations with every episode's return), each atomically, and last OUT/curve.png.
 Options left out take the task's default (marl_render/baselines/settings.py).
+
+Self-play (--self-play, for a task of two or more teams; selfplay.py): every team is trained against
+a pool of frozen snapshots of the actor, one taken every --snapshot-every env steps; each world faces
+the latest snapshot with chance --play-latest, else one of the last --window, drawn anew (with the
+team it trains) every --swap-every env steps at its next reset. result.json's "self_play" records
+every snapshot (env steps when taken, episodes and env steps it was faced) and OUT/snapshots/NNN/
+holds each one as a run folder (actor.pt, result.json) that marl_render.policies.load_policy reads.
+
+A task registered by the user: --import MODULE (a module that calls register_env), or --env
+module:Class (a Scenario subclass, registered under that name).
 """
 from __future__ import annotations
 
@@ -53,13 +63,15 @@ import time
 
 import torch
 
-from marl_render.envs import list_envs
+from marl_render.envs import list_envs, make_env
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
 from marl_render.envs.levels import NAMED as NAMED_LEVELS
 from marl_render.extras import command_needs_extra
+from marl_render.task_imports import add_import_option, load_user_tasks
 
 from .curve import plot_curve
 from .networks import ENCODERS, PRECISIONS
+from .selfplay import PLAY_LATEST, SNAPSHOT_EVERY, SWAP_EVERY, WINDOW, SelfPlay, setting_problem, team_index
 from .settings import EVALUATION_SETS, FIELDS, step_budget, task_hyperparameters
 from .training import train
 
@@ -88,9 +100,12 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
 
 def parse_args(argv=None) -> argparse.Namespace:
     """The command line, every value checked before any work starts."""
-    parser = argparse.ArgumentParser(prog="python -m marl_render.baselines", description=__doc__,
-                                     formatter_class=HelpFormatter)
-    parser.add_argument("--env", required=True, choices=list_envs(), help="the task")
+    prog = "python -m marl_render.baselines"
+    load_user_tasks(argv, prog)  # before the parser lists the tasks
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--env", required=True, choices=list_envs(),
+                        help="the task (a user's: with --import MODULE, or as module:Class)")
+    add_import_option(parser)
     parser.add_argument("--obs", choices=("pixels", "state"), default="pixels", help="what the actor sees")
     parser.add_argument("--out", default=None, help="folder for result.json, actor.pt and curve.png "
                                                     "(default: out/baselines/ENV, or ENV-state with --obs state)")
@@ -128,9 +143,29 @@ def parse_args(argv=None) -> argparse.Namespace:
     hp.add_argument("--encoder", choices=list(ENCODERS), default=None, help="the actor's pixel encoder")
     hp.add_argument("--precision", choices=list(PRECISIONS), default=None,
                     help="the actor's compute (bfloat16: CPU autocast, float32 weights)")
+    sp = parser.add_argument_group("self-play (a task of two or more teams; see selfplay.py for the defaults' why)")
+    sp.add_argument("--self-play", action="store_true",
+                    help="train every team against a pool of frozen snapshots of the actor")
+    for name, kind, default, what in SELF_PLAY_OPTIONS:
+        sp.add_argument(f"--{name}", type=kind, default=None, help=f"{what} (default {default})")
     args = parser.parse_args(argv)
     check_args(parser, args)
     return args
+
+
+# (option, type, default, help) of the self-play pool; each is a field of SelfPlay.
+SELF_PLAY_OPTIONS = (("snapshot-every", int, SNAPSHOT_EVERY, "env steps between snapshots of the learner"),
+                     ("window", int, WINDOW, "the last N snapshots are in play"),
+                     ("play-latest", float, PLAY_LATEST, "chance that a world faces the latest snapshot"),
+                     ("swap-every", int, SWAP_EVERY, "env steps between draws of each world's opponent"))
+
+
+def self_play_settings(args: argparse.Namespace) -> SelfPlay | None:
+    """The SelfPlay of --self-play and its options (None without --self-play)."""
+    if not args.self_play:
+        return None
+    given = {name.replace("-", "_"): getattr(args, name.replace("-", "_")) for name, *_ in SELF_PLAY_OPTIONS}
+    return SelfPlay(**{k: v for k, v in given.items() if v is not None})
 
 
 def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -162,11 +197,31 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
                          f"{RESERVED_OPTIONS[key]} instead")
         if key in REFUSED_OPTIONS:
             parser.error(f"--env-option / --train-option {key}: not supported, {REFUSED_OPTIONS[key]}")
+    check_self_play(parser, args, env_options={**dict(args.env_option), **dict(args.train_option)})
     if args.out is None:
         args.out = os.path.join("out", "baselines", args.env if args.obs == "pixels" else f"{args.env}-state")
     problem = writable_folder(args.out)
     if problem:
         parser.error(f"--out must be a folder this process can write to, got {args.out!r}: {problem}")
+
+
+def check_self_play(parser: argparse.ArgumentParser, args: argparse.Namespace, env_options: dict) -> None:
+    """The pool's options in range, given only with --self-play, and a task of two or more teams."""
+    for name, *_ in SELF_PLAY_OPTIONS:
+        value = getattr(args, name.replace("-", "_"))
+        if value is None:
+            continue
+        if not args.self_play:
+            parser.error(f"--{name} applies to self-play only: add --self-play, got --{name} {value}")
+        problem = setting_problem(name.replace("-", "_"), value)
+        if problem:
+            parser.error(f"--{name} {problem}")
+    if args.self_play:
+        try:  # the task's teams, from a one-world env of its training options
+            with make_env(args.env, num_worlds=1, resolution=8, state_obs=True, **env_options) as probe:
+                team_index(probe.groups)
+        except ValueError as error:
+            parser.error(f"--self-play: {error}")
 
 
 def writable_folder(path: str) -> str | None:
@@ -236,6 +291,23 @@ def write_atomically(path: str, write) -> None:
         raise
 
 
+def save_snapshots(pool, result: dict, out: str) -> dict:
+    """Every snapshot of `pool` as a run folder OUT/snapshots/NNN (actor.pt, then a result.json
+    that load_policy reads: the run's env, obs and hyperparameters, and the snapshot's record);
+    the pool's record for the run's result.json, each snapshot with its folder."""
+    record = pool.record()
+    for snapshot, actor in zip(record["snapshots"], pool.actors, strict=True):
+        snapshot["folder"] = os.path.join("snapshots", f"{snapshot['id']:03d}")
+        folder = os.path.join(out, snapshot["folder"])
+        os.makedirs(folder, exist_ok=True)
+        write_atomically(os.path.join(folder, "actor.pt"), lambda f, actor=actor: torch.save(actor.state_dict(), f))
+        own = {key: result[key] for key in ("env", "obs", "seeds", "hyperparameters", "env_options", "versions")}
+        own.update(snapshot=snapshot, self_play_run="../..", env_steps=snapshot["env_steps"])
+        write_atomically(os.path.join(folder, "result.json"), lambda f, own=own: f.write(json.dumps(own, indent=1)
+                                                                                          .encode()))
+    return record
+
+
 def main(argv=None) -> int:
     started = time.perf_counter()
     args = parse_args(argv)
@@ -288,7 +360,8 @@ def main(argv=None) -> int:
     run = train(args.env, obs=args.obs, env_steps=env_steps, updates=args.updates, seed=args.seed,
                 hyperparameters=hp, env_options=env_options, train_options=train_options,
                 checkpoint_every=checkpoint_every, checkpoint_episodes=args.checkpoint_episodes,
-                max_seconds=None if args.max_minutes is None else args.max_minutes * 60, progress=progress)
+                max_seconds=None if args.max_minutes is None else args.max_minutes * 60, progress=progress,
+                self_play=self_play_settings(args))
     trainer = run.trainer
 
     eval_start = time.perf_counter()
@@ -328,6 +401,9 @@ def main(argv=None) -> int:
         "curve": run.curve,
     }
     os.makedirs(args.out, exist_ok=True)
+    if trainer.pool is not None:
+        result["algorithm"] += "; self-play: every team trained against a pool of frozen snapshots of the actor"
+        result["self_play"] = save_snapshots(trainer.pool, result, args.out)
     write_atomically(os.path.join(args.out, "actor.pt"), lambda f: torch.save(trainer.actor_net.state_dict(), f))
     write_atomically(os.path.join(args.out, "result.json"),
                      lambda f: f.write(json.dumps(result, indent=1).encode()))

@@ -27,6 +27,7 @@ from marl_render.envs.evaluation import evaluate
 
 from .policy import GreedyPolicy
 from .ppo import MAPPO
+from .selfplay import SelfPlay
 from .settings import EVALUATION_SETS, Hyperparameters, step_budget, task_hyperparameters
 
 
@@ -56,7 +57,7 @@ class TrainingRun:
     def policy(self) -> GreedyPolicy:
         """A fresh greedy policy of the final actor, as ``evaluate`` takes it (one per evaluation)."""
         hp = self.hyperparameters
-        return GreedyPolicy(self.trainer.actor_net, self.trainer.trained, self.obs, hp.frames, hp.action_repeat)
+        return GreedyPolicy(self.trainer.actor_net, self.trainer.evaluated, self.obs, hp.frames, hp.action_repeat)
 
 
 def updates_for(env_steps: int, hp: Hyperparameters) -> int:
@@ -67,7 +68,7 @@ def updates_for(env_steps: int, hp: Hyperparameters) -> int:
 def train(env: str, *, obs: str = "pixels", env_steps: int | None = None, updates: int | None = None, seed: int = 0,
           hyperparameters: Hyperparameters | None = None, env_options: dict | None = None,
           train_options: dict | None = None, checkpoint_every: int = 0, checkpoint_episodes: int = 8,
-          max_seconds: float | None = None, progress=None) -> TrainingRun:
+          max_seconds: float | None = None, progress=None, self_play: SelfPlay | None = None) -> TrainingRun:
     """Train MAPPO on task `env` from `obs` for `env_steps` env steps (rounded up to whole updates) or
     `updates` updates (default: the task's step budget, settings.STEP_BUDGETS).
 
@@ -76,7 +77,12 @@ def train(env: str, *, obs: str = "pixels", env_steps: int | None = None, update
     training reward). Every `checkpoint_every` env steps (0: never) the greedy policy is evaluated on
     `checkpoint_episodes` episodes of the development evaluation set. `progress(run, point)` is called
     after every update with the curve point just added. Torch runs on ``hp.torch_threads`` threads
-    during the call (0: the cores this process may use; the run's hyperparameters say how many)."""
+    during the call (0: the cores this process may use; the run's hyperparameters say how many).
+
+    With `self_play` (a ``SelfPlay``; the task needs two or more teams) every team is trained against
+    a pool of frozen snapshots of the actor (selfplay.py): ``run.trainer.pool`` holds the snapshots and
+    what each faced. The policy evaluated (``run.policy()``, the checkpoints) plays the task's usual
+    trained team against random opponents, as without self-play."""
     if env_steps is not None and updates is not None:
         raise ValueError(f"give env_steps or updates, not both (got {env_steps} and {updates})")
     hp = hyperparameters if hyperparameters is not None else task_hyperparameters(env)
@@ -90,18 +96,19 @@ def train(env: str, *, obs: str = "pixels", env_steps: int | None = None, update
     torch.set_num_threads(hp.torch_threads)
     try:
         return _train(env, obs, hp, updates, budget_steps, seed, env_options, train_options, checkpoint_every,
-                      checkpoint_episodes, max_seconds, progress)
+                      checkpoint_episodes, max_seconds, progress, self_play)
     finally:
         torch.set_num_threads(threads)
 
 
 def _train(env, obs, hp, updates, budget_steps, seed, env_options, train_options, checkpoint_every,
-           checkpoint_episodes, max_seconds, progress) -> TrainingRun:
-    trainer = MAPPO(env, hp, obs, seed, {**env_options, **train_options})
+           checkpoint_episodes, max_seconds, progress, self_play) -> TrainingRun:
+    trainer = MAPPO(env, hp, obs, seed, {**env_options, **train_options}, self_play)
     run = TrainingRun(env, obs, trainer, hp, budget_steps, updates, curve=[], checkpoints=[], updates=0,
                       training_seconds=0.0, training_cpu_seconds=0.0, checkpoint_seconds=0.0, truncated=False)
     development = EVALUATION_SETS["development"]
     next_checkpoint = checkpoint_every
+    next_snapshot = self_play.snapshot_every if self_play is not None else None
     started, cpu_started, checkpoint_cpu = time.perf_counter(), time.process_time(), 0.0
     learner = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="mappo-update") if hp.overlap else None
     try:
@@ -118,6 +125,10 @@ def _train(env, obs, hp, updates, budget_steps, seed, env_options, train_options
                 terms = update.result()
             trainer.publish()
             run.updates += 1
+            if next_snapshot is not None and trainer.env_steps >= next_snapshot:
+                trainer.pool.add(trainer.acting_actor, trainer.env_steps, run.updates)
+                while next_snapshot <= trainer.env_steps:
+                    next_snapshot += self_play.snapshot_every
             run.training_seconds = time.perf_counter() - started - run.checkpoint_seconds
             run.training_cpu_seconds = time.process_time() - cpu_started - checkpoint_cpu
             point = {"env_steps": trainer.env_steps, "seconds": run.training_seconds,
