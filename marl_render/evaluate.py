@@ -4,6 +4,9 @@
     python -m marl_render.evaluate --policy heuristic --scenario tag --out out/heuristic_tag
     python -m marl_render.evaluate --policy docs/baselines/tag/seed0 --scenario all --out out/mappo_tag
     python -m marl_render.evaluate --docs            # regenerates docs/heldout.md and docs/crossplay.md
+    python -m marl_render.evaluate --docs --crossplay-only --task tag   # only tag's cross-play section
+    python -m marl_render.evaluate --crossplay tag --roster random heuristic docs/selfplay/tag/seed0 --out out/x
+    python -m marl_render.evaluate --import my_tasks --crossplay my_task --roster random out/my_task
 
 A policy is ``random``, ``heuristic``, a heuristic variant of the task (a bot name of
 marl_render/bots.py, e.g. ``interceptor``) or a run folder of ``python -m marl_render.baselines``
@@ -18,6 +21,12 @@ same scenario and seed. With the same policy, scenario and seed the numbers are 
 
 ``--out PREFIX`` writes PREFIX.json and PREFIX.csv (one row per scenario); without it the JSON is
 printed.
+
+``--crossplay TASK`` plays every policy of ``--roster`` as the task's first team against every one
+as its second (any registered task of two or more teams, a user's too: ``--import MODULE`` or
+``module:Class``), and writes the matrices and Elo ratings (PREFIX.json, or printed). Self-play
+snapshots are run folders (``python -m marl_render.baselines --self-play`` writes them under
+OUT/snapshots/).
 """
 from __future__ import annotations
 
@@ -34,9 +43,10 @@ import torch
 
 from marl_render.bots import POPULATIONS, bot_names, make_bot
 from marl_render.elo import elo_ratings
-from marl_render.envs import Population, env_class, make_env
+from marl_render.envs import Population, env_class, list_envs, make_env
 from marl_render.heldout import HELDOUT, heldout_scenario, list_heldout
-from marl_render.policies import Policy, RandomPolicy, load_policy
+from marl_render.policies import Policy, RandomPolicy, heuristic_policy, load_policy
+from marl_render.task_imports import add_import_option, load_user_tasks
 
 COMPETITIVE = ("tag", "push", "capture_flag")  # the cross-play tasks: team A (rows) against team B (columns)
 SIDES = {"tag": ("predator", "prey"), "push": ("red", "blue"), "capture_flag": ("red", "blue")}
@@ -50,11 +60,14 @@ def make_policy(spec, task: str, seed: int = 0) -> Policy:
         return spec
     if spec == "random":
         return RandomPolicy(seed + 1)
-    if spec in bot_names(task):
+    if spec == "heuristic" and task not in POPULATIONS:  # a user's task: its own scripted heuristic
+        return heuristic_policy()
+    if task in POPULATIONS and spec in bot_names(task):
         return make_bot(task, spec, seed + 2)
     if isinstance(spec, str) and os.path.isdir(spec):
         return load_policy(spec)
-    raise ValueError(f"policy must be 'random', 'heuristic', one of {task}'s heuristic variants {bot_names(task)} "
+    variants = bot_names(task) if task in POPULATIONS else []
+    raise ValueError(f"policy must be 'random', 'heuristic', one of {task}'s heuristic variants {variants} "
                      f"or a run folder of python -m marl_render.baselines, got {spec!r}")
 
 
@@ -205,21 +218,27 @@ def listing() -> str:
 
 # ------------------------------------------------------------------ cross-play
 def crossplay(task: str, roster: dict, *, episodes: int = 16, seed: int = 0, resolution: int = 16) -> dict:
-    """Every policy of `roster` ({label: spec}) as team A against every one as team B (SIDES[task]):
-    returns [i, j] of both teams (per capita), win/draw counts (the team with the higher per-capita
-    return wins the episode) and Elo ratings anchored at the first policy (random)."""
-    side_a, side_b = SIDES[task]
+    """Every policy of `roster` ({label: spec}) as team A against every one as team B (SIDES[task], or
+    the first two teams of a task without an entry there): returns [i, j] of both teams (per capita),
+    win/draw counts (the team with the higher per-capita return wins the episode) and Elo ratings
+    anchored at the first policy (random). Every pair plays on one env setting: the resolution and
+    the env keywords the roster's trained actors need (all must agree), else `resolution`."""
     labels = list(roster)
     n = len(labels)
+    env_kwargs = matrix_env_kwargs(task, roster, resolution, seed)
+    with make_env(task, num_worlds=1, **{**env_kwargs, "resolution": 8}) as probe:
+        if len(probe.groups) < 2:
+            raise ValueError(f"cross-play needs a task of two or more teams; {task} has {list(probe.groups)}")
+        side_a, side_b = SIDES.get(task, tuple(probe.groups)[:2])
+        focal = probe.groups[side_a]
     returns_a, returns_b = np.zeros((n, n)), np.zeros((n, n))
     wins, draws = np.zeros((n, n)), np.zeros((n, n))
-    with make_env(task, num_worlds=1, resolution=8) as probe:
-        focal = probe.groups[side_a]
     for i, row in enumerate(labels):
         for j, column in enumerate(labels):
             a = make_policy(roster[row], task, seed)
             b = make_policy(roster[column], task, seed + 7)
-            with _env(task, episodes, seed, resolution, a, background=Population({side_b: [b]}, focal=focal)) as env:
+            with make_env(task, num_worlds=episodes, seed=seed, **env_kwargs,
+                          background=Population({side_b: [b]}, focal=focal)) as env:
                 result = play(env, a)
             returns_a[i, j], returns_b[i, j] = float(result["focal"].mean()), float(result["background"].mean())
             difference = result["focal"] - result["background"]
@@ -228,17 +247,50 @@ def crossplay(task: str, roster: dict, *, episodes: int = 16, seed: int = 0, res
             draws[i, j] += float((difference.abs() <= 1e-9).sum())
     win_rate = (wins + 0.5 * (draws + draws.T)) / np.maximum(wins + wins.T + draws + draws.T, 1)
     return {"task": task, "sides": [side_a, side_b], "policies": labels, "episodes": episodes, "seed": seed,
-            "returns_a": returns_a.tolist(), "returns_b": returns_b.tolist(), "wins": wins.tolist(),
-            "draws": draws.tolist(), "win_rate": win_rate.tolist(), "elo": elo_ratings(wins, draws).tolist()}
+            "env_kwargs": env_kwargs, "returns_a": returns_a.tolist(), "returns_b": returns_b.tolist(),
+            "wins": wins.tolist(), "draws": draws.tolist(), "win_rate": win_rate.tolist(),
+            "elo": elo_ratings(wins, draws).tolist()}
+
+
+def matrix_env_kwargs(task: str, roster: dict, resolution: int, seed: int) -> dict:
+    """The env keywords of a cross-play matrix: `resolution`, overridden by what the roster's
+    policies require (``Policy.env_kwargs``); ValueError naming two policies that disagree."""
+    required: dict = {}
+    owner: dict = {}
+    for label, spec in roster.items():
+        needs = dict(make_policy(spec, task, seed).env_kwargs)
+        if isinstance(spec, str) and os.path.isdir(spec):  # the team sizes a trained actor was trained with
+            with open(os.path.join(spec, "result.json")) as f:
+                options = json.load(f).get("env_options") or {}
+            needs.update({key: options[key] for key in ("num_agents",) if key in options})
+        for key, value in needs.items():
+            if key in required and required[key] != value:
+                raise ValueError(f"the roster's policies need different envs: {owner[key]!r} {key}={required[key]!r}, "
+                                 f"{label!r} {key}={value!r}")
+            required[key], owner[key] = value, label
+    return {"resolution": resolution, **required}
 
 
 def crossplay_roster(task: str, runs: list, snapshots: list = ()) -> dict:
     """{label: policy spec}: random first (the Elo anchor), the heuristic and its variants, the MAPPO
-    run folders of `task` among `runs`, then self-play snapshots (run folders) of `task`."""
-    roster = {"random": "random", **{name: name for name in bot_names(task)}}
+    run folders of `task` among `runs`, then self-play run folders and snapshots (`snapshots`)."""
+    roster = {"random": "random", **{name: name for name in (bot_names(task) if task in POPULATIONS
+                                                                else ["heuristic"])}}
     for folder in [*runs, *snapshots]:
-        roster[f"mappo:{os.path.relpath(folder)}"] = folder
+        roster[run_label(folder)] = folder
     return roster
+
+
+def run_label(folder: str) -> str:
+    """A roster label for a run folder: "MAPPO-vs-random", "self-play" (a self-play run's final actor)
+    or "snapshot N@STEPSk" (a self-play snapshot), then the seed."""
+    with open(os.path.join(folder, "result.json")) as f:
+        result = json.load(f)
+    seed = (result.get("seeds") or {}).get("train", "?")
+    if "snapshot" in result:
+        snapshot = result["snapshot"]
+        return f"snapshot {snapshot['id']}@{snapshot['env_steps'] // 1000}k seed{seed}"
+    return f"{'self-play' if 'self_play' in result else 'MAPPO-vs-random'} seed{seed}"
 
 
 def baseline_runs(root: str = "docs/baselines", obs: str = "pixels") -> dict:
@@ -251,9 +303,24 @@ def baseline_runs(root: str = "docs/baselines", obs: str = "pixels") -> dict:
                 result = json.load(f)
         except (OSError, json.JSONDecodeError):
             continue
-        if result.get("obs") == obs and result.get("env") in POPULATIONS:
+        if result.get("obs") == obs and result.get("env") in POPULATIONS and "snapshot" not in result:
             runs.setdefault(result["env"], []).append(folder)
     return runs
+
+
+def selfplay_runs(root: str = "docs/selfplay", per_run: int = 4) -> dict:
+    """{task: [folders]} of the self-play runs under `root` (baseline_runs' layout): of each run,
+    `per_run` snapshots evenly spread over training (the first and the last included), then the
+    run's final actor."""
+    found: dict = {}
+    for task, folders in baseline_runs(root).items():
+        for folder in folders:
+            snapshots = sorted(glob.glob(os.path.join(folder, "snapshots", "*", "actor.pt")))
+            if len(snapshots) > per_run:
+                step = (len(snapshots) - 1) / (per_run - 1)
+                snapshots = [snapshots[round(k * step)] for k in range(per_run)]
+            found.setdefault(task, []).extend([*map(os.path.dirname, snapshots), folder])
+    return found
 
 
 # ------------------------------------------------------------------ the published pages
@@ -338,20 +405,52 @@ def crossplay_page(results: list, command: str, note: str) -> str:
 
 
 def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_episodes: int = CROSSPLAY_EPISODES,
-            seed: int = DOCS_SEED, resolution: int = DOCS_RESOLUTION, tasks=None,
-            snapshots: dict | None = None) -> None:
+            seed: int = DOCS_SEED, resolution: int = DOCS_RESOLUTION, tasks=None, baselines: str | None = None,
+            selfplay: str | None = None, crossplay_only: bool = False) -> None:
     """Writes docs/heldout.md, docs/crossplay.md, their data (docs/heldout/*.json, *.csv) and the
-    heatmaps (docs/crossplay/*.png) from random, the heuristic and the MAPPO pixel runs of
-    docs/baselines that hold an actor.pt; `snapshots` {task: [run folders]} adds self-play
-    snapshots to the cross-play rosters."""
+    heatmaps (docs/crossplay/*.png) from random, the heuristic and the MAPPO pixel runs under
+    `baselines` (default docs/baselines) that hold an actor.pt, and the self-play runs under
+    `selfplay` (default docs/selfplay: snapshots and final actors, cross-play only). With
+    `crossplay_only` only the cross-play matrices of `tasks` are played again; the page keeps the
+    other competitive tasks' sections from their docs/crossplay/TASK.json."""
     tasks = list(POPULATIONS) if tasks is None else list(tasks)
-    runs = baseline_runs(os.path.join(docs, "baselines"))
+    baselines = os.path.join(docs, "baselines") if baselines is None else baselines
+    selfplay = os.path.join(docs, "selfplay") if selfplay is None else selfplay
+    runs, snapshots = baseline_runs(baselines), selfplay_runs(selfplay)
     command = (f"python -m marl_render.evaluate --docs --episodes {episodes} --crossplay-episodes "
                f"{crossplay_episodes} --seed {seed} --resolution {resolution}")
     found = sum(len(v) for v in runs.values())
-    note = (f"Policies: random, the heuristic and {found} MAPPO pixel run(s) of docs/baselines with an actor.pt"
+    note = (f"Policies: random, the heuristic and {found} MAPPO pixel run(s) of {baselines} with an actor.pt"
             + ("" if found else " (none of the published runs keeps its actor.pt yet: rerun this command once "
-                                 "they do)") + f". Resolution {resolution} px, seed {seed}.")
+                                 "they do)") + f". Resolution {resolution} px (a trained actor's own where one plays), "
+                                               f"seed {seed}.")
+    if not crossplay_only:
+        publish_heldout(docs, tasks, runs, episodes, seed, resolution, command, note)
+    results = []
+    os.makedirs(os.path.join(docs, "crossplay"), exist_ok=True)
+    for task in COMPETITIVE:
+        path = os.path.join(docs, "crossplay", f"{task}.json")
+        if task not in tasks:
+            if crossplay_only and os.path.isfile(path):  # kept as it was
+                with open(path) as f:
+                    results.append(json.load(f))
+            continue
+        roster = crossplay_roster(task, runs.get(task, []), snapshots.get(task, []))
+        print(f"cross-play {task}: {len(roster)} policies ...", file=sys.stderr, flush=True)
+        result = crossplay(task, roster, episodes=crossplay_episodes, seed=seed, resolution=resolution)
+        result["folders"] = {label: spec for label, spec in roster.items() if os.path.isdir(spec)}
+        with open(path, "w") as f:
+            json.dump(result, f, indent=1)
+        heatmap(result, os.path.join(docs, "crossplay", f"{task}.png"))
+        results.append(result)
+    with open(os.path.join(docs, "crossplay.md"), "w") as f:
+        f.write(crossplay_page(results, command + (f" --crossplay-only --task {' '.join(tasks)}" if crossplay_only
+                                                   else ""), note))
+
+
+def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int, resolution: int, command: str,
+                    note: str) -> None:
+    """docs/heldout.md and docs/heldout/*: random, the heuristic and the MAPPO runs on every held-out scenario."""
     scenarios = [name for task in tasks for name in list_heldout(task)]
     references: dict = {}
     print(f"held-out tables: {len(scenarios)} scenarios ...", file=sys.stderr, flush=True)
@@ -368,20 +467,6 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
         write(rows, os.path.join(docs, "heldout", label.replace("MAPPO ", "mappo_").replace("/", "_")))
     with open(os.path.join(docs, "heldout.md"), "w") as f:
         f.write(heldout_page(rows_by_policy, command, note))
-    results = []
-    os.makedirs(os.path.join(docs, "crossplay"), exist_ok=True)
-    for task in COMPETITIVE:
-        if task not in tasks:
-            continue
-        roster = crossplay_roster(task, runs.get(task, []), (snapshots or {}).get(task, []))
-        print(f"cross-play {task}: {len(roster)} policies ...", file=sys.stderr, flush=True)
-        result = crossplay(task, roster, episodes=crossplay_episodes, seed=seed, resolution=resolution)
-        with open(os.path.join(docs, "crossplay", f"{task}.json"), "w") as f:
-            json.dump(result, f, indent=1)
-        heatmap(result, os.path.join(docs, "crossplay", f"{task}.png"))
-        results.append(result)
-    with open(os.path.join(docs, "crossplay.md"), "w") as f:
-        f.write(crossplay_page(results, command, note))
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -389,8 +474,10 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m marl_render.evaluate", description=__doc__,
-                                     formatter_class=HelpFormatter)
+    prog = "python -m marl_render.evaluate"
+    load_user_tasks(argv, prog, ("--crossplay",))  # a user's task, before its name is checked
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__, formatter_class=HelpFormatter)
+    add_import_option(parser)
     parser.add_argument("--list", action="store_true", help="print every held-out scenario, its tags and bots")
     parser.add_argument("--policy", help="random, heuristic, a heuristic variant or a run folder")
     parser.add_argument("--scenario", default="all", help="a held-out scenario, a task (its scenarios) or all")
@@ -404,14 +491,25 @@ def main(argv=None) -> int:
     parser.add_argument("--crossplay-episodes", type=int, default=CROSSPLAY_EPISODES,
                         help="--docs: episodes per cross-play pair")
     parser.add_argument("--task", nargs="+", default=None, help="--docs: only these tasks")
+    parser.add_argument("--crossplay-only", action="store_true",
+                        help="--docs: only the cross-play matrices of --task (the others' sections are kept)")
+    parser.add_argument("--baselines", default=None, help="--docs: the MAPPO runs' folder (default docs/baselines)")
+    parser.add_argument("--selfplay", default=None, help="--docs: the self-play runs' folder (default docs/selfplay)")
+    parser.add_argument("--crossplay", metavar="TASK", choices=list_envs(), default=None,
+                        help="cross-play of --roster on TASK (two or more teams; a user's: --import, module:Class)")
+    parser.add_argument("--roster", nargs="+", default=["random", "heuristic"],
+                        help="--crossplay: the policies (random, heuristic, a heuristic variant, run folders)")
     args = parser.parse_args(argv)
     if args.list:
         print(listing())
         return 0
     if args.docs:
         publish(episodes=args.episodes, crossplay_episodes=args.crossplay_episodes, seed=args.seed,
-                resolution=args.resolution, tasks=args.task)
+                resolution=args.resolution, tasks=args.task, baselines=args.baselines, selfplay=args.selfplay,
+                crossplay_only=args.crossplay_only)
         return 0
+    if args.crossplay is not None:
+        return crossplay_command(parser, args)
     if args.policy is None:
         parser.error("--policy is required (or --list, or --docs)")
     try:
@@ -425,6 +523,31 @@ def main(argv=None) -> int:
         print(f"wrote {args.out}.json and {args.out}.csv ({len(rows)} scenarios)")
     else:
         print(json.dumps(rows))
+    return 0
+
+
+def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """--crossplay TASK --roster ...: the matrices and Elo, written to OUT.json or printed."""
+    if args.crossplay_episodes < 1:
+        parser.error(f"--crossplay-episodes must be >= 1, got {args.crossplay_episodes}")
+    roster = {}
+    for spec in args.roster:
+        label = run_label(spec) if os.path.isfile(os.path.join(spec, "result.json")) else spec
+        roster[label if label not in roster else spec] = spec
+    try:
+        result = crossplay(args.crossplay, roster, episodes=args.crossplay_episodes, seed=args.seed,
+                           resolution=args.resolution)
+    except (ValueError, FileNotFoundError) as error:
+        parser.error(str(error))
+    if args.out:
+        folder = os.path.dirname(args.out)
+        if folder:
+            os.makedirs(folder, exist_ok=True)
+        with open(args.out + ".json", "w") as f:
+            json.dump(result, f, indent=1)
+        print(f"wrote {args.out}.json ({len(roster)} policies)")
+    else:
+        print(json.dumps(result))
     return 0
 
 
