@@ -387,8 +387,10 @@ def crossplay_page(results: list, command: str, note: str) -> str:
              "Rows play the first team, columns the second. An episode is won by the team with the higher "
              "per-capita return (equal returns: a draw, half a win each). Elo: maximum likelihood over all "
              "episodes of both orders (Hunter's MM iteration, OpenSpiel's method, 0.1 smoothing wins), "
-             "anchored at random = 0. Self-play snapshots join the roster as run folders "
-             "(`crossplay_roster(task, runs, snapshots)`).", ""]
+             "anchored at random = 0. `MAPPO-vs-random` is the reference trainer's policy (trained against random "
+             "opponents); `self-play` the final actor of `python -m marl_render.baselines --self-play` and "
+             "`snapshot K@Nk` its K-th snapshot, taken after N thousand env steps (docs/training.md). A trained "
+             "actor plays either side (its agent one-hot names its slot).", ""]
     for result in results:
         task, labels = result["task"], result["policies"]
         side_a, side_b = result["sides"]
@@ -396,12 +398,33 @@ def crossplay_page(results: list, command: str, note: str) -> str:
                   f"![{task} cross-play](crossplay/{task}.png)", "", "| Elo | policy |", "|---:|---|"]
         for rating, label in sorted(zip(result["elo"], labels, strict=True), reverse=True):
             lines.append(f"| {rating:.0f} | {label} |")
-        lines += ["", f"Per-capita return of the row team ({side_a}):", "",
+        lines += ["", *self_play_verdict(result), f"Per-capita return of the row team ({side_a}):", "",
                   "| row \\ column | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
         for label, values in zip(labels, result["returns_a"], strict=True):
             lines.append(f"| {label} | " + " | ".join(f"{v:.2f}" for v in values) + " |")
         lines.append("")
     return "\n".join(lines)
+
+
+def self_play_verdict(result: dict) -> list:
+    """Lines saying whether the self-play policy beats the MAPPO-vs-random one in this matrix: their
+    Elo, and the win rate of each against the other on both sides."""
+    labels = result["policies"]
+    selfplay = [label for label in labels if label.startswith("self-play")]
+    mappo = [label for label in labels if label.startswith("MAPPO-vs-random")]
+    if not selfplay:
+        return []
+    if not mappo:
+        return [f"No MAPPO-vs-random policy with an actor.pt was found for {result['task']}: no comparison with "
+                "self-play in this matrix.", ""]
+    i, j = labels.index(selfplay[0]), labels.index(mappo[0])
+    elo, rate, ra, rb = result["elo"], result["win_rate"], result["returns_a"], result["returns_b"]
+    side_a, side_b = result["sides"]
+    return [f"**Self-play {'beats' if elo[i] > elo[j] else 'does not beat'} MAPPO-vs-random** ({selfplay[0]} "
+            f"against {mappo[0]}): Elo {elo[i]:.0f} against {elo[j]:.0f}. Head to head, over both sides, self-play "
+            f"wins {rate[i][j]:.2f} of the episodes (a draw counts half). Per-capita returns ({side_a}, {side_b}): "
+            f"self-play as {side_a} against MAPPO-vs-random {ra[i][j]:.2f}, {rb[i][j]:.2f}; MAPPO-vs-random as "
+            f"{side_a} against self-play {ra[j][i]:.2f}, {rb[j][i]:.2f}.", ""]
 
 
 def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_episodes: int = CROSSPLAY_EPISODES,
