@@ -227,3 +227,19 @@ def test_the_docs_take_spread_snapshots_and_the_final_actor_of_each_self_play_ru
     assert picked == {"tag": [str(run_folder / "snapshots" / k) for k in ("000", "003", "006", "009")]
                       + [str(run_folder)]}
     assert evaluation.baseline_runs(str(tmp_path)) == {"tag": [str(run_folder)]}  # snapshots are no baselines
+
+
+def test_the_crossplay_page_says_whether_self_play_beats_mappo_vs_random():
+    result = {"task": "tag", "sides": ["predator", "prey"], "episodes": 2, "policies": [
+        "random", "MAPPO-vs-random seed0", "self-play seed0"], "elo": [0.0, 100.0, 250.0],
+        "win_rate": [[0.5, 0.2, 0.1], [0.8, 0.5, 0.3], [0.9, 0.7, 0.5]],
+        "returns_a": [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0], [6.0, 7.0, 8.0]], "returns_b": [[0.0] * 3] * 3}
+    text = evaluation.crossplay_page([result], "command", "note")
+    assert ("**Self-play beats MAPPO-vs-random** (self-play seed0 against MAPPO-vs-random seed0): Elo 250 against "
+            "100. Head to head, over both sides, self-play wins 0.70") in text
+    assert "self-play as predator against MAPPO-vs-random 7.00, 0.00; MAPPO-vs-random as predator against " \
+           "self-play 5.00, 0.00" in text
+    result["elo"] = [0.0, 300.0, 250.0]
+    assert "**Self-play does not beat MAPPO-vs-random**" in evaluation.crossplay_page([result], "c", "n")
+    result["policies"][1] = "heuristic"
+    assert "No MAPPO-vs-random policy with an actor.pt was found for tag" in evaluation.crossplay_page([result], "c", "n")
