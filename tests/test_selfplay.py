@@ -242,4 +242,5 @@ def test_the_crossplay_page_says_whether_self_play_beats_mappo_vs_random():
     result["elo"] = [0.0, 300.0, 250.0]
     assert "**Self-play does not beat MAPPO-vs-random**" in evaluation.crossplay_page([result], "c", "n")
     result["policies"][1] = "heuristic"
-    assert "No MAPPO-vs-random policy with an actor.pt was found for tag" in evaluation.crossplay_page([result], "c", "n")
+    text = evaluation.crossplay_page([result], "c", "n")
+    assert "No MAPPO-vs-random policy with an actor.pt was found for tag" in text
