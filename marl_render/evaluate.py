@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import csv
 import glob
+import hashlib
 import json
 import math
 import os
@@ -217,12 +218,16 @@ def listing() -> str:
 
 
 # ------------------------------------------------------------------ cross-play
-def crossplay(task: str, roster: dict, *, episodes: int = 16, seed: int = 0, resolution: int = 16) -> dict:
+def crossplay(task: str, roster: dict, *, episodes: int = 16, seed: int = 0, resolution: int = 16,
+              previous: dict | None = None) -> dict:
     """Every policy of `roster` ({label: spec}) as team A against every one as team B (SIDES[task], or
     the first two teams of a task without an entry there): returns [i, j] of both teams (per capita),
     win/draw counts (the team with the higher per-capita return wins the episode) and Elo ratings
     anchored at the first policy (random). Every pair plays on one env setting: the resolution and
-    the env keywords the roster's trained actors need (all must agree), else `resolution`."""
+    the env keywords the roster's trained actors need (all must agree), else `resolution`.
+
+    A pair's outcome depends on its two policies, the env setting, `episodes` and `seed` alone: the
+    pairs of `previous` (an earlier result) played on the same ones are taken from it, not played again."""
     labels = list(roster)
     n = len(labels)
     env_kwargs = matrix_env_kwargs(task, roster, resolution, seed)
@@ -231,25 +236,49 @@ def crossplay(task: str, roster: dict, *, episodes: int = 16, seed: int = 0, res
             raise ValueError(f"cross-play needs a task of two or more teams; {task} has {list(probe.groups)}")
         side_a, side_b = SIDES.get(task, tuple(probe.groups)[:2])
         focal = probe.groups[side_a]
+    specs = {label: spec_key(spec) for label, spec in roster.items()}
+    same = previous is not None and all(previous.get(k) == v for k, v in (
+        ("task", task), ("episodes", episodes), ("seed", seed), ("env_kwargs", env_kwargs)))
+    known = {(p["row"], p["column"]): p for p in (previous or {}).get("pairs", [])} if same else {}
     returns_a, returns_b = np.zeros((n, n)), np.zeros((n, n))
     wins, draws = np.zeros((n, n)), np.zeros((n, n))
+    pairs = []
     for i, row in enumerate(labels):
         for j, column in enumerate(labels):
-            a = make_policy(roster[row], task, seed)
-            b = make_policy(roster[column], task, seed + 7)
-            with make_env(task, num_worlds=episodes, seed=seed, **env_kwargs,
-                          background=Population({side_b: [b]}, focal=focal)) as env:
-                result = play(env, a)
-            returns_a[i, j], returns_b[i, j] = float(result["focal"].mean()), float(result["background"].mean())
-            difference = result["focal"] - result["background"]
-            wins[i, j] += float((difference > 1e-9).sum())
-            wins[j, i] += float((difference < -1e-9).sum())
-            draws[i, j] += float((difference.abs() <= 1e-9).sum())
+            pair = known.get((specs[row], specs[column])) if isinstance(roster[row], str) and isinstance(
+                roster[column], str) else None
+            if pair is None:
+                a = make_policy(roster[row], task, seed)
+                b = make_policy(roster[column], task, seed + 7)
+                with make_env(task, num_worlds=episodes, seed=seed, **env_kwargs,
+                              background=Population({side_b: [b]}, focal=focal)) as env:
+                    result = play(env, a)
+                difference = result["focal"] - result["background"]
+                pair = {"row": specs[row], "column": specs[column], "returns_a": float(result["focal"].mean()),
+                        "returns_b": float(result["background"].mean()), "a_wins": int((difference > 1e-9).sum()),
+                        "b_wins": int((difference < -1e-9).sum()), "draws": int((difference.abs() <= 1e-9).sum())}
+            pairs.append(pair)
+            returns_a[i, j], returns_b[i, j] = pair["returns_a"], pair["returns_b"]
+            wins[i, j] += pair["a_wins"]
+            wins[j, i] += pair["b_wins"]
+            draws[i, j] += pair["draws"]
     win_rate = (wins + 0.5 * (draws + draws.T)) / np.maximum(wins + wins.T + draws + draws.T, 1)
     return {"task": task, "sides": [side_a, side_b], "policies": labels, "episodes": episodes, "seed": seed,
             "env_kwargs": env_kwargs, "returns_a": returns_a.tolist(), "returns_b": returns_b.tolist(),
             "wins": wins.tolist(), "draws": draws.tolist(), "win_rate": win_rate.tolist(),
-            "elo": elo_ratings(wins, draws).tolist()}
+            "elo": elo_ratings(wins, draws).tolist(), "pairs": pairs}
+
+
+def spec_key(spec) -> str:
+    """What identifies a roster entry's play: its name, or a run folder's path and its actor's digest
+    (a run trained again in the same folder is another policy)."""
+    if not isinstance(spec, str):
+        return spec.name
+    actor = os.path.join(spec, "actor.pt")
+    if not os.path.isfile(actor):
+        return spec
+    with open(actor, "rb") as f:
+        return f"{spec}#{hashlib.sha256(f.read()).hexdigest()[:16]}"
 
 
 def matrix_env_kwargs(task: str, roster: dict, resolution: int, seed: int) -> dict:
@@ -460,7 +489,12 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
             continue
         roster = crossplay_roster(task, runs.get(task, []), snapshots.get(task, []))
         print(f"cross-play {task}: {len(roster)} policies ...", file=sys.stderr, flush=True)
-        result = crossplay(task, roster, episodes=crossplay_episodes, seed=seed, resolution=resolution)
+        previous = None
+        if os.path.isfile(path):  # its pairs played on the same settings are not played again
+            with open(path) as f:
+                previous = json.load(f)
+        result = crossplay(task, roster, episodes=crossplay_episodes, seed=seed, resolution=resolution,
+                           previous=previous)
         result["folders"] = {label: spec for label, spec in roster.items() if os.path.isdir(spec)}
         with open(path, "w") as f:
             json.dump(result, f, indent=1)
