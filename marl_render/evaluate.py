@@ -466,11 +466,12 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
     `crossplay_only` only the cross-play matrices of `tasks` are played again; the page keeps the
     other competitive tasks' sections from their docs/crossplay/TASK.json."""
     tasks = list(POPULATIONS) if tasks is None else list(tasks)
+    command = (f"python -m marl_render.evaluate --docs --episodes {episodes} --crossplay-episodes "
+               f"{crossplay_episodes} --seed {seed} --resolution {resolution}"
+               + (f" --baselines {baselines}" if baselines else "") + (f" --selfplay {selfplay}" if selfplay else ""))
     baselines = os.path.join(docs, "baselines") if baselines is None else baselines
     selfplay = os.path.join(docs, "selfplay") if selfplay is None else selfplay
     runs, snapshots = baseline_runs(baselines), selfplay_runs(selfplay)
-    command = (f"python -m marl_render.evaluate --docs --episodes {episodes} --crossplay-episodes "
-               f"{crossplay_episodes} --seed {seed} --resolution {resolution}")
     found = sum(len(v) for v in runs.values())
     note = (f"Policies: random, the heuristic and {found} MAPPO pixel run(s) of {baselines} with an actor.pt"
             + ("" if found else " (none of the published runs keeps its actor.pt yet: rerun this command once "
