@@ -297,7 +297,7 @@ def matrix_env_kwargs(task: str, roster: dict, resolution: int, seed: int) -> di
                 raise ValueError(f"the roster's policies need different envs: {owner[key]!r} {key}={required[key]!r}, "
                                  f"{label!r} {key}={value!r}")
             required[key], owner[key] = value, label
-    return {"resolution": resolution, **required}
+    return {"resolution": resolution, "grayscale": False, **required}  # the env's default colour, said
 
 
 def crossplay_roster(task: str, runs: list, snapshots: list = ()) -> dict:

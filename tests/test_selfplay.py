@@ -246,18 +246,21 @@ def test_the_crossplay_page_says_whether_self_play_beats_mappo_vs_random():
     assert "No MAPPO-vs-random policy with an actor.pt was found for tag" in text
 
 
-def test_cross_play_takes_the_pairs_it_played_before_from_the_earlier_result(monkeypatch):
-    first = evaluation.crossplay("tag", {"random": "random", "heuristic": "heuristic"}, episodes=2, resolution=8)
+def test_cross_play_takes_the_pairs_it_played_before_from_the_earlier_result(duel_runs, user_module, monkeypatch):
+    import selfplay_user_task  # noqa: F401 (registers beacon_duel)
+
+    pair = {"random": "random", "heuristic": "heuristic"}
+    first = evaluation.crossplay("beacon_duel", pair, episodes=2, resolution=12)
     assert [(p["row"], p["column"]) for p in first["pairs"]] == [
         ("random", "random"), ("random", "heuristic"), ("heuristic", "random"), ("heuristic", "heuristic")]
     played = []
     real_play = evaluation.play
     monkeypatch.setattr(evaluation, "play", lambda env, policy: played.append(policy.name) or real_play(env, policy))
-    roster = {"random": "random", "heuristic": "heuristic", "interceptor": "interceptor"}
-    second = evaluation.crossplay("tag", roster, episodes=2, resolution=8, previous=first)
+    roster = {**pair, "snapshot": str(duel_runs / "imported" / "snapshots" / "001")}
+    second = evaluation.crossplay("beacon_duel", roster, episodes=2, resolution=12, previous=first)
     assert len(played) == 5  # the 9 pairs less the 4 known ones, which keep their outcomes
     assert second["pairs"][:2] + second["pairs"][3:5] == first["pairs"]
     assert [row[:2] for row in second["returns_a"][:2]] == first["returns_a"]
-    evaluation.crossplay("tag", {"random": "random", "heuristic": "heuristic"}, episodes=3, resolution=8,
-                         previous=first)  # other settings: every pair is played
+    assert second["pairs"][2]["column"].endswith("snapshots/001#" + second["pairs"][2]["column"][-16:])
+    evaluation.crossplay("beacon_duel", pair, episodes=3, resolution=12, previous=first)  # other settings: all played
     assert len(played) == 5 + 4
