@@ -558,8 +558,7 @@ def main(argv=None) -> int:
     parser.add_argument("--roster", nargs="+", default=["random", "heuristic"],
                         help="--crossplay: the policies (random, heuristic, a heuristic variant, run folders)")
     parser.add_argument("--torch-threads", type=int, default=1,
-                        help="torch threads of the trained actors (1: on a busy machine more threads spin "
-                             "idle; a tag cross-play pair took 6.2 CPU s on 2 threads, 1.6 s on 1)")
+                        help="torch threads of the trained actors (1: on a busy machine more threads spin idle)")
     args = parser.parse_args(argv)
     if args.torch_threads < 1:
         parser.error(f"--torch-threads must be >= 1, got {args.torch_threads}")
