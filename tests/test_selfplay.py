@@ -4,6 +4,7 @@ and its snapshots as run folders), --import and module:Class in the trainer and 
 and errors named for bad settings."""
 import json
 import pathlib
+import sys
 
 import pytest
 import torch
@@ -12,7 +13,7 @@ from marl_render import evaluate as evaluation
 from marl_render.baselines import run
 from marl_render.baselines.networks import Actor
 from marl_render.baselines.selfplay import SelfPlay, SnapshotPool, team_index
-from marl_render.envs import list_envs
+from marl_render.envs import list_envs, registry
 from marl_render.policies import load_policy
 
 TESTS = pathlib.Path(__file__).resolve().parent
@@ -20,6 +21,16 @@ TESTS = pathlib.Path(__file__).resolve().parent
 # updates, a new draw due every update.
 TINY = ["--env-steps", "64", "--worlds", "4", "--rollout", "4", "--resolution", "12", "--episodes", "2",
         "--checkpoint-every", "0", "--self-play", "--snapshot-every", "32", "--swap-every", "16", "--window", "2"]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def forget_user_tasks():
+    """The user's task registers itself on import: after this file, neither it nor its module is left
+    behind for other tests (which count the registered tasks)."""
+    yield
+    for name in ("beacon_duel", "selfplay_user_task:BeaconDuel"):
+        registry._REGISTRY.pop(name, None)
+    sys.modules.pop("selfplay_user_task", None)
 
 
 @pytest.fixture
