@@ -508,7 +508,8 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
 
 def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int, resolution: int, command: str,
                     note: str) -> None:
-    """docs/heldout.md and docs/heldout/*: random, the heuristic and the MAPPO runs on every held-out scenario."""
+    """docs/heldout.md and its JSON and CSV files in docs/heldout/: random, the heuristic and the MAPPO
+    runs on every held-out scenario."""
     scenarios = [name for task in tasks for name in list_heldout(task)]
     references: dict = {}
     print(f"held-out tables: {len(scenarios)} scenarios ...", file=sys.stderr, flush=True)

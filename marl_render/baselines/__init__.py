@@ -16,13 +16,15 @@ scripted heuristic policies (docs/reference_returns.json).
 
 Modules: settings (hyperparameters and their per-task defaults), networks (actor and critic),
 ppo (rollouts and updates), training (``train``: the loop, its budget and checkpoints), policy (the
-greedy policy handed to evaluate), curve (curve.png), run (the command line and result.json),
+greedy policy handed to evaluate), selfplay (the pool of frozen snapshots behind --self-play),
+curve (curve.png), run (the command line and result.json),
 published (the published runs as data, ``make baselines``), stats (interquartile mean and
 stratified bootstrap intervals across seeds, as rliable), report (docs/baselines.md) with figures
 (its pictures) and marl_eval (the runs in marl-eval's JSON layout, as BenchMARL writes them).
 """
+from .selfplay import SelfPlay
 from .settings import EVALUATION_SETS, STEP_BUDGETS, TASK_DEFAULTS, Hyperparameters, task_hyperparameters
 from .training import TrainingRun, train
 
-__all__ = ["EVALUATION_SETS", "Hyperparameters", "STEP_BUDGETS", "TASK_DEFAULTS", "TrainingRun", "task_hyperparameters",
-           "train"]
+__all__ = ["EVALUATION_SETS", "Hyperparameters", "STEP_BUDGETS", "SelfPlay", "TASK_DEFAULTS", "TrainingRun",
+           "task_hyperparameters", "train"]
