@@ -327,14 +327,36 @@ def test_frame_stack_keeps_the_last_frames_and_restarts_worlds():
     assert stack.stack.tolist() == [[[0, 1, 2]], [[5, 5, 5]]]
 
 
-def test_learning_accuracy_study_runs_and_reports(tmp_path):
-    """Two settings, two seeds, a tiny budget: every run's files, the report's json, table and plot."""
+STUDY = ["--env-steps", "16", "--seeds", "0", "1", "--settings", "32px", "32px-msaa4", "--episodes", "2",
+         "--jobs", "2", "--worlds", "2", "--rollout", "4", "--checkpoint-every", "0"]
+# What a study finds in a run folder that is not a finished run (each is rerun): a result.json cut off
+# mid-write, and one from a run stopped by a safety cap.
+UNFINISHED = {"32px-seed0": '{"env": "spread", "evaluation": {"poli',
+              "32px-seed1": json.dumps({"env": "spread", "truncated": True, "evaluation": {"policy": {"mean": 1.0}}})}
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    """Two settings, two seeds, a tiny budget, into a folder where two runs left unfinished results (one
+    study of four training processes serves the tests of the files, the report and the reruns)."""
     from marl_render.baselines import learning_accuracy
 
-    out = tmp_path / "learning"
-    argv = ["--env-steps", "16", "--seeds", "0", "1", "--settings", "32px", "32px-msaa4", "--episodes", "2",
-            "--jobs", "2", "--out", str(out), "--worlds", "2", "--rollout", "4", "--checkpoint-every", "0"]
+    root = tmp_path_factory.mktemp("study")
+    out = root / "learning"
+    for folder, text in UNFINISHED.items():
+        (out / folder).mkdir(parents=True)
+        (out / folder / "result.json").write_text(text)
+    argv = [*STUDY, "--out", str(out)]
     assert learning_accuracy.main(argv) == 0
+    return root, argv
+
+
+def test_learning_accuracy_study_runs_and_reports(study):
+    """Every run's files, the report's json, table and plot."""
+    from marl_render.baselines import learning_accuracy
+
+    root, argv = study
+    out = root / "learning"
     for setting in ("32px", "32px-msaa4"):
         for seed in (0, 1):
             result = json.loads((out / f"{setting}-seed{seed}" / "result.json").read_text())
@@ -342,15 +364,15 @@ def test_learning_accuracy_study_runs_and_reports(tmp_path):
             assert result["env_steps"] == 16 and (out / f"{setting}-seed{seed}" / "actor.pt").is_file()
     msaa = json.loads((out / "32px-msaa4-seed0" / "result.json").read_text())
     assert msaa["env_options"] == {"multisamples": 4} and msaa["hyperparameters"]["resolution"] == 32
-    summary = json.loads((tmp_path / "learning.json").read_text())
+    summary = json.loads((root / "learning.json").read_text())
     assert summary["seeds"] == [0, 1] and summary["env_steps"] == 16
     assert set(summary["settings"]) == {"32px", "32px-msaa4"}
     for entry in summary["settings"].values():
         assert entry["seeds"] == 2 and [r["seed"] for r in entry["runs"]] == [0, 1]
         assert entry["env_steps_per_second_mean"] > 0
-    text = (tmp_path / "learning.md").read_text()
+    text = (root / "learning.md").read_text()
     assert "| 32px-msaa4: MSAA 4 samples |" in text and "1.00x |" in text
-    assert (tmp_path / "learning.png").stat().st_size > 10_000
+    assert (root / "learning.png").stat().st_size > 10_000
     # A second call keeps the finished runs and only rewrites the report.
     before = (out / "32px-seed0" / "result.json").stat().st_mtime_ns
     assert learning_accuracy.main(argv) == 0
@@ -401,21 +423,13 @@ def test_learning_accuracy_refuses_duplicate_seeds(tmp_path, capsys):
     assert not (tmp_path / "runs").exists()
 
 
-def test_learning_accuracy_reruns_a_truncated_or_partial_result(tmp_path):
+def test_learning_accuracy_reruns_a_truncated_or_partial_result(study):
     """A result.json cut off mid-write, or from a run stopped by a safety cap, is not a finished run."""
-    from marl_render.baselines import learning_accuracy
-
-    out = tmp_path / "learning"
-    argv = ["--env-steps", "8", "--seeds", "0", "1", "--settings", "32px", "--episodes", "2", "--out", str(out),
-            "--worlds", "2", "--rollout", "4", "--resolution", "12", "--checkpoint-every", "0"]
-    for seed, text in ((0, '{"env": "spread", "evaluation": {"poli'),
-                       (1, json.dumps({"env": "spread", "truncated": True, "evaluation": {"policy": {"mean": 1.0}}}))):
-        (out / f"32px-seed{seed}").mkdir(parents=True)
-        (out / f"32px-seed{seed}" / "result.json").write_text(text)
-    assert learning_accuracy.main(argv) == 0
-    for seed in (0, 1):
-        result = json.loads((out / f"32px-seed{seed}" / "result.json").read_text())
-        assert result["truncated"] is False and result["env_steps"] == 8 and result["seeds"]["train"] == seed
+    root, _ = study
+    for folder in UNFINISHED:
+        result = json.loads((root / "learning" / folder / "result.json").read_text())
+        assert result["truncated"] is False and result["env_steps"] == 16
+        assert result["seeds"]["train"] == int(folder[-1])
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
