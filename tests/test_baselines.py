@@ -3,10 +3,12 @@ training results), its argument errors, and the report generator on those files.
 import json
 import math
 import os
+import runpy
 import signal
 import subprocess
 import sys
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -214,11 +216,20 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, monk
     assert list((tmp_path / "new").iterdir()) == []  # checked, nothing left behind
 
 
-def test_the_reference_evaluation_refuses_zero_episodes():
-    result = subprocess.run([sys.executable, "-m", "marl_render.envs.evaluation", "--env", "spread", "--episodes",
-                             "0"], capture_output=True, text=True, timeout=60)
-    assert result.returncode == 2
-    assert "--episodes must be >= 1, got 0" in result.stderr and "Traceback" not in result.stderr
+def run_module(name: str, argv: list, monkeypatch) -> int | str | None:
+    """`python -m name *argv` in this process (runpy runs the module as __main__, as -m does; a fresh
+    interpreter's `-m` is tested by test_the_same_command_gives_the_same_numbers): its exit code."""
+    monkeypatch.setattr(sys, "argv", [name, *argv])
+    with pytest.raises(SystemExit) as exit_, warnings.catch_warnings():
+        # runpy's note that the package imported the module before: it runs the module's code afresh
+        warnings.filterwarnings("ignore", f"'{name}' found in sys.modules", RuntimeWarning)
+        runpy.run_module(name, run_name="__main__", alter_sys=False)
+    return exit_.value.code
+
+
+def test_the_reference_evaluation_refuses_zero_episodes(monkeypatch, capsys):
+    assert run_module("marl_render.envs.evaluation", ["--env", "spread", "--episodes", "0"], monkeypatch) == 2
+    assert "--episodes must be >= 1, got 0" in capsys.readouterr().err
 
 
 def _numbers(result: dict):
@@ -278,15 +289,14 @@ def test_result_json_is_written_after_the_weights(tmp_path, monkeypatch):
     assert list(out.iterdir()) == []
 
 
-def test_a_missing_matplotlib_stops_the_run_at_once_naming_the_extra(tmp_path):
-    code = ("import sys; sys.modules['matplotlib'] = None\n"
-            "from marl_render.baselines.run import main\n"
-            f"main(['--env', 'spread', '--out', {str(tmp_path / 'run')!r}, '--env-steps', '100000000'])")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert result.returncode == 1
-    assert result.stderr.strip().splitlines() == [
-        "error: python -m marl_render.baselines (its curve.png) needs matplotlib, which is not installed: "
-        "pip install 'marl-render[plots]'"]
+def test_a_missing_matplotlib_stops_the_run_at_once_naming_the_extra(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
+    with pytest.raises(SystemExit) as exit_:
+        run.main(["--env", "spread", "--out", str(tmp_path / "run"), "--env-steps", "100000000"])
+    # A string exit code: Python prints it on stderr and exits with status 1.
+    assert exit_.value.code == ("error: python -m marl_render.baselines (its curve.png) needs matplotlib, which is "
+                                "not installed: pip install 'marl-render[plots]'")
+    assert capsys.readouterr().err == ""  # nothing else on stderr before it
     assert not (tmp_path / "run").exists()
 
 
@@ -300,12 +310,11 @@ def test_max_minutes_stops_training_and_marks_the_run_truncated(tmp_path):
     assert result["budget"]["env_steps"] == 100_000_000 and result["budget"]["max_minutes"] == 1e-9
 
 
-def test_help_runs_as_a_module():
-    result = subprocess.run([sys.executable, "-m", "marl_render.baselines", "--help"], capture_output=True,
-                            text=True, timeout=60)
-    assert result.returncode == 0
+def test_help_runs_as_a_module(monkeypatch, capsys):
+    assert run_module("marl_render.baselines", ["--help"], monkeypatch) == 0
+    out = capsys.readouterr().out
     for option in ("--env-steps", "--updates", "--max-minutes", "--eval-set", "--checkpoint-every", "--obs"):
-        assert option in result.stdout
+        assert option in out
 
 
 def test_task_hyperparameters_apply_task_defaults_then_overrides():
