@@ -48,9 +48,11 @@ $(STAMP): pyproject.toml constraints.txt
 demo: $(STAMP)
 	$(PY) examples/demo.py
 
+# Two pytest workers (pytest-xdist), each test file whole in one of them (--dist loadfile): a module's
+# shared fixtures are built once, and its tests run in their written order.
 test: $(STAMP)
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 # The docs site (Sphinx + MyST + furo, docs/conf.py) into out/docs/index.html: offline (no intersphinx),
 # nitpicky, every warning an error. tests/test_docs.py keeps the build green with Sphinx's dummy builder.

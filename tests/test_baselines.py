@@ -3,10 +3,12 @@ training results), its argument errors, and the report generator on those files.
 import json
 import math
 import os
+import runpy
 import signal
 import subprocess
 import sys
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -214,11 +216,20 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, monk
     assert list((tmp_path / "new").iterdir()) == []  # checked, nothing left behind
 
 
-def test_the_reference_evaluation_refuses_zero_episodes():
-    result = subprocess.run([sys.executable, "-m", "marl_render.envs.evaluation", "--env", "spread", "--episodes",
-                             "0"], capture_output=True, text=True, timeout=60)
-    assert result.returncode == 2
-    assert "--episodes must be >= 1, got 0" in result.stderr and "Traceback" not in result.stderr
+def run_module(name: str, argv: list, monkeypatch) -> int | str | None:
+    """`python -m name *argv` in this process (runpy runs the module as __main__, as -m does; a fresh
+    interpreter's `-m` is tested by test_the_same_command_gives_the_same_numbers): its exit code."""
+    monkeypatch.setattr(sys, "argv", [name, *argv])
+    with pytest.raises(SystemExit) as exit_, warnings.catch_warnings():
+        # runpy's note that the package imported the module before: it runs the module's code afresh
+        warnings.filterwarnings("ignore", f"'{name}' found in sys.modules", RuntimeWarning)
+        runpy.run_module(name, run_name="__main__", alter_sys=False)
+    return exit_.value.code
+
+
+def test_the_reference_evaluation_refuses_zero_episodes(monkeypatch, capsys):
+    assert run_module("marl_render.envs.evaluation", ["--env", "spread", "--episodes", "0"], monkeypatch) == 2
+    assert "--episodes must be >= 1, got 0" in capsys.readouterr().err
 
 
 def _numbers(result: dict):
@@ -278,15 +289,14 @@ def test_result_json_is_written_after_the_weights(tmp_path, monkeypatch):
     assert list(out.iterdir()) == []
 
 
-def test_a_missing_matplotlib_stops_the_run_at_once_naming_the_extra(tmp_path):
-    code = ("import sys; sys.modules['matplotlib'] = None\n"
-            "from marl_render.baselines.run import main\n"
-            f"main(['--env', 'spread', '--out', {str(tmp_path / 'run')!r}, '--env-steps', '100000000'])")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert result.returncode == 1
-    assert result.stderr.strip().splitlines() == [
-        "error: python -m marl_render.baselines (its curve.png) needs matplotlib, which is not installed: "
-        "pip install 'marl-render[plots]'"]
+def test_a_missing_matplotlib_stops_the_run_at_once_naming_the_extra(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
+    with pytest.raises(SystemExit) as exit_:
+        run.main(["--env", "spread", "--out", str(tmp_path / "run"), "--env-steps", "100000000"])
+    # A string exit code: Python prints it on stderr and exits with status 1.
+    assert exit_.value.code == ("error: python -m marl_render.baselines (its curve.png) needs matplotlib, which is "
+                                "not installed: pip install 'marl-render[plots]'")
+    assert capsys.readouterr().err == ""  # nothing else on stderr before it
     assert not (tmp_path / "run").exists()
 
 
@@ -300,12 +310,11 @@ def test_max_minutes_stops_training_and_marks_the_run_truncated(tmp_path):
     assert result["budget"]["env_steps"] == 100_000_000 and result["budget"]["max_minutes"] == 1e-9
 
 
-def test_help_runs_as_a_module():
-    result = subprocess.run([sys.executable, "-m", "marl_render.baselines", "--help"], capture_output=True,
-                            text=True, timeout=60)
-    assert result.returncode == 0
+def test_help_runs_as_a_module(monkeypatch, capsys):
+    assert run_module("marl_render.baselines", ["--help"], monkeypatch) == 0
+    out = capsys.readouterr().out
     for option in ("--env-steps", "--updates", "--max-minutes", "--eval-set", "--checkpoint-every", "--obs"):
-        assert option in result.stdout
+        assert option in out
 
 
 def test_task_hyperparameters_apply_task_defaults_then_overrides():
@@ -327,14 +336,36 @@ def test_frame_stack_keeps_the_last_frames_and_restarts_worlds():
     assert stack.stack.tolist() == [[[0, 1, 2]], [[5, 5, 5]]]
 
 
-def test_learning_accuracy_study_runs_and_reports(tmp_path):
-    """Two settings, two seeds, a tiny budget: every run's files, the report's json, table and plot."""
+STUDY = ["--env-steps", "16", "--seeds", "0", "1", "--settings", "32px", "32px-msaa4", "--episodes", "2",
+         "--jobs", "2", "--worlds", "2", "--rollout", "4", "--checkpoint-every", "0"]
+# What a study finds in a run folder that is not a finished run (each is rerun): a result.json cut off
+# mid-write, and one from a run stopped by a safety cap.
+UNFINISHED = {"32px-seed0": '{"env": "spread", "evaluation": {"poli',
+              "32px-seed1": json.dumps({"env": "spread", "truncated": True, "evaluation": {"policy": {"mean": 1.0}}})}
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    """Two settings, two seeds, a tiny budget, into a folder where two runs left unfinished results (one
+    study of four training processes serves the tests of the files, the report and the reruns)."""
     from marl_render.baselines import learning_accuracy
 
-    out = tmp_path / "learning"
-    argv = ["--env-steps", "16", "--seeds", "0", "1", "--settings", "32px", "32px-msaa4", "--episodes", "2",
-            "--jobs", "2", "--out", str(out), "--worlds", "2", "--rollout", "4", "--checkpoint-every", "0"]
+    root = tmp_path_factory.mktemp("study")
+    out = root / "learning"
+    for folder, text in UNFINISHED.items():
+        (out / folder).mkdir(parents=True)
+        (out / folder / "result.json").write_text(text)
+    argv = [*STUDY, "--out", str(out)]
     assert learning_accuracy.main(argv) == 0
+    return root, argv
+
+
+def test_learning_accuracy_study_runs_and_reports(study):
+    """Every run's files, the report's json, table and plot."""
+    from marl_render.baselines import learning_accuracy
+
+    root, argv = study
+    out = root / "learning"
     for setting in ("32px", "32px-msaa4"):
         for seed in (0, 1):
             result = json.loads((out / f"{setting}-seed{seed}" / "result.json").read_text())
@@ -342,15 +373,15 @@ def test_learning_accuracy_study_runs_and_reports(tmp_path):
             assert result["env_steps"] == 16 and (out / f"{setting}-seed{seed}" / "actor.pt").is_file()
     msaa = json.loads((out / "32px-msaa4-seed0" / "result.json").read_text())
     assert msaa["env_options"] == {"multisamples": 4} and msaa["hyperparameters"]["resolution"] == 32
-    summary = json.loads((tmp_path / "learning.json").read_text())
+    summary = json.loads((root / "learning.json").read_text())
     assert summary["seeds"] == [0, 1] and summary["env_steps"] == 16
     assert set(summary["settings"]) == {"32px", "32px-msaa4"}
     for entry in summary["settings"].values():
         assert entry["seeds"] == 2 and [r["seed"] for r in entry["runs"]] == [0, 1]
         assert entry["env_steps_per_second_mean"] > 0
-    text = (tmp_path / "learning.md").read_text()
+    text = (root / "learning.md").read_text()
     assert "| 32px-msaa4: MSAA 4 samples |" in text and "1.00x |" in text
-    assert (tmp_path / "learning.png").stat().st_size > 10_000
+    assert (root / "learning.png").stat().st_size > 10_000
     # A second call keeps the finished runs and only rewrites the report.
     before = (out / "32px-seed0" / "result.json").stat().st_mtime_ns
     assert learning_accuracy.main(argv) == 0
@@ -401,21 +432,13 @@ def test_learning_accuracy_refuses_duplicate_seeds(tmp_path, capsys):
     assert not (tmp_path / "runs").exists()
 
 
-def test_learning_accuracy_reruns_a_truncated_or_partial_result(tmp_path):
+def test_learning_accuracy_reruns_a_truncated_or_partial_result(study):
     """A result.json cut off mid-write, or from a run stopped by a safety cap, is not a finished run."""
-    from marl_render.baselines import learning_accuracy
-
-    out = tmp_path / "learning"
-    argv = ["--env-steps", "8", "--seeds", "0", "1", "--settings", "32px", "--episodes", "2", "--out", str(out),
-            "--worlds", "2", "--rollout", "4", "--resolution", "12", "--checkpoint-every", "0"]
-    for seed, text in ((0, '{"env": "spread", "evaluation": {"poli'),
-                       (1, json.dumps({"env": "spread", "truncated": True, "evaluation": {"policy": {"mean": 1.0}}}))):
-        (out / f"32px-seed{seed}").mkdir(parents=True)
-        (out / f"32px-seed{seed}" / "result.json").write_text(text)
-    assert learning_accuracy.main(argv) == 0
-    for seed in (0, 1):
-        result = json.loads((out / f"32px-seed{seed}" / "result.json").read_text())
-        assert result["truncated"] is False and result["env_steps"] == 8 and result["seeds"]["train"] == seed
+    root, _ = study
+    for folder in UNFINISHED:
+        result = json.loads((root / "learning" / folder / "result.json").read_text())
+        assert result["truncated"] is False and result["env_steps"] == 16
+        assert result["seeds"]["train"] == int(folder[-1])
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
@@ -501,7 +524,7 @@ def test_ppo_loss_is_torchrl_clip_ppo_loss(precision):
         torch.testing.assert_close(mine, reference, rtol=1e-4, atol=1e-6)
 
 
-def test_the_training_guide_python_block_runs(tmp_path):
+def test_the_training_guide_python_block_runs(tmp_path, monkeypatch, capsys):
     """docs/training.md's Python example, as written but for a budget that runs in seconds."""
     from pathlib import Path
 
@@ -513,11 +536,12 @@ def test_the_training_guide_python_block_runs(tmp_path):
                            ("episodes=32", "episodes=2")):
         assert written in code, f"docs/training.md no longer contains {written!r}: update this test"
         code = code.replace(written, small)
-    result = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert result.returncode == 0, result.stderr[-3000:]
-    steps, updates, seconds, checkpoint = result.stdout.splitlines()[0].split()
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, "docs/training.md", "exec"), {"__name__": "__main__"})  # as a script runs it
+    printed = capsys.readouterr().out.splitlines()
+    steps, updates, seconds, checkpoint = printed[0].split()
     assert (steps, updates) == ("24", "3") and float(seconds) > 0 and math.isfinite(float(checkpoint))
-    assert math.isfinite(float(result.stdout.splitlines()[1]))
+    assert math.isfinite(float(printed[1]))
 
 
 def test_throughput_runs_variants_in_turn_and_reads_their_results(tmp_path, capsys):
