@@ -41,6 +41,16 @@ SHARED = ("name", "num_worlds", "resolution", "continuous", "num_actions", "acti
           "torch_threads", "generator", "step_count", "sim", "closed", "levels", "level_ids")
 
 
+def _check_generator_state(name: str, state) -> None:
+    """ValueError naming `name` unless `state` loads into a torch.Generator (tried on a scratch one,
+    so that nothing changes before every part of a state was checked)."""
+    try:
+        torch.Generator().set_state(state)
+    except (TypeError, RuntimeError) as error:
+        raise ValueError(f"{name} must be a torch.Generator state (a uint8 tensor from get_state()), got "
+                         f"{describe(state)}: {error}") from None
+
+
 def _one_at_a_time(method):
     """A call that changes the env: one at a time (the driver's lock covers the driver's part; the bots'
     assignment and memories are this env's)."""
@@ -140,27 +150,18 @@ class FocalEnv:
     @_one_at_a_time
     def reset(self, seed: int | None = None) -> dict:
         obs = self.core.reset(seed=seed)  # checks the seed before anything changes
-        if seed is not None:
-            self.bot_generator.manual_seed(seed + 1)
-        self._restart(torch.ones(self.num_worlds, dtype=torch.bool), obs)
-        return self._focal(obs)
+        return self._after_reset(torch.ones(self.num_worlds, dtype=torch.bool), obs, seed)
 
     @_one_at_a_time
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
         obs = self.core.reset_worlds(mask, seed=seed)
-        if seed is not None:
-            self.bot_generator.manual_seed(seed + 1)
-        self._restart(torch.as_tensor(mask).cpu(), obs)
-        return self._focal(obs)
+        return self._after_reset(torch.as_tensor(mask).cpu(), obs, seed)
 
     @_one_at_a_time
     def reset_to_level(self, mask, level_ids, seed: int | None = None) -> dict:
         """The core's reset_to_level (envs/levels.py), then new bots for those worlds."""
         obs = self.core.reset_to_level(mask, level_ids, seed=seed)
-        if seed is not None:
-            self.bot_generator.manual_seed(seed + 1)
-        self._restart(torch.as_tensor(mask).cpu(), obs)
-        return self._focal(obs)
+        return self._after_reset(torch.as_tensor(mask).cpu(), obs, seed)
 
     @_one_at_a_time
     def step(self, actions):
@@ -234,7 +235,7 @@ class FocalEnv:
                 and bool(((bots >= 0) & (bots < len(self.bots))).all())):
             raise ValueError(f"state['background_bots'] must be int64 {list(self.assignment.shape)} in "
                              f"[0, {len(self.bots)}), got {describe(bots)}")
-        torch.Generator().set_state(rng)  # an invalid state fails here, before anything changes
+        _check_generator_state("state['background_rng']", rng)
         self._check_bot_rngs(bot_rngs)
         self.core.set_state(state)
         self.assignment = bots.clone()
@@ -261,6 +262,14 @@ class FocalEnv:
         names = [getattr(b, "name", type(b).__name__) for b in self.bots]
         return [[names[k] for k in row] for row in self.assignment.tolist()]
 
+    def _after_reset(self, worlds: torch.Tensor, obs: dict, seed: int | None) -> dict:
+        """After the core reset the worlds of mask [W] (re-seeded with `seed`, if given): the bots'
+        generator re-seeded alike, new bots there; the focal observations."""
+        if seed is not None:
+            self.bot_generator.manual_seed(seed + 1)
+        self._restart(worlds, obs)
+        return self._focal(obs)
+
     def _restart(self, worlds: torch.Tensor, obs: dict) -> None:
         """New bots for the worlds of mask [W], sampled per slot from its role (one draw per world
         and slot); their memories cleared."""
@@ -284,9 +293,9 @@ class FocalEnv:
                 (r is None) != (e == "None") for r, e in zip(rngs, expected, strict=True)):
             raise ValueError(f"state['bot_rngs'] must be a list of {len(self.bots)} entries ({expected}), "
                              f"got {describe(rngs)}")
-        for r in rngs:
+        for k, r in enumerate(rngs):
             if r is not None:
-                torch.Generator().set_state(r)  # an invalid state fails here, before anything changes
+                _check_generator_state(f"state['bot_rngs'][{k}]", r)
 
     def _set_bot_rngs(self, rngs: list) -> None:
         for bot, r in zip(self.bots, rngs, strict=True):

@@ -44,8 +44,10 @@ def test_state_without_or_with_bad_bot_generators_is_refused_and_changes_nothing
         env.set_state({k: v for k, v in state.items() if k != "bot_rngs"})
     with pytest.raises(ValueError, match=r"bot_rngs.*list of 1"):
         env.set_state({**state, "bot_rngs": []})
-    with pytest.raises(RuntimeError):  # torch refuses a generator state of the wrong size
+    with pytest.raises(ValueError, match=r"state\['bot_rngs'\]\[0\] must be a torch.Generator state"):
         env.set_state({**state, "bot_rngs": [torch.zeros(3, dtype=torch.uint8)]})
+    with pytest.raises(ValueError, match=r"state\['background_rng'\] must be a torch.Generator state"):
+        env.set_state({**state, "background_rng": "not a state"})
     assert torch.equal(generator.get_state(), before)
     assert torch.equal(env.get_state()["step_count"], state["step_count"])
 
