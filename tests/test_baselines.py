@@ -524,6 +524,31 @@ def test_ppo_loss_is_torchrl_clip_ppo_loss(precision):
         torch.testing.assert_close(mine, reference, rtol=1e-4, atol=1e-6)
 
 
+def test_generalized_advantage_is_torchrl_gae():
+    """The trainer's plain-torch GAE equals TorchRL's generalized_advantage_estimate bit for bit on a
+    time-major [T, W, At] rollout with done (truncated) steps, terminated steps and both at once."""
+    from torchrl.objectives.value.functional import generalized_advantage_estimate
+
+    from marl_render.baselines.advantage import generalized_advantage
+
+    g = torch.Generator().manual_seed(0)
+    T, W, At = 37, 5, 3
+    value, next_value, reward = (torch.randn(T, W, At, generator=g) for _ in range(3))
+    terminated = torch.rand(T, W, At, generator=g) < 0.1
+    done = terminated | (torch.rand(T, W, At, generator=g) < 0.1)  # a truncation is done but not terminated
+    assert bool((done & ~terminated).any()) and bool(terminated.any())
+    ours = generalized_advantage(0.97, 0.9, value, next_value, reward, done, terminated)
+
+    def by_time(x):  # [T, W, At] -> [W * At, T, 1]: TorchRL's layout
+        return x.permute(1, 2, 0).reshape(W * At, T, 1)
+
+    theirs = generalized_advantage_estimate(0.97, 0.9, *map(by_time, (value, next_value, reward, done, terminated)))
+    for mine, reference in zip(ours, theirs, strict=True):
+        assert torch.equal(by_time(mine), reference)
+    with pytest.raises(ValueError, match=r"one shape \[T, \.\.\.\], got .*'done': \(37, 5\)"):
+        generalized_advantage(0.97, 0.9, value, next_value, reward, done[:, :, 0], terminated)
+
+
 def test_the_training_guide_python_block_runs(tmp_path, monkeypatch, capsys):
     """docs/training.md's Python example, as written but for a budget that runs in seconds."""
     from pathlib import Path

@@ -1,4 +1,4 @@
-"""MAPPO on a BatchedEnv: rollouts of W worlds at once, TorchRL's GAE, the clipped PPO loss in plain torch.
+"""MAPPO on a BatchedEnv: rollouts of W worlds at once, plain-torch GAE, the clipped PPO loss in plain torch.
 
 One actor plays every trained agent (the others, a task's ``opponents``, play uniformly random
 valid actions, as in the reference evaluation); the critic is centralised (all agents' states).
@@ -37,11 +37,11 @@ import time
 
 import torch
 from torch import nn
-from torchrl.objectives.value.functional import generalized_advantage_estimate
 
 from marl_render.envs import make_env
 from marl_render.envs.evaluation import opponent_mask, random_policy
 
+from .advantage import generalized_advantage
 from .networks import Actor, CentralCritic, merge_moments
 from .selfplay import SelfPlay, SnapshotPool, team_index
 from .settings import Hyperparameters
@@ -266,16 +266,10 @@ class MAPPO:
         next_value = torch.cat((batch["value"][1:], last_value))
         next_value = torch.where(batch["world_done"], batch["bootstrap"], next_value)
 
-        def by_time(x):  # [T, W, At] -> [W * At, T, 1]: GAE's layout
-            return x.permute(1, 2, 0).reshape(W * At, T, 1)
-
-        with clock("gae"):
-            advantage, value_target = generalized_advantage_estimate(
-                hp.gamma, hp.gae_lambda, by_time(batch["value"]), by_time(next_value), by_time(batch["reward"]),
-                by_time(batch["done"]), by_time(batch["terminated"]))
-
-        def back(x):  # [W * At, T, 1] -> [T * W * At]
-            return x.reshape(W, At, T).permute(2, 0, 1).reshape(-1)
+        with clock("gae"):  # [T, W, At]
+            advantage, value_target = generalized_advantage(
+                hp.gamma, hp.gae_lambda, batch["value"], next_value, batch["reward"], batch["done"],
+                batch["terminated"])
 
         valid = batch["valid"].reshape(-1)
         norms = {"actor": {k: v.clone() for k, v in self.acting_actor.named_buffers()},
@@ -286,7 +280,7 @@ class MAPPO:
                    "global_state": batch["global_state"][:, :, None].expand(T, W, At, -1).flatten(0, 2),
                    "own_state": batch["own_state"].flatten(0, 2),
                    "action": batch["action"].reshape(-1), "sample_log_prob": batch["sample_log_prob"].reshape(-1),
-                   "advantage": back(advantage), "value_target": back(value_target)}
+                   "advantage": advantage.reshape(-1), "value_target": value_target.reshape(-1)}
         if not bool(valid.all()):
             index = valid.nonzero().squeeze(1)
             samples = {key: value.index_select(0, index) for key, value in samples.items()}

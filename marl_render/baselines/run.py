@@ -52,6 +52,7 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
+import importlib.metadata
 import json
 import math
 import os
@@ -268,13 +269,18 @@ def require_matplotlib() -> None:
 
 
 def versions() -> dict:
-    import tensordict
-    import torchrl
-
     import marl_render
+    # TorchRL's and TensorDict's versions from their metadata: importing them costs seconds, the trainer does not.
     return {"marl_render": getattr(marl_render, "__version__", "unknown"), "torch": torch.__version__,
-            "torchrl": torchrl.__version__, "tensordict": tensordict.__version__,
+            "torchrl": installed_version("torchrl"), "tensordict": installed_version("tensordict"),
             "python": platform.python_version()}
+
+
+def installed_version(distribution: str) -> str:
+    try:
+        return importlib.metadata.version(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        return "not installed"
 
 
 def write_atomically(path: str, write) -> None:
@@ -373,7 +379,7 @@ def main(argv=None) -> int:
 
     result = {
         "env": args.env, "obs": args.obs,
-        "algorithm": "MAPPO (clipped PPO objective, TorchRL's GAE): shared actor on each agent's own observation, "
+        "algorithm": "MAPPO (clipped PPO objective, GAE as TorchRL's): shared actor on each agent's own observation, "
                      "centralised critic on all agents' state observations",
         "command": "python -m marl_render.baselines " + shlex.join(sys.argv[1:] if argv is None else argv),
         "seeds": {"train": args.seed, "evaluation": eval_seed},
