@@ -509,11 +509,13 @@ class BatchRenderer:
                 self._render_frame()
                 self._texture_ids()
             for index, render_pass in enumerate(self._passes):
-                self._sky.copy_into(index, render_pass.texture_ids["color"])
+                self._sky.fill(index, render_pass.texture_ids["color"])
         self._render_frame()
         copy_seconds = 0.0
-        for render_pass in self._passes:
+        for index, render_pass in enumerate(self._passes):
             copy_seconds += self._read_pass(render_pass, rgb, depth, segmentation)
+            if self._sky is not None:  # the next frame's sky, while llvmpipe still draws the passes after this one
+                self._sky.refill(index, render_pass.texture_ids["color"])
         self._check_shaders()  # after the reads: Panda3D reports some failures of the frame only then
         self.last_timings["gl"] = time.perf_counter() - started - copy_seconds
         self.last_timings["copy"] = copy_seconds

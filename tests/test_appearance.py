@@ -66,6 +66,12 @@ def test_each_world_shows_its_own_sky_in_every_tile(passes):
         again = r.render().rgb
         assert (again[1] == 0).all()
         assert torch.equal(again[0], rgb[0]) and torch.equal(again[2], rgb[2])
+        # The sky copied in for the next frame right after a read: what a box drew is gone once it leaves.
+        for active in (True, False):
+            r.update("boxes", position=torch.tensor([0.0, 0.0, 2.0], dtype=F64).expand(3, 1, 3),
+                     active=torch.full((3, 1), active))
+            boxed = r.render().rgb
+            assert torch.equal(boxed, again) != active
 
 
 def test_gray_output_and_aux_outputs_show_the_sky_as_background():
