@@ -177,6 +177,14 @@ class AppearanceRows:
             self.dirty = True
             self.version += 1
 
+    def plain_surfaces(self) -> torch.Tensor:
+        """[W, 2] bool: whether each world's floor and wall pattern leaves every factor 1 (plain, or no
+        contrast), so that a variant without patterns draws them to the same pixels."""
+        field = layout.APPEARANCE.fields
+        texels = [field[f"{surface}_pattern"].texel + 1 for surface in ("floor", "wall")]
+        factors = self.rows[:, texels, :3]  # [W, 2, 3]
+        return (factors == 1).all(-1)
+
     def light_directions(self) -> torch.Tensor:
         """[W, 3] float64 unit directions of each world's light (pointing from it)."""
         direction = self.values["light_direction"]

@@ -5,7 +5,10 @@ cameras, the world origins) and turns it into plain tensors laid out as layout.p
 - one instance row per world and instance of each group (static groups: one row each);
 - one view row per view: view-projection, world origin (hi + lo), near / far;
 - per group, the visible (view, instance) pairs, sorted by view, and for each pass of
-  the tile layout the range of pairs it draws.
+  the tile layout the range of pairs it draws. Under the "appearance" effect, a group whose
+  variant carries floor and wall patterns lists, within each pass, the pairs of worlds whose
+  patterns show first and those of plain worlds last (plain_counts), which the renderer draws
+  with the variant without patterns: the pattern maths runs only where a pattern shows.
 
 It writes straight into the tensors a backend hands it (`PackTargets`): views of the
 backend's buffer memory, so packing costs no copy of its own. Each stage runs only when
@@ -23,7 +26,7 @@ import torch
 from . import layout, skinning
 from .appearance import AppearanceRows
 from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
-from .scene import Scene, StaticGroup, check_depth_range
+from .scene import ROLES, Scene, StaticGroup, check_depth_range
 from .tiling import TileLayout
 from .transforms import look_at_quat, normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_to_matrix
 from .validation import FLOAT_DTYPES, as_tensor, check_finite, check_host, check_range, check_shape, describe
@@ -68,6 +71,7 @@ class GroupPacking:
     radius: float  # bounding sphere of the mesh at unit scale
     joints: int  # joint matrices per instance row (skinned groups; static ones are drawn in the bind pose)
     pass_ranges: list | None = None  # [(first pair, pair count)] per pass
+    plain_counts: list | None = None  # per pass, the last pairs of its range that show no pattern (surface groups)
     frustum_pause: int = 0  # frames left without frustum tests (see CULL_KEEPS)
     frustum_culled: bool = False  # whether the current pair list came from a frustum test
     static_bounds: tuple | None = None  # (centres, radii) of a static group for the current origins
@@ -99,6 +103,8 @@ class FramePacker:
         self._mount_per_view = None  # (offset [W, A, 3], tilt [W, A, 3, 3]) once set_cameras gave mount_*
         # Each world's look (the "appearance" effect), packed when it changed.
         self.appearance = AppearanceRows(scene) if "appearance" in scene.effects else None
+        self.surface_roles = surface_roles(scene)
+        self._plain_worlds: dict[str, torch.Tensor] = {}  # surface group -> [W] bool: no pattern shows
         self.state: dict[str, dict[str, torch.Tensor]] = {}
         for name, group in scene.groups.items():
             C = group.capacity
@@ -311,6 +317,7 @@ class FramePacker:
         if self.appearance is not None and self.appearance.dirty:
             targets.appearance().copy_(self.appearance.rows.reshape(-1))
             self.appearance.dirty = False
+            self._split_surfaces()
         self._dirty.clear()
         packed = time.perf_counter()
         self._cull(set(packed_groups), cameras_moved, targets)
@@ -456,22 +463,44 @@ class FramePacker:
             self._candidate_cache[name] = (candidate, int(candidate.sum()))
         return self._candidate_cache[name]
 
+    def _split_surfaces(self):
+        """Which worlds show no pattern on each surface group (after the looks changed); their pairs
+        are listed again."""
+        plain = self.appearance.plain_surfaces()  # [W, 2]: floor, wall
+        for name, roles in self.surface_roles.items():
+            self._plain_worlds[name] = plain[:, [role - 1 for role in roles]].all(-1)
+            self._mask_dirty.add(name)
+
     def _store_pairs(self, name: str, pairs: torch.Tensor | None, culled: bool, targets: PackTargets):
         """Write a group's drawn pairs (None: every pair of a static group) and split them per pass."""
         packing = self.groups[name]
         total = self.scene.num_views * packing.count
         if pairs is None:
             pairs = torch.arange(total, dtype=torch.int32)
+        if self.tiles.num_passes == 1:
+            packing.pass_ranges = [(0, len(pairs))]
+        else:
+            starts = torch.tensor([self.tiles.pass_views(p).start * packing.count
+                                   for p in range(self.tiles.num_passes)] + [total], dtype=torch.int32)
+            bounds = torch.searchsorted(pairs, starts).tolist()
+            packing.pass_ranges = [(bounds[p], bounds[p + 1] - bounds[p]) for p in range(self.tiles.num_passes)]
+        plain_worlds = self._plain_worlds.get(name)
+        if plain_worlds is not None:
+            pairs, packing.plain_counts = self._plain_last(pairs, plain_worlds, packing)
         if len(pairs):
             targets.pairs(name)[: len(pairs)] = pairs
         packing.frustum_culled = culled
-        if self.tiles.num_passes == 1:
-            packing.pass_ranges = [(0, len(pairs))]
-            return
-        starts = torch.tensor([self.tiles.pass_views(p).start * packing.count for p in range(self.tiles.num_passes)]
-                              + [total], dtype=torch.int32)
-        bounds = torch.searchsorted(pairs, starts).tolist()
-        packing.pass_ranges = [(bounds[p], bounds[p + 1] - bounds[p]) for p in range(self.tiles.num_passes)]
+
+    def _plain_last(self, pairs: torch.Tensor, plain_worlds: torch.Tensor, packing: GroupPacking):
+        """(pairs, plain count per pass): within each pass's range, the pairs of worlds that show a
+        pattern, then those of plain worlds, each still in view order (a stable sort)."""
+        plain = plain_worlds[pairs.long() // (packing.count * self.scene.agents_per_world)]
+        passes = len(packing.pass_ranges)
+        pass_of = torch.repeat_interleave(torch.arange(passes), torch.tensor([n for _, n in packing.pass_ranges]))
+        counts = torch.zeros(passes, dtype=torch.int64).index_add_(0, pass_of, plain.long())
+        if 0 < int(counts.sum()) < len(pairs):
+            pairs = pairs[torch.sort(pass_of * 2 + plain.long(), stable=True).indices]
+        return pairs, counts.tolist()
 
 
 def _float_arg(name, value, shape):
@@ -497,3 +526,15 @@ def _broadcast_arg(name, value, shape):
 def _indices(table: layout.RowLayout, leading: int) -> dict:
     """{field: index tuple} into rows viewed as [*leading dims, texels, 4]."""
     return {name: (slice(None),) * leading + table[name] for name in table.fields}
+
+
+def surface_roles(scene: Scene) -> dict[str, tuple[int, ...]]:
+    """{group: the role codes (scene.ROLES) of its instances} of the groups whose shader variants carry
+    the appearance effect's floor and wall patterns: those with a role, when the scene declares the
+    effect with surface_patterns (static groups first, as drawn)."""
+    if "appearance" not in scene.effects or not scene.surface_patterns:
+        return {}
+    roles = {name: () if group.role is None else tuple(sorted(set(group.role.tolist()) - {0}))
+             for name, group in scene.static.items()}
+    roles.update((name, (ROLES[group.role],) if ROLES[group.role] else ()) for name, group in scene.groups.items())
+    return {name: codes for name, codes in roles.items() if codes}

@@ -9,12 +9,14 @@ the buffer textures' memory; this module owns the GL objects, draws and reads ba
    instances), and list the visible (view, instance) pairs when anything moved;
 3. one draw per mesh group and framebuffer with instance count = visible pairs; the
    vertex shader places view v in its tile (one column of tiles per framebuffer) and
-   clips it to that tile;
+   clips it to that tile (under the appearance effect, a floor or wall group takes two:
+   the worlds whose pattern shows, then the plain ones with the variant without patterns);
 4. once every framebuffer is drawn, one GL read per framebuffer straight into the
    batch tensor (marl_render/readback.py).
 """
 from __future__ import annotations
 
+import functools
 import os
 import time
 from dataclasses import dataclass
@@ -59,6 +61,7 @@ class DrawGroup:
     instances: object  # float32 buffer texture (packing.py writes it)
     pairs: object  # int32 buffer texture: visible view * count + instance
     pass_nodes: list | None = None  # [(NodePath, PTA_int pair offset, instance count drawn)] per pass
+    plain_nodes: list | None = None  # the same for the variant without patterns (packing.py: plain_counts)
 
 
 class _PandaTargets:
@@ -357,14 +360,12 @@ class BatchRenderer:
             node.set_bin("fixed", order)
             node.node().set_bounds(OmniBoundingVolume())
             node.node().set_final(True)
-            role = 0 if static else ROLES[group.role]
-            surface = self.scene.surface_patterns and (bool(group.role.any()) if static else bool(role))
-            defines = shaders.defines_for(self.effects, static=static, textured=textured,
-                                          flat=procedural and mesh.flat, corners=procedural,
-                                          gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf,
-                                          joints=joints, influences=mesh.influences if joints else 4,
-                                          role=role, surface=surface)
-            node.set_shader(shaders.compiled(defines))
+            variant = functools.partial(
+                shaders.defines_for, self.effects, static=static, textured=textured, flat=procedural and mesh.flat,
+                corners=procedural, gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf, joints=joints,
+                influences=mesh.influences if joints else 4, role=0 if static else ROLES[group.role])
+            surface = group.name in self.packer.surface_roles
+            node.set_shader(shaders.compiled(variant(surface=surface)))
             if textured and "texture" in self.effects:
                 node.set_texture(panda_texture(group.texture, group.name), 1)
             packing = self.packer.groups[group.name]
@@ -376,19 +377,27 @@ class BatchRenderer:
             node.set_shader_input("pairs", draw.pairs)
             node.set_shader_input("capacity", int_input(count))
             node.set_shader_input("segment_base", int_input(group.segment_base))
-            # One copy of the node per framebuffer (they share the geometry), each with its
-            # own pair offset and instance count.
-            draw.pass_nodes = []
-            for index, render_pass in enumerate(self._passes):
-                if index == 0:
-                    node.reparent_to(render_pass.root)
-                copy = node if index == 0 else node.copy_to(render_pass.root)
-                offset = int_input(0)  # updated in place (a new PTA would make a new render state)
-                copy.set_shader_input("pair_offset", offset)
-                draw.pass_nodes.append([copy, offset, None])
+            if surface:  # the worlds whose floors or walls show no pattern: the variant without
+                plain = node.copy_to(NodePath())
+                plain.set_shader(shaders.compiled(variant(surface=False)))
+                draw.plain_nodes = self._per_pass(plain)
+            draw.pass_nodes = self._per_pass(node)
             self._groups[group.name] = draw
             if static:
                 self.packer.pack_static(group, self._targets.instances(group.name))
+
+    def _per_pass(self, node) -> list:
+        """One copy of the node in every framebuffer (they share the geometry), each with its own pair
+        offset and instance count: [[NodePath, PTA_int pair offset, instance count drawn]] per pass."""
+        entries = []
+        for index, render_pass in enumerate(self._passes):
+            if index == 0:
+                node.reparent_to(render_pass.root)
+            copy = node if index == 0 else node.copy_to(render_pass.root)
+            offset = int_input(0)  # updated in place (a new PTA would make a new render state)
+            copy.set_shader_input("pair_offset", offset)
+            entries.append([copy, offset, None])
+        return entries
 
     # ------------------------------------------------------------------ public updates
     @one_thread
@@ -488,35 +497,46 @@ class BatchRenderer:
         started = time.perf_counter()
         for index in range(len(self._passes)):
             for name, draw in self._groups.items():
-                first, count = self.packer.groups[name].pass_ranges[index]
-                entry = draw.pass_nodes[index]
-                node, offset, drawn = entry
-                offset[0] = first
-                if count == drawn:
-                    continue
-                if count == 0:  # Panda3D would draw an instance count of 0 once
-                    node.hide()
-                else:
-                    if not drawn:
-                        node.show()
-                    node.set_instance_count(count)
-                entry[2] = count
+                packing = self.packer.groups[name]
+                first, count = packing.pass_ranges[index]
+                if draw.plain_nodes is not None:
+                    plain = packing.plain_counts[index]
+                    count -= plain
+                    self._set_draw(draw.plain_nodes[index], first + count, plain)
+                self._set_draw(draw.pass_nodes[index], first, count)
         if self._sky is not None:
             if self._passes[0].texture_ids is None:  # the colour textures are made by the first frame
                 self._render_frame()
                 self._texture_ids()
             for index, render_pass in enumerate(self._passes):
-                self._sky.copy_into(index, render_pass.texture_ids["color"])
+                self._sky.fill(index, render_pass.texture_ids["color"])
         self._render_frame()
         copy_seconds = 0.0
-        for render_pass in self._passes:
+        for index, render_pass in enumerate(self._passes):
             copy_seconds += self._read_pass(render_pass, rgb, depth, segmentation)
+            if self._sky is not None:  # the next frame's sky, while llvmpipe still draws the passes after this one
+                self._sky.refill(index, render_pass.texture_ids["color"])
         self._check_shaders()  # after the reads: Panda3D reports some failures of the frame only then
         self.last_timings["gl"] = time.perf_counter() - started - copy_seconds
         self.last_timings["copy"] = copy_seconds
         rgb = rgb.view((W, A) + rgb_shape[1:])
         return Frame(rgb, None if depth is None else depth.view(W, A, height, width),
                      None if segmentation is None else segmentation.view(W, A, height, width))
+
+    @staticmethod
+    def _set_draw(entry: list, first: int, count: int) -> None:
+        """Point a pass's node (entry of DrawGroup.pass_nodes) at `count` pairs from `first`."""
+        node, offset, drawn = entry
+        offset[0] = first
+        if count == drawn:
+            return
+        if count == 0:  # Panda3D would draw an instance count of 0 once
+            node.hide()
+        else:
+            if not drawn:
+                node.show()
+            node.set_instance_count(count)
+        entry[2] = count
 
     def _render_frame(self) -> None:
         """Every pass is drawn in one frame before any is read: llvmpipe rasterises one
@@ -548,7 +568,8 @@ class BatchRenderer:
         """A variant that failed to compile draws nothing: raise with the GL log instead."""
         log = self._context.drain_log()
         failed = [name for name, draw in self._groups.items()
-                  if any(node.get_shader().get_error_flag() for node, _, _ in draw.pass_nodes)]
+                  if any(entry[0].get_shader().get_error_flag()
+                         for entry in draw.pass_nodes + (draw.plain_nodes or []))]
         failed += self.shadow_pass.failed_groups() if self.shadow_pass is not None else []
         # A shader input Panda3D could not bind (a NaN uniform was one way) fails the draw without an
         # error flag and leaves the variant unusable for every later renderer: a failure too.

@@ -11,6 +11,10 @@ to a frame, the copy (a memcpy) about 2 ms. The images cost 4 bytes per framebuf
 uploaded again only over the views whose sky changed. MSAA resolves its own buffer over the
 texture, so the effect refuses multisamples (supersample works).
 
+The copy for the next frame is made as soon as a framebuffer has been read (`refill`), while
+llvmpipe still rasterises the framebuffers after it: the main thread would otherwise wait for them.
+A frame whose framebuffer was not refilled, or whose sky changed since, copies first (`fill`).
+
 The GL objects are made and used with the renderer's context current (inside its render).
 """
 from __future__ import annotations
@@ -39,6 +43,7 @@ class SkyImages:
         self._uploaded = torch.zeros(layout.num_passes, dtype=torch.bool)  # passes that have been uploaded once
         self._held = torch.zeros(layout.num_views, 4, dtype=torch.uint8)  # [views, 4]: what the images hold
         self._bytes = self._held.clone()  # [views, 4]: what they should hold (set_sky)
+        self._ready = [False] * layout.num_passes  # the pass's framebuffer holds the current sky (refill)
         functions = gl_functions()
         for index in range(layout.num_passes):
             name = ctypes.c_uint()
@@ -57,6 +62,18 @@ class SkyImages:
             rgb = (rgb @ GRAY_WEIGHTS)[:, None].expand(-1, 3)
         world_bytes = torch.cat((torch.round(rgb.clamp(0, 1) * 255), torch.full_like(rgb[:, :1], 255)), -1)
         self._bytes = world_bytes.to(torch.uint8).repeat_interleave(self.agents, dim=0)  # [views, 4]
+        self._ready = [False] * self.layout.num_passes
+
+    def fill(self, index: int, target: int) -> None:
+        """Before pass `index` is drawn: its colour texture `target` shows the current sky."""
+        if not self._ready[index]:
+            self.copy_into(index, target)
+        self._ready[index] = False  # the frame draws over it
+
+    def refill(self, index: int, target: int) -> None:
+        """After pass `index` was read: the sky for the next frame, copied now."""
+        self.copy_into(index, target)
+        self._ready[index] = True
 
     def copy_into(self, index: int, target: int) -> None:
         """Bring pass `index`'s image up to date, then copy it over the colour texture `target`."""

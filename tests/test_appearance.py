@@ -66,6 +66,12 @@ def test_each_world_shows_its_own_sky_in_every_tile(passes):
         again = r.render().rgb
         assert (again[1] == 0).all()
         assert torch.equal(again[0], rgb[0]) and torch.equal(again[2], rgb[2])
+        # The sky copied in for the next frame right after a read: what a box drew is gone once it leaves.
+        for active in (True, False):
+            r.update("boxes", position=torch.tensor([0.0, 0.0, 2.0], dtype=F64).expand(3, 1, 3),
+                     active=torch.full((3, 1), active))
+            boxed = r.render().rgb
+            assert torch.equal(boxed, again) != active
 
 
 def test_gray_output_and_aux_outputs_show_the_sky_as_background():
@@ -146,6 +152,29 @@ def test_a_checker_darkens_every_other_cell_by_the_contrast():
     # Stripes run across x: a column of pixels is one shade, a row alternates.
     stripes = rgb[2].int().sum(-1)
     assert (stripes == stripes[:1]).all() and len(stripes[0].unique()) == 2
+
+
+def test_plain_worlds_take_the_variant_without_patterns_and_keep_their_pixels(monkeypatch):
+    """Floors and walls whose pattern leaves every factor 1 (plain, or no contrast) are drawn by the
+    variant without patterns, after the patterned pairs of their pass: the same pixels as drawing every
+    pair with the patterns."""
+    scene = mr.Scene(num_worlds=4, agents_per_world=1, resolution=12, effects=("lighting", "appearance"))
+    scene.add_static("floor", "plane", position=[[0, 0, 0]], scale=[[20, 20, 1]], role="floor")
+    scene.add_static("walls", "box", position=[[0, 2, 0.5], [2, 0, 0.5]], scale=[[4, 0.2, 1], [0.2, 4, 1]], role="wall")
+    looked = {"floor_pattern": torch.tensor([1, 0, 2, 3]), "wall_pattern": torch.tensor([0, 4, 1, 2]),
+              "pattern_contrast": torch.tensor([[0.4, 0.4], [0.4, 0.4], [0.4, 0.4], [0.4, 0.0]]), "pattern_scale": 3.0}
+    frames, nowhere_plain = [], lambda rows: torch.zeros(4, 2, dtype=torch.bool)
+    for split in (True, False):
+        if not split:  # every pair through the patterns, as before the split
+            monkeypatch.setattr(looks.AppearanceRows, "plain_surfaces", nowhere_plain)
+        with mr.BatchRenderer(scene) as r:
+            look_from(r, [-1.0, -1.5, 1.0], mr.quat_from_yaw_pitch_roll(torch.tensor(-0.6), torch.tensor(-0.3)))
+            r.set_appearance(**looked)
+            frames.append(r.render().rgb)
+            plain = [r.packer.groups[name].plain_counts for name in ("floor", "walls")]
+        assert plain == ([[1], [2 * 2]] if split else [[0], [0]])  # floor: world 1; walls: worlds 0 and 3
+    assert torch.equal(frames[0], frames[1])
+    assert len({frames[0][w].numpy().tobytes() for w in range(4)}) == 4
 
 
 def test_a_scene_without_surface_patterns_compiles_none_and_refuses_them(monkeypatch):
