@@ -1,0 +1,24 @@
+"""The fresh adversarial pass of issue 24's surfaces (docs/reliability/round4-recheck.md): each test
+failed before its fix. The tasks are tests/round4_probe.py's Probe with one hook changed."""
+from __future__ import annotations
+
+import pytest
+
+from marl_render.envs import make_aec_env
+
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
+
+
+def test_aec_refuses_a_bad_action_when_its_agent_gives_it():
+    """parallel_to_aec stored agent_0's bad action, and the last agent's turn then raised for it, every
+    turn until a reset."""
+    aec = make_aec_env("spread", resolution=8, max_steps=4)
+    aec.reset(seed=1)
+    with pytest.raises(ValueError, match=r"actions\['agent_0'\] must be an int in \[0, 5\).*got 999"):
+        aec.step(999)
+    assert aec.agent_selection == "agent_0"
+    for agent in ("agent_0", "agent_1", "agent_2"):  # the bad action was not kept: the turn goes round
+        assert aec.agent_selection == agent
+        aec.step(1)
+    assert aec.agent_selection == "agent_0" and aec.unwrapped.core.step_count.tolist() == [1]
+    aec.close()
