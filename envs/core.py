@@ -114,6 +114,9 @@ from .scenario import MAX_COUNT, Layout, Scenario
 OBS_KEYS = ("pixels", "depth", "state", "lidar", "agent_id", "action_mask")
 DRIVER_INFO = ("step_count", "done_worlds", "autoreset_worlds", "final_obs", "level",
                "final_level")  # info names the driver fills in
+# ... and those the gymnasium front ends fill in: the vector env's "final_info" and its mask "_" + key
+# of every key, and RecordEpisodeStatistics' "episode"
+GYMNASIUM_INFO = ("final_info", "episode")
 
 
 def _from_user(name: str, value):
@@ -701,11 +704,11 @@ class BatchedEnv:
         for key, dtype in keys.items():
             if not isinstance(key, str) or not isinstance(dtype, torch.dtype):
                 raise TypeError(f"{name}.info_keys must map str names to torch dtypes, got {key!r}: {describe(dtype)}")
-        reserved = sorted(set(keys) & set(DRIVER_INFO))
+        reserved = sorted(key for key in keys if key in DRIVER_INFO + GYMNASIUM_INFO or key.startswith("_"))
         if reserved:
             raise ValueError(f"{name}.info_keys names {reserved}, which the driver's own info entries use "
-                             f"({list(DRIVER_INFO)}); rename the task's statistic(s) (they would replace the "
-                             f"driver's values, or be replaced by them)")
+                             f"({list(DRIVER_INFO + GYMNASIUM_INFO)}, and gymnasium's masks '_' + key); rename the "
+                             f"task's statistic(s) (they would replace the driver's values, or be replaced by them)")
 
     def _checked_bounds(self, bounds) -> dict:
         """The scenario's state_bounds(), checked once: fields of the state, (low, high) numbers or

@@ -3,8 +3,10 @@ failed before its fix. The tasks are tests/round4_probe.py's Probe with one hook
 from __future__ import annotations
 
 import pytest
+import torch
 
 from marl_render.envs import make_aec_env
+from round4_probe import Probe, probe
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
@@ -22,3 +24,12 @@ def test_aec_refuses_a_bad_action_when_its_agent_gives_it():
         aec.step(1)
     assert aec.agent_selection == "agent_0" and aec.unwrapped.core.step_count.tolist() == [1]
     aec.close()
+
+
+@pytest.mark.parametrize("key", ["_seen_sum", "final_info", "episode"])
+def test_info_keys_may_not_take_gymnasium_names(key):
+    """A task's "_x" replaced the vector env's mask of "x" (and vanished from the single gymnasium env);
+    "final_info" and "episode" are the vector env's and RecordEpisodeStatistics' own."""
+    task = type("Named", (Probe,), {"info_keys": {"seen_sum": torch.float32, key: torch.float32}})
+    with pytest.raises(ValueError, match=rf"Named.info_keys names \['{key}'\], which the driver's own"):
+        probe(task)
