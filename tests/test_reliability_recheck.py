@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from marl_render.envs import make_aec_env
-from round4_probe import Probe, probe
+from marl_render.envs.planar import Obstacles
+from round4_probe import Probe, W, probe
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
@@ -32,4 +33,17 @@ def test_info_keys_may_not_take_gymnasium_names(key):
     "final_info" and "episode" are the vector env's and RecordEpisodeStatistics' own."""
     task = type("Named", (Probe,), {"info_keys": {"seen_sum": torch.float32, key: torch.float32}})
     with pytest.raises(ValueError, match=rf"Named.info_keys names \['{key}'\], which the driver's own"):
+        probe(task)
+
+
+@pytest.mark.parametrize("boxes, error", [
+    (lambda: Obstacles(torch.zeros(W, 1, 2), torch.full((W, 1, 2), -0.2), torch.zeros(W, 1)),
+     r"half_extent must be >= 0 .*got values in \[-0.2, -0.2\]"),  # was taken as no box
+    (lambda: Obstacles(torch.zeros(1, 1, 2), torch.full((1, 1, 2), 0.2), torch.zeros(1, 1)),
+     r"center \[2, K, 2\].*got center: tensor of shape \(1, 1, 2\)"),  # was world 0's box in every world
+])
+def test_obstacles_the_physics_would_misread_are_refused(boxes, error):
+    task = type("Boxed", (Probe,), {"physics_terms": frozenset({"walls", "drag", "obstacles"}),
+                                    "obstacles": lambda self, state: boxes()})
+    with pytest.raises(ValueError, match="Boxed.obstacles.*" + error):
         probe(task)
