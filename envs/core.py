@@ -795,7 +795,7 @@ class BatchedEnv:
             levels = torch.where(mask.cpu(), chosen, levels)
             keys = level_sets.level_keys(levels, self.name, self.scenario.params, self.num_agents)
             fresh = self.scenario.spawn_level(level_sets.KeyedDraws(keys))
-        self._check_state(where, fresh)
+        fresh = self._check_state(where, fresh)
         self._check_values(explicit_state.fields(fresh), where + "'s state.{key}")
         if looks is not None:  # drawn after spawn: the first layouts match those with appearance off
             fresh_ids = levels if levels is not None else torch.randint(
@@ -825,7 +825,7 @@ class BatchedEnv:
         if not (isinstance(result, tuple) and len(result) == 4):
             raise TypeError(f"{where} must return (state, reward, terminated, info), got {describe(result)}")
         state, reward, terminated, info = result
-        self._check_state(where, state)
+        state = self._check_state(where, state)
         W, A = self.num_worlds, self.num_agents
         _check_tensor(f"{where}'s reward", reward, (W, A), "float", self.device)
         _check_tensor(f"{where}'s terminated", terminated, (W, A), "bool", self.device)
@@ -840,14 +840,21 @@ class BatchedEnv:
         if not math.isfinite(reward.sum().item()) and not bool(torch.isfinite(reward).all()):
             raise ValueError(f"{where}'s reward must be finite, got NaN or Inf in world(s) "
                              f"{(~torch.isfinite(reward)).any(1).nonzero()[:, 0].tolist()}")
-        return result
+        return state, reward, terminated, info
 
-    def _check_state(self, where: str, state) -> None:
+    def _check_state(self, where: str, state):
+        """A hook's new state, checked field by field; cut from autograd where a field requires grad (a
+        task's nn.Parameter, say): nothing the env keeps requires grad."""
         if type(state) is not type(self.sim):
             raise TypeError(f"{where} must return a {type(self.sim).__name__} (the class of initial_state()), "
                             f"got {describe(state)}")
+        graphed = {}
         for name, want in explicit_state.fields(self.sim).items():
-            _check_tensor(f"{where}'s state.{name}", getattr(state, name), tuple(want.shape), want.dtype, want.device)
+            value = getattr(state, name)
+            _check_tensor(f"{where}'s state.{name}", value, tuple(want.shape), want.dtype, want.device)
+            if value.requires_grad:
+                graphed[name] = value.detach()
+        return dataclasses.replace(state, **graphed) if graphed else state
 
     def _observe(self, sim, alive: torch.Tensor, full: bool) -> dict:
         """The observations of state `sim`: a render and the task's observation hooks, as tensors the

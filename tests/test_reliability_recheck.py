@@ -2,6 +2,8 @@
 failed before its fix. The tasks are tests/round4_probe.py's Probe with one hook changed."""
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -47,3 +49,15 @@ def test_obstacles_the_physics_would_misread_are_refused(boxes, error):
                                     "obstacles": lambda self, state: boxes()})
     with pytest.raises(ValueError, match="Boxed.obstacles.*" + error):
         probe(task)
+
+
+def test_a_state_field_that_requires_grad_is_not_kept():
+    """rules returning a field that requires grad (a task's nn.Parameter) was kept as it was."""
+    def rules(self, before, moved, actions, alive, generator):
+        state, reward, terminated, info = Probe.rules(self, before, moved, actions, alive, generator)
+        return dataclasses.replace(state, flag=state.flag.clone().requires_grad_()), reward, terminated, info
+    env = probe(type("Graphed", (Probe,), {"rules": rules}))
+    env.reset()
+    env.step(env.random_actions())
+    assert not any(value.requires_grad for value in dataclasses.asdict(env.sim).values())
+    env.close()
