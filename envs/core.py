@@ -637,8 +637,15 @@ class BatchedEnv:
         """The scenario's action mask [W, A, num_actions] of state `sim`, checked (the hook's own tensor:
         it may be a constant or the state's; copy it before handing it out)."""
         mask = self.scenario.action_mask(sim, alive)
-        _check_tensor(f"{type(self.scenario).__name__}.action_mask", mask, (self.num_worlds, self.num_agents,
-                                                                           self.num_actions), "bool", self.device)
+        where = f"{type(self.scenario).__name__}.action_mask"
+        _check_tensor(where, mask, (self.num_worlds, self.num_agents, self.num_actions), "bool", self.device)
+        if not self._fresh_masks:  # an agent in the episode with no valid action cannot act, masked or not
+            stuck = alive & ~mask.any(-1)
+            if bool(stuck.any()):
+                world, agent = stuck.nonzero()[0].tolist()
+                raise ValueError(f"{where} must allow at least one action to every agent in the episode, got none "
+                                 f"for {int(stuck.sum())} agent(s), e.g. world {world} agent "
+                                 f"{self.agent_names[agent]!r}")
         return mask
 
     def _check_allowed(self, actions: torch.Tensor) -> None:

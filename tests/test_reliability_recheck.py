@@ -61,3 +61,15 @@ def test_a_state_field_that_requires_grad_is_not_kept():
     env.step(env.random_actions())
     assert not any(value.requires_grad for value in dataclasses.asdict(env.sim).values())
     env.close()
+
+
+def test_an_action_mask_that_allows_nothing_is_named():
+    """With enforce_action_mask=True such a mask made every step fail on the actions (random_actions' too),
+    "allowed: []", until a reset; without it, a masked policy's logits were all -inf."""
+    def action_mask(self, state, alive):
+        return self.everything & torch.tensor([False, True])[None, :, None]  # agent_0 may do nothing
+    env = probe(type("Stuck", (Probe,), {"action_mask": action_mask}), enforce_action_mask=True)
+    with pytest.raises(ValueError, match="Stuck.action_mask must allow at least one action to every agent in the "
+                                         "episode, got none for 2 agent.*world 0 agent 'agent_0'"):
+        env.reset()
+    env.close()
