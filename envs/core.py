@@ -191,6 +191,7 @@ class BatchedEnv:
 
     def _build(self, scenario, options, params) -> None:
         self._lock = threading.RLock()  # see _env_call
+        self._running_hooks = False  # see _all_or_nothing
         self._closed = True  # until fully built: close() and __del__ then do nothing
         if not (isinstance(scenario, type) and issubclass(scenario, Scenario)):
             raise TypeError(f"scenario must be a Scenario subclass (envs/scenario.py), got {describe(scenario)}")
@@ -595,6 +596,7 @@ class BatchedEnv:
         with self._lock:  # not _env_call: finalisers at interpreter exit may find torch's modules gone
             if self._closed:
                 return
+            self._refuse_reentry()
             self._closed = True
             self.views.close()
 
@@ -749,9 +751,11 @@ class BatchedEnv:
         is interrupted, the generator and seed are put back and nothing else has changed. The
         renderer may hold the uncommitted state's instances by then: its next sync sends all; and the
         uncommitted worlds' looks: the committed ones are put back."""
+        self._refuse_reentry()
         rng, seed = self.generator.get_state(), self.seed
         held = self._held()
         versions = [_version(tensor) for tensor in held.values()]
+        self._running_hooks = True
         try:
             yield
         except BaseException as error:
@@ -769,6 +773,16 @@ class BatchedEnv:
                                    f"hooks must return new tensors, never write into the state they are given"
                                    ) from error
             raise
+        finally:
+            self._running_hooks = False
+
+    def _refuse_reentry(self) -> None:
+        """A call that changes the env, made by one of its hooks (the same thread: others wait for the
+        lock), is refused: the outer call would commit over what it did, or run on with the renderer closed."""
+        if self._running_hooks:
+            raise RuntimeError(f"a hook of {type(self.scenario).__name__} called the env's step, reset, reset_worlds, "
+                               f"reset_to_level, set_state or close while the env ran its hooks: hooks must not "
+                               f"call the env (they get the state and return new values)")
 
     def _held(self) -> dict:
         """{name: tensor} of the state the env has committed (what a failed call must leave as it was)."""

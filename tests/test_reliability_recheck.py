@@ -9,7 +9,7 @@ import torch
 
 from marl_render.envs import make_aec_env
 from marl_render.envs.planar import Obstacles
-from round4_probe import Probe, W, probe
+from round4_probe import Probe, W, assert_same, probe
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
@@ -72,4 +72,22 @@ def test_an_action_mask_that_allows_nothing_is_named():
     with pytest.raises(ValueError, match="Stuck.action_mask must allow at least one action to every agent in the "
                                          "episode, got none for 2 agent.*world 0 agent 'agent_0'"):
         env.reset()
+    env.close()
+
+
+@pytest.mark.parametrize("call", ["step", "reset", "close"])
+def test_a_hook_that_calls_the_env_is_refused(call):
+    """rules calling env.reset() was taken and then overwritten by the step's commit (silently); env.step()
+    was committed under the outer step's; env.close() left the outer step to fail in the closed renderer."""
+    def rules(self, before, moved, actions, alive, generator):
+        env = self.env_under_test
+        env.step(env.random_actions()) if call == "step" else getattr(env, call)()
+        return Probe.rules(self, before, moved, actions, alive, generator)
+    env = probe(type("Reentrant", (Probe,), {"rules": rules}))
+    env.reset()
+    env.scenario.env_under_test = env
+    before = env.get_state()
+    with pytest.raises(RuntimeError, match="a hook of Reentrant called the env's step, reset.*hooks must not call"):
+        env.step(env.random_actions())
+    assert_same(env.get_state(), before)
     env.close()
