@@ -912,9 +912,13 @@ class BatchedEnv:
 
     def _owned(self, hook: str, value, width: int) -> torch.Tensor:
         """A hook's per-agent observation [W, A, width], checked, as a float32 copy the caller owns."""
-        _check_tensor(f"{type(self.scenario).__name__}.{hook}", value, (self.num_worlds, self.num_agents, width),
-                      "float", self.device)
-        return value.to(dtype=torch.float32, memory_format=torch.contiguous_format, copy=True)
+        where = f"{type(self.scenario).__name__}.{hook}"
+        _check_tensor(where, value, (self.num_worlds, self.num_agents, width), "float", self.device)
+        owned = value.to(dtype=torch.float32, memory_format=torch.contiguous_format, copy=True)
+        if not math.isfinite(owned.sum().item()) and not bool(torch.isfinite(owned).all()):  # as the reward's
+            raise ValueError(f"{where} must return finite values, got NaN or Inf in world(s) "
+                             f"{(~torch.isfinite(owned)).flatten(1).any(1).nonzero()[:, 0].tolist()}")
+        return owned
 
     def _name_non_finite(self, sim, error: BaseException) -> None:
         """The renderer refused the instances of a state the step hook made: where fields of it are

@@ -91,3 +91,14 @@ def test_a_hook_that_calls_the_env_is_refused(call):
         env.step(env.random_actions())
     assert_same(env.get_state(), before)
     env.close()
+
+
+def test_a_non_finite_state_observation_is_named():
+    """observation() returning NaN went out as it was, while a NaN state or reward is named."""
+    def observation(self, state, alive):
+        return state.seen * torch.tensor([1.0, float("nan")])[:, None, None]  # world 1's
+    env = probe(type("Blind", (Probe,), {"observation": observation}), state_obs=True)
+    with pytest.raises(ValueError, match=r"Blind.observation must return finite values, got NaN or Inf in world\(s\) "
+                                         r"\[1\]"):
+        env.reset()
+    env.close()
