@@ -3,12 +3,15 @@ failed before its fix. The tasks are tests/round4_probe.py's Probe with one hook
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import pytest
 import torch
 
+from marl_render.baselines.networks import Actor
 from marl_render.envs import make_aec_env
 from marl_render.envs.planar import Obstacles
+from marl_render.policies import load_policy
 from round4_probe import Probe, W, assert_same, probe
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
@@ -102,3 +105,33 @@ def test_a_non_finite_state_observation_is_named():
                                          r"\[1\]"):
         env.reset()
     env.close()
+
+
+def _run_folder(folder, hp=None, weights=None) -> str:
+    """A run folder as the trainer writes it, of a tiny actor (16 px, hidden 16), with `hp` changed."""
+    folder.mkdir()
+    torch.manual_seed(0)
+    state = Actor("pixels", (16, 16, 3), 2, 5, 16).state_dict() if weights is None else weights
+    torch.save(state, folder / "actor.pt")
+    hp = {"resolution": 16, "frames": 1, "hidden": 16, "encoder": "conv", "precision": "float32", **(hp or {})}
+    (folder / "result.json").write_text(json.dumps({"env": "spread", "obs": "pixels", "hyperparameters": hp}))
+    return str(folder)
+
+
+@pytest.mark.parametrize("hp, actor, error", [
+    ({}, b"PK\x03\x04 truncated", r"actor.pt is not a state_dict that torch.save wrote"),  # torch: "weights_only=False"
+    ({}, "nan", r"actor.pt holds NaN or Inf weights in \['head.4.weight'\]"),  # acted on NaN logits, silently
+    ({"resolution": 10 ** 6}, None, r"hyperparameters\['resolution'\] must be an int in \[1, 16384\], got 1000000"),
+    ({"frames": 0}, None, r"hyperparameters\['frames'\] must be an int in \[1, 64\], got 0"),  # a raw stride error
+    ({"resolution": 24}, None, r"actor.pt does not fit the actor that .*result.json describes"),
+])
+def test_load_policy_refuses_hostile_run_folders(tmp_path, hp, actor, error):
+    folder = _run_folder(tmp_path / "run", hp)
+    if isinstance(actor, bytes):
+        (tmp_path / "run" / "actor.pt").write_bytes(actor)
+    elif actor == "nan":
+        weights = torch.load(tmp_path / "run" / "actor.pt", weights_only=True)
+        weights["head.4.weight"][0, 0] = float("nan")
+        torch.save(weights, tmp_path / "run" / "actor.pt")
+    with pytest.raises(ValueError, match=error):
+        load_policy(folder)
