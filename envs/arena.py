@@ -248,8 +248,26 @@ class ArenaScenario(Scenario):
         return Step(*result)
 
     def _check_obstacles(self, obstacles) -> None:
-        """Boxes the physics would ignore are refused: drawn (by a Prop) but not solid is a silent bug."""
-        if obstacles is not None and "obstacles" not in self.physics.terms and obstacles.center.shape[1]:
+        """Boxes the physics would ignore are refused: drawn (by a Prop) but not solid is a silent bug;
+        so are boxes of one world broadcast to all, and negative (or NaN) half extents, which the
+        physics takes as no box."""
+        if obstacles is None:
+            return
+        where, W = f"{type(self).__name__}.obstacles", self.num_worlds
+        K = obstacles.center.shape[1] if isinstance(obstacles, planar.Obstacles) and obstacles.center.dim() == 3 else 0
+        want = f"None or planar.Obstacles(center [{W}, K, 2], half_extent [{W}, K, 2], angle [{W}, K]) of float tensors"
+        if not (isinstance(obstacles, planar.Obstacles) and all(
+                isinstance(part, Tensor) and part.is_floating_point() and part.device == self.device
+                for part in obstacles) and tuple(obstacles.center.shape) == (W, K, 2)
+                and tuple(obstacles.half_extent.shape) == (W, K, 2) and tuple(obstacles.angle.shape) == (W, K)):
+            given = (", ".join(f"{field}: {describe(part)}" for field, part in obstacles._asdict().items())
+                     if isinstance(obstacles, planar.Obstacles) else describe(obstacles))
+            raise ValueError(f"{where} must return {want} on {self.device}, got {given}")
+        if K and not bool((obstacles.half_extent >= 0).all()):
+            raise ValueError(f"{where}'s half_extent must be >= 0 (the box's half sizes along its own x and y), "
+                             f"got values in [{obstacles.half_extent.min().item():g}, "
+                             f"{obstacles.half_extent.max().item():g}]")
+        if "obstacles" not in self.physics.terms and K:
             raise ValueError(f"{type(self).__name__}.obstacles returns {obstacles.center.shape[1]} box(es) but "
                              f"physics_terms {sorted(self.physics.terms)} has no 'obstacles': add it, or the "
                              f"bodies pass through them")

@@ -114,6 +114,9 @@ from .scenario import MAX_COUNT, Layout, Scenario
 OBS_KEYS = ("pixels", "depth", "state", "lidar", "agent_id", "action_mask")
 DRIVER_INFO = ("step_count", "done_worlds", "autoreset_worlds", "final_obs", "level",
                "final_level")  # info names the driver fills in
+# ... and those the gymnasium front ends fill in: the vector env's "final_info" and its mask "_" + key
+# of every key, and RecordEpisodeStatistics' "episode"
+GYMNASIUM_INFO = ("final_info", "episode")
 
 
 def _from_user(name: str, value):
@@ -188,6 +191,7 @@ class BatchedEnv:
 
     def _build(self, scenario, options, params) -> None:
         self._lock = threading.RLock()  # see _env_call
+        self._running_hooks = False  # see _all_or_nothing
         self._closed = True  # until fully built: close() and __del__ then do nothing
         if not (isinstance(scenario, type) and issubclass(scenario, Scenario)):
             raise TypeError(f"scenario must be a Scenario subclass (envs/scenario.py), got {describe(scenario)}")
@@ -592,6 +596,7 @@ class BatchedEnv:
         with self._lock:  # not _env_call: finalisers at interpreter exit may find torch's modules gone
             if self._closed:
                 return
+            self._refuse_reentry()
             self._closed = True
             self.views.close()
 
@@ -634,8 +639,15 @@ class BatchedEnv:
         """The scenario's action mask [W, A, num_actions] of state `sim`, checked (the hook's own tensor:
         it may be a constant or the state's; copy it before handing it out)."""
         mask = self.scenario.action_mask(sim, alive)
-        _check_tensor(f"{type(self.scenario).__name__}.action_mask", mask, (self.num_worlds, self.num_agents,
-                                                                           self.num_actions), "bool", self.device)
+        where = f"{type(self.scenario).__name__}.action_mask"
+        _check_tensor(where, mask, (self.num_worlds, self.num_agents, self.num_actions), "bool", self.device)
+        if not self._fresh_masks:  # an agent in the episode with no valid action cannot act, masked or not
+            stuck = alive & ~mask.any(-1)
+            if bool(stuck.any()):
+                world, agent = stuck.nonzero()[0].tolist()
+                raise ValueError(f"{where} must allow at least one action to every agent in the episode, got none "
+                                 f"for {int(stuck.sum())} agent(s), e.g. world {world} agent "
+                                 f"{self.agent_names[agent]!r}")
         return mask
 
     def _check_allowed(self, actions: torch.Tensor) -> None:
@@ -701,11 +713,11 @@ class BatchedEnv:
         for key, dtype in keys.items():
             if not isinstance(key, str) or not isinstance(dtype, torch.dtype):
                 raise TypeError(f"{name}.info_keys must map str names to torch dtypes, got {key!r}: {describe(dtype)}")
-        reserved = sorted(set(keys) & set(DRIVER_INFO))
+        reserved = sorted(key for key in keys if key in DRIVER_INFO + GYMNASIUM_INFO or key.startswith("_"))
         if reserved:
             raise ValueError(f"{name}.info_keys names {reserved}, which the driver's own info entries use "
-                             f"({list(DRIVER_INFO)}); rename the task's statistic(s) (they would replace the "
-                             f"driver's values, or be replaced by them)")
+                             f"({list(DRIVER_INFO + GYMNASIUM_INFO)}, and gymnasium's masks '_' + key); rename the "
+                             f"task's statistic(s) (they would replace the driver's values, or be replaced by them)")
 
     def _checked_bounds(self, bounds) -> dict:
         """The scenario's state_bounds(), checked once: fields of the state, (low, high) numbers or
@@ -739,9 +751,11 @@ class BatchedEnv:
         is interrupted, the generator and seed are put back and nothing else has changed. The
         renderer may hold the uncommitted state's instances by then: its next sync sends all; and the
         uncommitted worlds' looks: the committed ones are put back."""
+        self._refuse_reentry()
         rng, seed = self.generator.get_state(), self.seed
         held = self._held()
         versions = [_version(tensor) for tensor in held.values()]
+        self._running_hooks = True
         try:
             yield
         except BaseException as error:
@@ -759,6 +773,16 @@ class BatchedEnv:
                                    f"hooks must return new tensors, never write into the state they are given"
                                    ) from error
             raise
+        finally:
+            self._running_hooks = False
+
+    def _refuse_reentry(self) -> None:
+        """A call that changes the env, made by one of its hooks (the same thread: others wait for the
+        lock), is refused: the outer call would commit over what it did, or run on with the renderer closed."""
+        if self._running_hooks:
+            raise RuntimeError(f"a hook of {type(self.scenario).__name__} called the env's step, reset, reset_worlds, "
+                               f"reset_to_level, set_state or close while the env ran its hooks: hooks must not "
+                               f"call the env (they get the state and return new values)")
 
     def _held(self) -> dict:
         """{name: tensor} of the state the env has committed (what a failed call must leave as it was)."""
@@ -792,7 +816,7 @@ class BatchedEnv:
             levels = torch.where(mask.cpu(), chosen, levels)
             keys = level_sets.level_keys(levels, self.name, self.scenario.params, self.num_agents)
             fresh = self.scenario.spawn_level(level_sets.KeyedDraws(keys))
-        self._check_state(where, fresh)
+        fresh = self._check_state(where, fresh)
         self._check_values(explicit_state.fields(fresh), where + "'s state.{key}")
         if looks is not None:  # drawn after spawn: the first layouts match those with appearance off
             fresh_ids = levels if levels is not None else torch.randint(
@@ -822,7 +846,7 @@ class BatchedEnv:
         if not (isinstance(result, tuple) and len(result) == 4):
             raise TypeError(f"{where} must return (state, reward, terminated, info), got {describe(result)}")
         state, reward, terminated, info = result
-        self._check_state(where, state)
+        state = self._check_state(where, state)
         W, A = self.num_worlds, self.num_agents
         _check_tensor(f"{where}'s reward", reward, (W, A), "float", self.device)
         _check_tensor(f"{where}'s terminated", terminated, (W, A), "bool", self.device)
@@ -837,14 +861,21 @@ class BatchedEnv:
         if not math.isfinite(reward.sum().item()) and not bool(torch.isfinite(reward).all()):
             raise ValueError(f"{where}'s reward must be finite, got NaN or Inf in world(s) "
                              f"{(~torch.isfinite(reward)).any(1).nonzero()[:, 0].tolist()}")
-        return result
+        return state, reward, terminated, info
 
-    def _check_state(self, where: str, state) -> None:
+    def _check_state(self, where: str, state):
+        """A hook's new state, checked field by field; cut from autograd where a field requires grad (a
+        task's nn.Parameter, say): nothing the env keeps requires grad."""
         if type(state) is not type(self.sim):
             raise TypeError(f"{where} must return a {type(self.sim).__name__} (the class of initial_state()), "
                             f"got {describe(state)}")
+        graphed = {}
         for name, want in explicit_state.fields(self.sim).items():
-            _check_tensor(f"{where}'s state.{name}", getattr(state, name), tuple(want.shape), want.dtype, want.device)
+            value = getattr(state, name)
+            _check_tensor(f"{where}'s state.{name}", value, tuple(want.shape), want.dtype, want.device)
+            if value.requires_grad:
+                graphed[name] = value.detach()
+        return dataclasses.replace(state, **graphed) if graphed else state
 
     def _observe(self, sim, alive: torch.Tensor, full: bool) -> dict:
         """The observations of state `sim`: a render and the task's observation hooks, as tensors the
@@ -881,9 +912,13 @@ class BatchedEnv:
 
     def _owned(self, hook: str, value, width: int) -> torch.Tensor:
         """A hook's per-agent observation [W, A, width], checked, as a float32 copy the caller owns."""
-        _check_tensor(f"{type(self.scenario).__name__}.{hook}", value, (self.num_worlds, self.num_agents, width),
-                      "float", self.device)
-        return value.to(dtype=torch.float32, memory_format=torch.contiguous_format, copy=True)
+        where = f"{type(self.scenario).__name__}.{hook}"
+        _check_tensor(where, value, (self.num_worlds, self.num_agents, width), "float", self.device)
+        owned = value.to(dtype=torch.float32, memory_format=torch.contiguous_format, copy=True)
+        if not math.isfinite(owned.sum().item()) and not bool(torch.isfinite(owned).all()):  # as the reward's
+            raise ValueError(f"{where} must return finite values, got NaN or Inf in world(s) "
+                             f"{(~torch.isfinite(owned)).flatten(1).any(1).nonzero()[:, 0].tolist()}")
+        return owned
 
     def _name_non_finite(self, sim, error: BaseException) -> None:
         """The renderer refused the instances of a state the step hook made: where fields of it are

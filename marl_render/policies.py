@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 
 import torch
 
@@ -145,19 +146,22 @@ def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
             result = json.load(f)
         except json.JSONDecodeError as error:
             raise ValueError(f"{paths['result.json']} is not valid JSON: {error}") from error
+    hp, obs_key, resolution, grayscale, frames, action_repeat = _run_settings(result, paths["result.json"])
+    weights = _actor_weights(paths["actor.pt"])
     try:
-        hp, obs_key = result["hyperparameters"], result["obs"]
-        resolution, grayscale = int(hp["resolution"]), bool(hp.get("grayscale", False))
-        frames, action_repeat = int(hp.get("frames", 1)), int(hp.get("action_repeat", 1))
-    except (KeyError, TypeError, ValueError) as error:
-        raise ValueError(f"{paths['result.json']} lacks the run's settings (obs, hyperparameters with resolution): "
-                         f"{error!r}") from error
-    weights = torch.load(paths["actor.pt"], map_location="cpu", weights_only=True)
-    if not isinstance(weights, dict) or "head.0.weight" not in weights or "head.4.weight" not in weights:
-        raise ValueError(f"{paths['actor.pt']} is not an actor's state_dict (marl_render/baselines/networks.py)")
-    channels = 1 if grayscale else 3
+        actor, agents = _actor(weights, hp, obs_key, resolution, (1 if grayscale else 3) * frames)
+    except (KeyError, ValueError, RuntimeError) as error:
+        raise ValueError(f"{paths['actor.pt']} does not fit the actor that {paths['result.json']} describes: "
+                         f"{type(error).__name__}: {str(error)[:300]}") from error
+    env_kwargs = {"resolution": resolution, "grayscale": grayscale} if obs_key == "pixels" else {"state_obs": True}
+    return ActorPolicy(actor, name=name or str(run_folder), obs_key=obs_key, frames=frames,
+                       action_repeat=action_repeat, num_agents=agents, env_kwargs=env_kwargs)
+
+
+def _actor(weights: dict, hp: dict, obs_key: str, resolution: int, channels: int) -> tuple:
+    """(the Actor holding `weights`, the number of agents it was trained for: its one-hot agent ids)."""
     if obs_key == "pixels":
-        shape = (resolution, resolution, channels * frames)
+        shape = (resolution, resolution, channels)
     else:
         shape = (int(weights["encoder.mean"].shape[0]),)
     state_dim = int(weights["state_head.weight"].shape[0]) if "state_head.weight" in weights else 0
@@ -165,10 +169,46 @@ def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
     # The "conv" encoder and float32 compute were the only ones before the trainer recorded them (and
     # its Actor took no such arguments): only other choices are passed on.
     choices = {key: hp[key] for key, old in (("encoder", "conv"), ("precision", "float32")) if hp.get(key, old) != old}
-    probe = Actor(obs_key, shape, 0, num_actions, int(hp["hidden"]), **choices)
+    probe = Actor(obs_key, shape, 0, num_actions, hp["hidden"], **choices)
     features = probe.encoder.features if obs_key == "pixels" else shape[0]
-    actor = Actor(obs_key, shape, inputs - features, num_actions, int(hp["hidden"]), state_dim=state_dim, **choices)
+    if inputs < features:
+        raise ValueError(f"head.0.weight takes {inputs} inputs, fewer than the encoder's {features} features")
+    actor = Actor(obs_key, shape, inputs - features, num_actions, hp["hidden"], state_dim=state_dim, **choices)
     actor.load_state_dict(weights)
-    env_kwargs = {"resolution": resolution, "grayscale": grayscale} if obs_key == "pixels" else {"state_obs": True}
-    return ActorPolicy(actor, name=name or str(run_folder), obs_key=obs_key, frames=frames,
-                       action_repeat=action_repeat, num_agents=inputs - features, env_kwargs=env_kwargs)
+    return actor, inputs - features
+
+
+def _run_settings(result, path: str) -> tuple:
+    """(hyperparameters, obs key, resolution, grayscale, frames, action_repeat) of a run's result.json,
+    each checked: a hostile or hand-edited file is a ValueError naming the file and the entry."""
+    try:
+        hp, obs_key = result["hyperparameters"], result["obs"]
+        resolution, grayscale = hp["resolution"], hp.get("grayscale", False)
+        frames, action_repeat, hidden = hp.get("frames", 1), hp.get("action_repeat", 1), hp["hidden"]
+    except (KeyError, TypeError, AttributeError) as error:
+        raise ValueError(f"{path} lacks the run's settings (obs, hyperparameters with resolution and hidden): "
+                         f"{error!r}") from error
+    for key, value, high in (("resolution", resolution, 16384), ("frames", frames, 64),
+                             ("action_repeat", action_repeat, 1024), ("hidden", hidden, 65536)):
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= high:
+            raise ValueError(f"{path}: hyperparameters[{key!r}] must be an int in [1, {high}], got {value!r}")
+    if obs_key not in ("pixels", "state") or not isinstance(grayscale, bool):
+        raise ValueError(f"{path}: obs must be 'pixels' or 'state' and grayscale a bool, got {obs_key!r} and "
+                         f"{grayscale!r}")
+    return hp, obs_key, resolution, grayscale, frames, action_repeat
+
+
+def _actor_weights(path: str) -> dict:
+    """actor.pt's state_dict of finite tensors (torch.load with weights_only: no code runs)."""
+    try:
+        weights = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as error:
+        raise ValueError(f"{path} is not a state_dict that torch.save wrote (truncated, or another kind of file): "
+                         f"{type(error).__name__}: {str(error)[:200]}") from error
+    if (not isinstance(weights, dict) or "head.0.weight" not in weights or "head.4.weight" not in weights
+            or not all(isinstance(value, torch.Tensor) for value in weights.values())):
+        raise ValueError(f"{path} is not an actor's state_dict (marl_render/baselines/networks.py)")
+    broken = [key for key, value in weights.items() if value.is_floating_point() and not bool(value.isfinite().all())]
+    if broken:
+        raise ValueError(f"{path} holds NaN or Inf weights in {broken[:5]}: the actor's actions would be meaningless")
+    return weights

@@ -85,6 +85,8 @@ import numpy as np
 import pettingzoo
 import torch
 from gymnasium import spaces
+from pettingzoo.utils.conversions import parallel_to_aec_wrapper
+from pettingzoo.utils.wrappers import OrderEnforcingWrapper
 
 from marl_render.envs.core import BatchedEnv
 from marl_render.envs.focal import FocalEnv
@@ -153,9 +155,18 @@ def make_aec_env(name: str, **kwargs) -> pettingzoo.AECEnv:
     """A PettingZoo AECEnv of the registered environment `name`, one world: the agents act in
     turn (PettingZoo's ``parallel_to_aec`` of ``make_parallel_env(name, **kwargs)``; the world
     steps once every live agent has acted). kwargs as make_parallel_env's."""
-    from pettingzoo.utils.conversions import parallel_to_aec
+    return OrderEnforcingWrapper(_CheckedAEC(make_parallel_env(name, **kwargs)))
 
-    return parallel_to_aec(make_parallel_env(name, **kwargs))
+
+class _CheckedAEC(parallel_to_aec_wrapper):
+    """PettingZoo's parallel_to_aec, refusing a bad action when its agent gives it: the plain
+    wrapper stores it, and the last agent's turn then raises for it, every turn, until a reset."""
+
+    def step(self, action):
+        agent = self.agent_selection
+        if not (self.terminations[agent] or self.truncations[agent]):
+            self.env.check_action(agent, action)
+        super().step(action)
 
 
 def _rebuild(name, kwargs):
@@ -385,15 +396,17 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
                                 f"env.agents = {self.agents} must act")
         core = self.core
         # Agents that left keep the value 0, which the core ignores (it must still be valid).
-        if core.continuous:
-            rows = np.zeros((core.num_agents, core.action_dim), np.float32)
-            convert = _continuous_action
-        else:
-            rows = np.zeros(core.num_agents, np.int64)
-            convert = _discrete_action
+        rows = np.zeros((core.num_agents, core.action_dim) if core.continuous else core.num_agents,
+                        np.float32 if core.continuous else np.int64)
         for agent in self.agents:
-            rows[self._index[agent]] = convert(agent, actions[agent], self.action_spaces[agent])
+            rows[self._index[agent]] = self.check_action(agent, actions[agent])
         return torch.from_numpy(rows)[None]
+
+    def check_action(self, agent, action):
+        """`agent`'s action as the core takes it, or ActionTypeError naming the agent (the AEC env
+        checks each action when it is given, not when the last agent's turn steps the world)."""
+        convert = _continuous_action if self.core.continuous else _discrete_action
+        return convert(agent, action, self.action_spaces[agent])
 
     def _observations(self, obs: dict, agents) -> dict:
         arrays = {key: obs[key][0].cpu().numpy() for key in self._obs_keys}  # [A, ...], fresh memory every call
