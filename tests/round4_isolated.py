@@ -339,6 +339,10 @@ def test_a_spawn_outside_the_walls_is_refused_by_name():
     (["effects", "--steps", "0"], r"argument --steps: expected an int >= 1, got 0"),
     (["scale", "--views", "0"], r"argument --views: expected an int >= 1, got 0"),
     (["parallel", "--workers", "0"], r"argument --workers: expected an int >= 1, got 0"),
+    # The recheck: an unknown env ended in a traceback after the first line of work.
+    (["env", "--env", "spread:x"], r"argument --env: unknown env 'spread:x'"),
+    (["parallel", "--env", "sprad"], r"argument --env: unknown env 'sprad'"),
+    (["soak", "--env", "sprad"], r"argument --env: unknown env 'sprad'"),
     (["peers", "--block-seconds", "inf"], r"argument --block-seconds: expected a finite number of seconds > 0, got "
                                           r"'inf'"),
 ])

@@ -216,6 +216,18 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, monk
     assert list((tmp_path / "new").iterdir()) == []  # checked, nothing left behind
 
 
+def test_an_option_the_env_refuses_ends_in_one_line_before_training(tmp_path, capsys, monkeypatch):
+    def no_training(*args, **kwargs):
+        raise AssertionError("trained with options the env refuses")
+    monkeypatch.setattr(run, "train", no_training)
+    out = tmp_path / "run"
+    assert run.main(["--env", "spread", "--out", str(out), *TINY, "--resolution", "100000"]) == 2
+    err = capsys.readouterr().err
+    assert "error: the spread env refused its options" in err
+    assert "resolution must be at most" in err and "got (100000, 100000)" in err
+    assert "Traceback" not in err and not (out / "result.json").exists()
+
+
 def run_module(name: str, argv: list, monkeypatch) -> int | str | None:
     """`python -m name *argv` in this process (runpy runs the module as __main__, as -m does; a fresh
     interpreter's `-m` is tested by test_the_same_command_gives_the_same_numbers): its exit code."""

@@ -340,8 +340,13 @@ def main(argv=None) -> int:
     eval_kwargs = dict(episodes=episodes, seed=eval_seed, resolution=hp.resolution, grayscale=hp.grayscale,
                        state_obs=args.obs == "state", **env_options,
                        **({} if args.eval_levels is None else {"levels": args.eval_levels}))
-    references = {name: evaluate(args.env, policy, **eval_kwargs)
-                  for name, policy in (("random", random_policy), ("heuristic", heuristic_policy))}
+    try:  # the first env this run builds: an option the env refuses ends here, in one line, before training
+        references = {name: evaluate(args.env, policy, **eval_kwargs)
+                      for name, policy in (("random", random_policy), ("heuristic", heuristic_policy))}
+    except (ValueError, TypeError) as error:
+        print(f"error: the {args.env} env refused its options (--resolution, --grayscale, --obs, --env-option, "
+              f"--appearance, --eval-levels): {error}", file=sys.stderr)
+        return 2
     print(f"random {references['random']['mean']:.4g} ± {references['random']['std']:.2g}, heuristic "
           f"{references['heuristic']['mean']:.4g} ± {references['heuristic']['std']:.2g} "
           f"({episodes} episodes, {set_name} set)", flush=True)

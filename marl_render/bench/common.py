@@ -41,6 +41,20 @@ def positive_seconds_argument(text: str) -> float:
     return value
 
 
+def env_name_argument(text: str) -> str:
+    """argparse type: the name of a registered env (checked before any work, not at the first make)."""
+    from marl_render.envs import list_envs
+
+    if text not in list_envs():
+        raise argparse.ArgumentTypeError(f"unknown env {text!r}; known: {list_envs()}")
+    return text
+
+
+def env_name_or_all_argument(text: str) -> str:
+    """argparse type: the name of a registered env, or 'all'."""
+    return text if text == "all" else env_name_argument(text)
+
+
 def env_spec_argument(text: str) -> str:
     """argparse type: NAME or NAME:AGENTS of a registered env (AGENTS an int >= 1), or 'all'."""
     from marl_render.envs import list_envs

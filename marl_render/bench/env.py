@@ -24,14 +24,14 @@ import numpy as np
 import torch
 
 from ..extras import require
-from .common import machine, positive_int_argument, progress
+from .common import env_name_or_all_argument, machine, positive_int_argument, progress
 
 APIS = ("core", "vec", "sb3", "jax")
 API_EXTRAS = {"sb3": ("sb3", "stable_baselines3"), "jax": ("jax", "jax")}  # api -> (extra, module it needs)
 
 
 def add_arguments(parser):
-    parser.add_argument("--env", default="cartpole", help="environment name, or 'all'")
+    parser.add_argument("--env", default="cartpole", type=env_name_or_all_argument, help="environment name, or 'all'")
     parser.add_argument("--worlds", type=positive_int_argument, nargs="+", default=[256],
                         help="worlds per env (several: one row each)")
     parser.add_argument("--agents", type=positive_int_argument, nargs="+", default=[None],

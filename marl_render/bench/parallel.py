@@ -24,13 +24,13 @@ import time
 
 import torch
 
-from .common import machine, positive_int_argument, progress
+from .common import env_name_argument, machine, positive_int_argument, progress
 
 KINDS = ("single", "parallel", "collect")
 
 
 def add_arguments(parser):
-    parser.add_argument("--env", default="spread")
+    parser.add_argument("--env", default="spread", type=env_name_argument)
     parser.add_argument("--worlds", type=positive_int_argument, default=64,
                         help="total worlds W (split evenly over the workers)")
     parser.add_argument("--agents", type=positive_int_argument, default=None,

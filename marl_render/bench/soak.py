@@ -31,11 +31,12 @@ import time
 import numpy as np
 import torch
 
-from .common import heap_in_use_mb, machine, malloc_trim, progress, rss_mb
+from .common import env_name_argument, heap_in_use_mb, machine, malloc_trim, progress, rss_mb
 
 
 def add_arguments(parser):
-    parser.add_argument("--env", default="spread", help="environment name (see marl_render.envs.list_envs())")
+    parser.add_argument("--env", default="spread", type=env_name_argument,
+                        help="environment name (see marl_render.envs.list_envs())")
     parser.add_argument("--worlds", type=int, default=64)
     parser.add_argument("--agents", type=int, default=None, help="agents per world (env default if omitted)")
     parser.add_argument("--resolution", type=int, default=64)
