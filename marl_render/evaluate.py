@@ -473,12 +473,16 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
     selfplay = os.path.join(docs, "selfplay") if selfplay is None else selfplay
     runs, snapshots = baseline_runs(baselines), selfplay_runs(selfplay)
     found = sum(len(v) for v in runs.values())
-    note = (f"Policies: random, the heuristic and {found} MAPPO pixel run(s) of {baselines} with an actor.pt"
+    finals_found = sum(len(v) for v in baseline_runs(selfplay).values())
+    note = (f"Policies: random, the heuristic, {found} MAPPO pixel run(s) of {baselines} with an actor.pt"
             + ("" if found else " (none of the published runs keeps its actor.pt yet: rerun this command once "
-                                 "they do)") + f". Resolution {resolution} px (a trained actor's own where one plays), "
+                                 "they do)") + f" and the final actors of {finals_found} self-play run(s) of "
+            f"{selfplay}. Resolution {resolution} px (a trained actor's own where one plays), "
                                                f"seed {seed}.")
+    finals = baseline_runs(selfplay)  # each self-play run's final actor (its snapshots play cross-play only)
     if not crossplay_only:
-        publish_heldout(docs, tasks, runs, episodes, seed, resolution, command, note)
+        publish_heldout(docs, tasks, {task: [*runs.get(task, []), *finals.get(task, [])]
+                                      for task in {*runs, *finals}}, episodes, seed, resolution, command, note)
     results = []
     os.makedirs(os.path.join(docs, "crossplay"), exist_ok=True)
     for task in COMPETITIVE:
@@ -508,8 +512,8 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
 
 def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int, resolution: int, command: str,
                     note: str) -> None:
-    """docs/heldout.md and its JSON and CSV files in docs/heldout/: random, the heuristic and the MAPPO
-    runs on every held-out scenario."""
+    """docs/heldout.md and its JSON and CSV files in docs/heldout/: random, the heuristic and the trained
+    runs (MAPPO-vs-random and self-play final actors) on every held-out scenario."""
     scenarios = [name for task in tasks for name in list_heldout(task)]
     references: dict = {}
     print(f"held-out tables: {len(scenarios)} scenarios ...", file=sys.stderr, flush=True)
@@ -518,12 +522,13 @@ def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int
     for task, folders in runs.items():
         for folder in folders:
             if task in tasks:
-                rows_by_policy[f"MAPPO {os.path.relpath(folder)}"] = evaluate(
+                rows_by_policy[f"{run_label(folder).split(' seed')[0]} {os.path.relpath(folder)}"] = evaluate(
                     folder, list_heldout(task), episodes=episodes, seed=seed, resolution=resolution,
                     references=references, gap=True)
     os.makedirs(os.path.join(docs, "heldout"), exist_ok=True)
     for label, rows in rows_by_policy.items():
-        write(rows, os.path.join(docs, "heldout", label.replace("MAPPO ", "mappo_").replace("/", "_")))
+        write(rows, os.path.join(docs, "heldout", label.replace("MAPPO-vs-random ", "mappo_")
+                                 .replace("self-play ", "selfplay_").replace("/", "_")))
     with open(os.path.join(docs, "heldout.md"), "w") as f:
         f.write(heldout_page(rows_by_policy, command, note))
 

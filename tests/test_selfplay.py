@@ -3,6 +3,7 @@ snapshot actions, a tiny self-play run of a task registered by the user (its rec
 and its snapshots as run folders), --import and module:Class in the trainer and the evaluation CLI,
 and errors named for bad settings."""
 import json
+import os
 import pathlib
 import sys
 
@@ -238,6 +239,40 @@ def test_the_docs_take_spread_snapshots_and_the_final_actor_of_each_self_play_ru
     assert picked == {"tag": [str(run_folder / "snapshots" / k) for k in ("000", "003", "006", "009")]
                       + [str(run_folder)]}
     assert evaluation.baseline_runs(str(tmp_path)) == {"tag": [str(run_folder)]}  # snapshots are no baselines
+
+
+def test_the_held_out_page_plays_mappo_runs_and_self_play_final_actors_but_not_snapshots(tmp_path, monkeypatch):
+    def make_run(folder, record):
+        folder.mkdir(parents=True)
+        (folder / "result.json").write_text(json.dumps({"env": "tag", "obs": "pixels", "seeds": {"train": 0},
+                                                        **record}))
+        (folder / "actor.pt").write_bytes(b"")
+    mappo, selfplay = tmp_path / "baselines" / "tag" / "seed0", tmp_path / "selfplay" / "tag" / "seed0"
+    make_run(mappo, {})
+    make_run(selfplay, {"self_play": {}})
+    make_run(selfplay / "snapshots" / "000", {"snapshot": {"id": 0, "env_steps": 0}})
+    played = []
+
+    def fake_evaluate(spec, scenarios, **kwargs):  # one row per scenario, as evaluate gives
+        played.append(spec)
+        return [{"scenario": name, "tags": "visitor", "focal_return_mean": 1.0, "focal_return_std": 0.0,
+                 "background_return_mean": 0.0, "normalised_score": 0.5, "bots_sampled": {"interceptor": 1},
+                 "training_condition_return": 2.0, "generalisation_gap": 1.0} for name in scenarios]
+    monkeypatch.setattr(evaluation, "evaluate", fake_evaluate)
+    monkeypatch.setattr(evaluation, "crossplay", lambda task, roster, **kwargs: {
+        "task": task, "sides": ["predator", "prey"], "episodes": 1, "policies": list(roster),
+        "elo": [0.0] * len(roster), "win_rate": [[0.5] * len(roster)] * len(roster),
+        "returns_a": [[0.0] * len(roster)] * len(roster), "returns_b": [[0.0] * len(roster)] * len(roster)})
+    monkeypatch.setattr(evaluation, "heatmap", lambda result, path: None)
+    docs = tmp_path / "docs"
+    evaluation.publish(docs=str(docs), tasks=["tag"], baselines=str(tmp_path / "baselines"),
+                       selfplay=str(tmp_path / "selfplay"))
+    assert played == ["random", "heuristic", str(mappo), str(selfplay)]  # the snapshot plays cross-play only
+    page = (docs / "heldout.md").read_text()
+    assert f"## MAPPO-vs-random {os.path.relpath(mappo)}" in page
+    assert f"## self-play {os.path.relpath(selfplay)}" in page
+    assert "1 MAPPO pixel run(s)" in page and "the final actors of 1 self-play run(s)" in page
+    assert len(list((docs / "heldout").glob("selfplay_*.json"))) == 1
 
 
 def test_the_crossplay_page_says_whether_self_play_beats_mappo_vs_random():
