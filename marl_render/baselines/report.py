@@ -321,7 +321,7 @@ def reproducing_command(run: dict) -> str:
     evaluation += ["--episodes", str(run["evaluation"]["policy"]["episodes"])]
     # Runs from before the trainer recorded `init` drew the actor with torch's default.
     argv = learner_argv(run["env"], run["obs"], run["seeds"]["train"], budget=flags, evaluation=evaluation,
-                        hyperparameters={"init": "torch", **run["hyperparameters"]},
+                        hyperparameters={**run["hyperparameters"], "init": run["hyperparameters"].get("init", "torch")},
                         env_options=run.get("env_options", {}), train_options=run.get("train_options", {}),
                         out=Path(ROOT) / run["relative"])
     return "python -m marl_render.baselines " + shlex.join(argv)
