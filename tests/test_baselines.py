@@ -623,3 +623,24 @@ def test_the_patch_encoder_first_layer_is_a_stride_4_convolution(channels, resol
     assert encoder(encoder.prepare(pixels, torch.float32)).shape == (5, encoder.features)
     with pytest.raises(ValueError, match="at least 12 pixels per side, got 11"):
         PixelEncoder(channels, 11, "patch")
+
+
+def test_the_actor_starts_orthogonal():
+    """init="orthogonal" (the default): the encoder's and the hidden layers' weights are orthogonal with
+    ReLU's gain sqrt(2) and zero biases, the output layer near uniform; "torch" keeps torch's draws."""
+    from marl_render.baselines.networks import Actor
+
+    torch.manual_seed(0)
+    actor = Actor("pixels", (16, 16, 3), 3, 5, 32, encoder="patch", init="orthogonal")
+    for layer in (actor.encoder.patch, actor.encoder.conv, actor.head[0], actor.head[2]):
+        rows = layer.weight.detach().flatten(1)  # [out, in], out <= in: orthogonal rows of norm sqrt(2)
+        torch.testing.assert_close(rows @ rows.T, 2 * torch.eye(len(rows)), rtol=0, atol=1e-5)
+        assert layer.bias.abs().max() == 0
+    assert actor.head[4].weight.abs().max() < 0.01 and actor.head[4].bias.abs().max() == 0
+    assert Hyperparameters().init == "orthogonal"
+    torch.manual_seed(0)
+    bound = 1 / math.sqrt(48)  # torch's Linear draws uniform in +-1/sqrt(fan in)
+    patch = Actor("pixels", (16, 16, 3), 3, 5, 32, encoder="patch", init="torch").encoder.patch
+    assert 0 < patch.bias.abs().max() <= bound and patch.weight.abs().max() <= bound
+    with pytest.raises(ValueError, match="init must be one of \\['orthogonal', 'torch'\\], got 'xavier'"):
+        Actor("pixels", (16, 16, 3), 3, 5, 32, init="xavier")

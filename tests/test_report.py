@@ -181,6 +181,7 @@ def test_update_budgets_truncated_runs_and_other_seeds_are_said(tmp_path):
     result = json.loads(path.read_text())
     result.update(budget={"env_steps": None, "updates": 40, "max_minutes": 2.0}, truncated=True,
                   evaluation_set="seed 5", seeds={"train": 1, "evaluation": 5})
+    del result["hyperparameters"]["init"]  # a run from before init was recorded: torch's draws
     path.write_text(json.dumps(result))
     runs = report.load_results(tmp_path)
     assert report.cost_cell(runs["tag"]["pixels"]) == ("100,000 steps / 40 updates; 1.0 min (1.0-1.0); 1 of 2 "
@@ -188,6 +189,8 @@ def test_update_budgets_truncated_runs_and_other_seeds_are_said(tmp_path):
     assert report.scored_on(runs["tag"]) == "publication (seed 2000), seed 5"
     assert "--seed 1 --updates 40 --max-minutes 2 --eval-seed 5 --episodes 1" in report.reproducing_command(
         runs["tag"]["pixels"][1])
+    assert "--init torch" in report.reproducing_command(runs["tag"]["pixels"][1])
+    assert "--init orthogonal" in report.reproducing_command(runs["tag"]["pixels"][0])
     assert "| seed 5 | 100,000 (truncated) |" in "\n".join(report.seeds_table(runs["tag"]["pixels"]))
 
 

@@ -163,7 +163,7 @@ class MAPPO:
         self.aux_state = hp.aux_state if obs == "pixels" else 0.0
         self.actor_net = Actor(obs, obs_shape, A, env.num_actions, hp.hidden,
                                state_dim=env.state_dim if self.aux_state else 0, encoder=hp.encoder,
-                               precision=hp.precision)
+                               precision=hp.precision, init=hp.init)
         self.critic_net = CentralCritic(A * env.state_dim, A, hp.hidden)
         self.acting_actor, self.acting_critic = copy.deepcopy(self.actor_net), copy.deepcopy(self.critic_net)
         self.parameters = [*self.actor_net.parameters(), *self.critic_net.parameters()]

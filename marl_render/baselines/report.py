@@ -319,9 +319,11 @@ def reproducing_command(run: dict) -> str:
         flags = ["--budget-minutes", f"{run['budget_minutes']:g}"]
         evaluation = ["--eval-seed", str(run["seeds"]["evaluation"])]
     evaluation += ["--episodes", str(run["evaluation"]["policy"]["episodes"])]
+    # Runs from before the trainer recorded `init` drew the actor with torch's default.
     argv = learner_argv(run["env"], run["obs"], run["seeds"]["train"], budget=flags, evaluation=evaluation,
-                        hyperparameters=run["hyperparameters"], env_options=run.get("env_options", {}),
-                        train_options=run.get("train_options", {}), out=Path(ROOT) / run["relative"])
+                        hyperparameters={**run["hyperparameters"], "init": run["hyperparameters"].get("init", "torch")},
+                        env_options=run.get("env_options", {}), train_options=run.get("train_options", {}),
+                        out=Path(ROOT) / run["relative"])
     return "python -m marl_render.baselines " + shlex.join(argv)
 
 

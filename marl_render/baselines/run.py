@@ -71,7 +71,7 @@ from marl_render.extras import command_needs_extra
 from marl_render.task_imports import add_import_option, load_user_tasks
 
 from .curve import plot_curve
-from .networks import ENCODERS, PRECISIONS
+from .networks import ENCODERS, INITS, PRECISIONS
 from .selfplay import PLAY_LATEST, SNAPSHOT_EVERY, SWAP_EVERY, WINDOW, SelfPlay, setting_problem, team_index
 from .settings import EVALUATION_SETS, FIELDS, step_budget, task_hyperparameters
 from .training import train
@@ -142,6 +142,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     hp.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
                     help="collect the next rollout while the update runs (one update behind)")
     hp.add_argument("--encoder", choices=list(ENCODERS), default=None, help="the actor's pixel encoder")
+    hp.add_argument("--init", choices=list(INITS), default=None,
+                    help="the actor's initial weights (torch: torch's default, as before issue 25's fix)")
     hp.add_argument("--precision", choices=list(PRECISIONS), default=None,
                     help="the actor's compute (bfloat16: CPU autocast, float32 weights)")
     sp = parser.add_argument_group("self-play (a task of two or more teams; see selfplay.py for the defaults' why)")

@@ -30,6 +30,7 @@ class Hyperparameters:
     max_grad_norm: float = 0.5
     hidden: int = 128  # width of the actor's and the critic's hidden layers
     encoder: str = "patch"  # the actor's pixel encoder (networks.ENCODERS; "conv" until issue 25)
+    init: str = "orthogonal"  # the actor's initial weights (networks.INITS; "torch" before issue 25's fix)
     precision: str = "bfloat16"  # the actor's compute: "bfloat16" autocast (float32 weights), or "float32"
     torch_threads: int = 1  # torch threads of the networks (the renderer has its own); 0: the cores available
     # Collect the next rollout while the update runs (a second thread): its actions come from the
