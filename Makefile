@@ -40,9 +40,17 @@ PYBATCHRENDER_CLONE ?= $(PYBATCHRENDER_VENV)/src/pybatchrender
 .PHONY: demo test docs test-benchmarl test-rllib bench baselines bench-peers peers-venvs meltingpot-venv mpe-venv \
 	pybatchrender-venv dist gpu-kit clean
 
+# The venv's packages are installed by uv (pinned, from PyPI): the same pinned set as pip would install,
+# in seconds rather than minutes. uv reads no pip configuration, so pip's find-links (where a machine may
+# keep its CPU torch wheel) are passed on; without any, both fetch torch from PyPI alike.
+UV_VERSION := 0.13.8
+PIP_FIND_LINKS_CONFIG = $(shell $(PYTHON) -m pip config get global.find-links 2>/dev/null) $(PIP_FIND_LINKS)
+
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[bench,docs,test,video,jax,sb3,gltf,plots]"
+	$(VENV)/bin/pip install --quiet --disable-pip-version-check uv==$(UV_VERSION)
+	$(VENV)/bin/uv pip install --quiet --python $(PY) $(addprefix --find-links ,$(sort $(PIP_FIND_LINKS_CONFIG))) \
+		-c constraints.txt -e ".[bench,docs,test,video,jax,sb3,gltf,plots]"
 	touch $(STAMP)
 
 demo: $(STAMP)

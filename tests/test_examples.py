@@ -32,12 +32,75 @@ OPTIONS = {  # beyond --help and --out, which every example takes
 }
 
 
-def run(script: str, *args, cwd: Path, timeout: float = 120) -> subprocess.CompletedProcess:
+# The end-to-end runs of the examples, {name: (script, arguments)}, each from its own scratch directory
+# (relative paths land there). They share one child process (torch, torchrl and GL start once, not once
+# per script); each runs as `python SCRIPT ARGS` would (as __main__, its own sys.argv, directory, stdout
+# and stderr, torch's thread count reset), and each test reads its own run's result.
+RUNS = {
+    "demo": ("demo.py", ["--out", "o", "--worlds", 2, "--agents", 3, "--resolution", 32, "--bench-worlds", 4,
+                         "--steps", 2]),
+    "custom_scene": ("custom_scene.py", ["--out", "o", "--worlds", 3, "--resolution", 24, 40]),
+    "skinned_walkers": ("skinned_walkers.py", ["--out", "o", "--worlds", 2, "--agents", 3, "--resolution", 32,
+                                               "--steps", 4]),
+    "random_pettingzoo": ("random_pettingzoo.py", ["--env", "tag", "--episodes", 1, "--steps", 3, "--resolution", 16,
+                                                   "--out", "."]),
+    "random_torchrl": ("random_torchrl.py", ["--env", "spread", "--worlds", 3, "--steps", 3, "--max-steps", 2,
+                                             "--resolution", 16, "--out", "."]),
+    "record_video": ("record_video.py", ["--env", "tag", "--steps", 3, "--resolution", 16, "--scale", 2,
+                                         "--out", "v/tag.gif"]),
+    "train_mappo": ("train_mappo.py", ["--minutes", 0, "--worlds", 3, "--resolution", 16, "--max-steps", 4,
+                                       "--rollout", 6, "--epochs", 1, "--out", "mappo"]),
+    # tests/test_docs.py checks the GIFs
+    "make_env_docs": ("make_env_docs.py", ["--out", ".", "--no-animations"]),
+    # 8-step batches of 40-step episodes: no episode ends in the first batch
+    "train_mappo_budget": ("train_mappo.py", ["--minutes", 0.2, "--worlds", 8, "--resolution", 16, "--max-steps", 40,
+                                              "--rollout", 8, "--epochs", 1, "--out", "mappo"]),
+    # 4 updates of 8 decisions x 4 steps x 4 worlds = 512 steps; one episode of every world takes 800
+    "ppo_cartpole": ("ppo_cartpole_pixels.py", ["--worlds", 4, "--resolution", 16, "--steps", 512, "--max-steps", 200,
+                                                "--rollout", 8, "--epochs", 1, "--out", "ppo"]),
+}
+RUN_DRIVER = """
+import contextlib, io, json, os, runpy, sys, traceback
+import torch
+threads = torch.get_num_threads()
+results = []
+for path, args, cwd in json.loads(sys.stdin.read()):
+    out, err = io.StringIO(), io.StringIO()
+    sys.argv, sys.path[0] = [path, *args], os.path.dirname(path)
+    os.chdir(cwd)
+    torch.set_num_threads(threads)
+    code = 0
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            runpy.run_path(path, run_name="__main__")
+    except SystemExit as exc:
+        code = exc.code or 0
+    except BaseException:
+        code = traceback.format_exc()
+    results.append([code, out.getvalue(), err.getvalue()])
+print(json.dumps(results))
+"""
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> dict:
+    """{name: (its directory, its exit code or error, its stdout, its stderr)} once every run of RUNS has ended."""
+    folders = {name: tmp_path_factory.mktemp(name) for name in RUNS}
+    todo = [(str(EXAMPLES / script), [str(a) for a in args], str(folders[name]))
+            for name, (script, args) in RUNS.items()]
     env = dict(os.environ, PYTHONWARNINGS="ignore")
-    result = subprocess.run([sys.executable, str(EXAMPLES / script), *map(str, args)], cwd=cwd, env=env,
-                            capture_output=True, text=True, timeout=timeout)
-    assert result.returncode == 0, f"{script} {args}: rc {result.returncode}\n{result.stdout}\n{result.stderr[-3000:]}"
-    return result
+    result = subprocess.run([sys.executable, "-c", RUN_DRIVER], input=json.dumps(todo), env=env, capture_output=True,
+                            text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return {name: (folders[name], code, out, err)
+            for name, (code, out, err) in zip(RUNS, json.loads(result.stdout.strip().splitlines()[-1]), strict=True)}
+
+
+def run(runs: dict, name: str) -> tuple[Path, str, str]:
+    """(directory, stdout, stderr) of RUNS[name], which must have exited with 0."""
+    folder, code, out, err = runs[name]
+    assert code == 0, f"{RUNS[name]}: exit {code}\n{out}\n{err[-3000:]}"
+    return folder, out, err
 
 
 def load(script: str) -> types.ModuleType:
@@ -106,9 +169,8 @@ def test_help_lists_the_options(script, help_texts):
             assert "(default:" in entry, f"{script} --help shows no default for:\n{entry}"
 
 
-def test_demo_writes_the_grid_of_views(tmp_path):
-    out = run("demo.py", "--out", tmp_path / "o", "--worlds", 2, "--agents", 3, "--resolution", 32,
-              "--bench-worlds", 4, "--steps", 2, cwd=tmp_path).stdout
+def test_demo_writes_the_grid_of_views(runs):
+    tmp_path, out, _ = run(runs, "demo")
     grid = png(tmp_path / "o" / "demo.png")
     assert grid.shape == (2 * 34 * 2, 3 * 34 * 2, 3)  # worlds x agents tiles of 32 px + 2 px gaps, shown at 2x
     assert grid[:64, :64].std() > 0  # the first view has content
@@ -116,17 +178,16 @@ def test_demo_writes_the_grid_of_views(tmp_path):
     assert not (tmp_path / "out").exists()  # --out is honoured, nothing goes to ./out
 
 
-def test_custom_scene_writes_a_row_per_world(tmp_path):
-    run("custom_scene.py", "--out", tmp_path / "o", "--worlds", 3, "--resolution", 24, 40, cwd=tmp_path)
+def test_custom_scene_writes_a_row_per_world(runs):
+    tmp_path, _, _ = run(runs, "custom_scene")
     grid = png(tmp_path / "o" / "custom_scene.png")
     assert grid.shape == (3 * 24, 2 * 40, 3)
     left, right = grid[:24, :40], grid[:24, 40:]
     assert (np.abs(left[..., 0].astype(int) - left[..., 2]) > 0).any() and not np.array_equal(left, right)
 
 
-def test_skinned_walkers_writes_the_overview_and_compares_with_rigid(tmp_path):
-    out = run("skinned_walkers.py", "--out", tmp_path / "o", "--worlds", 2, "--agents", 3, "--resolution", 32,
-              "--steps", 4, cwd=tmp_path).stdout
+def test_skinned_walkers_writes_the_overview_and_compares_with_rigid(runs):
+    tmp_path, out, _ = run(runs, "skinned_walkers")
     picture = png(tmp_path / "o" / "skinned_walkers.png")
     row = round(640 * 32 / (3 * 32 + 2 * 2))  # the agents' views with 2 px gaps, scaled to 640 wide
     assert picture.shape == (360 + row, 640, 3)
@@ -135,11 +196,10 @@ def test_skinned_walkers_writes_the_overview_and_compares_with_rigid(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-def test_random_pettingzoo_writes_the_render(tmp_path):
+def test_random_pettingzoo_writes_the_render(runs):
     from marl_render.wrappers.pettingzoo import make_parallel_env
 
-    out = run("random_pettingzoo.py", "--env", "tag", "--episodes", 1, "--steps", 3, "--resolution", 16,
-              "--out", tmp_path, cwd=tmp_path).stdout
+    tmp_path, out, _ = run(runs, "random_pettingzoo")
     assert "episode 0: 3 steps so far" in out
     env = make_parallel_env("tag", resolution=16, max_steps=3, render_mode="rgb_array")
     env.reset(seed=0)
@@ -148,17 +208,15 @@ def test_random_pettingzoo_writes_the_render(tmp_path):
     assert png(tmp_path / "random_pettingzoo.png").shape == expected
 
 
-def test_random_torchrl_writes_the_overviews(tmp_path):
-    out = run("random_torchrl.py", "--env", "spread", "--worlds", 3, "--steps", 3, "--max-steps", 2,
-              "--resolution", 16, "--out", tmp_path, cwd=tmp_path).stdout
+def test_random_torchrl_writes_the_overviews(runs):
+    tmp_path, out, _ = run(runs, "random_torchrl")
     assert "agents: pixels (3, 3, 3, 16, 16, 3) torch.uint8" in out
     assert "3 episodes finished" in out  # every world ends its episode at step 2
     assert png(tmp_path / "random_torchrl.png").shape == (128, 3 * 128, 3)
 
 
-def test_record_video_writes_a_gif_of_labelled_tiles(tmp_path):
-    gif = tmp_path / "v" / "tag.gif"
-    run("record_video.py", "--env", "tag", "--steps", 3, "--resolution", 16, "--scale", 2, "--out", gif, cwd=tmp_path)
+def test_record_video_writes_a_gif_of_labelled_tiles(runs):
+    gif = run(runs, "record_video")[0] / "v" / "tag.gif"
     with Image.open(gif) as image:
         assert image.format == "GIF" and image.n_frames == 4  # the reset and 3 steps
         assert image.size == (32 + 128, 4 * 32)  # 4 views of 16 px at 2x in a column, the overview as high
@@ -232,10 +290,9 @@ def test_evaluate_returns_the_episode_sum_per_agent_over_the_worlds_given():
     assert mean_return == pytest.approx(float(total.mean()), rel=1e-5)
 
 
-def test_train_mappo_reports_episode_returns_of_the_worlds_given(tmp_path):
+def test_train_mappo_reports_episode_returns_of_the_worlds_given(runs):
+    tmp_path, out, _ = run(runs, "train_mappo")
     out_dir = tmp_path / "mappo"
-    out = run("train_mappo.py", "--minutes", 0, "--worlds", 3, "--resolution", 16, "--max-steps", 4, "--rollout", 6,
-              "--epochs", 1, "--out", out_dir, cwd=tmp_path).stdout
     result = json.loads((out_dir / "result.json").read_text())
     assert result["eval_episodes"] == 3 and result["episode_steps"] == 4  # --worlds episodes, not a fixed 32
     assert "(3 episodes)" in out
@@ -245,10 +302,10 @@ def test_train_mappo_reports_episode_returns_of_the_worlds_given(tmp_path):
     assert png(out_dir / "curve.png").shape[0] > 100
 
 
-def test_env_docs_are_up_to_date(tmp_path):
+def test_env_docs_are_up_to_date(runs):
     from marl_render.envs import list_envs
 
-    run("make_env_docs.py", "--out", tmp_path, "--no-animations", cwd=tmp_path)  # tests/test_docs.py checks the GIFs
+    tmp_path, _, _ = run(runs, "make_env_docs")
     written = (tmp_path / "envs.md").read_text()
     committed = (ROOT / "docs" / "envs.md").read_text()
     assert written == committed, "docs/envs.md is out of date: run python examples/make_env_docs.py"
@@ -264,12 +321,10 @@ def test_env_docs_are_up_to_date(tmp_path):
     assert looks.shape == png(ROOT / "docs" / "envs" / "appearance.png").shape and looks.std() > 10
 
 
-def test_train_mappo_stops_by_its_budget_rule_whatever_the_speed_and_shows_no_nan(tmp_path):
+def test_train_mappo_stops_by_its_budget_rule_whatever_the_speed_and_shows_no_nan(runs):
     train_mappo = load("train_mappo.py")
+    tmp_path, _, stderr = run(runs, "train_mappo_budget")
     out_dir = tmp_path / "mappo"
-    # 8-step batches of 40-step episodes: no episode ends in the first batch
-    result = run("train_mappo.py", "--minutes", 0.2, "--worlds", 8, "--resolution", 16, "--max-steps", 40,
-                 "--rollout", 8, "--epochs", 1, "--out", out_dir, cwd=tmp_path)
     summary = json.loads((out_dir / "result.json").read_text())
     # The bookkeeping, from the run's own clock readings (so no machine is too slow for it): training gets
     # the budget less the evaluations (the final one is timed as the first), and it stops after the first
@@ -285,16 +340,14 @@ def test_train_mappo_stops_by_its_budget_rule_whatever_the_speed_and_shows_no_na
     assert stops == [False] * (len(ends) - 1) + [True]
     assert train_mappo.next_batch_overruns(10.0, 2.0, 11.9) and not train_mappo.next_batch_overruns(10.0, 2.0, 12.0)
     assert summary["curve"][0][3] is None  # no episode ended in the first batch ...
-    progress = result.stderr.replace("\r", "\n")
+    progress = stderr.replace("\r", "\n")
     assert "episode return - (running episodes so far -" in progress  # ... and the bar says so
     assert "nan" not in progress
 
 
-def test_ppo_cartpole_shorter_than_an_episode_still_plots_its_training(tmp_path):
+def test_ppo_cartpole_shorter_than_an_episode_still_plots_its_training(runs):
+    tmp_path, out, _ = run(runs, "ppo_cartpole")
     out_dir = tmp_path / "ppo"
-    # 4 updates of 8 decisions x 4 steps x 4 worlds = 512 steps; one episode of every world takes 800
-    out = run("ppo_cartpole_pixels.py", "--worlds", 4, "--resolution", 16, "--steps", 512, "--max-steps", 200,
-              "--rollout", 8, "--epochs", 1, "--out", out_dir, cwd=tmp_path).stdout
     result = json.loads((out_dir / "result.json").read_text())
     assert result["curve"] == []  # no training episode ended ...
     assert "no training episode ended in 512 steps" in out

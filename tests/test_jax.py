@@ -303,9 +303,13 @@ import json, sys
 jax_first = sys.argv[1] == "jax_first"
 if jax_first:
     import jax, jax.numpy as jnp
+import marl_render, marl_render.wrappers
 from marl_render.envs import make_env
 env = make_env("cartpole", num_worlds=2, resolution=24, seed=0)
 first = env.reset(seed=0)["pixels"]
+suite = {"jax_after_the_suite": "jax" in sys.modules}  # gl_first: importing and using the suite imports no jax
+from marl_render.envs import make_jax_env
+suite["jax_after_make_jax_env"] = "jax" in sys.modules
 if not jax_first:
     import jax, jax.numpy as jnp
 # a convolution makes XLA compile real code with its LLVM, then GL draws again
@@ -315,27 +319,31 @@ conv = jax.jit(lambda x: jax.lax.conv_general_dilated(x, kernel, (1, 1), "SAME",
                                                        dimension_numbers=("NHWC", "HWIO", "NHWC")).sum())
 total = float(conv(image))
 second = env.step(env.random_actions(__import__("torch").Generator().manual_seed(0)))[0]["pixels"]
-print(json.dumps({"conv": total, "first": int(first.sum()), "second": int(second.sum())}))
+print(json.dumps({"conv": total, "first": int(first.sum()), "second": int(second.sum()), "suite": suite}))
 """
 
 
-def test_jax_and_gl_work_in_either_import_order():
+@pytest.fixture(scope="module")
+def import_orders() -> dict:
+    """ORDER_SCRIPT's output in a fresh process for each order: {order: its JSON}."""
     results = {}
     for order in ("jax_first", "gl_first"):
         done = subprocess.run([sys.executable, "-c", ORDER_SCRIPT, order], capture_output=True, text=True,
                               timeout=240, env=dict(os.environ, PYTHONWARNINGS="ignore"))
         assert done.returncode == 0, f"{order}: rc {done.returncode}\n{done.stderr[-3000:]}"
         results[order] = json.loads(done.stdout.strip().splitlines()[-1])
+    return results
+
+
+def test_jax_and_gl_work_in_either_import_order(import_orders):
+    results = {order: {k: v for k, v in result.items() if k != "suite"} for order, result in import_orders.items()}
     assert results["jax_first"] == results["gl_first"]
     assert results["gl_first"]["first"] > 0 and results["gl_first"]["conv"] > 0
 
 
-def test_importing_the_suite_does_not_import_jax():
-    code = ("import sys, marl_render, marl_render.envs, marl_render.wrappers; "
-            "assert 'jax' not in sys.modules, 'jax imported'; "
-            "from marl_render.envs import make_jax_env; assert 'jax' in sys.modules; print('ok')")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
+def test_importing_the_suite_does_not_import_jax(import_orders):
+    # The gl_first child (a fresh process) imported marl_render, its envs and wrappers and stepped an env.
+    assert import_orders["gl_first"]["suite"] == {"jax_after_the_suite": False, "jax_after_make_jax_env": True}
 
 
 def test_policy_gradient_example_runs_and_writes_its_results(tmp_path):
