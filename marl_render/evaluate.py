@@ -519,12 +519,24 @@ def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int
     print(f"held-out tables: {len(scenarios)} scenarios ...", file=sys.stderr, flush=True)
     rows_by_policy = {label: evaluate(label, scenarios, episodes=episodes, seed=seed, resolution=resolution,
                                       references=references, gap=True) for label in ("random", "heuristic")}
+    unplayable = []
     for task, folders in runs.items():
         for folder in folders:
-            if task in tasks:
+            if task not in tasks:
+                continue
+            # An actor's agent one-hot fixes its team sizes: it plays the scenarios defined for them only.
+            trained_with = load_policy(folder).num_agents
+            fitting = [name for name in list_heldout(task) if heldout_scenario(name).num_agents == trained_with]
+            if len(fitting) < len(list_heldout(task)):
+                sizes = sorted({heldout_scenario(name).num_agents for name in list_heldout(task)} - {trained_with})
+                unplayable.append(f"{os.path.relpath(folder)} (trained with {trained_with} agents) does not play "
+                                  f"{task}'s scenarios defined for {', '.join(map(str, sizes))} agents.")
+            if fitting:
                 rows_by_policy[f"{run_label(folder).split(' seed')[0]} {os.path.relpath(folder)}"] = evaluate(
-                    folder, list_heldout(task), episodes=episodes, seed=seed, resolution=resolution,
+                    folder, fitting, episodes=episodes, seed=seed, resolution=resolution,
                     references=references, gap=True)
+    if unplayable:
+        note += " " + " ".join(unplayable)
     os.makedirs(os.path.join(docs, "heldout"), exist_ok=True)
     for label, rows in rows_by_policy.items():
         write(rows, os.path.join(docs, "heldout", label.replace("MAPPO-vs-random ", "mappo_")

@@ -6,6 +6,7 @@ import json
 import os
 import pathlib
 import sys
+import types
 
 import pytest
 import torch
@@ -251,6 +252,10 @@ def test_the_held_out_page_plays_mappo_runs_and_self_play_final_actors_but_not_s
     make_run(mappo, {})
     make_run(selfplay, {"self_play": {}})
     make_run(selfplay / "snapshots" / "000", {"snapshot": {"id": 0, "env_steps": 0}})
+    small = tmp_path / "baselines" / "tag" / "seed1"  # trained with 3 agents: tag's scenarios have 4
+    make_run(small, {"seeds": {"train": 1}})
+    monkeypatch.setattr(evaluation, "load_policy", lambda folder: types.SimpleNamespace(
+        num_agents=3 if folder == str(small) else 4))
     played = []
 
     def fake_evaluate(spec, scenarios, **kwargs):  # one row per scenario, as evaluate gives
@@ -269,9 +274,11 @@ def test_the_held_out_page_plays_mappo_runs_and_self_play_final_actors_but_not_s
                        selfplay=str(tmp_path / "selfplay"))
     assert played == ["random", "heuristic", str(mappo), str(selfplay)]  # the snapshot plays cross-play only
     page = (docs / "heldout.md").read_text()
+    assert f"{os.path.relpath(small)} (trained with 3 agents) does not play tag's scenarios defined for 4 agents." \
+        in page
     assert f"## MAPPO-vs-random {os.path.relpath(mappo)}" in page
     assert f"## self-play {os.path.relpath(selfplay)}" in page
-    assert "1 MAPPO pixel run(s)" in page and "the final actors of 1 self-play run(s)" in page
+    assert "2 MAPPO pixel run(s)" in page and "the final actors of 1 self-play run(s)" in page
     assert len(list((docs / "heldout").glob("selfplay_*.json"))) == 1
 
 
