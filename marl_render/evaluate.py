@@ -458,7 +458,7 @@ def self_play_verdict(result: dict) -> list:
 
 def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_episodes: int = CROSSPLAY_EPISODES,
             seed: int = DOCS_SEED, resolution: int = DOCS_RESOLUTION, tasks=None, baselines: str | None = None,
-            selfplay: str | None = None, crossplay_only: bool = False) -> None:
+            selfplay: str | None = None, crossplay_only: bool = False, heldout_only: bool = False) -> None:
     """Writes docs/heldout.md, docs/crossplay.md, their data (docs/heldout/*.json, *.csv) and the
     heatmaps (docs/crossplay/*.png) from random, the heuristic and the MAPPO pixel runs under
     `baselines` (default docs/baselines) that hold an actor.pt, and the self-play runs under
@@ -483,6 +483,8 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
     if not crossplay_only:
         publish_heldout(docs, tasks, {task: [*runs.get(task, []), *finals.get(task, [])]
                                       for task in {*runs, *finals}}, episodes, seed, resolution, command, note)
+    if heldout_only:  # the cross-play page as it is (the two can be regenerated side by side)
+        return
     results = []
     os.makedirs(os.path.join(docs, "crossplay"), exist_ok=True)
     for task in COMPETITIVE:
@@ -569,6 +571,8 @@ def main(argv=None) -> int:
     parser.add_argument("--task", nargs="+", default=None, help="--docs: only these tasks")
     parser.add_argument("--crossplay-only", action="store_true",
                         help="--docs: only the cross-play matrices of --task (the others' sections are kept)")
+    parser.add_argument("--heldout-only", action="store_true",
+                        help="--docs: only the held-out tables (the cross-play page is kept)")
     parser.add_argument("--baselines", default=None, help="--docs: the MAPPO runs' folder (default docs/baselines)")
     parser.add_argument("--selfplay", default=None, help="--docs: the self-play runs' folder (default docs/selfplay)")
     parser.add_argument("--crossplay", metavar="TASK", choices=list_envs(), default=None,
@@ -594,9 +598,11 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> in
         print(listing())
         return 0
     if args.docs:
+        if args.crossplay_only and args.heldout_only:
+            parser.error("--crossplay-only and --heldout-only exclude each other: leave both out for both pages")
         publish(episodes=args.episodes, crossplay_episodes=args.crossplay_episodes, seed=args.seed,
                 resolution=args.resolution, tasks=args.task, baselines=args.baselines, selfplay=args.selfplay,
-                crossplay_only=args.crossplay_only)
+                crossplay_only=args.crossplay_only, heldout_only=args.heldout_only)
         return 0
     if args.crossplay is not None:
         return crossplay_command(parser, args)

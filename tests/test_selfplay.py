@@ -280,6 +280,18 @@ def test_the_held_out_page_plays_mappo_runs_and_self_play_final_actors_but_not_s
     assert f"## self-play {os.path.relpath(selfplay)}" in page
     assert "2 MAPPO pixel run(s)" in page and "the final actors of 1 self-play run(s)" in page
     assert len(list((docs / "heldout").glob("selfplay_*.json"))) == 1
+    assert (docs / "crossplay.md").is_file()
+    (docs / "crossplay.md").unlink()
+    monkeypatch.setattr(evaluation, "crossplay", None)  # --heldout-only plays no cross-play
+    evaluation.publish(docs=str(docs), tasks=["tag"], baselines=str(tmp_path / "baselines"),
+                       selfplay=str(tmp_path / "selfplay"), heldout_only=True)
+    assert not (docs / "crossplay.md").exists() and played[4:] == played[:4]
+
+
+def test_the_docs_pages_are_regenerated_together_or_one_at_a_time(capsys):
+    with pytest.raises(SystemExit):
+        evaluation.main(["--docs", "--crossplay-only", "--heldout-only"])
+    assert "--crossplay-only and --heldout-only exclude each other" in capsys.readouterr().err
 
 
 def test_the_crossplay_page_says_whether_self_play_beats_mappo_vs_random():
