@@ -1,5 +1,6 @@
 """python -m marl_render.baselines end to end with a tiny budget (files and their fields, not
 training results), its argument errors, and the report generator on those files."""
+import contextlib
 import json
 import math
 import os
@@ -457,6 +458,7 @@ def test_learning_accuracy_reruns_a_truncated_or_partial_result(study):
 def test_interrupting_learning_accuracy_stops_its_training_run(tmp_path, sig):
     """The study runs each training in its own process group and ends it however the study ends."""
     out = tmp_path / "learning"
+    child = None
     study = subprocess.Popen([sys.executable, "-m", "marl_render.baselines.learning_accuracy", "--env-steps",
                               "100000000", "--seeds", "0", "--settings", "32px", "--episodes", "2", "--out", str(out),
                               "--worlds", "2", "--rollout", "4", "--checkpoint-every", "0"],
@@ -474,8 +476,11 @@ def test_interrupting_learning_accuracy_stops_its_training_run(tmp_path, sig):
         study.send_signal(sig)
         study.wait(60)
     finally:
-        if study.poll() is None:
+        if study.poll() is None:  # the study did not stop: kill it, and its run's group, which it would have
             study.kill()
+            if child is not None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(child, signal.SIGKILL)
     assert study.returncode != 0
     deadline = time.monotonic() + 30
     while True:
