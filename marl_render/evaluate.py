@@ -472,14 +472,14 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
     baselines = os.path.join(docs, "baselines") if baselines is None else baselines
     selfplay = os.path.join(docs, "selfplay") if selfplay is None else selfplay
     runs, snapshots = baseline_runs(baselines), selfplay_runs(selfplay)
+    finals = baseline_runs(selfplay)  # each self-play run's final actor (its snapshots play cross-play only)
     found = sum(len(v) for v in runs.values())
-    finals_found = sum(len(v) for v in baseline_runs(selfplay).values())
+    finals_found = sum(len(v) for v in finals.values())
     note = (f"Policies: random, the heuristic, {found} MAPPO pixel run(s) of {baselines} with an actor.pt"
             + ("" if found else " (none of the published runs keeps its actor.pt yet: rerun this command once "
                                  "they do)") + f" and the final actors of {finals_found} self-play run(s) of "
             f"{selfplay}. Resolution {resolution} px (a trained actor's own where one plays), "
                                                f"seed {seed}.")
-    finals = baseline_runs(selfplay)  # each self-play run's final actor (its snapshots play cross-play only)
     if not crossplay_only:
         publish_heldout(docs, tasks, {task: [*runs.get(task, []), *finals.get(task, [])]
                                       for task in {*runs, *finals}}, episodes, seed, resolution, command, note)
