@@ -57,12 +57,11 @@ def env_name_or_all_argument(text: str) -> str:
 
 def env_spec_argument(text: str) -> str:
     """argparse type: NAME or NAME:AGENTS of a registered env (AGENTS an int >= 1), or 'all'."""
-    from marl_render.envs import list_envs
     from marl_render.envs.registry import env_class
 
     name, colon, agents = text.partition(":")
-    if text != "all" and name not in list_envs():
-        raise argparse.ArgumentTypeError(f"unknown env {name!r} in {text!r}; known: {list_envs()} or 'all'")
+    if text != "all":
+        env_name_argument(name)
     if colon:
         try:
             count = int(agents)
