@@ -459,7 +459,11 @@ def test_interrupting_learning_accuracy_stops_its_training_run(tmp_path, sig):
     """The study runs each training in its own process group and ends it however the study ends."""
     out = tmp_path / "learning"
     child = None
-    study = subprocess.Popen([sys.executable, "-m", "marl_render.baselines.learning_accuracy", "--env-steps",
+    # A shell starts background jobs (`make test &`, CI scripts) with SIGINT ignored, and children inherit
+    # that: the study is started with Ctrl-C's usual handler, as from a terminal, whatever ran the suite.
+    launcher = ("import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+                "runpy.run_module('marl_render.baselines.learning_accuracy', run_name='__main__', alter_sys=True)")
+    study = subprocess.Popen([sys.executable, "-c", launcher, "--env-steps",
                               "100000000", "--seeds", "0", "--settings", "32px", "--episodes", "2", "--out", str(out),
                               "--worlds", "2", "--rollout", "4", "--checkpoint-every", "0"],
                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
