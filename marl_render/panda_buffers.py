@@ -66,6 +66,22 @@ def int_input(value: int):
     return PTA_int([int(value)])
 
 
+def clip_distances(parent, count: int):
+    """A ClipPlaneAttrib whose one job is to make Panda3D enable GL_CLIP_DISTANCE0..count-1.
+
+    The shaders write gl_ClipDistance themselves (each view clipped to its own tile); the GL
+    applies those only where the distances are enabled. Mesa's llvmpipe clips without the
+    enable, the NVIDIA driver does not, and geometry spilled into neighbouring tiles (found on
+    the first lent GPU). The planes sit under `parent` and keep every point (z + 1e30 >= 0), so
+    Panda3D's culling on the CPU removes nothing."""
+    from panda3d.core import ClipPlaneAttrib, LPlane, PlaneNode
+
+    attrib = ClipPlaneAttrib.make()
+    for index in range(count):
+        attrib = attrib.add_on_plane(parent.attach_new_node(PlaneNode(f"clip_distance_{index}", LPlane(0, 0, 1, 1e30))))
+    return attrib
+
+
 def vec3_input(values):
     from panda3d.core import LVecBase3f
 

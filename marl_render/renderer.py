@@ -27,7 +27,7 @@ import torch
 from . import backend, layout, memory, readback, shaders, skinning
 from .meshes import MeshData, to_panda_geom
 from .packing import FramePacker
-from .panda_buffers import TextureMemory, buffer_texture, int_input, panda_texture, vec3_input
+from .panda_buffers import TextureMemory, buffer_texture, clip_distances, int_input, panda_texture, vec3_input
 from .provoking import shared_corner_mesh
 from .scene import ROLES, Scene
 from .shadows import ShadowPass, atlas_layout, light_projection
@@ -323,6 +323,7 @@ class BatchRenderer:
         root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
         root.set_transparency(TransparencyAttrib.M_none)
         root.set_attrib(ColorBlendAttrib.make_off())
+        root.set_attrib(clip_distances(root, 2))  # the tiles' top and bottom (shaders/batch.vert)
         for name, value in self._shared_inputs.items():
             root.set_shader_input(name, value)
         root.set_shader_input("tiles", int_input(len(views)))

@@ -35,7 +35,7 @@ import torch
 from . import backend, layout, shaders
 from .culling import frustum_planes
 from .meshes import MeshData
-from .panda_buffers import TextureMemory, buffer_texture, int_input
+from .panda_buffers import TextureMemory, buffer_texture, clip_distances, int_input
 from .scene import Scene
 from .skinning import SkinnedMesh
 from .tiling import TileLayout, plan_layout
@@ -197,6 +197,7 @@ class ShadowPass:
         self.root.set_attrib(DepthTestAttrib.make(DepthTestAttrib.M_less))
         self.root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
         self.root.set_attrib(ColorWriteAttrib.make(ColorWriteAttrib.C_off))
+        self.root.set_attrib(clip_distances(self.root, 4))  # each world's square of the atlas (batch.vert)
         W = self.scene.num_worlds
         self.lights = buffer_texture("lights", W * layout.VIEW.texels)
         self.light_memory = TextureMemory(self.lights, np.float32)

@@ -1,4 +1,6 @@
 """The batch renderer draws the right pixels in the right tiles."""
+import ctypes
+import ctypes.util
 import math
 
 import numpy as np
@@ -60,6 +62,46 @@ def test_box_projects_where_a_pinhole_camera_puts_it():
         assert is_background(image)[outside].all(), f"agent {agent}: colour outside the projected rectangle"
         assert red.sum() > 0.8 * inside.sum()
     assert is_background(rgb[0]).all(), "world 0 sees nothing, its tiles must be pure background"
+
+
+def clip_distances_enabled_while_drawing(root) -> list:
+    """GL_CLIP_DISTANCE0..3 as the GL has them while `root`'s draws run (a draw callback under it)."""
+    from panda3d.core import CallbackNode, OmniBoundingVolume, PythonCallbackObject
+
+    egl = ctypes.CDLL(ctypes.util.find_library("EGL"))
+    egl.eglGetProcAddress.restype = ctypes.c_void_p
+    is_enabled = ctypes.CFUNCTYPE(ctypes.c_ubyte, ctypes.c_uint)(egl.eglGetProcAddress(b"glIsEnabled"))
+    seen = []
+
+    def probe(data):
+        seen.append([bool(is_enabled(0x3000 + plane)) for plane in range(4)])  # GL_CLIP_DISTANCE0 + plane
+        data.upcall()
+
+    node = CallbackNode("clip_probe")
+    node.set_draw_callback(PythonCallbackObject(probe))
+    node.set_bounds(OmniBoundingVolume())
+    probe_path = root.attach_new_node(node)
+    probe_path.set_bin("fixed", 1 << 20)  # after the batch's own draws, in their state
+    return seen, probe_path
+
+
+def test_the_tiles_clip_distances_are_enabled_in_the_gl():
+    """The shaders clip each view to its tile with gl_ClipDistance, which the GL applies only where
+    GL_CLIP_DISTANCEi is enabled: llvmpipe clips regardless, the NVIDIA driver does not (every
+    world's tiles showed world 1's huge box there). Asked of the GL itself, since llvmpipe's pixels
+    cannot tell."""
+    scene = box_scene(worlds=2, agents=1, resolution=(16, 16), effects=("lighting", "shadows"),
+                      shadows=mr.Shadows(resolution=64, bounds=((-4.0, -4.0, 0.0), (4.0, 4.0, 2.0))))
+    with mr.BatchRenderer(scene) as renderer:
+        cameras_at_origin(renderer, 2, 1)
+        renderer.update("boxes", position=[[[0.0, 4.0, 0.0]]] * 2, active=[[True]] * 2)
+        (views, view_probe), (shadows, shadow_probe) = (clip_distances_enabled_while_drawing(renderer._passes[0].root),
+                                                        clip_distances_enabled_while_drawing(renderer.shadow_pass.root))
+        renderer.render()
+        view_probe.remove_node()
+        shadow_probe.remove_node()
+    assert views == [[True, True, False, False]], "views: the tile's top and bottom planes"
+    assert shadows == [[True, True, True, True]], "shadow atlas: all four sides of each world's square"
 
 
 @pytest.mark.parametrize("resolution,worlds,agents", [((24, 40), 3, 2), ((40, 24), 2, 3), ((32, 32), 5, 1)])
