@@ -104,9 +104,8 @@ def test_the_tiles_clip_distances_are_enabled_in_the_gl():
     assert shadows == [[True, True, True, True]], "shadow atlas: all four sides of each world's square"
 
 
-@pytest.mark.parametrize("resolution,worlds,agents", [((24, 40), 3, 2), ((40, 24), 2, 3), ((32, 32), 5, 1)])
-def test_geometry_never_leaks_into_neighbouring_tiles(resolution, worlds, agents):
-    """A huge box right in front of one camera fills that view only."""
+def render_leak_scene(resolution, worlds, agents):
+    """RGB of the scenes below (tools/gpu_kit/renderer_probe.py measures the same scenes on a GPU)."""
     scene = box_scene(worlds=worlds, agents=agents, resolution=resolution, capacity=1)
     with mr.BatchRenderer(scene) as renderer:
         assert renderer.layout.columns * renderer.layout.rows >= worlds * agents
@@ -120,7 +119,13 @@ def test_geometry_never_leaks_into_neighbouring_tiles(resolution, worlds, agents
         scale[1, 0] = torch.tensor([400.0, 2.0, 400.0])
         renderer.update("boxes", position=position, scale=scale, active=torch.ones(worlds, 1, dtype=torch.bool),
                         color=torch.tensor([0.0, 1.0, 0.0]).repeat(worlds, 1, 1))
-        rgb = renderer.render().rgb
+        return renderer.render().rgb
+
+
+@pytest.mark.parametrize("resolution,worlds,agents", [((24, 40), 3, 2), ((40, 24), 2, 3), ((32, 32), 5, 1)])
+def test_geometry_never_leaks_into_neighbouring_tiles(resolution, worlds, agents):
+    """A huge box right in front of one camera fills that view only."""
+    rgb = render_leak_scene(resolution, worlds, agents)
     green = (rgb == torch.tensor([0, 255, 0], dtype=torch.uint8)).all(-1)
     assert green[1].all(), "the huge box must fill every view of world 1"
     others = [w for w in range(worlds) if w != 1]
@@ -160,8 +165,8 @@ def random_scene_inputs(generator, worlds, agents, capacity):
     return dict(position=position, rotation=rotation, scale=scale, color=color, active=active), camera, target
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_matches_the_plain_panda3d_way(seed):
+def render_batched_and_plain(seed):
+    """RGB of one random lit scene, drawn by the batch renderer and by the plain Panda3D way."""
     worlds, agents, capacity = 2, 3, 5
     scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=(36, 48), effects=("lighting",),
                      background=BACKGROUND)
@@ -173,8 +178,14 @@ def test_matches_the_plain_panda3d_way(seed):
         renderer = cls(scene)
         renderer.update("boxes", **instances)
         renderer.set_cameras(position=camera, look_at=target)
-        images.append(renderer.render().rgb.float())
+        images.append(renderer.render().rgb)
         renderer.close()
+    return images
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_matches_the_plain_panda3d_way(seed):
+    images = [image.float() for image in render_batched_and_plain(seed)]
     error = (images[0] - images[1]).abs().mean(dim=(0, 1, 2, 3))
     assert (error < 1.0).all(), f"mean absolute error per channel {error.tolist()}"
     assert not is_background(images[0].to(torch.uint8)).all(), "nothing was drawn"
@@ -218,7 +229,8 @@ def test_depth_is_linear_metres_within_one_percent():
     assert torch.isinf(depth[0, 0]) and depth[0, 0] > 0, "background depth is +inf"
 
 
-def test_segmentation_ids_are_exact():
+def render_segmentation_scene():
+    """(segmentation, the boxes' ids, the floor's id, which boxes are active, the boxes' centre columns)."""
     scene = mr.Scene(num_worlds=2, agents_per_world=1, resolution=(32, 64), effects=("segmentation",),
                      background=BACKGROUND)
     scene.add_static("floor", "plane", position=[0, 0, -1], scale=[50, 50, 1])
@@ -231,8 +243,13 @@ def test_segmentation_ids_are_exact():
         active = torch.tensor([[True, True, True], [True, False, True]])
         renderer.update("boxes", position=position, scale=torch.full((2, 3, 3), 0.8), active=active)
         seg = renderer.render().segmentation
-    assert seg.dtype == torch.int32 and seg.shape == (2, 1, 32, 64)
     centre_cols = [64 // 2 + round(x / 3.6 * (16 / math.tan(scene.fov_y / 2))) for x in (-1.2, 0.0, 1.2)]
+    return seg, ids, floor_id, active, centre_cols
+
+
+def test_segmentation_ids_are_exact():
+    seg, ids, floor_id, active, centre_cols = render_segmentation_scene()
+    assert seg.dtype == torch.int32 and seg.shape == (2, 1, 32, 64)
     for world in range(2):
         for index, col in enumerate(centre_cols):
             expected = ids[index] if bool(active[world, index]) else 0
@@ -242,10 +259,8 @@ def test_segmentation_ids_are_exact():
     assert set(seg.unique().tolist()) <= {0, floor_id, *ids}
 
 
-@pytest.mark.parametrize("effects, supersample", [(("lighting", "depth", "segmentation"), 1),
-                                                  (("lighting", "fog", "depth", "log_depth"), 1),
-                                                  (("depth",), 2)])
-def test_views_split_over_several_passes_match_one_pass(effects, supersample):
+def render_in_one_pass_and_split(effects, supersample):
+    """[(passes, frame)] of one scene drawn in one pass and with its views split over five."""
     worlds, agents, capacity = 3, 3, 4
     scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=(20, 30), effects=effects,
                      background=BACKGROUND)
@@ -261,7 +276,14 @@ def test_views_split_over_several_passes_match_one_pass(effects, supersample):
                             active=torch.ones(worlds, 1, dtype=torch.bool))
             renderer.set_cameras(position=camera, look_at=target)
             frames.append((renderer.layout.num_passes, renderer.render()))
-    (passes_one, one), (passes_many, many) = frames
+    return frames
+
+
+@pytest.mark.parametrize("effects, supersample", [(("lighting", "depth", "segmentation"), 1),
+                                                  (("lighting", "fog", "depth", "log_depth"), 1),
+                                                  (("depth",), 2)])
+def test_views_split_over_several_passes_match_one_pass(effects, supersample):
+    (passes_one, one), (passes_many, many) = render_in_one_pass_and_split(effects, supersample)
     assert passes_one == 1 and passes_many == 5  # 1 x 2 tiles of 30x20 fit in 40x40
     assert torch.equal(one.rgb, many.rgb)
     # Bit for bit: depth comes from each triangle's plane at the pixel's place in its tile,
