@@ -43,7 +43,7 @@ class SkyImages:
         self._uploaded = torch.zeros(layout.num_passes, dtype=torch.bool)  # passes that have been uploaded once
         self._held = torch.zeros(layout.num_views, 4, dtype=torch.uint8)  # [views, 4]: what the images hold
         self._bytes = self._held.clone()  # [views, 4]: what they should hold (set_sky)
-        self._stale = [True] * layout.num_passes  # set_sky was called since the pass's image was last brought up to date
+        self._stale = [True] * layout.num_passes  # set_sky was called since the pass's image was last updated
         self._ready = [False] * layout.num_passes  # the pass's framebuffer holds the current sky (refill)
         functions = gl_functions()
         for index in range(layout.num_passes):
