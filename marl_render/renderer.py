@@ -331,7 +331,7 @@ class BatchRenderer:
         return _Pass(views, buffer, root, color, aux)
 
     def _build_groups(self):
-        from panda3d.core import NodePath, OmniBoundingVolume
+        from panda3d.core import DepthTestAttrib, NodePath, OmniBoundingVolume
 
         groups = [(g, True) for g in self.scene.static.values()] + [(g, False) for g in self.scene.groups.values()]
         for order, (group, static) in enumerate(groups):
@@ -358,14 +358,24 @@ class BatchRenderer:
                 node = NodePath(to_panda_geom(mesh))
             # A fixed draw order: Panda3D would otherwise sort by render state (memory
             # addresses), and surfaces that touch exactly would tie differently per run.
-            node.set_bin("fixed", order)
+            surface = group.name in self.packer.surface_roles
+            draw_order = order
+            if surface:
+                # Floors and walls with patterns (the costly fragments) go last, so that the depth
+                # test drops what objects hide before it is shaded. A tie against another group
+                # keeps its winner: equal depths pass for these (drawn first, they won ties under
+                # "less"), drawn in reverse order among themselves. Within one such group the later
+                # of two overlapping triangles now wins (walls' coplanar corners: one colour and
+                # pattern, so at most a pattern edge rounded the other way).
+                draw_order = 2 * len(groups) - order
+                node.set_attrib(DepthTestAttrib.make(DepthTestAttrib.M_less_equal))
+            node.set_bin("fixed", draw_order)
             node.node().set_bounds(OmniBoundingVolume())
             node.node().set_final(True)
             variant = functools.partial(
                 shaders.defines_for, self.effects, static=static, textured=textured, flat=procedural and mesh.flat,
                 corners=procedural, gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf, joints=joints,
                 influences=mesh.influences if joints else 4, role=0 if static else ROLES[group.role])
-            surface = group.name in self.packer.surface_roles
             node.set_shader(shaders.compiled(variant(surface=surface)))
             if textured and "texture" in self.effects:
                 node.set_texture(panda_texture(group.texture, group.name), 1)

@@ -177,6 +177,25 @@ def test_plain_worlds_take_the_variant_without_patterns_and_keep_their_pixels(mo
     assert len({frames[0][w].numpy().tobytes() for w in range(4)}) == 4
 
 
+def test_patterned_floors_drawn_last_still_win_the_exact_ties_they_won_first():
+    """Patterned floors and walls are drawn after the other groups, so that the depth test skips what
+    those hide before the pattern is shaded. Added first, a floor won exact depth ties, and still does:
+    a red rug laid exactly over it in a later group stays hidden (also in the world without a pattern,
+    drawn by the plain variant)."""
+    frames = []
+    for rug in (False, True):
+        scene = mr.Scene(num_worlds=2, agents_per_world=1, resolution=8, effects=("appearance",))
+        scene.add_static("floor", "plane", position=[[0, 0, 0]], scale=[[20, 20, 1]], role="floor")
+        if rug:
+            scene.add_static("rug", "plane", position=[[0, 0, 0]], scale=[[20, 20, 1]], color=[[1.0, 0.0, 0.0]])
+        with mr.BatchRenderer(scene) as r:
+            look_from(r, [0.13, 0.07, 3.0], DOWN)
+            r.set_appearance(floor_pattern=torch.tensor([1, 0]), pattern_scale=2.0, pattern_contrast=0.5)
+            frames.append(r.render().rgb)
+    assert len(frames[0][0].reshape(-1, 3).unique(dim=0)) == 2  # the checker shows in world 0
+    assert torch.equal(frames[0], frames[1])
+
+
 def test_a_scene_without_surface_patterns_compiles_none_and_refuses_them(monkeypatch):
     compiled = []
     original = mr.shaders.compiled
