@@ -97,6 +97,17 @@ _SCENARIOS = [
     HeldOutScenario("capture_flag/resident_red", "capture_flag",
                     "focal red team and half of blue, with four blue attackers", 16,
                     _names("red", range(8)) + _names("blue", range(4)), {"blue": ("all_attack",)}),
+    # The same opponents at the reference trainer's 2 v 2 (docs/baselines): its runs' agent one-hot fixes
+    # their team size, so without these capture_flag's trained actors would play no scenario.
+    HeldOutScenario("capture_flag/duel_red_vs_attackers", "capture_flag",
+                    "a focal red pair against a pair that only attacks or only defends", 4, _names("red", range(2)),
+                    {"blue": ("all_attack", "all_defend")}),
+    HeldOutScenario("capture_flag/duel_blue_vs_defenders", "capture_flag",
+                    "a focal blue pair against a pair that only defends or idles half the time",
+                    4, _names("blue", range(2)), {"red": ("all_defend", "lazy0.5")}),
+    HeldOutScenario("capture_flag/duel_red_with_lazy_teammate", "capture_flag",
+                    "one focal red player with a teammate that idles half the time, against attackers",
+                    4, ("red_0",), {"red": ("lazy0.5",), "blue": ("all_attack",)}),
     HeldOutScenario("forage/two_with_wanderer", "forage", "two focal foragers with one that wanders",
                     3, _names("agent", range(2)), {"agents": ("wanderer",)}),
     HeldOutScenario("forage/one_among_noisy", "forage", "one focal forager among two that act at random half the time",
