@@ -731,7 +731,7 @@ class BatchedEnv:
                 raise ValueError(f"{where} names {key!r}, which is not a field of the state {sorted(fields)}")
             try:
                 low, high = (torch.as_tensor(v, dtype=torch.float64) for v in pair)
-                torch.broadcast_shapes(low.shape, high.shape, fields[key].shape)
+                np.broadcast_shapes(low.shape, high.shape, fields[key].shape)  # torch's imports sympy (1.3 CPU-s)
             except (TypeError, ValueError, RuntimeError) as error:
                 raise ValueError(f"{where}[{key!r}] must be (low, high), each a number or one per index of the "
                                  f"field's last axis (shape {list(fields[key].shape)}), got {describe(pair)}"

@@ -7,6 +7,8 @@ at the next draw.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -66,19 +68,23 @@ def int_input(value: int):
     return PTA_int([int(value)])
 
 
-def clip_distances(parent, count: int):
+@functools.cache
+def clip_distances(count: int):
     """A ClipPlaneAttrib whose one job is to make Panda3D enable GL_CLIP_DISTANCE0..count-1.
 
     The shaders write gl_ClipDistance themselves (each view clipped to its own tile); the GL
     applies those only where the distances are enabled. Mesa's llvmpipe clips without the
     enable, the NVIDIA driver does not, and geometry spilled into neighbouring tiles (found on
-    the first lent GPU). The planes sit under `parent` and keep every point (z + 1e30 >= 0), so
-    Panda3D's culling on the CPU removes nothing."""
-    from panda3d.core import ClipPlaneAttrib, LPlane, PlaneNode
+    the first lent GPU). The planes keep every point (z + 1e30 >= 0), so Panda3D's culling on
+    the CPU removes nothing. One attrib per count for the process, its planes under a node of
+    their own: planes under a renderer's root made a cycle (root -> attrib -> plane -> root)
+    that kept every closed renderer's scene graph alive."""
+    from panda3d.core import ClipPlaneAttrib, LPlane, NodePath, PlaneNode
 
+    planes = NodePath("clip_distances")
     attrib = ClipPlaneAttrib.make()
     for index in range(count):
-        attrib = attrib.add_on_plane(parent.attach_new_node(PlaneNode(f"clip_distance_{index}", LPlane(0, 0, 1, 1e30))))
+        attrib = attrib.add_on_plane(planes.attach_new_node(PlaneNode(f"clip_distance_{index}", LPlane(0, 0, 1, 1e30))))
     return attrib
 
 

@@ -323,7 +323,7 @@ class BatchRenderer:
         root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
         root.set_transparency(TransparencyAttrib.M_none)
         root.set_attrib(ColorBlendAttrib.make_off())
-        root.set_attrib(clip_distances(root, 2))  # the tiles' top and bottom (shaders/batch.vert)
+        root.set_attrib(clip_distances(2))  # the tiles' top and bottom (shaders/batch.vert)
         for name, value in self._shared_inputs.items():
             root.set_shader_input(name, value)
         root.set_shader_input("tiles", int_input(len(views)))

@@ -197,7 +197,7 @@ class ShadowPass:
         self.root.set_attrib(DepthTestAttrib.make(DepthTestAttrib.M_less))
         self.root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
         self.root.set_attrib(ColorWriteAttrib.make(ColorWriteAttrib.C_off))
-        self.root.set_attrib(clip_distances(self.root, 4))  # each world's square of the atlas (batch.vert)
+        self.root.set_attrib(clip_distances(4))  # each world's square of the atlas (batch.vert)
         W = self.scene.num_worlds
         self.lights = buffer_texture("lights", W * layout.VIEW.texels)
         self.light_memory = TextureMemory(self.lights, np.float32)
