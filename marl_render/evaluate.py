@@ -528,9 +528,10 @@ def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int
                 continue
             # An actor's agent one-hot fixes its team sizes: it plays the scenarios defined for them only.
             trained_with = load_policy(folder).num_agents
-            fitting = [name for name in list_heldout(task) if heldout_scenario(name).num_agents == trained_with]
-            if len(fitting) < len(list_heldout(task)):
-                sizes = sorted({heldout_scenario(name).num_agents for name in list_heldout(task)} - {trained_with})
+            defined = [heldout_scenario(name) for name in list_heldout(task)]
+            fitting = [scenario.name for scenario in defined if scenario.num_agents == trained_with]
+            if len(fitting) < len(defined):
+                sizes = sorted({scenario.num_agents for scenario in defined} - {trained_with})
                 unplayable.append(f"{os.path.relpath(folder)} (trained with {trained_with} agents) does not play "
                                   f"{task}'s scenarios defined for {', '.join(map(str, sizes))} agents.")
             if fitting:

@@ -64,8 +64,9 @@ def test_box_projects_where_a_pinhole_camera_puts_it():
     assert is_background(rgb[0]).all(), "world 0 sees nothing, its tiles must be pure background"
 
 
-def clip_distances_enabled_while_drawing(root) -> list:
-    """GL_CLIP_DISTANCE0..3 as the GL has them while `root`'s draws run (a draw callback under it)."""
+def clip_distances_enabled_while_drawing(root) -> tuple:
+    """(seen, probe): `seen` fills, at each render, with GL_CLIP_DISTANCE0..3 as the GL has them while
+    `root`'s draws run (a draw callback under it); remove `probe` (a NodePath) when done."""
     from panda3d.core import CallbackNode, OmniBoundingVolume, PythonCallbackObject
 
     egl = ctypes.CDLL(ctypes.util.find_library("EGL"))
