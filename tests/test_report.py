@@ -2,13 +2,14 @@
 files of the step-budget schema written here, the runs' folders, and the published commands."""
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
 from marl_render.baselines import marl_eval, published, report, run, stats
-from marl_render.baselines.settings import step_budget
+from marl_render.baselines.settings import step_budget, task_hyperparameters
 from marl_render.envs import list_envs
 
 BUDGET = 100_000
@@ -261,6 +262,37 @@ def test_published_commands_cover_every_task_and_seed():
                 assert dict(args.env_option) == dict(entry.env_options)
                 assert dict(args.train_option) == dict(entry.train_options)
                 assert all(getattr(args, k) == v for k, v in entry.hyperparameters.items())
+
+
+def test_a_commands_switches_are_written_either_way_and_read_back():
+    """A False switch is written as --no-X: left out, the learner would take the task's default (overlap
+    is on by default, so a run without it could not be reproduced from its shown command)."""
+    for overlap, grayscale in ((True, True), (False, False), (False, True)):
+        argv = published.learner_argv("spread", "pixels", 3, budget=["--env-steps", "1024"], evaluation=[],
+                                      hyperparameters={"overlap": overlap, "grayscale": grayscale, "init": "torch"},
+                                      env_options={}, train_options={}, out="runs/x")
+        assert ("--overlap" in argv, "--no-overlap" in argv) == (overlap, not overlap)
+        args = run.parse_args(argv)
+        assert (args.overlap, args.grayscale, args.init, args.seed) == (overlap, grayscale, "torch", 3)
+
+
+def test_every_published_command_trains_with_its_rows_published_init():
+    """A row's seeds differ in the seed alone: each entry's init is that of the row's published runs
+    (result.json; runs from before the init option had torch's default), so `make baselines` trains
+    seeds 1 and 2 as seed 0 was."""
+    root = Path(__file__).resolve().parents[1] / published.ROOT
+    checked = 0
+    for env in published.RUNS:
+        for obs in published.OBSERVATIONS:
+            for seed in published.SEEDS:
+                path = published.run_folder(root, env, obs, seed) / "result.json"
+                if not path.exists():
+                    continue
+                trained = json.loads(path.read_text())["hyperparameters"].get("init", "torch")
+                args = run.parse_args(published.run_argv(env, obs, seed))
+                assert (args.init or task_hyperparameters(env).init) == trained, (env, obs, seed)
+                checked += 1
+    assert checked >= 20  # the step-budget runs published so far
 
 
 def test_published_entries_are_checked_and_read_only():

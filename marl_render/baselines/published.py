@@ -58,23 +58,30 @@ class Published:
             object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
 
 
-def _entry(env: str, *, state_resolution: int = 8, **options) -> dict:
+def _entry(env: str, *, state_resolution: int = 8, torch_init: tuple[str, ...] = (), **options) -> dict:
     """A task's pixels and state entries: the same options, the learner's step budgets
-    (settings.STEP_BUDGETS); the state run renders tiny views (its actor never sees them)."""
-    return {"pixels": Published(step_budget(env, "pixels"), **options),
-            "state": Published(step_budget(env, "state"), **options, hyperparameters={"resolution": state_resolution})}
+    (settings.STEP_BUDGETS); the state run renders tiny views (its actor never sees them).
+    `torch_init` names the observations whose row was trained with torch's default initial weights
+    (``--init torch``, the learner's default before issue 25's orthogonal one): every seed of a row
+    shares its seed 0's init, so that the row's seeds differ in the seed alone."""
+    def hyperparameters(obs: str, **overrides) -> dict:
+        return {**overrides, **({"init": "torch"} if obs in torch_init else {})}
+    return {"pixels": Published(step_budget(env, "pixels"), **options, hyperparameters=hyperparameters("pixels")),
+            "state": Published(step_budget(env, "state"), **options,
+                               hyperparameters=hyperparameters("state", resolution=state_resolution))}
 
 
 RUNS: dict[str, dict[str, Published]] = {
-    "capture_flag": _entry("capture_flag", env_options={"num_agents": 4}, train_options={"shaping": 0.5}),
+    "capture_flag": _entry("capture_flag", env_options={"num_agents": 4}, train_options={"shaping": 0.5},
+                           torch_init=("pixels",)),
     "cartpole": _entry("cartpole", state_resolution=16),
-    "commons": _entry("commons"),
+    "commons": _entry("commons", torch_init=("pixels", "state")),
     "forage": _entry("forage"),
-    "push": _entry("push", train_options={"shaping": 1.0}),
+    "push": _entry("push", train_options={"shaping": 1.0}, torch_init=("pixels",)),
     "rooms": _entry("rooms", train_options={"explore_reward": 0.1}),
     "speaker_listener": _entry("speaker_listener"),
     "spread": _entry("spread"),
-    "tag": _entry("tag", train_options={"shaping": 0.05}),
+    "tag": _entry("tag", train_options={"shaping": 0.05}, torch_init=("pixels", "state")),
 }
 
 
@@ -97,8 +104,9 @@ def learner_argv(env: str, obs: str, seed: int, *, budget: list[str], evaluation
     are the options that stop the run and choose its evaluation episodes."""
     argv = ["--env", env] + (["--obs", obs] if obs != "pixels" else []) + ["--seed", str(seed), *budget, *evaluation]
     for name, value in hyperparameters.items():
-        flag = "--" + name.replace("_", "-")
-        argv += ([flag] if value else []) if isinstance(value, bool) else [flag, _value(value)]
+        flag = name.replace("_", "-")
+        # A switch is written either way: its default is the task's, so a False left out could read as True.
+        argv += [f"--{flag}" if value else f"--no-{flag}"] if isinstance(value, bool) else [f"--{flag}", _value(value)]
     for kind, options in (("env", env_options), ("train", train_options)):
         for key, value in options.items():
             argv += [f"--{kind}-option", f"{key}={value!r}"]

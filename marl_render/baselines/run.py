@@ -138,7 +138,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     hp = parser.add_argument_group("hyperparameters (default: the task's, see settings.py)")
     for name, kind, *_ in RANGES:
         hp.add_argument(f"--{name}", type=kind, default=None)
-    hp.add_argument("--grayscale", action="store_true", default=None, help="one-channel pixels")
+    hp.add_argument("--grayscale", action=argparse.BooleanOptionalAction, default=None, help="one-channel pixels")
     hp.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
                     help="collect the next rollout while the update runs (one update behind)")
     hp.add_argument("--encoder", choices=list(ENCODERS), default=None, help="the actor's pixel encoder")
