@@ -226,13 +226,13 @@ def plot(summary: dict, path: Path, env: str, env_steps: int) -> None:
     axes[1].set_xlabel("million env steps")
     axes[2].set_xlabel("env steps per second of training")
     axes[0].set_ylabel("training episode return (mean over seeds)")
-    axes[2].set_ylabel(f"greedy return after {env_steps:,} env steps (mean ± spread over seeds)")
+    axes[2].set_ylabel("final greedy return (mean ± spread over seeds)")
     first = next(iter(summary.values()))["runs"][0]
     for ax in axes:
         ax.axhline(first["random"], color="grey", linestyle="--", linewidth=0.8)
     axes[2].legend(fontsize=8)
     figure.suptitle(f"MAPPO on {env} for the same env steps ({env_steps:,} per run); grey: random policy", fontsize=10)
-    figure.tight_layout()
+    figure.tight_layout(rect=(0, 0, 1, 0.95))  # room for the title above the plots
     figure.savefig(path, dpi=100)
     plt.close(figure)
 
