@@ -137,9 +137,10 @@ def test_marl_eval_layout(written):
     runs = data["marl_render"]["spread"]["mappo_pixels"]
     assert list(runs) == ["seed_0", "seed_1", "seed_2"]
     seed1 = runs["seed_1"]
-    assert list(seed1) == ["step_0", "step_1", "step_2", "absolute_metrics"]
-    assert [seed1[f"step_{i}"] for i in range(3)] == [{"step_count": s, "return": [i + 0.5] * 2}
-                                                      for i, s in enumerate(CHECKPOINTS)]
+    # the checkpoint at the budget's end (100,000) is the final policy: absolute_metrics holds it
+    assert list(seed1) == ["step_0", "step_1", "absolute_metrics"]
+    assert [seed1[f"step_{i}"] for i in range(2)] == [{"step_count": s, "return": [i + 0.5] * 2}
+                                                      for i, s in enumerate(CHECKPOINTS[:2])]
     assert seed1["absolute_metrics"] == {"return": POLICIES[("spread", "pixels")][1]}
     # commons has no state runs: marl-eval's tools would refuse the file, and the report says so
     problems = marl_eval.problems(data)
@@ -152,10 +153,22 @@ def test_marl_eval_same_shape_everywhere_has_no_problems(tmp_path):
     write_runs(tmp_path, {key: value for key, value in POLICIES.items() if key[1] == "pixels"})
     data = marl_eval.layout(report.load_results(tmp_path))
     assert marl_eval.problems(data) == []
-    del data["marl_render"]["spread"]["mappo_pixels"]["seed_2"]["step_2"]
-    assert marl_eval.problems(data) == ["marl_render: runs or steps differ (seed_0, seed_1, seed_2 with 3 steps: "
-                                        "commons/mappo_pixels; seed_0, seed_1, seed_2 with 2/3 steps: "
+    del data["marl_render"]["spread"]["mappo_pixels"]["seed_2"]["step_1"]
+    assert marl_eval.problems(data) == ["marl_render: runs or steps differ (seed_0, seed_1, seed_2 with 2 steps: "
+                                        "commons/mappo_pixels; seed_0, seed_1, seed_2 with 1/2 steps: "
                                         "spread/mappo_pixels)"]
+
+
+def test_marl_eval_steps_leave_out_the_checkpoint_at_the_budgets_end():
+    """Whether a checkpoint lands on the last update depends on how the budget divides into updates:
+    the exported steps are the same either way (that checkpoint is the final policy's)."""
+    result = synthetic_result("spread", "pixels", 0, [1.0, 2.0])
+    before_end = marl_eval.run_entry(result)
+    result["checkpoints"] = result["checkpoints"][:2]  # none at the budget's end
+    assert marl_eval.run_entry(result) == before_end
+    assert [before_end[k]["step_count"] for k in ("step_0", "step_1")] == list(CHECKPOINTS[:2])
+    result["checkpoints"] = []  # a run from before the checkpoints: its final evaluation is its one step
+    assert marl_eval.run_entry(result)["step_0"] == {"step_count": BUDGET, "return": [1.0, 2.0]}
 
 
 def test_older_flat_runs_are_read_only_where_no_seed_folders_exist(tmp_path):
@@ -292,7 +305,48 @@ def test_every_published_command_trains_with_its_rows_published_init():
                 args = run.parse_args(published.run_argv(env, obs, seed))
                 assert (args.init or task_hyperparameters(env).init) == trained, (env, obs, seed)
                 checked += 1
-    assert checked >= 20  # the step-budget runs published so far
+    assert checked == len(published.commands())  # every published run
+
+
+def test_every_published_row_is_three_step_budget_seeds_on_the_publication_worlds():
+    """Issue 29's rule, on the committed runs: every task, from pixels and from the state, has the
+    published seeds, each stopped by its step budget and scored on the publication worlds, and every
+    command docs/baselines.md shows for a run stops on a step budget."""
+    root = Path(__file__).resolve().parents[1]
+    runs = report.load_results(root / published.ROOT)
+    for env in list_envs():
+        for obs in published.OBSERVATIONS:
+            results = runs[env][obs]
+            assert [r["seeds"]["train"] for r in results] == list(published.SEEDS), (env, obs)
+            for r in results:
+                where = (env, obs, r["seeds"]["train"])
+                assert r["layout"] == "seeds" and r["evaluation_set"] == "publication", where
+                assert r["budget_minutes"] is None and not r["truncated"], where
+                assert r["env_steps"] == step_budget(env, obs), where
+    page = (root / "docs" / "baselines.md").read_text()
+    shown = [line for line in page.splitlines() if line.startswith("python -m marl_render.baselines ")]
+    runs_section = page.split("\n## Runs\n")[1].split("\n## Findings\n")[0]
+    outs = [line.split(" --out ")[1] for line in runs_section.splitlines() if line in shown]
+    assert sorted(outs) == sorted(f"docs/baselines/{published.folder(env, obs)}/seed{seed}" for env in list_envs()
+                                  for obs in published.OBSERVATIONS for seed in published.SEEDS)
+    for line in shown:  # the runs' and the findings' commands
+        assert " --env-steps " in line and "--budget-minutes" not in line, line
+
+
+def test_the_readmes_claims_about_the_baselines_follow_the_table():
+    """README: "every task's policy beats random ... from pixels and from the state" and the
+    pixels' IQM across tasks, read against docs/results.md's table and docs/baselines.md's aggregate."""
+    root = Path(__file__).resolve().parents[1]
+    readme = " ".join((root / "README.md").read_text().split())
+    table = (root / "docs" / "results.md").read_text().split(report.START)[1].split(report.END)[0]
+    verdicts = {line.split("|")[1].strip(): line.split("|")[6].strip() for line in table.splitlines()[3:]
+                if line.startswith("| ")}
+    assert sorted(verdicts) == sorted(list_envs())
+    if "every task's policy beats random" in readme and "from pixels and from the state" in readme:
+        assert set(verdicts.values()) == {"yes; yes"}, verdicts
+    iqm = re.search(r"from pixels, 3 seeds x 9 tasks \([^)]*\): IQM ([-\d.]+ \[[-\d.]+, [-\d.]+\])",
+                    (root / "docs" / "baselines.md").read_text())
+    assert iqm and f"(random 0, heuristic 1, IQM) {iqm.group(1)} from pixels" in readme
 
 
 def test_published_entries_are_checked_and_read_only():

@@ -7,11 +7,14 @@ marl-eval users can put them beside their own runs.
 
 ``marl_render`` is the env name of these tasks in BenchMARL (marl_render.wrappers.benchmarl);
 runs are named ``seed_K`` and steps ``step_I`` as BenchMARL's JsonWriter names them. The steps
-are the greedy evaluations along training (``checkpoints`` of result.json, development worlds);
-``absolute_metrics`` holds the final policy's episode returns on the row's evaluation worlds
-(BenchMARL puts the best return seen there; these rows never pick a best). A run without
-checkpoints (before the step budgets) has one step: its final evaluation. A return is the
-evaluated agents' summed rewards over an episode, averaged over them.
+are the greedy evaluations along training (``checkpoints`` of result.json, development worlds)
+before the budget's end; ``absolute_metrics`` holds the final policy's episode returns on the row's
+evaluation worlds (BenchMARL puts the best return seen there; these rows never pick a best). A
+checkpoint at the budget's end is of the final policy, which ``absolute_metrics`` holds: leaving it
+out gives every run the same steps (a checkpoint every tenth of the budget falls on its last update
+or just past it, depending on how the budget divides into updates). A run without checkpoints
+(before the step budgets) has one step: its final evaluation. A return is the evaluated agents'
+summed rewards over an episode, averaged over them.
 
 marl-eval's tools need the same algorithms, runs and number of steps on every task of an env;
 ``problems`` lists what keeps a file from that.
@@ -32,9 +35,11 @@ def _episodes(evaluation: dict) -> list:
 
 
 def run_entry(result: dict) -> dict:
-    """One run: its checkpoints as steps, its final evaluation as the absolute metric."""
+    """One run: its checkpoints before the budget's end as steps, its final evaluation as the
+    absolute metric."""
     final = result["evaluation"]["policy"]
-    points = result.get("checkpoints") or [{"env_steps": result["env_steps"], **final}]
+    points = ([p for p in result.get("checkpoints") or () if p["env_steps"] < result["env_steps"]]
+              or [{"env_steps": result["env_steps"], **final}])
     steps = {f"step_{i}": {"step_count": int(p["env_steps"]), METRIC: _episodes(p)} for i, p in enumerate(points)}
     return {**steps, "absolute_metrics": {METRIC: _episodes(final)}}
 
