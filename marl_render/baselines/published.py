@@ -6,7 +6,8 @@
 
 Every row of docs/baselines.md is ``SEEDS`` training seeds of one entry, each stopped by the
 entry's budget in env steps (summed over worlds) and scored on the ``publication`` evaluation
-worlds, which no development choice (shaping, hyperparameters, tries) ever used. Run k writes
+worlds. Those worlds are a second development set, not a sealed one: the budgets, the default init and
+which rows keep ``--init torch`` were chosen after scores on them were in (docs/baselines/notes.md). Run k writes
 docs/baselines/<task>[-state]/seed<k>/. An entry holds the step budget, the env options (training
 and evaluation), the training-only options (a shaped reward; the evaluations keep the task's own
 reward) and the hyperparameters that differ from the task's defaults (settings.py).

@@ -405,7 +405,10 @@ def document(runs: dict, results_root: Path, docs: Path, notes: str = "", marl_e
         "the same worlds): *yes* when the lower end of its 95% interval is above 0, which with 3 seeds means every "
         "seed beats random. One seed is not judged.",
         "- **Scored on**: the evaluation worlds of each number. *development* worlds served every development "
-        "choice (shaping, hyperparameters, tries); *publication* worlds were never used before the published runs.",
+        "choice (shaping, hyperparameters, tries); *publication* worlds scored the published runs, and three "
+        "choices were made after scores on them were in (the budgets kept after half-budget runs, orthogonal "
+        "init as the default, the rows that kept `--init torch`: docs/baselines/notes.md), so they are a second "
+        "development set, not a sealed test set.",
         "- **Budgets** are env steps summed over worlds; the wall-clock (mean, min-max over seeds) is what they took "
         "on the machine of the run. Runs from before the step budgets were stopped by a wall-clock budget instead, "
         "so their env steps depend on the machine's speed and load.",

@@ -6,8 +6,9 @@
 
 Training stops on its budget: --env-steps (summed over worlds, rounded up to whole updates) or
 --updates; without either, the task's budget (settings.STEP_BUDGETS). The wall-clock is recorded,
-never used to stop, so the same command gives the same numbers (timings apart) on any machine with
-the same software. --max-minutes is an opt-in safety cap on training: a run it stops is marked
+never used to stop, so the same command gives the same numbers (timings apart) on machines with
+the same software and the same CPU model (another instruction set rounds the learner differently).
+--max-minutes is an opt-in safety cap on training: a run it stops is marked
 "truncated": true in result.json.
 
 The final greedy policy, the task's uniform random policy and its scripted heuristic are each

@@ -8,7 +8,8 @@
     print(evaluate("spread", run.policy(), episodes=32, seed=1000, resolution=run.hyperparameters.resolution))
 
 Training stops on its budget in env steps (summed over worlds) or updates, never on the clock, so
-the same call gives the same numbers on any machine with the same software (``max_seconds`` is an
+the same call gives the same numbers on machines with the same software and the same CPU model (the
+learner's float arithmetic follows the CPU's instruction set; ``max_seconds`` is an
 opt-in safety cap; a run it stops is marked ``truncated``). Greedy evaluations at fixed env-step
 checkpoints (``checkpoint_every``) record how stable the policy is over training; they never
 choose which policy is returned: that is always the final one.
