@@ -8,7 +8,7 @@ import torch
 
 from marl_render.bots import Perturbed
 from marl_render.envs import Population, make_env
-from marl_render.policies import Policy, heuristic_policy
+from marl_render.policies import Policy, RandomPolicy, heuristic_policy
 
 TINY = {"resolution": 8, "state_obs": True}
 
@@ -247,3 +247,23 @@ def test_heldout_must_be_a_name_or_a_scenario():
                                         r"HeldOutScenario, got \['tag/prey_vs_interceptors'\]"):
         make_env("tag", heldout=["tag/prey_vs_interceptors"], num_worlds=1)
 
+
+
+def test_noisy_and_lazy_bots_play_continuous_actions():
+    with make_env("forage", heldout="forage/one_among_noisy", num_worlds=4, continuous=True, **TINY) as env:
+        env.reset(seed=0)
+        for _ in range(3):
+            env.step(torch.zeros(4, 1, 2))
+        bot = Perturbed(heuristic_policy(), 1.0, "noisy", seed=1)
+        actions = bot.act(env.core, {}, torch.arange(4), torch.ones(4, dtype=torch.int64))
+        assert actions.shape == (4, 2) and actions.dtype == torch.float32 and bool((actions.abs() <= 1).all())
+        assert len(set(actions[:, 0].tolist())) == 4
+
+
+def test_random_policy_plays_an_agent_with_no_allowed_action():
+    """An agent out of the episode may have an all-False mask row: it gets some action, the others an
+    allowed one (masking.sample_allowed)."""
+    mask = torch.tensor([[False, False, False], [False, True, False]])
+    env = type("Discrete", (), {"continuous": False})()
+    actions = RandomPolicy(seed=0).act(env, {"action_mask": mask}, torch.arange(2), torch.zeros(2, dtype=torch.int64))
+    assert actions.shape == (2,) and actions.dtype == torch.int64 and int(actions[1]) == 1
