@@ -268,7 +268,7 @@ class BatchedEnv:
         self.step_count = torch.zeros(W, dtype=torch.int64, device=self.device)
         # [W] int64 (CPU): the id each world's look is drawn from (appearance on): its level id with
         # levels on, else drawn from the env's generator at every reset of the world.
-        self.appearance_ids = torch.zeros(W, dtype=torch.int64) if self.appearance is not None else None
+        self._appearance_ids = torch.zeros(W, dtype=torch.int64) if self.appearance is not None else None
         # [W] int64 (CPU): the level each world plays (levels on), else None.
         self._level_ids = torch.zeros(W, dtype=torch.int64) if self.levels is not None else None
         if self.levels is not None:  # the driver's info entry, after the task's were checked
@@ -290,6 +290,11 @@ class BatchedEnv:
                 self.views.close()
                 raise
         self._closed = False
+
+    @property
+    def appearance_ids(self) -> torch.Tensor | None:
+        """The id each world's look is drawn from, int64 [W] (a copy), with appearance on; else None."""
+        return None if self._appearance_ids is None else self._appearance_ids.clone()
 
     @property
     def level_ids(self) -> torch.Tensor | None:
@@ -330,7 +335,7 @@ class BatchedEnv:
             self._reseed(seed)
             sim, step_count, alive, looks, levels = self._respawned(
                 torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), self.sim, self.step_count,
-                self.alive, self.appearance_ids, self._level_ids)
+                self.alive, self._appearance_ids, self._level_ids)
             obs = self._observe(sim, alive, full=True)
             self._commit(sim, alive, step_count, looks, levels)
             self._needs_reset = False
@@ -376,7 +381,7 @@ class BatchedEnv:
         with limited_threads(self.torch_threads), self._all_or_nothing():
             self._reseed(seed)
             sim, step_count, alive, looks, levels = self._respawned(mask, self.sim, self.step_count, self.alive,
-                                                                    self.appearance_ids, self._level_ids, chosen)
+                                                                    self._appearance_ids, self._level_ids, chosen)
             obs = self._observe(sim, alive, full=True)
             self._commit(sim, alive, step_count, looks, levels)
             return obs
@@ -415,7 +420,7 @@ class BatchedEnv:
         reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         alive = alive_before & ~terminated
         step_count = self.step_count + 1
-        restarted, looks, levels = bool(restart.any()), self.appearance_ids, self._level_ids
+        restarted, looks, levels = bool(restart.any()), self._appearance_ids, self._level_ids
         if restarted:  # alive again, step_count 0: not terminated, not truncated
             sim, step_count, alive, looks, levels = self._respawned(restart, sim, step_count, alive, looks, levels)
         terminated = ~alive
@@ -630,7 +635,7 @@ class BatchedEnv:
         """The core's part of the state (get_state / set_state); "appearance_ids" with appearance on."""
         counters = {"step_count": self.step_count, "alive": self.alive}
         if self.appearance is not None:
-            counters["appearance_ids"] = self.appearance_ids
+            counters["appearance_ids"] = self._appearance_ids
         if self.levels is not None:
             counters["level_ids"] = self._level_ids
         return counters
@@ -763,7 +768,7 @@ class BatchedEnv:
             self.seed = seed
             self.views.invalidate()
             if self.appearance is not None and not self._needs_reset:  # before the first reset: none to keep
-                self.views.set_appearance(self.appearance_ids)
+                self.views.set_appearance(self._appearance_ids)
             written = [name for (name, tensor), version in zip(held.items(), versions, strict=True)
                        if _version(tensor) != version]
             if written:  # a hook broke the contract: what it wrote cannot be undone
@@ -775,6 +780,26 @@ class BatchedEnv:
             raise
         finally:
             self._running_hooks = False
+
+    @contextlib.contextmanager
+    def _kept(self):
+        """For a wrapper whose one call is a call of this env and then code of its own (envs/focal.py:
+        the core's reset, then the bots' reset): if the wrapper's part raises after this env committed,
+        the env is put back as it was before the call. Committed tensors are replaced, never written
+        into, so holding them keeps them; the lock is held throughout, so no other call comes between."""
+        with self._lock:
+            rng, seed, needs_reset = self.generator.get_state(), self.seed, self._needs_reset
+            committed = (self.sim, self.alive, self.step_count, self._appearance_ids, self._level_ids)
+            try:
+                yield
+            except BaseException:
+                self.generator.set_state(rng)
+                self.seed, self._needs_reset = seed, needs_reset
+                self._commit(*committed)
+                self.views.invalidate()  # it may hold the undone state's instances: its next sync sends all
+                if self.appearance is not None and not needs_reset:
+                    self.views.set_appearance(self._appearance_ids)
+                raise
 
     def _refuse_reentry(self) -> None:
         """A call that changes the env, made by one of its hooks (the same thread: others wait for the
@@ -791,7 +816,7 @@ class BatchedEnv:
 
     def _commit(self, sim, alive: torch.Tensor, step_count: torch.Tensor, looks: torch.Tensor | None,
                 levels: torch.Tensor | None) -> None:
-        self.sim, self.alive, self.step_count, self.appearance_ids = sim, alive, step_count, looks
+        self.sim, self.alive, self.step_count, self._appearance_ids = sim, alive, step_count, looks
         self._level_ids = levels
 
     def _reseed(self, seed: int | None) -> None:

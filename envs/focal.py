@@ -14,22 +14,32 @@ Every front end takes the same keywords (``make_parallel_env("tag", heldout=...)
 ``FocalEnv`` where they would see the driver, with the same methods and attributes.
 
 At every reset of a world (reset, reset_worlds, or an autoreset inside step) the world samples one
-bot per background slot, with replacement, from the bots of the slot's team (its role), with the
-env's own generator: deterministic for a seed, different across worlds. A step calls each distinct
-bot once, over every (world, slot) pair it plays (``bot_calls`` counts the calls). Background bots
-see their own slots' observations or read the simulation state; the frames of background slots are
-still rendered (the renderer draws every agent's view in the same pass).
+bot per background slot, with replacement, from the bots of the slot's team (its role): with
+levels on (envs/levels.py) as a pure function of the world's level id, so a level plays with the
+same bots in any world slot and batch; else with the env's own generator ("background_rng"):
+deterministic for a seed, different across worlds. A seeded reset re-seeds that generator and each
+bot's own (its ``generator`` attribute, a torch.Generator) with the seed plus the offset the bot's
+seed had from the env's when the env was built, so ``reset(seed=s)`` replays the same bots' draws.
+A step calls each distinct bot once, over every (world, slot) pair it plays (``bot_calls`` counts
+the calls); what a bot returns is checked, and a bad action is named as that bot's. Background
+bots see their own slots' observations or read the simulation state; the frames of background
+slots are still rendered (the renderer draws every agent's view in the same pass). A call that
+raises, in the core or in a bot's act or reset, leaves the env as it was.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import threading
 
 import torch
 
+from marl_render.keyed_random import KeyedRandom, derive_keys
 from marl_render.validation import describe
 
+from . import levels as level_sets
+from . import masking
 from .core import BatchedEnv
 
 # The driver's attributes a focal-only env shares unchanged (settings of the whole batch).
@@ -61,10 +71,19 @@ def _one_at_a_time(method):
     return call
 
 
+def _agent_names(focal) -> tuple:
+    """Population's `focal`: one agent name, or several (a list or tuple of str)."""
+    if isinstance(focal, str):
+        return (focal,)
+    if not isinstance(focal, (list, tuple)) or not all(isinstance(name, str) for name in focal):
+        raise TypeError(f"focal must be an agent name (str) or a list of them, got {describe(focal)}")
+    return tuple(focal)
+
+
 class Population:
-    """Background bots by role: ``{team: [Policy, ...]}`` (marl_render/policies.py). The slots of
-    those teams are background, unless `focal` (agent names) says which agents are focal; every
-    other slot must belong to a team listed here."""
+    """Background bots by role: ``{team: [Policy, ...]}`` (marl_render/policies.py; each bot has act
+    and reset). The slots of those teams are background, unless `focal` (an agent name, or a list of
+    them) says which agents are focal; every other slot must belong to a team listed here."""
 
     def __init__(self, bots_by_role: dict, focal=None):
         if not isinstance(bots_by_role, dict) or not bots_by_role:
@@ -73,8 +92,14 @@ class Population:
             if not isinstance(bots, (list, tuple)) or not bots or not all(hasattr(b, "act") for b in bots):
                 raise TypeError(f"bots_by_role[{team!r}] must be a non-empty list of policies (objects with act), "
                                 f"got {describe(bots)}")
+            for j, bot in enumerate(bots):  # reset runs at every reset of a world: a bot without it would fail there
+                missing = [method for method in ("act", "reset") if not callable(getattr(bot, method, None))]
+                if missing:
+                    raise TypeError(f"bots_by_role[{team!r}][{j}] ({type(bot).__name__} "
+                                    f"{getattr(bot, 'name', None)!r}) must be a policy with act and reset "
+                                    f"(marl_render.policies.Policy); it lacks {missing}")
         self.bots_by_role = {team: list(bots) for team, bots in bots_by_role.items()}
-        self.focal = None if focal is None else tuple(focal)
+        self.focal = None if focal is None else _agent_names(focal)
 
     def __repr__(self):
         roles = {team: [getattr(b, "name", type(b).__name__) for b in bots] for team, bots in self.bots_by_role.items()}
@@ -90,12 +115,12 @@ class FocalEnv:
         if not isinstance(population, Population):
             raise TypeError(f"background must be a marl_render.envs.Population, got {describe(population)}")
         team_of = {name: team for team, names in core.groups.items() for name in names}
+        unknown = sorted(set(population.bots_by_role) - set(core.groups))
+        if unknown:
+            raise ValueError(f"background names teams {unknown} that {core.name} does not have; its teams: "
+                             f"{list(core.groups)}")
         focal = population.focal
         if focal is None:
-            unknown = sorted(set(population.bots_by_role) - set(core.groups))
-            if unknown:
-                raise ValueError(f"background names teams {unknown} that {core.name} does not have; its teams: "
-                                 f"{list(core.groups)}")
             focal = [n for n in core.agent_names if team_of[n] not in population.bots_by_role]
         unknown = [n for n in focal if n not in team_of]
         if unknown or len(set(focal)) != len(focal):
@@ -131,6 +156,16 @@ class FocalEnv:
         self.spec = dataclasses.replace(core.spec, agent_names=tuple(self.agent_names), groups=self.groups,
                                         info={**core.spec.info, "background_reward": torch.float32})
         self.bot_generator = torch.Generator().manual_seed(core.seed + 1)
+        # Each bot's seed relative to the env's when the env was built (None: a bot without a generator):
+        # reset(seed=s) re-seeds it with s plus this, so reset(seed=env.seed) puts it back where it began.
+        self._seed_offsets = [(b.generator.initial_seed() - core.seed) % 2 ** 64
+                              if isinstance(getattr(b, "generator", None), torch.Generator) else None
+                              for b in self.bots]
+        team_of_bot = [[team for team, bots in population.bots_by_role.items() if any(b is bot for b in bots)]
+                       for bot in self.bots]
+        self._bot_labels = [f"background bot {getattr(bot, 'name', type(bot).__name__)!r} "
+                            f"({f'team {teams[0]!r}' if len(teams) == 1 else f'teams {teams}'})"
+                            for bot, teams in zip(self.bots, team_of_bot, strict=True)]
         self.assignment = torch.zeros(core.num_worlds, len(background), dtype=torch.int64)  # [W, B] bot index
         self.bot_calls = 0  # act calls made on bots (a step makes at most one per distinct bot)
         self._pairs = []
@@ -149,39 +184,38 @@ class FocalEnv:
 
     @_one_at_a_time
     def reset(self, seed: int | None = None) -> dict:
-        obs = self.core.reset(seed=seed)  # checks the seed before anything changes
-        return self._after_reset(torch.ones(self.num_worlds, dtype=torch.bool), obs, seed)
+        with self._all_or_nothing():
+            obs = self.core.reset(seed=seed)  # checks the seed before anything changes
+            return self._after_reset(torch.ones(self.num_worlds, dtype=torch.bool), obs, seed)
 
     @_one_at_a_time
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
-        obs = self.core.reset_worlds(mask, seed=seed)
-        return self._after_reset(torch.as_tensor(mask).cpu(), obs, seed)
+        with self._all_or_nothing():
+            obs = self.core.reset_worlds(mask, seed=seed)
+            return self._after_reset(torch.as_tensor(mask).cpu(), obs, seed)
 
     @_one_at_a_time
     def reset_to_level(self, mask, level_ids, seed: int | None = None) -> dict:
         """The core's reset_to_level (envs/levels.py), then new bots for those worlds."""
-        obs = self.core.reset_to_level(mask, level_ids, seed=seed)
-        return self._after_reset(torch.as_tensor(mask).cpu(), obs, seed)
+        with self._all_or_nothing():
+            obs = self.core.reset_to_level(mask, level_ids, seed=seed)
+            return self._after_reset(torch.as_tensor(mask).cpu(), obs, seed)
 
     @_one_at_a_time
     def step(self, actions):
         actions = self.check_actions(actions)
         if self._obs is None:
             self._check_bots_can_act()
-        rngs = self._bot_rngs()  # a rejected step must leave the bots' own generators as they were
-        try:
+        with self._all_or_nothing():  # a bot that raises, in act or in an autoreset's reset, changes nothing
             full = self._background_actions()
             full[:, self.focal_slots] = actions
             obs, reward, terminated, truncated, info = self.core.step(full)
-        except BaseException:
-            self._set_bot_rngs(rngs)
-            raise
-        info["background_reward"] = reward[:, self.background_slots].mean(1)
-        if "final_obs" in info:
-            info["final_obs"] = self._focal(info["final_obs"])
-        if "autoreset_worlds" in info and bool(info["autoreset_worlds"].any()):
-            self._restart(info["autoreset_worlds"].cpu(), obs)
-        self._obs = obs
+            info["background_reward"] = reward[:, self.background_slots].mean(1)
+            if "final_obs" in info:
+                info["final_obs"] = self._focal(info["final_obs"])
+            if "autoreset_worlds" in info and bool(info["autoreset_worlds"].any()):
+                self._restart(info["autoreset_worlds"].cpu(), obs)
+            self._obs = obs
         focal = self.focal_slots
         return self._focal(obs), reward[:, focal], terminated[:, focal], truncated[:, focal], info
 
@@ -262,25 +296,49 @@ class FocalEnv:
         names = [getattr(b, "name", type(b).__name__) for b in self.bots]
         return [[names[k] for k in row] for row in self.assignment.tolist()]
 
+    @contextlib.contextmanager
+    def _all_or_nothing(self):
+        """A call that raises (in the core, or in a bot's act or reset after the core committed)
+        leaves the env as it was: the core's state and generator, the bots' assignment, the generator
+        that draws them and the bots' own generators. Bots' memories (an actor's frame stack) are the
+        bots': a failed call may have cleared some of them."""
+        saved = self.assignment, self._pairs, self._obs, self.bot_generator.get_state(), self._bot_rngs()
+        with self.core._kept():
+            try:
+                yield
+            except BaseException:
+                self.assignment, self._pairs, self._obs, rng, bot_rngs = saved
+                self.bot_generator.set_state(rng)
+                self._set_bot_rngs(bot_rngs)
+                raise
+
     def _after_reset(self, worlds: torch.Tensor, obs: dict, seed: int | None) -> dict:
         """After the core reset the worlds of mask [W] (re-seeded with `seed`, if given): the bots'
-        generator re-seeded alike, new bots there; the focal observations."""
+        generators re-seeded alike, new bots there; the focal observations."""
         if seed is not None:
             self.bot_generator.manual_seed(seed + 1)
+            for bot, offset in zip(self.bots, self._seed_offsets, strict=True):
+                if offset is not None:
+                    bot.generator.manual_seed((seed + offset) % 2 ** 64)
         self._restart(worlds, obs)
         return self._focal(obs)
 
     def _restart(self, worlds: torch.Tensor, obs: dict) -> None:
         """New bots for the worlds of mask [W], sampled per slot from its role (one draw per world
-        and slot); their memories cleared."""
+        and slot: with levels on, a pure function of the world's level id, else from bot_generator);
+        their memories cleared, then (once every bot's reset has passed) the new bots committed."""
         W, B = self.assignment.shape
-        draw = (torch.rand(W, B, generator=self.bot_generator) * self._counts).long()
-        fresh = self._candidates.gather(1, draw.T).T  # [W, B]
-        self.assignment = torch.where(worlds[:, None], fresh, self.assignment)
-        self._pairs = self._pairs_of(self.assignment)
+        if self.core.levels is not None:  # the same level samples the same bots in any slot and batch
+            core = self.core
+            keys = level_sets.level_keys(core.level_ids, core.name, core.scenario.params, core.num_agents)
+            unit = KeyedRandom(derive_keys(keys, "background bots")).uniform("bots", (B,))
+        else:
+            unit = torch.rand(W, B, generator=self.bot_generator)
+        fresh = self._candidates.gather(1, (unit * self._counts).long().T).T  # [W, B]
+        assignment = torch.where(worlds[:, None], fresh, self.assignment)
         for bot in self.bots:
             bot.reset(self.core, worlds)
-        self._obs = obs
+        self.assignment, self._pairs, self._obs = assignment, self._pairs_of(assignment), obs
 
     def _bot_rngs(self) -> list:
         """[K] each distinct bot's generator state (a uint8 tensor), None for a bot without one."""
@@ -312,12 +370,12 @@ class FocalEnv:
                                f"use bots that read the simulation state")
 
     def _pairs_of(self, assignment: torch.Tensor) -> list:
-        """[(bot, worlds [P], slots [P])] for each distinct bot that plays somewhere."""
+        """[(k, bot, worlds [P], slots [P])] for each distinct bot k that plays somewhere."""
         pairs = []
         for k, bot in enumerate(self.bots):
             worlds, column = (assignment == k).nonzero(as_tuple=True)
             if len(worlds):
-                pairs.append((bot, worlds, self.background_slots[column]))
+                pairs.append((k, bot, worlds, self.background_slots[column]))
         return pairs
 
     def _background_actions(self) -> torch.Tensor:
@@ -327,12 +385,59 @@ class FocalEnv:
             full = torch.zeros(W, A, self.action_dim)
         else:
             full = torch.zeros(W, A, dtype=torch.int64)
-        for bot, worlds, slots in self._pairs:
+        for k, bot, worlds, slots in self._pairs:
             needs = getattr(bot, "needs", ())
             seen = {key: value[worlds, slots] for key, value in (self._obs or {}).items() if key in needs}
-            full[worlds, slots] = bot.act(self.core, seen, worlds, slots).to(full.dtype)
+            actions = bot.act(self.core, seen, worlds, slots)
             self.bot_calls += 1
+            full[worlds, slots] = self._checked(k, actions, worlds, slots).to(full.dtype)
         return full
+
+    def _checked(self, k: int, actions, worlds: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+        """Bot k's actions for its pairs, else TypeError / ValueError naming the bot (not the focal
+        actions): a tensor of one action per pair, integers in [0, num_actions) the mask allows under
+        enforce_action_mask, or finite floats in [-1, 1] [P, action_dim]."""
+        label, core = self._bot_labels[k], self.core
+        if not isinstance(actions, torch.Tensor):
+            raise TypeError(f"{label} must return a torch.Tensor of actions, got {describe(actions)}")
+        shape = [len(worlds), self.action_dim] if self.continuous else [len(worlds)]
+        integer = not (actions.is_floating_point() or actions.is_complex() or actions.dtype == torch.bool)
+        if self.continuous != actions.is_floating_point() or not self.continuous and not integer:
+            kind = "float" if self.continuous else "integer"  # a float action is refused, never truncated
+            raise TypeError(f"{label} must return {kind} actions, got {describe(actions)}")
+        if list(actions.shape) != shape:
+            raise ValueError(f"{label} must return actions of shape {shape}, got {list(actions.shape)} (one per "
+                             f"(world, slot) pair it plays)")
+        if not actions.numel():
+            return actions
+        if self.continuous:
+            if not bool((torch.isfinite(actions) & (actions.abs() <= 1)).all()):
+                raise ValueError(f"{label} must return finite actions in [-1, 1], got values in "
+                                 f"[{actions.min().item():.4g}, {actions.max().item():.4g}]")
+            return actions
+        low, high = (value.item() for value in torch.aminmax(actions.to(torch.int64)))
+        if low < 0 or high >= self.num_actions:
+            raise ValueError(f"{label} must return actions in [0, {self.num_actions}), got values in [{low}, {high}]")
+        if core.enforce_action_mask:
+            self._check_allowed(label, actions.to(torch.int64).cpu(), worlds, slots)
+        return actions
+
+    def _check_allowed(self, label: str, actions: torch.Tensor, worlds: torch.Tensor, slots: torch.Tensor) -> None:
+        """enforce_action_mask: ValueError naming the bot where it took a forbidden action (for the agents
+        the step acts for, as the core counts them)."""
+        core = self.core
+        acting = core.alive
+        if core.autoreset == "next_step":
+            acting = acting & ~core.episode_over()[:, None]
+        mask = core._action_mask(core.sim, core.alive)
+        mask, acting = mask[worlds, slots].cpu(), acting[worlds, slots].cpu()
+        refused = masking.forbidden(mask, actions, acting)
+        if bool(refused.any()):
+            i = int(refused.nonzero()[0, 0])
+            allowed = mask[i].nonzero()[:, 0].tolist()
+            raise ValueError(f"{label} must take actions the action mask allows (enforce_action_mask=True), got "
+                             f"{int(refused.sum())} forbidden, e.g. world {int(worlds[i])} agent "
+                             f"{core.agent_names[int(slots[i])]!r} took {int(actions[i])}, allowed: {allowed}")
 
     def _focal(self, obs: dict) -> dict:
         return {key: value[:, self.focal_slots] for key, value in obs.items()}

@@ -155,6 +155,13 @@ def make_env(name, *, heldout=None, background=None, **kwargs):
         if clash:
             raise ValueError(f"heldout {held.name!r} fixes {clash} to {[fixed[k] for k in clash]}; got "
                              f"{[kwargs[k] for k in clash]}")
+        # The scenario's keywords would win over the preset's as explicit ones do: refuse that alike.
+        preset = with_difficulty(scenario, {"difficulty": kwargs.get("difficulty")})
+        clash = sorted(k for k in set(fixed) & set(preset) if preset[k] != fixed[k])
+        if clash:
+            raise ValueError(f"heldout {held.name!r} fixes {clash} to {[fixed[k] for k in clash]}; "
+                             f"difficulty={kwargs['difficulty']!r} sets {[preset[k] for k in clash]}: pass a "
+                             f"difficulty that leaves them alone, or none")
         kwargs = {**kwargs, **fixed}
     options, params = split_kwargs(scenario, kwargs)
     core = BatchedEnv(scenario, options, params)

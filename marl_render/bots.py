@@ -17,6 +17,8 @@ import math
 
 import torch
 
+from marl_render.envs.masking import sample_allowed
+
 from .policies import Policy, ScriptedPolicy, heuristic_policy
 
 NOOP = 0  # the egocentric tasks' action 0 (envs/egomotion.py)
@@ -24,7 +26,8 @@ NOOP = 0  # the egocentric tasks' action 0 (envs/egomotion.py)
 
 class Perturbed(Policy):
     """A bot that plays `base`, except that with probability `p` per (world, slot) and step it plays
-    noop ("lazy") or a uniformly random action ("noisy") instead; its own seeded generator."""
+    noop ("lazy") or a uniformly random action among those the action mask allows ("noisy")
+    instead; its own seeded generator."""
 
     needs = frozenset({"sim"})
 
@@ -39,8 +42,22 @@ class Perturbed(Policy):
         if self.kind == "lazy":
             other = torch.full_like(actions, NOOP)
         else:
-            other = torch.randint(env.num_actions, actions.shape, generator=self.generator)
-        return torch.where(swap, other, actions)
+            other = self._random(env, worlds, slots, actions.shape)
+        return torch.where(swap.view(-1, *[1] * (actions.ndim - 1)), other, actions)
+
+    def _random(self, env, worlds, slots, shape) -> torch.Tensor:
+        """Uniformly random actions of the pairs: in [-1, 1] (continuous), else among the allowed.
+        Drawn among all actions, then redrawn among the allowed where a draw is forbidden (uniform
+        among the allowed all the same): where every action is allowed, the draws are the ones this
+        bot made before it read the mask, and so are the results published with it."""
+        if env.continuous:
+            return torch.rand(shape, generator=self.generator) * 2 - 1
+        drawn = torch.randint(env.num_actions, shape, generator=self.generator)
+        mask = env.scenario.action_mask(env.sim, env.alive)[worlds, slots].cpu()  # [P, num_actions]
+        forbidden = ~mask.gather(1, drawn[:, None])[:, 0]
+        if not bool(forbidden.any()):
+            return drawn
+        return torch.where(forbidden, sample_allowed(mask[:, None], self.generator)[:, 0], drawn)
 
 
 # ---------------------------------------------------------------- scripts: env -> actions [W, A]

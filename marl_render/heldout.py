@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 
 from marl_render.envs.focal import Population
+from marl_render.validation import describe
 
 from .bots import POPULATIONS, make_bot
 
@@ -134,6 +135,9 @@ def list_heldout(task: str | None = None) -> list:
 def heldout_scenario(name) -> HeldOutScenario:
     if isinstance(name, HeldOutScenario):
         return name
+    if not isinstance(name, str):
+        raise TypeError(f"heldout must be a str (one of the held-out scenarios {list(HELDOUT)}) or a HeldOutScenario, "
+                        f"got {describe(name)}")
     if name not in HELDOUT:
         raise ValueError(f"heldout must be one of the held-out scenarios {list(HELDOUT)} (or a HeldOutScenario), "
                          f"got {name!r}")

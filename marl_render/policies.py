@@ -29,6 +29,7 @@ import pickle
 import torch
 
 from marl_render.baselines.networks import Actor
+from marl_render.envs.masking import sample_allowed
 from marl_render.validation import describe
 
 
@@ -60,10 +61,9 @@ class RandomPolicy(Policy):
     def act(self, env, obs, worlds, slots):
         if env.continuous:
             return torch.rand(len(worlds), env.action_dim, generator=self.generator) * 2 - 1
-        mask = obs["action_mask"].to(torch.float32)
         if not len(worlds):
             return torch.zeros(0, dtype=torch.int64)
-        return torch.multinomial(mask, 1, generator=self.generator)[:, 0]
+        return sample_allowed(obs["action_mask"][:, None], self.generator)[:, 0]
 
 
 class ScriptedPolicy(Policy):
