@@ -42,6 +42,7 @@ import sys
 import numpy as np
 import torch
 
+from marl_render import strict_json
 from marl_render.bots import POPULATIONS, bot_names, make_bot
 from marl_render.elo import elo_ratings
 from marl_render.envs import Population, env_class, list_envs, make_env
@@ -199,7 +200,7 @@ def write(rows: list, prefix: str) -> None:
     if folder:
         os.makedirs(folder, exist_ok=True)
     with open(prefix + ".json", "w") as f:
-        json.dump(rows, f, indent=1)
+        strict_json.dump(rows, f, indent=1)
     with open(prefix + ".csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -378,8 +379,13 @@ def heatmap(result: dict, path: str) -> None:
     plt.close(figure)
 
 
-def _fmt(value: float) -> str:
-    return "n/a" if not math.isfinite(value) else f"{value:.2f}"
+def _fmt(value: float | None, places: int = 2) -> str:
+    """`value` to `places` decimals; "n/a" for None (null in JSON) or a non-finite value, and no minus
+    sign on a value that rounds to zero (-0.001 is "0.00", not "-0.00")."""
+    if value is None or not math.isfinite(value):
+        return "n/a"
+    text = f"{value:.{places}f}"
+    return text[1:] if text.startswith("-") and float(text) == 0 else text
 
 
 def _page_head(title: str, command: str, note: str) -> list:
@@ -406,7 +412,7 @@ def heldout_page(rows_by_policy: dict, command: str, note: str) -> str:
                          f"{_fmt(r.get('generalisation_gap', math.nan))} | {bots} |")
         gaps = [r["generalisation_gap"] for r in rows if "generalisation_gap" in r]
         if gaps:
-            lines += ["", f"Mean generalisation gap over {len(gaps)} scenarios: {np.mean(gaps):.2f}."]
+            lines += ["", f"Mean generalisation gap over {len(gaps)} scenarios: {_fmt(float(np.mean(gaps)))}."]
         lines.append("")
     return "\n".join(lines)
 
@@ -426,11 +432,11 @@ def crossplay_page(results: list, command: str, note: str) -> str:
         lines += [f"## {task} ({side_a} vs {side_b}, {result['episodes']} episodes per pair)", "",
                   f"![{task} cross-play](crossplay/{task}.png)", "", "| Elo | policy |", "|---:|---|"]
         for rating, label in sorted(zip(result["elo"], labels, strict=True), reverse=True):
-            lines.append(f"| {rating:.0f} | {label} |")
+            lines.append(f"| {_fmt(rating, 0)} | {label} |")
         lines += ["", *self_play_verdict(result), f"Per-capita return of the row team ({side_a}):", "",
                   "| row \\ column | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
         for label, values in zip(labels, result["returns_a"], strict=True):
-            lines.append(f"| {label} | " + " | ".join(f"{v:.2f}" for v in values) + " |")
+            lines.append(f"| {label} | " + " | ".join(_fmt(v) for v in values) + " |")
         lines.append("")
     return "\n".join(lines)
 
@@ -450,10 +456,11 @@ def self_play_verdict(result: dict) -> list:
     elo, rate, ra, rb = result["elo"], result["win_rate"], result["returns_a"], result["returns_b"]
     side_a, side_b = result["sides"]
     return [f"**Self-play {'beats' if elo[i] > elo[j] else 'does not beat'} MAPPO-vs-random** ({selfplay[0]} "
-            f"against {mappo[0]}): Elo {elo[i]:.0f} against {elo[j]:.0f}. Head to head, over both sides, self-play "
-            f"wins {rate[i][j]:.2f} of the episodes (a draw counts half). Per-capita returns ({side_a}, {side_b}): "
-            f"self-play as {side_a} against MAPPO-vs-random {ra[i][j]:.2f}, {rb[i][j]:.2f}; MAPPO-vs-random as "
-            f"{side_a} against self-play {ra[j][i]:.2f}, {rb[j][i]:.2f}.", ""]
+            f"against {mappo[0]}): Elo {_fmt(elo[i], 0)} against {_fmt(elo[j], 0)}. Head to head, over both sides, "
+            f"self-play wins {_fmt(rate[i][j])} of the episodes (a draw counts half). Per-capita returns "
+            f"({side_a}, {side_b}): "
+            f"self-play as {side_a} against MAPPO-vs-random {_fmt(ra[i][j])}, {_fmt(rb[i][j])}; MAPPO-vs-random as "
+            f"{side_a} against self-play {_fmt(ra[j][i])}, {_fmt(rb[j][i])}.", ""]
 
 
 def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_episodes: int = CROSSPLAY_EPISODES,
@@ -504,7 +511,7 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
                            previous=previous)
         result["folders"] = {label: spec for label, spec in roster.items() if os.path.isdir(spec)}
         with open(path, "w") as f:
-            json.dump(result, f, indent=1)
+            strict_json.dump(result, f, indent=1)
         heatmap(result, os.path.join(docs, "crossplay", f"{task}.png"))
         results.append(result)
     with open(os.path.join(docs, "crossplay.md"), "w") as f:
@@ -619,7 +626,7 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> in
         write(rows, args.out)
         print(f"wrote {args.out}.json and {args.out}.csv ({len(rows)} scenarios)")
     else:
-        print(json.dumps(rows))
+        print(strict_json.dumps(rows))
     return 0
 
 
@@ -641,10 +648,10 @@ def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace)
         if folder:
             os.makedirs(folder, exist_ok=True)
         with open(args.out + ".json", "w") as f:
-            json.dump(result, f, indent=1)
+            strict_json.dump(result, f, indent=1)
         print(f"wrote {args.out}.json ({len(roster)} policies)")
     else:
-        print(json.dumps(result))
+        print(strict_json.dumps(result))
     return 0
 
 

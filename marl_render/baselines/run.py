@@ -53,7 +53,6 @@ import argparse
 import ast
 import dataclasses
 import importlib.metadata
-import json
 import math
 import os
 import platform
@@ -64,6 +63,7 @@ import time
 
 import torch
 
+from marl_render import strict_json
 from marl_render.envs import list_envs, make_env
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
 from marl_render.envs.levels import NAMED as NAMED_LEVELS
@@ -311,8 +311,8 @@ def save_snapshots(pool, result: dict, out: str) -> dict:
         write_atomically(os.path.join(folder, "actor.pt"), lambda f, actor=actor: torch.save(actor.state_dict(), f))
         own = {key: result[key] for key in ("env", "obs", "seeds", "hyperparameters", "env_options", "versions")}
         own.update(snapshot=snapshot, self_play_run="../..", env_steps=snapshot["env_steps"])
-        write_atomically(os.path.join(folder, "result.json"), lambda f, own=own: f.write(json.dumps(own, indent=1)
-                                                                                          .encode()))
+        write_atomically(os.path.join(folder, "result.json"),
+                         lambda f, own=own: f.write(strict_json.dumps(own, indent=1).encode()))
     return record
 
 
@@ -419,7 +419,7 @@ def main(argv=None) -> int:
         result["self_play"] = save_snapshots(trainer.pool, result, args.out)
     write_atomically(os.path.join(args.out, "actor.pt"), lambda f: torch.save(trainer.actor_net.state_dict(), f))
     write_atomically(os.path.join(args.out, "result.json"),
-                     lambda f: f.write(json.dumps(result, indent=1).encode()))
+                     lambda f: f.write(strict_json.dumps(result, indent=1).encode()))
     plot_curve(result, os.path.join(args.out, "curve.png"))
     print(f"wrote {args.out}/actor.pt, result.json and curve.png in {result['wall_clock_seconds']:.0f} s", flush=True)
     return 0
