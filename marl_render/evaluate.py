@@ -53,6 +53,10 @@ from marl_render.task_imports import add_import_option, load_user_tasks
 COMPETITIVE = ("tag", "push", "capture_flag")  # the cross-play tasks: team A (rows) against team B (columns)
 SIDES = {"tag": ("predator", "prey"), "push": ("red", "blue"), "capture_flag": ("red", "blue")}
 DOCS_EPISODES, CROSSPLAY_EPISODES, DOCS_SEED, DOCS_RESOLUTION = 32, 16, 0, 16
+# --torch-threads' bound: the threads of the most cores a machine is likely to have; beyond, torch would start
+# thousands of idle OpenMP threads (memory and start-up time for nothing). A fixed bound, not the machine's
+# core count, so that a published command line is accepted on every machine.
+MAX_TORCH_THREADS = 1024
 
 
 def make_policy(spec, task: str, seed: int = 0) -> Policy:
@@ -67,10 +71,20 @@ def make_policy(spec, task: str, seed: int = 0) -> Policy:
     if task in POPULATIONS and spec in bot_names(task):
         return make_bot(task, spec, seed + 2)
     if isinstance(spec, str) and os.path.isdir(spec):
-        return load_policy(spec)
+        policy = load_policy(spec)
+        policy.check_task(task)  # a run of another task is refused here, naming both
+        return policy
     variants = bot_names(task) if task in POPULATIONS else []
     raise ValueError(f"policy must be 'random', 'heuristic', one of {task}'s heuristic variants {variants} "
                      f"or a run folder of python -m marl_render.baselines, got {spec!r}")
+
+
+def check_seed(seed) -> None:
+    """TypeError / ValueError unless `seed` is an int the envs take, [0, 2**63)."""
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise TypeError(f"seed must be an int in [0, 2**63), got {seed!r}")
+    if not 0 <= seed < 2 ** 63:
+        raise ValueError(f"seed must be an int in [0, 2**63), got {seed}")
 
 
 def play(env, policy: Policy) -> dict:
@@ -155,8 +169,12 @@ def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: 
     """One row per scenario (see the module docstring); `references` caches the random and heuristic
     returns per scenario between calls; `gap` adds the training condition's return; `max_steps`
     shortens the episodes (None: the task's length, the published protocol)."""
+    if isinstance(scenarios, str):  # one name is not a list of its characters
+        raise TypeError(f"scenarios must be a list of held-out scenario names, got the str {scenarios!r}: pass "
+                        f"[{scenarios!r}], or scenario_names({scenarios!r}) for a task's scenarios or 'all'")
     if episodes < 2:
         raise ValueError(f"episodes must be >= 2 (a mean and a std over episodes), got {episodes}")
+    check_seed(seed)
     references = {} if references is None else references
     rows = []
     for name in scenarios:
@@ -231,6 +249,9 @@ def crossplay(task: str, roster: dict, *, episodes: int = 16, seed: int = 0, res
     pairs of `previous` (an earlier result) played on the same ones are taken from it, not played again."""
     labels = list(roster)
     n = len(labels)
+    if n < 2:
+        raise ValueError(f"roster must hold at least 2 policies (each plays every other), got {labels}")
+    check_seed(seed)
     env_kwargs = matrix_env_kwargs(task, roster, resolution, seed)
     with make_env(task, num_worlds=1, **{**env_kwargs, "resolution": 8}) as probe:
         if len(probe.groups) < 2:
@@ -313,12 +334,23 @@ def crossplay_roster(task: str, runs: list, snapshots: list = ()) -> dict:
 
 def run_label(folder: str) -> str:
     """A roster label for a run folder: "MAPPO-vs-random", "self-play" (a self-play run's final actor)
-    or "snapshot N@STEPSk" (a self-play snapshot), then the seed."""
-    with open(os.path.join(folder, "result.json")) as f:
-        result = json.load(f)
-    seed = (result.get("seeds") or {}).get("train", "?")
+    or "snapshot N@STEPSk" (a self-play snapshot), then the seed. ValueError naming the file for a
+    result.json that is not a run's."""
+    path = os.path.join(folder, "result.json")
+    try:
+        with open(path) as f:
+            result = json.load(f)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path} is not a readable result.json: {error}") from None
+    if not isinstance(result, dict):
+        raise ValueError(f"{path} must hold a run's record (a JSON object), got a {type(result).__name__}")
+    seeds = result.get("seeds")
+    seed = seeds.get("train", "?") if isinstance(seeds, dict) else "?"
     if "snapshot" in result:
         snapshot = result["snapshot"]
+        if not (isinstance(snapshot, dict) and all(isinstance(snapshot.get(key), int) and not isinstance(
+                snapshot.get(key), bool) for key in ("id", "env_steps"))):
+            raise ValueError(f"{path}: snapshot must record its id and env_steps (ints), got {snapshot!r}")
         return f"snapshot {snapshot['id']}@{snapshot['env_steps'] // 1000}k seed{seed}"
     return f"{'self-play' if 'self_play' in result else 'MAPPO-vs-random'} seed{seed}"
 
@@ -555,6 +587,21 @@ def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int
         f.write(heldout_page(rows_by_policy, command, note))
 
 
+def out_problem(prefix: str) -> str | None:
+    """What keeps `prefix` from taking PREFIX.json (and .csv), or None: checked before any work."""
+    if not prefix or prefix.endswith(("/", os.sep)) or os.path.basename(prefix) in (".", ".."):
+        return ("it names a folder, and --out is the prefix of the files written (OUT.json, OUT.csv): add a file "
+                "name, e.g. out/results")
+    existing = os.path.dirname(os.path.abspath(prefix))
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        return f"{existing} is a file, not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"the folder {existing} takes no files"
+    return None
+
+
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
     """--help keeps the docstring's layout and shows every option's default."""
 
@@ -590,12 +637,19 @@ def main(argv=None) -> int:
     parser.add_argument("--torch-threads", type=int, default=1,
                         help="torch threads of the trained actors (1: on a busy machine more threads spin idle)")
     args = parser.parse_args(argv)
-    if args.torch_threads < 1:
-        parser.error(f"--torch-threads must be >= 1, got {args.torch_threads}")
+    if not 1 <= args.torch_threads <= MAX_TORCH_THREADS:
+        parser.error(f"--torch-threads must be in [1, {MAX_TORCH_THREADS}], got {args.torch_threads}")
+    if not 0 <= args.seed < 2 ** 63:
+        parser.error(f"--seed must be an int in [0, 2**63), got {args.seed}")
+    if args.out is not None and out_problem(args.out):
+        parser.error(f"--out {args.out!r}: {out_problem(args.out)}")
     threads = torch.get_num_threads()
     torch.set_num_threads(args.torch_threads)
     try:
         return run_command(parser, args)
+    except BrokenPipeError:  # `--list | head`: the reader has gone; stop quietly, as a shell tool does
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
+        return 1
     finally:
         torch.set_num_threads(threads)
 
@@ -603,7 +657,7 @@ def main(argv=None) -> int:
 def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """What main does once the command line is read."""
     if args.list:
-        print(listing())
+        print(listing(), flush=True)
         return 0
     if args.docs:
         if args.crossplay_only and args.heldout_only:
@@ -624,9 +678,9 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> in
         parser.error(str(error))
     if args.out:
         write(rows, args.out)
-        print(f"wrote {args.out}.json and {args.out}.csv ({len(rows)} scenarios)")
+        print(f"wrote {args.out}.json and {args.out}.csv ({len(rows)} scenarios)", flush=True)
     else:
-        print(strict_json.dumps(rows))
+        print(strict_json.dumps(rows), flush=True)
     return 0
 
 
@@ -634,10 +688,7 @@ def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace)
     """--crossplay TASK --roster ...: the matrices and Elo, written to OUT.json or printed."""
     if args.crossplay_episodes < 1:
         parser.error(f"--crossplay-episodes must be >= 1, got {args.crossplay_episodes}")
-    roster = {}
-    for spec in args.roster:
-        label = run_label(spec) if os.path.isfile(os.path.join(spec, "result.json")) else spec
-        roster[label if label not in roster else spec] = spec
+    roster = roster_of(parser, args.roster, args.crossplay, args.seed)
     try:
         result = crossplay(args.crossplay, roster, episodes=args.crossplay_episodes, seed=args.seed,
                            resolution=args.resolution)
@@ -649,10 +700,34 @@ def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace)
             os.makedirs(folder, exist_ok=True)
         with open(args.out + ".json", "w") as f:
             strict_json.dump(result, f, indent=1)
-        print(f"wrote {args.out}.json ({len(roster)} policies)")
+        print(f"wrote {args.out}.json ({len(roster)} policies)", flush=True)
     else:
-        print(strict_json.dumps(result))
+        print(strict_json.dumps(result), flush=True)
     return 0
+
+
+def roster_of(parser: argparse.ArgumentParser, specs: list, task: str, seed: int) -> dict:
+    """{label: spec} of --roster, every entry checked before any pair is played: parser.error naming
+    --roster for a roster of one, an entry given twice, an unknown policy or a run folder that is
+    broken or of another task."""
+    if len(specs) < 2:
+        parser.error(f"--roster must name at least 2 policies (each plays every other), got {specs}")
+    seen: dict = {}
+    for spec in specs:
+        key = os.path.realpath(spec) if os.path.isdir(spec) else spec
+        if key in seen:
+            parser.error(f"--roster names {spec!r} twice ({seen[key]!r} is the same policy): name each policy once")
+        seen[key] = spec
+    roster = {}
+    for spec in specs:
+        try:
+            label = run_label(spec) if os.path.isdir(spec) and os.path.isfile(os.path.join(spec, "result.json")) \
+                else spec
+            make_policy(spec, task, seed)
+        except (ValueError, FileNotFoundError, TypeError) as error:
+            parser.error(f"--roster {spec!r}: {error}")
+        roster[label if label not in roster else spec] = spec
+    return roster
 
 
 if __name__ == "__main__":
