@@ -688,6 +688,13 @@ def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace)
     """--crossplay TASK --roster ...: the matrices and Elo, written to OUT.json or printed."""
     if args.crossplay_episodes < 1:
         parser.error(f"--crossplay-episodes must be >= 1, got {args.crossplay_episodes}")
+    try:
+        with make_env(args.crossplay, num_worlds=1, resolution=8) as probe:
+            teams = list(probe.groups)
+    except (ValueError, TypeError) as error:
+        parser.error(f"--crossplay {args.crossplay}: {error}")
+    if len(teams) < 2:  # the task first: no roster plays a task of one team
+        parser.error(f"cross-play needs a task of two or more teams; {args.crossplay} has {teams}")
     roster = roster_of(parser, args.roster, args.crossplay, args.seed)
     try:
         result = crossplay(args.crossplay, roster, episodes=args.crossplay_episodes, seed=args.seed,
