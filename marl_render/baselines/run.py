@@ -43,6 +43,8 @@ the latest snapshot with chance --play-latest, else one of the last --window, dr
 team it trains) every --swap-every env steps at its next reset. result.json's "self_play" records
 every snapshot (env steps when taken, episodes and env steps it was faced) and OUT/snapshots/NNN/
 holds each one as a run folder (actor.pt, result.json) that marl_render.policies.load_policy reads.
+A run into a folder that holds an earlier run replaces it, snapshots included (those of the earlier
+run are removed when the new run's files are written; until then it is left whole).
 
 A task registered by the user: --import MODULE (a module that calls register_env), or --env
 module:Class (a Scenario subclass, registered under that name).
@@ -57,6 +59,7 @@ import math
 import os
 import platform
 import shlex
+import shutil
 import sys
 import tempfile
 import time
@@ -299,6 +302,22 @@ def write_atomically(path: str, write) -> None:
         raise
 
 
+def clear_snapshots(out: str) -> int:
+    """Remove the snapshot run folders (OUT/snapshots/NNN) an earlier run left in `out`, and the
+    snapshots folder once empty; the count removed. A rerun replaces every file of the earlier run
+    (actor.pt, result.json and curve.png are overwritten): its snapshots must not pass for the new
+    run's. Done when the new run's files are written, so an interrupted run leaves the earlier one whole."""
+    folder = os.path.join(out, "snapshots")
+    if not os.path.isdir(folder):
+        return 0
+    stale = [entry for entry in os.scandir(folder) if entry.is_dir() and entry.name.isdigit()]
+    for entry in stale:
+        shutil.rmtree(entry.path)
+    if not os.listdir(folder):
+        os.rmdir(folder)
+    return len(stale)
+
+
 def save_snapshots(pool, result: dict, out: str) -> dict:
     """Every snapshot of `pool` as a run folder OUT/snapshots/NNN (actor.pt, then a result.json
     that load_policy reads: the run's env, obs and hyperparameters, and the snapshot's record);
@@ -414,6 +433,9 @@ def main(argv=None) -> int:
         "curve": run.curve,
     }
     os.makedirs(args.out, exist_ok=True)
+    stale = clear_snapshots(args.out)  # an earlier run's in this folder: the new result.json does not describe them
+    if stale:
+        print(f"{args.out} held an earlier run: its {stale} snapshot(s) are replaced by this run's files", flush=True)
     if trainer.pool is not None:
         result["algorithm"] += "; self-play: every team trained against a pool of frozen snapshots of the actor"
         result["self_play"] = save_snapshots(trainer.pool, result, args.out)
