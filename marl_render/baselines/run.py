@@ -26,9 +26,10 @@ task's keyword or an accuracy knob: ``multisamples=4``, ``physics_substeps=4``);
 ``shaping=1``: the evaluations keep the task's own reward, so the table compares like with like).
 VALUE is a Python literal (``1``, ``0.5``, ``True``, ``'x'``).
 
-Levels and looks (docs/levels.md, docs/generalisation.md): ``--levels N`` (or ``train``, ``test``,
-``published``) trains on those levels; ``--eval-levels`` sets the levels of the evaluations
-(default: none, the env's default resets; ``published`` for the frozen test levels);
+Levels and looks (docs/levels.md, docs/generalisation.md): ``--levels N`` (or ``train``) trains on
+those levels (the test levels, ``test`` and ``published``, are refused: they are for evaluation);
+``--eval-levels`` sets the levels of the evaluations (default: none, the env's default resets;
+``published`` for the frozen test levels);
 ``--appearance train`` (or ``heldout``) draws every world's look from its level (training and
 evaluation). ``python -m marl_render.baselines.generalisation`` runs the train/test study.
 
@@ -133,7 +134,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--train-option", action="append", default=[], metavar="KEY=VALUE", type=env_option,
                         help="env keyword for the training env only, e.g. a shaped reward (repeatable)")
     parser.add_argument("--levels", type=levels_option, default=None,
-                        help="levels of the training env: a count n (levels 0..n-1), train, test or published")
+                        help="levels of the training env: a count n (levels 0..n-1) or train (test and published "
+                             "are for --eval-levels only)")
     parser.add_argument("--eval-levels", type=levels_option, default=None,
                         help="levels of the evaluations (default: none, the default resets)")
     parser.add_argument("--appearance", choices=("train", "heldout"), default=None,
@@ -203,6 +205,9 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
                          f"{RESERVED_OPTIONS[key]} instead")
         if key in REFUSED_OPTIONS:
             parser.error(f"--env-option / --train-option {key}: not supported, {REFUSED_OPTIONS[key]}")
+    if args.levels in ("test", "published"):  # a generalisation study is void once it trains on its test levels
+        parser.error(f"--levels {args.levels}: the test levels are for evaluation only (--eval-levels {args.levels}); "
+                     f"train on a count n (levels 0..n-1) or train")
     check_self_play(parser, args, env_options={**dict(args.env_option), **dict(args.train_option)})
     if args.out is None:
         args.out = os.path.join("out", "baselines", args.env if args.obs == "pixels" else f"{args.env}-state")
