@@ -454,6 +454,15 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="docs/baselines.md", help="the document to write")
     parser.add_argument("--readme", default="docs/results.md", help="page whose summary table to rewrite ('' for none)")
     args = parser.parse_args(argv)
+    try:
+        return write_report(args)
+    except (ValueError, OSError) as error:  # a missing folder, a broken run: one line, no traceback
+        parser.error(str(error))
+
+
+def write_report(args: argparse.Namespace) -> int:
+    """What main does once the command line is read; ValueError naming the file or option at fault,
+    before anything is written."""
     results_root, out = Path(args.results), Path(args.out)
     if not results_root.is_dir():
         raise ValueError(f"--results must be a folder of runs, got {str(results_root)!r} (no such folder)")
