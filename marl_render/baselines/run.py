@@ -80,6 +80,10 @@ from .selfplay import PLAY_LATEST, SNAPSHOT_EVERY, SWAP_EVERY, WINDOW, SelfPlay,
 from .settings import EVALUATION_SETS, FIELDS, step_budget, task_hyperparameters
 from .training import train
 
+# --torch-threads' bound: the threads of the most cores a machine is likely to have; beyond, torch starts thousands
+# of idle OpenMP threads (memory and start-up time for nothing). Fixed, not the machine's core count, so that a
+# published command line is accepted on every machine.
+MAX_TORCH_THREADS = 1024
 PROGRESS_SECONDS = 10.0  # at most one progress line per this many seconds
 CHECKPOINTS = 10  # default checkpoint evaluations over a run: one every budget / CHECKPOINTS env steps
 # Env options the learner sets itself, or that its bootstrapping and action sampling do not support.
@@ -96,7 +100,7 @@ RANGES = (("worlds", int, 1, None, True), ("resolution", int, 1, None, True), ("
           ("gae-lambda", float, 0.0, 1.0, True), ("clip", float, 0.0, None, False),
           ("entropy", float, 0.0, None, True), ("critic-coef", float, 0.0, None, False),
           ("max-grad-norm", float, 0.0, None, False), ("hidden", int, 1, None, True),
-          ("torch-threads", int, 0, None, True), ("aux-state", float, 0.0, None, True))
+          ("torch-threads", int, 0, MAX_TORCH_THREADS, True), ("aux-state", float, 0.0, None, True))
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -341,6 +345,20 @@ def save_snapshots(pool, result: dict, out: str) -> dict:
 
 
 def main(argv=None) -> int:
+    """The command; Ctrl-C ends it with one line saying what was written (exit status 130), no traceback."""
+    stage = {"writing": False}
+    try:
+        return train_and_write(argv, stage)
+    except KeyboardInterrupt:
+        print("python -m marl_render.baselines: interrupted (Ctrl-C) " + (
+            "while writing the run's files: each file in --out is whole, this run's or the earlier one's"
+            if stage["writing"] else "before writing anything: --out holds what it held before"),
+            file=sys.stderr, flush=True)
+        return 130
+
+
+def train_and_write(argv, stage: dict) -> int:
+    """Train, evaluate and write the run folder; stage["writing"] is True once its files are being written."""
     started = time.perf_counter()
     args = parse_args(argv)
     require_matplotlib()
@@ -437,6 +455,7 @@ def main(argv=None) -> int:
         "checkpoints": run.checkpoints,
         "curve": run.curve,
     }
+    stage["writing"] = True
     os.makedirs(args.out, exist_ok=True)
     stale = clear_snapshots(args.out)  # an earlier run's in this folder: the new result.json does not describe them
     if stale:
