@@ -49,14 +49,11 @@ from marl_render.envs import Population, env_class, list_envs, make_env
 from marl_render.heldout import HELDOUT, heldout_scenario, list_heldout
 from marl_render.policies import Policy, RandomPolicy, heuristic_policy, load_policy
 from marl_render.task_imports import add_import_option, load_user_tasks
+from marl_render.threads import MAX_THREADS
 
 COMPETITIVE = ("tag", "push", "capture_flag")  # the cross-play tasks: team A (rows) against team B (columns)
 SIDES = {"tag": ("predator", "prey"), "push": ("red", "blue"), "capture_flag": ("red", "blue")}
 DOCS_EPISODES, CROSSPLAY_EPISODES, DOCS_SEED, DOCS_RESOLUTION = 32, 16, 0, 16
-# --torch-threads' bound: the threads of the most cores a machine is likely to have; beyond, torch would start
-# thousands of idle OpenMP threads (memory and start-up time for nothing). A fixed bound, not the machine's
-# core count, so that a published command line is accepted on every machine.
-MAX_TORCH_THREADS = 1024
 
 
 def make_policy(spec, task: str, seed: int = 0) -> Policy:
@@ -442,7 +439,7 @@ def heldout_page(rows_by_policy: dict, command: str, note: str) -> str:
                          f"{_fmt(r['focal_return_std'])} | {_fmt(r['background_return_mean'])} | "
                          f"{_fmt(r['normalised_score'])} | {_fmt(r.get('training_condition_return', math.nan))} | "
                          f"{_fmt(r.get('generalisation_gap', math.nan))} | {bots} |")
-        gaps = [r["generalisation_gap"] for r in rows if "generalisation_gap" in r]
+        gaps = [r["generalisation_gap"] for r in rows if r.get("generalisation_gap") is not None]  # null: undefined
         if gaps:
             lines += ["", f"Mean generalisation gap over {len(gaps)} scenarios: {_fmt(float(np.mean(gaps)))}."]
         lines.append("")
@@ -637,8 +634,10 @@ def main(argv=None) -> int:
     parser.add_argument("--torch-threads", type=int, default=1,
                         help="torch threads of the trained actors (1: on a busy machine more threads spin idle)")
     args = parser.parse_args(argv)
-    if not 1 <= args.torch_threads <= MAX_TORCH_THREADS:
-        parser.error(f"--torch-threads must be in [1, {MAX_TORCH_THREADS}], got {args.torch_threads}")
+    # The envs' torch_threads bound (marl_render/threads.py): fixed, not this machine's cores, so that a published
+    # command line runs on every machine; beyond it torch would start idle OpenMP threads by the thousand.
+    if not 1 <= args.torch_threads <= MAX_THREADS:
+        parser.error(f"--torch-threads must be in [1, {MAX_THREADS}], got {args.torch_threads}")
     if not 0 <= args.seed < 2 ** 63:
         parser.error(f"--seed must be an int in [0, 2**63), got {args.seed}")
     if args.out is not None and out_problem(args.out):

@@ -73,6 +73,7 @@ from marl_render.envs.evaluation import evaluate, heuristic_policy, random_polic
 from marl_render.envs.levels import NAMED as NAMED_LEVELS
 from marl_render.extras import command_needs_extra
 from marl_render.task_imports import add_import_option, load_user_tasks
+from marl_render.threads import MAX_THREADS
 
 from .curve import plot_curve
 from .networks import ENCODERS, INITS, PRECISIONS
@@ -80,10 +81,6 @@ from .selfplay import PLAY_LATEST, SNAPSHOT_EVERY, SWAP_EVERY, WINDOW, SelfPlay,
 from .settings import EVALUATION_SETS, FIELDS, step_budget, task_hyperparameters
 from .training import train
 
-# --torch-threads' bound: the threads of the most cores a machine is likely to have; beyond, torch starts thousands
-# of idle OpenMP threads (memory and start-up time for nothing). Fixed, not the machine's core count, so that a
-# published command line is accepted on every machine.
-MAX_TORCH_THREADS = 1024
 PROGRESS_SECONDS = 10.0  # at most one progress line per this many seconds
 CHECKPOINTS = 10  # default checkpoint evaluations over a run: one every budget / CHECKPOINTS env steps
 # Env options the learner sets itself, or that its bootstrapping and action sampling do not support.
@@ -93,14 +90,16 @@ RESERVED_OPTIONS = {"num_worlds": "--worlds", "resolution": "--resolution", "gra
 REFUSED_OPTIONS = {"autoreset": "the learner resets ended worlds itself (it needs autoreset=False to bootstrap "
                                 "truncated episodes from their last state)",
                    "continuous": "the learner samples discrete actions"}
-# (option, kind, lowest, highest, lowest allowed itself): the hyperparameters' ranges.
+# (option, kind, lowest, highest, lowest allowed itself): the hyperparameters' ranges. --torch-threads' highest is
+# the envs' torch_threads bound (marl_render/threads.py): fixed, not this machine's cores, so that a published
+# command line runs on every machine; beyond it torch would start idle OpenMP threads by the thousand.
 RANGES = (("worlds", int, 1, None, True), ("resolution", int, 1, None, True), ("frames", int, 1, None, True),
           ("action-repeat", int, 1, None, True), ("rollout", int, 1, None, True), ("epochs", int, 1, None, True),
           ("minibatches", int, 1, None, True), ("lr", float, 0.0, None, False), ("gamma", float, 0.0, 1.0, False),
           ("gae-lambda", float, 0.0, 1.0, True), ("clip", float, 0.0, None, False),
           ("entropy", float, 0.0, None, True), ("critic-coef", float, 0.0, None, False),
           ("max-grad-norm", float, 0.0, None, False), ("hidden", int, 1, None, True),
-          ("torch-threads", int, 0, MAX_TORCH_THREADS, True), ("aux-state", float, 0.0, None, True))
+          ("torch-threads", int, 0, MAX_THREADS, True), ("aux-state", float, 0.0, None, True))
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
