@@ -29,7 +29,7 @@ import pickle
 import torch
 
 from marl_render.baselines.networks import Actor
-from marl_render.envs import env_class
+from marl_render.envs import env_class, list_envs
 from marl_render.validation import describe
 
 
@@ -103,7 +103,7 @@ class ActorPolicy(Policy):
     def check_task(self, task: str) -> None:
         """ValueError naming both tasks unless this actor was trained on `task` (a registered name; a
         run that did not record its task passes): an actor plays the task it learnt, no other."""
-        if self.task is None or task == self.task or _same_task(task, self.task):
+        if self.task is None or task == self.task or _same_task(self.task, task):
             return
         raise ValueError(f"policy {self.name!r} was trained on {self.task!r} ({self.num_actions} actions); it cannot "
                          f"play {task!r}: use a run of {task!r}")
@@ -185,12 +185,16 @@ def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
 
 
 def _same_task(name: str, other) -> bool:
-    """Whether the registered task `name` is `other` (a registered name, or a Scenario class) under
-    another name (a task registered twice, or given as module:Class)."""
+    """Whether the task `name` (a run's) is `other` (a registered name, or a Scenario class) under
+    another name: a task registered twice, or named module:Class (compared by name when this process
+    has not registered it: a name read from a result.json is never imported)."""
     try:
-        return env_class(name) is env_class(other)
+        target = env_class(other)
     except (ValueError, TypeError, KeyError, ImportError, AttributeError):
         return False
+    if name in list_envs():
+        return env_class(name) is target
+    return name == f"{target.__module__}:{target.__qualname__}"
 
 
 def _actor(weights: dict, hp: dict, obs_key: str, resolution: int, channels: int) -> tuple:

@@ -13,7 +13,7 @@ import torch
 
 from marl_render import evaluate as evaluation
 from marl_render.baselines.networks import Actor
-from marl_render.envs import make_env
+from marl_render.envs import env_class, make_env
 from marl_render.policies import load_policy
 
 
@@ -70,6 +70,16 @@ def test_an_actor_whose_action_count_is_not_the_envs_is_refused_before_it_acts(t
         other = load_policy(saved_run(tmp_path / "push", "push", actions=env.num_actions))
         with pytest.raises(ValueError, match=r"trained on 'push'; it cannot play env 'tag'"):
             other.check_env(env)
+
+
+def test_a_run_that_named_its_task_as_module_class_plays_that_task(tmp_path):
+    tag = env_class("tag")
+    policy = load_policy(saved_run(tmp_path / "run", f"{tag.__module__}:{tag.__qualname__}"))
+    policy.check_task("tag")  # the same class, by another name: accepted
+    with make_env("tag", num_worlds=1, resolution=16) as env:
+        policy.check_env(env)
+    with pytest.raises(ValueError, match=r"cannot play 'push'"):
+        policy.check_task("push")
 
 
 def test_cross_play_refuses_a_run_of_another_task_in_the_roster(tmp_path, capsys, nothing_played):
