@@ -423,3 +423,15 @@ def test_published_jobs_below_one_is_refused(capsys):
     with pytest.raises(SystemExit):
         published.main(["--run", "--jobs", "0"])
     assert "--jobs must be >= 1, got 0" in capsys.readouterr().err
+
+
+def test_a_run_whose_checkpoint_was_nan_is_read_from_its_null_and_written_as_null(tmp_path):
+    write_runs(tmp_path / "runs", {("spread", "pixels"): [[1.0]]})
+    path = tmp_path / "runs" / "spread" / "seed0" / "result.json"
+    result = json.loads(path.read_text())
+    result["checkpoints"][0].update(mean=None, std=None, per_episode=[None, 1.0])  # as the trainer writes a NaN
+    path.write_text(json.dumps(result))
+    assert report.main(["--results", str(tmp_path / "runs"), "--out", str(tmp_path / "baselines.md"),
+                        "--readme", ""]) == 0
+    layout = json.loads((tmp_path / "runs" / "marl_eval.json").read_text(), parse_constant=pytest.fail)
+    assert layout["marl_render"]["spread"]["mappo_pixels"]["seed_0"]["step_0"]["return"] == [None, 1.0]

@@ -65,6 +65,12 @@ def read_result(path: Path) -> dict:
     seed = result["seeds"]["train"]
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ValueError(f"{path}: seeds.train must be an int, got {seed!r}")
+    for point in result.get("checkpoints") or ():  # null (a NaN when written, strict_json) reads as NaN again
+        if isinstance(point, dict):
+            point.update({key: math.nan for key in ("mean", "std", "min", "max") if key in point
+                          and point[key] is None})
+            if isinstance(point.get("per_episode"), list):
+                point["per_episode"] = [math.nan if x is None else x for x in point["per_episode"]]
     result["folder"] = path.parent
     # Runs before the split into development and publication worlds were scored on the worlds
     # every development choice used.
