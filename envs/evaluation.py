@@ -19,12 +19,13 @@ network), so learners are measured the same way.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
 
 import torch
+
+from marl_render import strict_json
 
 from .registry import env_class, list_envs, make_env
 
@@ -125,7 +126,7 @@ def main(argv=None) -> int:
             continue
         results[name] = reference_returns(name, args.episodes, args.seed, difficulty=args.difficulty, **extra)
     if args.json:
-        print(json.dumps(results))
+        print(strict_json.dumps(results))
     elif args.difficulty == "all":
         for preset in ("easy", "medium", "hard"):
             print(f"{preset}:\n{markdown_table({name: r[preset] for name, r in results.items()})}")

@@ -175,6 +175,9 @@ def as_sampler(value):
         if not 0 <= value.start < value.stop <= TEST_START:
             raise ValueError(f"levels must be {want}, got {value} (empty, or reaching the test ids)")
         return LevelSet(f"train[{value.start}:{value.stop}]", start=value.start, stop=value.stop)
+    if isinstance(value, (np.ndarray, torch.Tensor)) and value.ndim == 0:  # a scalar array has no len()
+        raise TypeError(f"levels must be {want}, got a 0-d {type(value).__name__} {describe(value)}: pass "
+                        f"int(levels) for a count, or a 1-d array of ids")
     if isinstance(value, (range, list, tuple, torch.Tensor)) or type(value).__module__ == "numpy":
         if len(value) > MAX_LISTED:
             raise ValueError(f"levels must list at most {MAX_LISTED} ids, got {len(value)}")
@@ -227,9 +230,16 @@ class PrioritisedLevelReplay:
 
     def __init__(self, levels, *, temperature: float = 0.3, staleness: float = 0.1):
         ids = as_sampler(levels)
+        if isinstance(ids, LevelSet) and ids.name in ("test", "published"):  # a curriculum trains on its levels
+            raise ValueError(f"PrioritisedLevelReplay needs a finite train set, got levels={levels!r}: the test "
+                             f"levels are for evaluation only (make_env(..., levels={levels!r})), never a training "
+                             f"curriculum; pass a count n or a list of train ids")
         if not isinstance(ids, LevelSet) or ids.ids is None and len(ids) > MAX_LISTED:
             raise ValueError(f"PrioritisedLevelReplay needs a finite train set of at most {MAX_LISTED} levels, "
                              f"got {describe(levels)}")
+        for name, value in (("temperature", temperature), ("staleness", staleness)):
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+                raise TypeError(f"PrioritisedLevelReplay needs {name} to be a number, got {describe(value)}")
         if not (0 < temperature < float("inf")) or not 0 <= staleness <= 1:
             raise ValueError(f"PrioritisedLevelReplay needs temperature > 0 and staleness in [0, 1], got "
                              f"temperature={temperature!r}, staleness={staleness!r}")

@@ -21,6 +21,7 @@ the box a target marks, does not hide it).
 from __future__ import annotations
 
 import math
+import numbers
 from typing import NamedTuple
 
 import torch
@@ -49,8 +50,9 @@ def horizontal_fov(fov_y: float, aspect: float = 1.0, pitch: float = 0.0) -> flo
 def first_hit(origin: Tensor, direction: Tensor, *, half_extent, boxes=None, circles: Circles | None = None,
               skip: Tensor | None = None) -> Tensor:
     """[W, R]: the distance (m) from each origin [W, R, 2] along its unit direction [W, R, 2] to the
-    first wall, box or present circle it meets; 0 from inside a box or circle. skip [W, R, K] bool:
-    circles a ray ignores (the body it starts from)."""
+    first wall, box or present circle it meets; 0 from inside a box or circle, or from outside the
+    arena. skip [W, R, K] bool: circles a ray ignores (the body it starts from)."""
+    _check_circles(circles)
     distance = _wall_distance(origin, direction, half_extent)
     if boxes is not None and boxes.center.shape[1]:
         distance = torch.minimum(distance, _box_distances(origin, direction, boxes).amin(-1))
@@ -66,12 +68,16 @@ def line_of_sight(eye: Tensor, yaw: Tensor, targets: Tensor, *, fov: float, reac
                   boxes=None, circles: Circles | None = None) -> Tensor:
     """[W, A, T] bool: whether an observer at eye [W, A, 2] facing yaw [W, A] sees each target point
     targets [W, T, 2]: its bearing within fov / 2 of the heading, at most `reach` metres away, and
-    no wall, box or circle crossing the segment between them, except one that contains the target."""
+    no wall, box or circle crossing the segment between them, except one that contains the target.
+    A target at the eye itself is seen whatever the yaw (it has no bearing)."""
+    _check_reach(reach, finite=False)
+    _check_circles(circles)
     W, A, T = eye.shape[0], eye.shape[1], targets.shape[1]
     delta = targets[:, None] - eye[:, :, None]  # [W, A, T, 2]
     distance = torch.linalg.vector_norm(delta, dim=-1)
     bearing = torch.atan2(-delta[..., 0], delta[..., 1])
-    in_view = (scenery.wrap_angle(bearing - yaw[..., None]).abs() <= fov / 2) & (distance <= reach)
+    ahead = (scenery.wrap_angle(bearing - yaw[..., None]).abs() <= fov / 2) | (distance == 0)
+    in_view = ahead & (distance <= reach)
     direction = delta / distance.clamp_min(1e-9)[..., None]
     origin, direction = eye[:, :, None].expand(W, A, T, 2).reshape(W, A * T, 2), direction.reshape(W, A * T, 2)
     point = targets[:, None].expand(W, A, T, 2).reshape(W, A * T, 2)
@@ -88,6 +94,7 @@ def line_of_sight(eye: Tensor, yaw: Tensor, targets: Tensor, *, fov: float, reac
 def lidar_directions(yaw: Tensor, rays: int) -> Tensor:
     """[W, A, rays, 2] unit directions: ray 0 along each heading, the others evenly around the full
     circle counter-clockwise (ray k at yaw + 2 pi k / rays, to the left first)."""
+    _check_rays(rays)
     offsets = torch.arange(rays, dtype=yaw.dtype, device=yaw.device) * (2 * math.pi / rays)
     return scenery.heading(yaw[..., None] + offsets)
 
@@ -96,7 +103,12 @@ def lidar(eye: Tensor, yaw: Tensor, *, rays: int, reach: float, half_extent, box
           circles: Circles | None = None, skip: Tensor | None = None) -> Tensor:
     """[W, A, rays] in [0, 1]: the distance to the first hit along each ray of lidar_directions,
     divided by `reach` and capped at 1 (1: nothing within reach). skip [W, A, K] bool: circles each
-    observer's rays ignore (its own body)."""
+    observer's rays ignore (its own body). An eye outside the arena reads 0 on every ray; a
+    non-finite eye or yaw, `rays` < 1 and `reach` not a finite number > 0 are ValueErrors."""
+    _check_rays(rays)
+    _check_reach(reach, finite=True)
+    if not bool(torch.isfinite(eye).all()) or not bool(torch.isfinite(yaw).all()):
+        raise ValueError("eye and yaw must be finite: a NaN or inf position or heading has no readings")
     W, A = yaw.shape
     direction = lidar_directions(yaw, rays).reshape(W, A * rays, 2)
     origin = eye[:, :, None].expand(W, A, rays, 2).reshape(W, A * rays, 2)
@@ -106,6 +118,23 @@ def lidar(eye: Tensor, yaw: Tensor, *, rays: int, reach: float, half_extent, box
     return (distance / reach).clamp_max(1.0).reshape(W, A, rays)
 
 
+# ---------------------------------------------------------------------- arguments
+def _check_rays(rays) -> None:
+    if isinstance(rays, bool) or not isinstance(rays, numbers.Integral) or rays < 1:
+        raise ValueError(f"rays must be an int >= 1, got {rays!r}")
+
+
+def _check_reach(reach, *, finite: bool) -> None:
+    if isinstance(reach, bool) or not isinstance(reach, numbers.Real) or not reach > 0 or (
+            finite and not math.isfinite(reach)):
+        raise ValueError(f"reach must be a {'finite ' if finite else ''}number > 0 (metres), got {reach!r}")
+
+
+def _check_circles(circles: Circles | None) -> None:
+    if circles is not None and circles.radius.numel() and not bool((circles.radius >= 0).all()):
+        raise ValueError(f"circles.radius must be >= 0 (metres), got a minimum of {float(circles.radius.min())}")
+
+
 # ---------------------------------------------------------------------- ray against each shape
 def _wall_distance(origin: Tensor, direction: Tensor, half_extent) -> Tensor:
     """[W, R]: where each ray leaves the arena's rectangle (0 for an origin already outside it)."""
@@ -113,7 +142,8 @@ def _wall_distance(origin: Tensor, direction: Tensor, half_extent) -> Tensor:
     wall = torch.where(direction > 0, half, -half)  # the wall each axis runs towards
     moving = direction != 0
     t = torch.where(moving, (wall - origin) / torch.where(moving, direction, torch.ones_like(direction)), math.inf)
-    return t.amin(-1).clamp_min(0.0)
+    outside = (origin.abs() > half).any(-1)
+    return t.amin(-1).clamp_min(0.0).masked_fill(outside, 0.0)
 
 
 def _box_distances(origin: Tensor, direction: Tensor, boxes) -> Tensor:

@@ -42,12 +42,14 @@ import sys
 import numpy as np
 import torch
 
+from marl_render import strict_json
 from marl_render.bots import POPULATIONS, bot_names, make_bot
 from marl_render.elo import elo_ratings
 from marl_render.envs import Population, env_class, list_envs, make_env
 from marl_render.heldout import HELDOUT, heldout_scenario, list_heldout
 from marl_render.policies import Policy, RandomPolicy, heuristic_policy, load_policy
 from marl_render.task_imports import add_import_option, load_user_tasks
+from marl_render.threads import MAX_THREADS
 
 COMPETITIVE = ("tag", "push", "capture_flag")  # the cross-play tasks: team A (rows) against team B (columns)
 SIDES = {"tag": ("predator", "prey"), "push": ("red", "blue"), "capture_flag": ("red", "blue")}
@@ -66,10 +68,20 @@ def make_policy(spec, task: str, seed: int = 0) -> Policy:
     if task in POPULATIONS and spec in bot_names(task):
         return make_bot(task, spec, seed + 2)
     if isinstance(spec, str) and os.path.isdir(spec):
-        return load_policy(spec)
+        policy = load_policy(spec)
+        policy.check_task(task)  # a run of another task is refused here, naming both
+        return policy
     variants = bot_names(task) if task in POPULATIONS else []
     raise ValueError(f"policy must be 'random', 'heuristic', one of {task}'s heuristic variants {variants} "
                      f"or a run folder of python -m marl_render.baselines, got {spec!r}")
+
+
+def check_seed(seed) -> None:
+    """TypeError / ValueError unless `seed` is an int the envs take, [0, 2**63)."""
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise TypeError(f"seed must be an int in [0, 2**63), got {seed!r}")
+    if not 0 <= seed < 2 ** 63:
+        raise ValueError(f"seed must be an int in [0, 2**63), got {seed}")
 
 
 def play(env, policy: Policy) -> dict:
@@ -154,8 +166,12 @@ def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: 
     """One row per scenario (see the module docstring); `references` caches the random and heuristic
     returns per scenario between calls; `gap` adds the training condition's return; `max_steps`
     shortens the episodes (None: the task's length, the published protocol)."""
+    if isinstance(scenarios, str):  # one name is not a list of its characters
+        raise TypeError(f"scenarios must be a list of held-out scenario names, got the str {scenarios!r}: pass "
+                        f"[{scenarios!r}], or scenario_names({scenarios!r}) for a task's scenarios or 'all'")
     if episodes < 2:
         raise ValueError(f"episodes must be >= 2 (a mean and a std over episodes), got {episodes}")
+    check_seed(seed)
     references = {} if references is None else references
     rows = []
     for name in scenarios:
@@ -199,7 +215,7 @@ def write(rows: list, prefix: str) -> None:
     if folder:
         os.makedirs(folder, exist_ok=True)
     with open(prefix + ".json", "w") as f:
-        json.dump(rows, f, indent=1)
+        strict_json.dump(rows, f, indent=1)
     with open(prefix + ".csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -230,6 +246,9 @@ def crossplay(task: str, roster: dict, *, episodes: int = 16, seed: int = 0, res
     pairs of `previous` (an earlier result) played on the same ones are taken from it, not played again."""
     labels = list(roster)
     n = len(labels)
+    if n < 2:
+        raise ValueError(f"roster must hold at least 2 policies (each plays every other), got {labels}")
+    check_seed(seed)
     env_kwargs = matrix_env_kwargs(task, roster, resolution, seed)
     with make_env(task, num_worlds=1, **{**env_kwargs, "resolution": 8}) as probe:
         if len(probe.groups) < 2:
@@ -312,12 +331,23 @@ def crossplay_roster(task: str, runs: list, snapshots: list = ()) -> dict:
 
 def run_label(folder: str) -> str:
     """A roster label for a run folder: "MAPPO-vs-random", "self-play" (a self-play run's final actor)
-    or "snapshot N@STEPSk" (a self-play snapshot), then the seed."""
-    with open(os.path.join(folder, "result.json")) as f:
-        result = json.load(f)
-    seed = (result.get("seeds") or {}).get("train", "?")
+    or "snapshot N@STEPSk" (a self-play snapshot), then the seed. ValueError naming the file for a
+    result.json that is not a run's."""
+    path = os.path.join(folder, "result.json")
+    try:
+        with open(path) as f:
+            result = json.load(f)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path} is not a readable result.json: {error}") from None
+    if not isinstance(result, dict):
+        raise ValueError(f"{path} must hold a run's record (a JSON object), got a {type(result).__name__}")
+    seeds = result.get("seeds")
+    seed = seeds.get("train", "?") if isinstance(seeds, dict) else "?"
     if "snapshot" in result:
         snapshot = result["snapshot"]
+        if not (isinstance(snapshot, dict) and all(isinstance(snapshot.get(key), int) and not isinstance(
+                snapshot.get(key), bool) for key in ("id", "env_steps"))):
+            raise ValueError(f"{path}: snapshot must record its id and env_steps (ints), got {snapshot!r}")
         return f"snapshot {snapshot['id']}@{snapshot['env_steps'] // 1000}k seed{seed}"
     return f"{'self-play' if 'self_play' in result else 'MAPPO-vs-random'} seed{seed}"
 
@@ -378,8 +408,13 @@ def heatmap(result: dict, path: str) -> None:
     plt.close(figure)
 
 
-def _fmt(value: float) -> str:
-    return "n/a" if not math.isfinite(value) else f"{value:.2f}"
+def _fmt(value: float | None, places: int = 2) -> str:
+    """`value` to `places` decimals; "n/a" for None (null in JSON) or a non-finite value, and no minus
+    sign on a value that rounds to zero (-0.001 is "0.00", not "-0.00")."""
+    if value is None or not math.isfinite(value):
+        return "n/a"
+    text = f"{value:.{places}f}"
+    return text[1:] if text.startswith("-") and float(text) == 0 else text
 
 
 def _page_head(title: str, command: str, note: str) -> list:
@@ -404,9 +439,9 @@ def heldout_page(rows_by_policy: dict, command: str, note: str) -> str:
                          f"{_fmt(r['focal_return_std'])} | {_fmt(r['background_return_mean'])} | "
                          f"{_fmt(r['normalised_score'])} | {_fmt(r.get('training_condition_return', math.nan))} | "
                          f"{_fmt(r.get('generalisation_gap', math.nan))} | {bots} |")
-        gaps = [r["generalisation_gap"] for r in rows if "generalisation_gap" in r]
+        gaps = [r["generalisation_gap"] for r in rows if r.get("generalisation_gap") is not None]  # null: undefined
         if gaps:
-            lines += ["", f"Mean generalisation gap over {len(gaps)} scenarios: {np.mean(gaps):.2f}."]
+            lines += ["", f"Mean generalisation gap over {len(gaps)} scenarios: {_fmt(float(np.mean(gaps)))}."]
         lines.append("")
     return "\n".join(lines)
 
@@ -426,11 +461,11 @@ def crossplay_page(results: list, command: str, note: str) -> str:
         lines += [f"## {task} ({side_a} vs {side_b}, {result['episodes']} episodes per pair)", "",
                   f"![{task} cross-play](crossplay/{task}.png)", "", "| Elo | policy |", "|---:|---|"]
         for rating, label in sorted(zip(result["elo"], labels, strict=True), reverse=True):
-            lines.append(f"| {rating:.0f} | {label} |")
+            lines.append(f"| {_fmt(rating, 0)} | {label} |")
         lines += ["", *self_play_verdict(result), f"Per-capita return of the row team ({side_a}):", "",
                   "| row \\ column | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
         for label, values in zip(labels, result["returns_a"], strict=True):
-            lines.append(f"| {label} | " + " | ".join(f"{v:.2f}" for v in values) + " |")
+            lines.append(f"| {label} | " + " | ".join(_fmt(v) for v in values) + " |")
         lines.append("")
     return "\n".join(lines)
 
@@ -450,10 +485,11 @@ def self_play_verdict(result: dict) -> list:
     elo, rate, ra, rb = result["elo"], result["win_rate"], result["returns_a"], result["returns_b"]
     side_a, side_b = result["sides"]
     return [f"**Self-play {'beats' if elo[i] > elo[j] else 'does not beat'} MAPPO-vs-random** ({selfplay[0]} "
-            f"against {mappo[0]}): Elo {elo[i]:.0f} against {elo[j]:.0f}. Head to head, over both sides, self-play "
-            f"wins {rate[i][j]:.2f} of the episodes (a draw counts half). Per-capita returns ({side_a}, {side_b}): "
-            f"self-play as {side_a} against MAPPO-vs-random {ra[i][j]:.2f}, {rb[i][j]:.2f}; MAPPO-vs-random as "
-            f"{side_a} against self-play {ra[j][i]:.2f}, {rb[j][i]:.2f}.", ""]
+            f"against {mappo[0]}): Elo {_fmt(elo[i], 0)} against {_fmt(elo[j], 0)}. Head to head, over both sides, "
+            f"self-play wins {_fmt(rate[i][j])} of the episodes (a draw counts half). Per-capita returns "
+            f"({side_a}, {side_b}): "
+            f"self-play as {side_a} against MAPPO-vs-random {_fmt(ra[i][j])}, {_fmt(rb[i][j])}; MAPPO-vs-random as "
+            f"{side_a} against self-play {_fmt(ra[j][i])}, {_fmt(rb[j][i])}.", ""]
 
 
 def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_episodes: int = CROSSPLAY_EPISODES,
@@ -504,7 +540,7 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
                            previous=previous)
         result["folders"] = {label: spec for label, spec in roster.items() if os.path.isdir(spec)}
         with open(path, "w") as f:
-            json.dump(result, f, indent=1)
+            strict_json.dump(result, f, indent=1)
         heatmap(result, os.path.join(docs, "crossplay", f"{task}.png"))
         results.append(result)
     with open(os.path.join(docs, "crossplay.md"), "w") as f:
@@ -548,6 +584,21 @@ def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int
         f.write(heldout_page(rows_by_policy, command, note))
 
 
+def out_problem(prefix: str) -> str | None:
+    """What keeps `prefix` from taking PREFIX.json (and .csv), or None: checked before any work."""
+    if not prefix or prefix.endswith(("/", os.sep)) or os.path.basename(prefix) in (".", ".."):
+        return ("it names a folder, and --out is the prefix of the files written (OUT.json, OUT.csv): add a file "
+                "name, e.g. out/results")
+    existing = os.path.dirname(os.path.abspath(prefix))
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        return f"{existing} is a file, not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"the folder {existing} takes no files"
+    return None
+
+
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
     """--help keeps the docstring's layout and shows every option's default."""
 
@@ -583,12 +634,21 @@ def main(argv=None) -> int:
     parser.add_argument("--torch-threads", type=int, default=1,
                         help="torch threads of the trained actors (1: on a busy machine more threads spin idle)")
     args = parser.parse_args(argv)
-    if args.torch_threads < 1:
-        parser.error(f"--torch-threads must be >= 1, got {args.torch_threads}")
+    # The envs' torch_threads bound (marl_render/threads.py): fixed, not this machine's cores, so that a published
+    # command line runs on every machine; beyond it torch would start idle OpenMP threads by the thousand.
+    if not 1 <= args.torch_threads <= MAX_THREADS:
+        parser.error(f"--torch-threads must be in [1, {MAX_THREADS}], got {args.torch_threads}")
+    if not 0 <= args.seed < 2 ** 63:
+        parser.error(f"--seed must be an int in [0, 2**63), got {args.seed}")
+    if args.out is not None and out_problem(args.out):
+        parser.error(f"--out {args.out!r}: {out_problem(args.out)}")
     threads = torch.get_num_threads()
     torch.set_num_threads(args.torch_threads)
     try:
         return run_command(parser, args)
+    except BrokenPipeError:  # `--list | head`: the reader has gone; stop quietly, as a shell tool does
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
+        return 1
     finally:
         torch.set_num_threads(threads)
 
@@ -596,7 +656,7 @@ def main(argv=None) -> int:
 def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """What main does once the command line is read."""
     if args.list:
-        print(listing())
+        print(listing(), flush=True)
         return 0
     if args.docs:
         if args.crossplay_only and args.heldout_only:
@@ -617,9 +677,9 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> in
         parser.error(str(error))
     if args.out:
         write(rows, args.out)
-        print(f"wrote {args.out}.json and {args.out}.csv ({len(rows)} scenarios)")
+        print(f"wrote {args.out}.json and {args.out}.csv ({len(rows)} scenarios)", flush=True)
     else:
-        print(json.dumps(rows))
+        print(strict_json.dumps(rows), flush=True)
     return 0
 
 
@@ -627,10 +687,14 @@ def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace)
     """--crossplay TASK --roster ...: the matrices and Elo, written to OUT.json or printed."""
     if args.crossplay_episodes < 1:
         parser.error(f"--crossplay-episodes must be >= 1, got {args.crossplay_episodes}")
-    roster = {}
-    for spec in args.roster:
-        label = run_label(spec) if os.path.isfile(os.path.join(spec, "result.json")) else spec
-        roster[label if label not in roster else spec] = spec
+    try:
+        with make_env(args.crossplay, num_worlds=1, resolution=8) as probe:
+            teams = list(probe.groups)
+    except (ValueError, TypeError) as error:
+        parser.error(f"--crossplay {args.crossplay}: {error}")
+    if len(teams) < 2:  # the task first: no roster plays a task of one team
+        parser.error(f"cross-play needs a task of two or more teams; {args.crossplay} has {teams}")
+    roster = roster_of(parser, args.roster, args.crossplay, args.seed)
     try:
         result = crossplay(args.crossplay, roster, episodes=args.crossplay_episodes, seed=args.seed,
                            resolution=args.resolution)
@@ -641,11 +705,35 @@ def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace)
         if folder:
             os.makedirs(folder, exist_ok=True)
         with open(args.out + ".json", "w") as f:
-            json.dump(result, f, indent=1)
-        print(f"wrote {args.out}.json ({len(roster)} policies)")
+            strict_json.dump(result, f, indent=1)
+        print(f"wrote {args.out}.json ({len(roster)} policies)", flush=True)
     else:
-        print(json.dumps(result))
+        print(strict_json.dumps(result), flush=True)
     return 0
+
+
+def roster_of(parser: argparse.ArgumentParser, specs: list, task: str, seed: int) -> dict:
+    """{label: spec} of --roster, every entry checked before any pair is played: parser.error naming
+    --roster for a roster of one, an entry given twice, an unknown policy or a run folder that is
+    broken or of another task."""
+    if len(specs) < 2:
+        parser.error(f"--roster must name at least 2 policies (each plays every other), got {specs}")
+    seen: dict = {}
+    for spec in specs:
+        key = os.path.realpath(spec) if os.path.isdir(spec) else spec
+        if key in seen:
+            parser.error(f"--roster names {spec!r} twice ({seen[key]!r} is the same policy): name each policy once")
+        seen[key] = spec
+    roster = {}
+    for spec in specs:
+        try:
+            label = run_label(spec) if os.path.isdir(spec) and os.path.isfile(os.path.join(spec, "result.json")) \
+                else spec
+            make_policy(spec, task, seed)
+        except (ValueError, FileNotFoundError, TypeError) as error:
+            parser.error(f"--roster {spec!r}: {error}")
+        roster[label if label not in roster else spec] = spec
+    return roster
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@
 The window shows the agent's egocentric view (what its policy would see, scaled up) beside the
 overview camera. Keys: w forward, s backward, a turn left, d turn right (for tasks with those
 actions), a digit takes the action of that number (a task's own actions: commons' zap is 5, a
-cartpole force level 0-6), space or nothing held is action 0 (noop); q or escape quits. In the
+cartpole force level 0-4), space or nothing held is action 0 (noop); q or escape quits. In the
 window the env runs at its own pace, 1 / dt steps a second, taking the key held down, as VMAS's
 ``render_interactively`` and Melting Pot's human players do. ``--keys`` plays a scripted sequence
 instead, one step per key ("." or "space": action 0), offscreen, and prints one JSON line with the

@@ -29,6 +29,7 @@ import pickle
 import torch
 
 from marl_render.baselines.networks import Actor
+from marl_render.envs import env_class, list_envs
 from marl_render.envs.masking import sample_allowed
 from marl_render.validation import describe
 
@@ -91,12 +92,35 @@ class ActorPolicy(Policy):
     agent input is the slot's one-hot among the task's agents, as in training."""
 
     def __init__(self, actor: Actor, *, name: str, obs_key: str, frames: int, action_repeat: int,
-                 num_agents: int, env_kwargs: dict):
+                 num_agents: int, env_kwargs: dict, task: str | None = None, num_actions: int | None = None):
         self.actor, self.name, self.obs_key = actor.eval(), name, obs_key
         self.frames, self.action_repeat, self.num_agents = frames, action_repeat, num_agents
+        self.task, self.num_actions = task, num_actions  # what it was trained on (None: not recorded)
         self.needs = frozenset({obs_key, "action_mask"})
         self.env_kwargs = env_kwargs
         self.stack = self.held = self.fresh = None  # [W, A, ...] once the first call shows W and A
+
+    def check_task(self, task: str) -> None:
+        """ValueError naming both tasks unless this actor was trained on `task` (a registered name; a
+        run that did not record its task passes): an actor plays the task it learnt, no other."""
+        if self.task is None or task == self.task or _same_task(self.task, task):
+            return
+        raise ValueError(f"policy {self.name!r} was trained on {self.task!r} ({self.num_actions} actions); it cannot "
+                         f"play {task!r}: use a run of {task!r}")
+
+    def check_env(self, env) -> None:
+        """ValueError naming both tasks unless `env` (a driver) is the task, agents and actions this
+        actor was trained for."""
+        trained = f"{self.task!r}" if self.task is not None else "its run's task"
+        if env.continuous or (self.num_actions is not None and env.num_actions != self.num_actions):
+            raise ValueError(f"policy {self.name!r} was trained on {trained} with {self.num_actions} discrete "
+                             f"actions; env {env.name!r} has "
+                             + ("continuous actions" if env.continuous else f"{env.num_actions} actions"))
+        if self.task is not None and env.name != self.task and not _same_task(self.task, type(env.scenario)):
+            raise ValueError(f"policy {self.name!r} was trained on {trained}; it cannot play env {env.name!r}")
+        if env.num_agents != self.num_agents:
+            raise ValueError(f"policy {self.name!r} was trained with {self.num_agents} agents; env {env.name!r} has "
+                             f"{env.num_agents}")
 
     def reset(self, env, worlds):
         if self.fresh is not None:
@@ -105,9 +129,7 @@ class ActorPolicy(Policy):
     @torch.inference_mode(False)
     @torch.no_grad()
     def act(self, env, obs, worlds, slots):
-        if env.num_agents != self.num_agents:
-            raise ValueError(f"policy {self.name!r} was trained with {self.num_agents} agents; env {env.name!r} has "
-                             f"{env.num_agents}")
+        self.check_env(env)
         observation = obs[self.obs_key]
         if self.stack is None or self.stack.shape[0] != env.num_worlds:
             W, A = env.num_worlds, env.num_agents
@@ -154,8 +176,25 @@ def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
         raise ValueError(f"{paths['actor.pt']} does not fit the actor that {paths['result.json']} describes: "
                          f"{type(error).__name__}: {str(error)[:300]}") from error
     env_kwargs = {"resolution": resolution, "grayscale": grayscale} if obs_key == "pixels" else {"state_obs": True}
+    task = result.get("env")
+    if task is not None and not isinstance(task, str):
+        raise ValueError(f"{paths['result.json']}: env must be the name of the task the run trained on, got {task!r}")
     return ActorPolicy(actor, name=name or str(run_folder), obs_key=obs_key, frames=frames,
-                       action_repeat=action_repeat, num_agents=agents, env_kwargs=env_kwargs)
+                       action_repeat=action_repeat, num_agents=agents, env_kwargs=env_kwargs, task=task,
+                       num_actions=int(weights["head.4.weight"].shape[0]))
+
+
+def _same_task(name: str, other) -> bool:
+    """Whether the task `name` (a run's) is `other` (a registered name, or a Scenario class) under
+    another name: a task registered twice, or named module:Class (compared by name when this process
+    has not registered it: a name read from a result.json is never imported)."""
+    try:
+        target = env_class(other)
+    except (ValueError, TypeError, KeyError, ImportError, AttributeError):
+        return False
+    if name in list_envs():
+        return env_class(name) is target
+    return name == f"{target.__module__}:{target.__qualname__}"
 
 
 def _actor(weights: dict, hp: dict, obs_key: str, resolution: int, channels: int) -> tuple:

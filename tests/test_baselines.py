@@ -217,6 +217,27 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(tmp_path, capsys, monk
     assert list((tmp_path / "new").iterdir()) == []  # checked, nothing left behind
 
 
+def test_ctrl_c_ends_the_trainer_in_one_line_leaving_the_earlier_run(tmp_path, capsys, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(run, "train", interrupted)
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "result.json").write_text("the earlier run")
+    assert run.main(["--env", "spread", "--obs", "state", "--out", str(out), *TINY]) == 130
+    err = capsys.readouterr().err
+    assert err == ("python -m marl_render.baselines: interrupted (Ctrl-C) before writing anything: --out holds what "
+                   "it held before\n")
+    assert [p.name for p in out.iterdir()] == ["result.json"] and (out / "result.json").read_text() == "the earlier run"
+
+
+@pytest.mark.parametrize("threads", ["5000", "1025", "-1"])
+def test_torch_threads_are_bounded(tmp_path, capsys, threads):
+    with pytest.raises(SystemExit):
+        run.parse_args(["--env", "spread", "--torch-threads", threads, "--out", str(tmp_path / "out")])
+    assert f"--torch-threads must be >= 0 and <= 1024, got {threads}" in capsys.readouterr().err
+
+
 def test_an_option_the_env_refuses_ends_in_one_line_before_training(tmp_path, capsys, monkeypatch):
     def no_training(*args, **kwargs):
         raise AssertionError("trained with options the env refuses")

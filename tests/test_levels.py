@@ -14,6 +14,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from marl_render.baselines import run
 from marl_render.envs import levels as lv
 from marl_render.envs import make_env, make_parallel_env, make_sb3_env, make_torchrl_env, make_vec_env
 from marl_render.envs.scenario import Scenario
@@ -318,3 +319,39 @@ def test_the_generalisation_study_runs_end_to_end(tmp_path):
     text = generalisation.report(str(tmp_path), str(tmp_path / "page.md"))
     assert "## speaker_listener" in text and "| `levels=200` |" in text and "heuristic (test levels)" in text
     assert generalisation.command("speaker_listener", "levels200", 0) in text
+
+
+@pytest.mark.parametrize("levels", ["published", "test"])
+def test_test_levels_are_refused_as_a_training_curriculum(levels):
+    with pytest.raises(ValueError, match=rf"PrioritisedLevelReplay needs a finite train set, got levels='{levels}': "
+                                         r"the test levels are for evaluation only"):
+        lv.PrioritisedLevelReplay(levels)
+
+
+@pytest.mark.parametrize("levels", ["published", "test"])
+def test_the_trainer_refuses_to_train_on_test_levels(levels, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        run.parse_args(["--env", "forage", "--levels", levels, "--out", str(tmp_path / "out")])
+    assert exit_.value.code == 2
+    assert f"--levels {levels}: the test levels are for evaluation only (--eval-levels {levels})" in \
+        capsys.readouterr().err
+    assert run.parse_args(["--env", "forage", "--eval-levels", levels, "--out", str(tmp_path / "out")]).eval_levels \
+        == levels
+
+
+@pytest.mark.parametrize("kwargs, error, words", [
+    (dict(temperature="a"), TypeError, r"PrioritisedLevelReplay needs temperature to be a number, got 'a'"),
+    (dict(staleness=None), TypeError, r"PrioritisedLevelReplay needs staleness to be a number, got None"),
+    (dict(temperature=True), TypeError, r"needs temperature to be a number, got True"),
+])
+def test_prioritised_level_replay_names_a_setting_that_is_not_a_number(kwargs, error, words):
+    with pytest.raises(error, match=words):
+        lv.PrioritisedLevelReplay(range(4), **kwargs)
+
+
+@pytest.mark.parametrize("levels", [np.array(5), torch.tensor(5)])
+def test_a_scalar_array_as_levels_is_named(levels):
+    with pytest.raises(TypeError, match=r"levels must be .*got a 0-d .*: pass int\(levels\) for a count"):
+        lv.as_sampler(levels)
+    with pytest.raises(TypeError, match=r"levels must be .*got a 0-d"):
+        make_env("spread", num_worlds=1, resolution=8, levels=levels)

@@ -100,6 +100,18 @@ def test_unknown_reset_options_are_ignored_unless_strict():
     strict.close()
 
 
+def test_a_near_miss_of_a_known_reset_option_warns_once_and_is_ignored():
+    env = make("spread", seed=0)
+    with pytest.warns(UserWarning, match=r"reset option 'levle' is not one this env knows; did you mean 'level'\? "
+                                         r"It is ignored"):
+        first, _ = env.reset(seed=3, options={"levle": 3})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per env; a key like no known one ("warp") is ignored quietly
+        again, _ = env.reset(seed=3, options={"levle": 3, "warp": 1, 7: 1})
+    assert all(np.array_equal(first[a], again[a]) for a in env.possible_agents)
+    env.close()
+
+
 @pytest.mark.parametrize("name", ENVS)
 def test_same_seed_same_episode_over_many_steps(name):
     # parallel_seed_test stops after its first step (it tests `any(terminations)` over the

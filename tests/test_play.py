@@ -13,8 +13,9 @@ import pytest
 from matplotlib.backend_bases import KeyEvent
 from PIL import Image
 
+from marl_render import play
 from marl_render.envs import egomotion
-from marl_render.play import KeyboardWindow, main
+from marl_render.play import KeyboardWindow, Player, main
 
 TURN = egomotion.TURN_RATE * egomotion.DT  # rad per step of a full turn
 
@@ -98,3 +99,15 @@ def test_a_task_of_ones_own_plays_by_module_and_class(capsys):
     record = json.loads(capsys.readouterr().out)
     assert record["task"] == "peek" and record["agent"] == "hider_0" and record["actions"] == [3, 3]
     assert wrapped(record["poses"][2]["yaw"] - record["poses"][0]["yaw"]) == pytest.approx(-2 * TURN, abs=1e-5)
+
+
+def test_the_docstring_gives_cartpoles_force_keys_as_they_are():
+    player = Player("cartpole", resolution=8, overview=8)
+    try:
+        top = player.env.num_actions - 1
+        assert [player.action_for(str(key)) for key in range(top + 1)] == list(range(top + 1))
+        with pytest.raises(ValueError, match=f"key '{top + 1}' takes no action in cartpole"):
+            player.action_for(str(top + 1))
+    finally:
+        player.close()
+    assert f"cartpole force level 0-{top})" in " ".join(play.__doc__.split())

@@ -244,16 +244,39 @@ def test_two_runs_of_one_seed_are_refused(tmp_path):
         report.load_results(tmp_path)
 
 
-def test_readme_without_markers_is_refused_before_writing(tmp_path):
+def report_error(argv, capsys) -> str:
+    """report.main's exit on bad input: status 2 and one error line, no traceback."""
+    with pytest.raises(SystemExit) as exit_:
+        report.main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len([line for line in err.splitlines() if "error:" in line]) == 1
+    return err
+
+
+def test_readme_without_markers_is_refused_before_writing(tmp_path, capsys):
     write_runs(tmp_path / "runs", {("spread", "pixels"): [[1.0]]})
     readme, out = tmp_path / "README.md", tmp_path / "baselines.md"
     readme.write_text("no markers\n")
-    with pytest.raises(ValueError, match="markers"):
-        report.main(["--results", str(tmp_path / "runs"), "--out", str(out), "--readme", str(readme)])
+    assert "markers" in report_error(["--results", str(tmp_path / "runs"), "--out", str(out), "--readme", str(readme)],
+                                     capsys)
     assert readme.read_text() == "no markers\n" and not out.exists()
     assert not (tmp_path / "runs" / "marl_eval.json").exists()
-    with pytest.raises(ValueError, match="--results must be a folder of runs"):
-        report.main(["--results", str(tmp_path / "nothing"), "--out", str(out), "--readme", ""])
+    assert "--results must be a folder of runs" in report_error(
+        ["--results", str(tmp_path / "nothing"), "--out", str(out), "--readme", ""], capsys)
+
+
+def test_the_report_cli_names_a_broken_run_in_one_line(tmp_path, capsys):
+    write_runs(tmp_path / "runs", {("spread", "pixels"): [[1.0]]})
+    argv = ["--results", str(tmp_path / "runs"), "--out", str(tmp_path / "baselines.md"), "--readme", ""]
+    run_file = tmp_path / "runs" / "spread" / "seed0" / "result.json"
+    copy = tmp_path / "runs" / "spread" / "seed7" / "result.json"  # a seed-0 run in another seed's folder
+    copy.parent.mkdir()
+    copy.write_text(run_file.read_text())
+    assert "two runs of spread from pixels with training seed 0" in report_error(argv, capsys)
+    copy.write_text(run_file.read_text()[:40])  # truncated
+    assert f"{copy}: not a readable result.json" in report_error(argv, capsys)
+    assert not (tmp_path / "baselines.md").exists()
 
 
 def test_published_commands_cover_every_task_and_seed():
@@ -400,3 +423,15 @@ def test_published_jobs_below_one_is_refused(capsys):
     with pytest.raises(SystemExit):
         published.main(["--run", "--jobs", "0"])
     assert "--jobs must be >= 1, got 0" in capsys.readouterr().err
+
+
+def test_a_run_whose_checkpoint_was_nan_is_read_from_its_null_and_written_as_null(tmp_path):
+    write_runs(tmp_path / "runs", {("spread", "pixels"): [[1.0]]})
+    path = tmp_path / "runs" / "spread" / "seed0" / "result.json"
+    result = json.loads(path.read_text())
+    result["checkpoints"][0].update(mean=None, std=None, per_episode=[None, 1.0])  # as the trainer writes a NaN
+    path.write_text(json.dumps(result))
+    assert report.main(["--results", str(tmp_path / "runs"), "--out", str(tmp_path / "baselines.md"),
+                        "--readme", ""]) == 0
+    layout = json.loads((tmp_path / "runs" / "marl_eval.json").read_text(), parse_constant=pytest.fail)
+    assert layout["marl_render"]["spread"]["mappo_pixels"]["seed_0"]["step_0"]["return"] == [None, 1.0]

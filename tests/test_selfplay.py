@@ -329,3 +329,23 @@ def test_cross_play_takes_the_pairs_it_played_before_from_the_earlier_result(due
     assert second["pairs"][2]["column"].endswith("snapshots/001#" + second["pairs"][2]["column"][-16:])
     evaluation.crossplay("beacon_duel", pair, episodes=3, resolution=12, previous=first)  # other settings: all played
     assert len(played) == 5 + 4
+
+
+def test_a_rerun_into_the_same_out_replaces_the_earlier_runs_snapshots(tmp_path, user_module, capsys):
+    out = tmp_path / "run"
+    for k in range(6):  # an earlier, longer run's snapshots (one more than this run takes)
+        stale = out / "snapshots" / f"{k:03d}"
+        stale.mkdir(parents=True)
+        (stale / "result.json").write_text(json.dumps({"env": "beacon_duel", "env_steps": 32 * k}))
+    assert run.main(["--import", "selfplay_user_task", "--env", "beacon_duel", "--out", str(out), *TINY]) == 0
+    assert "held an earlier run: its 6 snapshot(s) are replaced" in capsys.readouterr().out
+    result = json.loads((out / "result.json").read_text())
+    recorded = sorted(s["folder"] for s in result["self_play"]["snapshots"])
+    assert sorted(f"snapshots/{p.name}" for p in (out / "snapshots").iterdir()) == recorded
+    for snapshot in (out / "snapshots").iterdir():
+        own = json.loads((snapshot / "result.json").read_text())
+        assert own["env_steps"] <= result["env_steps"] and (snapshot / "actor.pt").is_file()
+    # A run without self-play into the folder leaves no snapshots that its result.json does not describe.
+    plain = TINY[:TINY.index("--self-play")]
+    assert run.main(["--import", "selfplay_user_task", "--env", "beacon_duel", "--out", str(out), *plain]) == 0
+    assert not (out / "snapshots").exists() and "self_play" not in json.loads((out / "result.json").read_text())

@@ -20,7 +20,7 @@ from marl_render.envs import (
     make_vec_env,
 )
 from marl_render.envs.planar import Obstacles
-from marl_render.envs.sight import Circles, first_hit, horizontal_fov, line_of_sight
+from marl_render.envs.sight import Circles, first_hit, horizontal_fov, lidar, line_of_sight
 
 HIDER_RED = (0.95, 0.05, 0.05)
 MARKER_GREEN = (0.05, 0.95, 0.05)
@@ -282,3 +282,63 @@ def test_a_pillar_is_an_immovable_body_that_hides_and_stops():
     assert -0.5 < env.sim.pos[0, 0, 1].item() < -0.44  # touching: centres 0.45 apart
     assert obs["lidar"][0, 0, 0].item() == pytest.approx(0.15 / 5, abs=0.002)  # from its centre: its own radius
     env.close()
+
+
+# ---------------------------------------------------------------------- the helpers' edges
+ARENA = (2.0, 1.0)
+
+
+def test_lidar_from_a_non_finite_eye_or_yaw_is_refused():
+    for eye, yaw in ((torch.tensor([[[math.nan, 0.0]]]), torch.zeros(1, 1)),
+                     (torch.tensor([[[0.0, math.inf]]]), torch.zeros(1, 1)),
+                     (torch.zeros(1, 1, 2), torch.tensor([[math.nan]]))):
+        with pytest.raises(ValueError, match=r"eye and yaw must be finite"):
+            lidar(eye, yaw, rays=4, reach=5.0, half_extent=ARENA)
+
+
+def test_an_eye_outside_the_arena_reads_zero_and_sees_nothing_beyond_itself():
+    eye, yaw = torch.tensor([[[2.5, 0.0], [0.0, -1.2]]]), torch.tensor([[math.pi / 2, 0.0]])  # facing the arena
+    assert lidar(eye, yaw, rays=4, reach=5.0, half_extent=ARENA).tolist() == [[[0.0] * 4] * 2]
+    # A ray from outside is 0 long whichever way it points (first_hit's promise); inside, the wall is 1.5 away.
+    hits = first_hit(torch.tensor([[[2.5, 0.0], [0.5, 0.0]]]), torch.tensor([[[-1.0, 0.0], [1.0, 0.0]]]),
+                     half_extent=ARENA)
+    assert hits.tolist() == [[0.0, 1.5]]
+    seen = line_of_sight(eye[:, :1], yaw[:, :1], torch.tensor([[[0.0, 0.0], [2.5, 0.0]]]), fov=math.pi,
+                         reach=10.0, half_extent=ARENA)
+    assert seen.tolist() == [[[False, True]]]  # the arena's centre lies behind its wall; its own point is seen
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    (dict(rays=0), r"rays must be an int >= 1, got 0"), (dict(rays=-2), r"rays must be an int >= 1, got -2"),
+    (dict(rays=2.0), r"rays must be an int >= 1, got 2.0"), (dict(reach=0.0), r"reach must be a finite number > 0"),
+    (dict(reach=-1.0), r"reach must be a finite number > 0 \(metres\), got -1.0"),
+    (dict(reach=math.nan), r"reach must be a finite number > 0"), (dict(reach=math.inf), r"reach must be a finite"),
+])
+def test_lidar_refuses_rays_and_reach_out_of_range(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        lidar(torch.zeros(1, 1, 2), torch.zeros(1, 1), half_extent=ARENA, **{"rays": 4, "reach": 5.0, **kwargs})
+
+
+def test_line_of_sight_refuses_a_reach_that_is_not_positive():
+    for reach in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match=r"reach must be a number > 0"):
+            line_of_sight(torch.zeros(1, 1, 2), torch.zeros(1, 1), torch.ones(1, 1, 2), fov=1.0, reach=reach,
+                          half_extent=ARENA)
+
+
+def test_a_negative_circle_radius_is_refused():
+    circles = Circles(torch.tensor([[[0.5, 0.0]]]), torch.tensor([[-0.25]]), torch.tensor([[True]]))
+    with pytest.raises(ValueError, match=r"circles.radius must be >= 0 \(metres\), got a minimum of -0.25"):
+        first_hit(torch.zeros(1, 1, 2), torch.tensor([[[1.0, 0.0]]]), half_extent=ARENA, circles=circles)
+    with pytest.raises(ValueError, match=r"circles.radius must be >= 0"):
+        line_of_sight(torch.zeros(1, 1, 2), torch.zeros(1, 1), torch.ones(1, 1, 2), fov=1.0, reach=5.0,
+                      half_extent=ARENA, circles=circles)
+    with pytest.raises(ValueError, match=r"circles.radius must be >= 0"):
+        lidar(torch.zeros(1, 1, 2), torch.zeros(1, 1), rays=4, reach=5.0, half_extent=ARENA, circles=circles)
+
+
+def test_a_target_at_the_eye_is_seen_whatever_the_yaw():
+    yaws = torch.linspace(-math.pi, math.pi, 9)[None]  # [1, 9]
+    eye = torch.tensor([0.3, -0.2]).expand(1, 9, 2)
+    seen = line_of_sight(eye, yaws, torch.tensor([[[0.3, -0.2]]]), fov=math.pi / 2, reach=5.0, half_extent=ARENA)
+    assert seen.tolist() == [[[True]] * 9]

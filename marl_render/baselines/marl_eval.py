@@ -21,8 +21,9 @@ marl-eval's tools need the same algorithms, runs and number of steps on every ta
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
+
+from marl_render import strict_json
 
 ENVIRONMENT = "marl_render"
 ALGORITHMS = {"pixels": "mappo_pixels", "state": "mappo_state"}
@@ -77,5 +78,5 @@ def problems(data: dict) -> list[str]:
 
 def write(runs: dict, path) -> dict:
     data = layout(runs)
-    Path(path).write_text(json.dumps(data, indent=1) + "\n")
+    Path(path).write_text(strict_json.dumps(data, indent=1) + "\n")
     return data

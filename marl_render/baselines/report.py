@@ -65,6 +65,12 @@ def read_result(path: Path) -> dict:
     seed = result["seeds"]["train"]
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ValueError(f"{path}: seeds.train must be an int, got {seed!r}")
+    for point in result.get("checkpoints") or ():  # null (a NaN when written, strict_json) reads as NaN again
+        if isinstance(point, dict):
+            point.update({key: math.nan for key in ("mean", "std", "min", "max") if key in point
+                          and point[key] is None})
+            if isinstance(point.get("per_episode"), list):
+                point["per_episode"] = [math.nan if x is None else x for x in point["per_episode"]]
     result["folder"] = path.parent
     # Runs before the split into development and publication worlds were scored on the worlds
     # every development choice used.
@@ -457,6 +463,15 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="docs/baselines.md", help="the document to write")
     parser.add_argument("--readme", default="docs/results.md", help="page whose summary table to rewrite ('' for none)")
     args = parser.parse_args(argv)
+    try:
+        return write_report(args)
+    except (ValueError, OSError) as error:  # a missing folder, a broken run: one line, no traceback
+        parser.error(str(error))
+
+
+def write_report(args: argparse.Namespace) -> int:
+    """What main does once the command line is read; ValueError naming the file or option at fault,
+    before anything is written."""
     results_root, out = Path(args.results), Path(args.out)
     if not results_root.is_dir():
         raise ValueError(f"--results must be a folder of runs, got {str(results_root)!r} (no such folder)")

@@ -27,9 +27,10 @@ task's keyword or an accuracy knob: ``multisamples=4``, ``physics_substeps=4``);
 ``shaping=1``: the evaluations keep the task's own reward, so the table compares like with like).
 VALUE is a Python literal (``1``, ``0.5``, ``True``, ``'x'``).
 
-Levels and looks (docs/levels.md, docs/generalisation.md): ``--levels N`` (or ``train``, ``test``,
-``published``) trains on those levels; ``--eval-levels`` sets the levels of the evaluations
-(default: none, the env's default resets; ``published`` for the frozen test levels);
+Levels and looks (docs/levels.md, docs/generalisation.md): ``--levels N`` (or ``train``) trains on
+those levels (the test levels, ``test`` and ``published``, are refused: they are for evaluation);
+``--eval-levels`` sets the levels of the evaluations (default: none, the env's default resets;
+``published`` for the frozen test levels);
 ``--appearance train`` (or ``heldout``) draws every world's look from its level (training and
 evaluation). ``python -m marl_render.baselines.generalisation`` runs the train/test study.
 
@@ -44,6 +45,8 @@ the latest snapshot with chance --play-latest, else one of the last --window, dr
 team it trains) every --swap-every env steps at its next reset. result.json's "self_play" records
 every snapshot (env steps when taken, episodes and env steps it was faced) and OUT/snapshots/NNN/
 holds each one as a run folder (actor.pt, result.json) that marl_render.policies.load_policy reads.
+A run into a folder that holds an earlier run replaces it, snapshots included (those of the earlier
+run are removed when the new run's files are written; until then it is left whole).
 
 A task registered by the user: --import MODULE (a module that calls register_env), or --env
 module:Class (a Scenario subclass, registered under that name).
@@ -54,22 +57,24 @@ import argparse
 import ast
 import dataclasses
 import importlib.metadata
-import json
 import math
 import os
 import platform
 import shlex
+import shutil
 import sys
 import tempfile
 import time
 
 import torch
 
+from marl_render import strict_json
 from marl_render.envs import list_envs, make_env
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
 from marl_render.envs.levels import NAMED as NAMED_LEVELS
 from marl_render.extras import command_needs_extra
 from marl_render.task_imports import add_import_option, load_user_tasks
+from marl_render.threads import MAX_THREADS
 
 from .curve import plot_curve
 from .networks import ENCODERS, INITS, PRECISIONS
@@ -86,14 +91,16 @@ RESERVED_OPTIONS = {"num_worlds": "--worlds", "resolution": "--resolution", "gra
 REFUSED_OPTIONS = {"autoreset": "the learner resets ended worlds itself (it needs autoreset=False to bootstrap "
                                 "truncated episodes from their last state)",
                    "continuous": "the learner samples discrete actions"}
-# (option, kind, lowest, highest, lowest allowed itself): the hyperparameters' ranges.
+# (option, kind, lowest, highest, lowest allowed itself): the hyperparameters' ranges. --torch-threads' highest is
+# the envs' torch_threads bound (marl_render/threads.py): fixed, not this machine's cores, so that a published
+# command line runs on every machine; beyond it torch would start idle OpenMP threads by the thousand.
 RANGES = (("worlds", int, 1, None, True), ("resolution", int, 1, None, True), ("frames", int, 1, None, True),
           ("action-repeat", int, 1, None, True), ("rollout", int, 1, None, True), ("epochs", int, 1, None, True),
           ("minibatches", int, 1, None, True), ("lr", float, 0.0, None, False), ("gamma", float, 0.0, 1.0, False),
           ("gae-lambda", float, 0.0, 1.0, True), ("clip", float, 0.0, None, False),
           ("entropy", float, 0.0, None, True), ("critic-coef", float, 0.0, None, False),
           ("max-grad-norm", float, 0.0, None, False), ("hidden", int, 1, None, True),
-          ("torch-threads", int, 0, None, True), ("aux-state", float, 0.0, None, True))
+          ("torch-threads", int, 0, MAX_THREADS, True), ("aux-state", float, 0.0, None, True))
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -131,7 +138,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--train-option", action="append", default=[], metavar="KEY=VALUE", type=env_option,
                         help="env keyword for the training env only, e.g. a shaped reward (repeatable)")
     parser.add_argument("--levels", type=levels_option, default=None,
-                        help="levels of the training env: a count n (levels 0..n-1), train, test or published")
+                        help="levels of the training env: a count n (levels 0..n-1) or train (test and published "
+                             "are for --eval-levels only)")
     parser.add_argument("--eval-levels", type=levels_option, default=None,
                         help="levels of the evaluations (default: none, the default resets)")
     parser.add_argument("--appearance", choices=("train", "heldout"), default=None,
@@ -201,6 +209,9 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
                          f"{RESERVED_OPTIONS[key]} instead")
         if key in REFUSED_OPTIONS:
             parser.error(f"--env-option / --train-option {key}: not supported, {REFUSED_OPTIONS[key]}")
+    if args.levels in ("test", "published"):  # a generalisation study is void once it trains on its test levels
+        parser.error(f"--levels {args.levels}: the test levels are for evaluation only (--eval-levels {args.levels}); "
+                     f"train on a count n (levels 0..n-1) or train")
     check_self_play(parser, args, env_options={**dict(args.env_option), **dict(args.train_option)})
     if args.out is None:
         args.out = os.path.join("out", "baselines", args.env if args.obs == "pixels" else f"{args.env}-state")
@@ -300,6 +311,22 @@ def write_atomically(path: str, write) -> None:
         raise
 
 
+def clear_snapshots(out: str) -> int:
+    """Remove the snapshot run folders (OUT/snapshots/NNN) an earlier run left in `out`, and the
+    snapshots folder once empty; the count removed. A rerun replaces every file of the earlier run
+    (actor.pt, result.json and curve.png are overwritten): its snapshots must not pass for the new
+    run's. Done when the new run's files are written, so an interrupted run leaves the earlier one whole."""
+    folder = os.path.join(out, "snapshots")
+    if not os.path.isdir(folder):
+        return 0
+    stale = [entry for entry in os.scandir(folder) if entry.is_dir() and entry.name.isdigit()]
+    for entry in stale:
+        shutil.rmtree(entry.path)
+    if not os.listdir(folder):
+        os.rmdir(folder)
+    return len(stale)
+
+
 def save_snapshots(pool, result: dict, out: str) -> dict:
     """Every snapshot of `pool` as a run folder OUT/snapshots/NNN (actor.pt, then a result.json
     that load_policy reads: the run's env, obs and hyperparameters, and the snapshot's record);
@@ -312,12 +339,26 @@ def save_snapshots(pool, result: dict, out: str) -> dict:
         write_atomically(os.path.join(folder, "actor.pt"), lambda f, actor=actor: torch.save(actor.state_dict(), f))
         own = {key: result[key] for key in ("env", "obs", "seeds", "hyperparameters", "env_options", "versions")}
         own.update(snapshot=snapshot, self_play_run="../..", env_steps=snapshot["env_steps"])
-        write_atomically(os.path.join(folder, "result.json"), lambda f, own=own: f.write(json.dumps(own, indent=1)
-                                                                                          .encode()))
+        write_atomically(os.path.join(folder, "result.json"),
+                         lambda f, own=own: f.write(strict_json.dumps(own, indent=1).encode()))
     return record
 
 
 def main(argv=None) -> int:
+    """The command; Ctrl-C ends it with one line saying what was written (exit status 130), no traceback."""
+    stage = {"writing": False}
+    try:
+        return train_and_write(argv, stage)
+    except KeyboardInterrupt:
+        print("python -m marl_render.baselines: interrupted (Ctrl-C) " + (
+            "while writing the run's files: each file in --out is whole, this run's or the earlier one's"
+            if stage["writing"] else "before writing anything: --out holds what it held before"),
+            file=sys.stderr, flush=True)
+        return 130
+
+
+def train_and_write(argv, stage: dict) -> int:
+    """Train, evaluate and write the run folder; stage["writing"] is True once its files are being written."""
     started = time.perf_counter()
     args = parse_args(argv)
     require_matplotlib()
@@ -414,13 +455,17 @@ def main(argv=None) -> int:
         "checkpoints": run.checkpoints,
         "curve": run.curve,
     }
+    stage["writing"] = True
     os.makedirs(args.out, exist_ok=True)
+    stale = clear_snapshots(args.out)  # an earlier run's in this folder: the new result.json does not describe them
+    if stale:
+        print(f"{args.out} held an earlier run: its {stale} snapshot(s) are replaced by this run's files", flush=True)
     if trainer.pool is not None:
         result["algorithm"] += "; self-play: every team trained against a pool of frozen snapshots of the actor"
         result["self_play"] = save_snapshots(trainer.pool, result, args.out)
     write_atomically(os.path.join(args.out, "actor.pt"), lambda f: torch.save(trainer.actor_net.state_dict(), f))
     write_atomically(os.path.join(args.out, "result.json"),
-                     lambda f: f.write(json.dumps(result, indent=1).encode()))
+                     lambda f: f.write(strict_json.dumps(result, indent=1).encode()))
     plot_curve(result, os.path.join(args.out, "curve.png"))
     print(f"wrote {args.out}/actor.pt, result.json and curve.png in {result['wall_clock_seconds']:.0f} s", flush=True)
     return 0

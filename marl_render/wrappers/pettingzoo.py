@@ -71,14 +71,17 @@ Input checks (every call checks all of its input before it changes anything):
   shaped actions raise ValueError; a continuous action is checked in its own precision
   before it is converted to float32 (float64 ``1.00000001`` is out of range, not 1.0).
   Every message names the agent.
-* ``reset(seed, options)``: ``options`` must be None or a dict. This env knows no option
-  keys yet and ignores unknown ones, as PettingZoo and gymnasium envs do
-  (``parallel_api_test`` passes ``options={"options": 1}``); ``unknown_options="raise"``
-  makes them a ValueError.
+* ``reset(seed, options)``: ``options`` must be None or a dict. This env knows the key
+  "level" and ignores unknown ones, as PettingZoo and gymnasium envs do
+  (``parallel_api_test`` passes ``options={"options": 1}``), with one UserWarning per env for
+  an unknown key close to a known one (``"levle"``: a typo, not a key of another tool);
+  ``unknown_options="raise"`` makes them a ValueError.
 """
 from __future__ import annotations
 
+import difflib
 import functools
+import warnings
 
 import gymnasium
 import numpy as np
@@ -228,6 +231,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         self.render_mode = render_mode
         self.departed_actions = departed_actions
         self.unknown_options = unknown_options
+        self._warned_options: set = set()  # near-misses of a known reset option already warned about
         self.black_death = bool(black_death)
         self.metadata = {**type(self).metadata, "name": env.name, "render_fps": 1.0 / env.dt}
         self.possible_agents = list(env.agent_names)
@@ -371,6 +375,13 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
             raise ValueError(f"unknown reset option(s) {', '.join(unknown)} in options; known options: "
                              f"{sorted(KNOWN_OPTIONS)} (this env was built with unknown_options='raise'; "
                              f"the default 'ignore' ignores them)")
+        for key in sorted(set(options) - KNOWN_OPTIONS - self._warned_options, key=repr):
+            close = difflib.get_close_matches(key, KNOWN_OPTIONS, n=1, cutoff=0.75) if isinstance(key, str) else []
+            if close:
+                self._warned_options.add(key)
+                warnings.warn(f"reset option {key!r} is not one this env knows; did you mean {close[0]!r}? It is "
+                              f"ignored (PettingZoo's convention for unknown options; unknown_options='raise' makes "
+                              f"it an error)", UserWarning, stacklevel=3)
 
     def _actions_tensor(self, actions) -> torch.Tensor:
         """Checks the actions dict and returns the core's [1, A(, d)] action tensor."""
