@@ -32,7 +32,7 @@ from .common import (
     write_report,
 )
 
-STAGES = ("update", "pack", "cull", "gl", "copy")  # update: BatchRenderer.update calls; the rest: last_timings
+STAGES = ("update", "pack", "cull", "draw", "read", "copy")  # update: BatchRenderer.update calls; the rest: last_timings
 
 
 def add_arguments(parser):
