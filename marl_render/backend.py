@@ -6,6 +6,10 @@ and every renderer made on it, and releases them all in `close()` (or at the end
 `with` block). Renderers given no context share the default one, created on first use
 and kept for the life of the process.
 
+$MARL_RENDER_PRC, read when the first context is made, adds Panda3D configuration lines
+that take precedence over marl-render's own (lines split by newlines or a literal "\\n"; e.g. "gl-debug #t", which
+has the GL driver say which call failed and why). It is for diagnostics.
+
 Process-wide settings (`configure()`): the first context sets LP_NUM_THREADS (llvmpipe's
 rasteriser threads) unless the user set it, and sends Panda3D's log, which carries
 shader compiler errors, to the "marl_render.gl" logger instead of stderr. Both can be
@@ -338,7 +342,9 @@ def _setup_process(egl_device_index: int | None) -> None:
     from panda3d.core import LineStream, Notify, loadPrcFileData
 
     triton_guard.install()  # before Mesa's LLVM is loaded: see triton_guard.py
-    config = _CONFIG
+    # Diagnostics only: Panda3D configuration lines of the user's, before marl-render's own so that they
+    # win (a page's first value of a variable counts); the GPU kit runs once with "gl-debug #t".
+    config = os.environ.get("MARL_RENDER_PRC", "").replace("\\n", "\n") + "\n" + _CONFIG
     if egl_device_index is not None:
         config += f"egl-device-index {egl_device_index}\n"
     loadPrcFileData("marl_render", config)

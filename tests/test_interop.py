@@ -1,6 +1,7 @@
 """Reads through the GL pixel-pack buffer, and the CUDA-OpenGL interop's control flow with fake
 CUDA runtimes (marl_render/readback.py, marl_render/interop.py). The real interop: test_interop_gpu.py."""
 import ctypes
+import os
 import subprocess
 import sys
 import warnings
@@ -327,3 +328,15 @@ def test_first_context_for_a_cuda_device_opens_its_egl_device(monkeypatch):
 def test_egl_cuda_devices_on_mesa_name_no_cuda_device():
     devices = backend.egl_cuda_devices()
     assert isinstance(devices, list) and all(device is None for device in devices)
+
+
+def test_marl_render_prc_adds_panda3d_configuration_that_wins():
+    code = ("import marl_render as mr\n"
+            "from panda3d.core import ConfigVariableBool, ConfigVariableString\n"
+            "mr.backend.context()\n"
+            "print(ConfigVariableBool('gl-debug').get_value(),\n"
+            "      ConfigVariableString('notify-level-glgsg').get_value())\n")
+    environment = {**os.environ, "MARL_RENDER_PRC": r"gl-debug #t\nnotify-level-glgsg warning"}
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=environment)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["True", "warning"]  # marl-render's own says notify-level-glgsg error
