@@ -524,7 +524,10 @@ class BatchRenderer:
         """Draw every pass, then read them: last_timings gets "draw" (packing aside, what the
         frame costs before the reads), "read" (the GL reads, which wait for the drawing they
         read) and "copy" (the bytes moved and reshaped after them: out of the pack buffer, or
-        to a CUDA device, channels-first and supersampling)."""
+        to a CUDA device, channels-first and supersampling). These are host clocks: on a GPU
+        the GL returns before its work is done, so the wait for the drawing lands in "read"
+        (host reads) or in "copy" (interop: mapping the buffer for CUDA waits for the GL), and
+        the device-to-device copy itself, queued on the stream, in whatever waits for it next."""
         s = self.scene
         W, A = s.num_worlds, s.agents_per_world
         height, width = s.resolution
