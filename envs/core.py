@@ -155,7 +155,8 @@ class BatchedEnv:
     autoreset (False, "next_step", "same_step" or True = "same_step"), grayscale (one-channel
     pixels), torch_threads (default 1, at most 1024: torch intra-op threads used *inside* env
     calls, the caller's setting restored on return; None leaves torch's setting alone) and
-    context (a marl_render.GLContext to render on; None: the process's default), and the
+    context (a marl_render.GLContext to render on; None: the process's default), readback ("auto",
+    "gpu" or "host": how frames reach `device`, marl_render.BatchRenderer's readback), and the
     accuracy knobs multisamples (MSAA samples of the agents' views, colour only), supersample
     (k x the resolution, box-filtered down) and physics_substeps (planar physics substeps per
     step; None: the task's own; coarser than the no-tunnelling bound is refused)), and
@@ -173,7 +174,7 @@ class BatchedEnv:
     Attributes: scenario, spec (the EnvSpec every front end translates), name, num_worlds (W),
     num_agents (A), agent_names, groups (team -> agent names, in agent-index order), resolution
     (H, W), continuous, num_actions (discrete, else None), action_dim (continuous, else None),
-    action_meanings, obs_keys, info_keys, state_dim, max_steps, dt, device, seed, generator,
+    action_meanings, obs_keys, info_keys, state_dim, max_steps, dt, device, readback, seed, generator,
     renderer, physics (PhysicsConfig or None), physics_compiled (compile_physics took effect),
     lidar_rays, lidar_range, enforce_action_mask,
     sim (the simulation state), alive [W, A] bool,
@@ -206,7 +207,13 @@ class BatchedEnv:
         context = options.context
         if context is not None and not isinstance(context, mr.GLContext):
             raise TypeError(f"context must be a marl_render.GLContext or None, got {describe(context)}")
-        self.context = mr.backend.context() if context is None else context
+        self.device = check.device(options.device)
+        self.readback = check.readback(options.readback)
+        if context is None:  # with a CUDA device, the first context opens the EGL device that is that device
+            cuda_index = None if self.device.type != "cuda" else (
+                torch.cuda.current_device() if self.device.index is None else self.device.index)
+            context = mr.backend.context_for_cuda(cuda_index)
+        self.context = context
         self.context.check_usable()
         self.resolution = check.resolution(options.resolution, scenario, self.context.info().max_framebuffer_size)
         self.max_steps = check.max_steps(options.max_steps, scenario)
@@ -222,7 +229,6 @@ class BatchedEnv:
             raise ValueError("enforce_action_mask applies to discrete actions (continuous=False), which have an "
                              "action mask; got enforce_action_mask=True with continuous=True")
         self.autoreset = check.autoreset_mode(options.autoreset)  # False, "next_step" or "same_step"
-        self.device = check.device(options.device)
         torch_threads = options.torch_threads
         self.torch_threads = None if torch_threads is None else thread_count("torch_threads", torch_threads)
         seed = check.seed("seed", options.seed)
@@ -279,7 +285,7 @@ class BatchedEnv:
             self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=effects,
                                      shadows=self.shadows, grayscale=self.grayscale, context=self.context,
                                      device=self.device, multisamples=multisamples, supersample=supersample,
-                                     appearance=self.appearance)
+                                     appearance=self.appearance, readback=self.readback)
         self.renderer = self.views.renderer
         # Last: compiling takes seconds, so every other option has been checked by now.
         if compile_physics:

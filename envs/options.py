@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 import marl_render as mr
-from marl_render.validation import describe, positive_float, positive_int, resolution_hw
+from marl_render.validation import describe, positive_float, positive_int, resolution_hw, torch_device
 
 AUTORESET_MODES = ("next_step", "same_step")
 MAX_SUBSTEPS = 1024  # physics_substeps; docs/accuracy takes 64 substeps as its reference already
@@ -37,6 +37,10 @@ class EnvOptions:
     depth: bool = False
     shadows: object = False  # False, True or a marl_render.Shadows
     device: object = "cpu"
+    # How frames reach `device`: "auto" (CUDA-OpenGL interop where it works, else through the host),
+    # "gpu" (interop or an error saying why) or "host"; "pbo" and "copy" are host reads for benchmarks
+    # (marl_render.BatchRenderer's readback).
+    readback: str = "auto"
     seed: int | None = None
     autoreset: object = False  # False, True (= "same_step"), "next_step" or "same_step"
     torch_threads: int | None = 1
@@ -128,23 +132,12 @@ def seed(name: str, value) -> int | None:
 
 
 def device(value) -> torch.device:
-    if not isinstance(value, (str, torch.device)):
-        raise TypeError(f"device must be a str or torch.device (e.g. 'cpu', 'cuda:0'), got {describe(value)}")
-    try:
-        dev = torch.device(value)
-    except (RuntimeError, ValueError) as exc:
-        raise ValueError(f"device must name a torch device (e.g. 'cpu', 'cuda:0'), got {value!r}") from exc
-    if dev.type == "cpu":  # torch has one CPU device; tensors made on 'cpu:0' report plain 'cpu'
-        if dev.index not in (None, 0):
-            raise ValueError(f"device must be 'cpu' (torch has a single CPU device) or a CUDA device, got {value!r}")
-        return torch.device("cpu")
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {value!r} was asked for but torch sees no CUDA device; use device='cpu'")
-    if dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"device must be a CPU or CUDA device (e.g. 'cpu', 'cuda:0'), got {value!r}")
-    if dev.type == "cuda" and (dev.index or 0) >= torch.cuda.device_count():
-        raise ValueError(f"device {value!r} was asked for but torch sees {torch.cuda.device_count()} CUDA device(s)")
-    return dev
+    return torch_device("device", value)
+
+
+def readback(value) -> str:
+    """How frames reach the device: one of marl_render.BatchRenderer.READBACKS."""
+    return mr.interop.check_readback(value, mr.BatchRenderer.READBACKS)
 
 
 def num_agents(value, scenario) -> int:

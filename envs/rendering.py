@@ -20,13 +20,14 @@ class EnvRenderer:
 
     def __init__(self, scenario, *, resolution: tuple, effects: tuple, shadows, grayscale: bool,
                  context: mr.GLContext, device: torch.device, multisamples: int = 0, supersample: int = 1,
-                 appearance: mr.Appearance | None = None):
+                 appearance: mr.Appearance | None = None, readback: str = "auto"):
         self.scenario, self.resolution, self.shadows = scenario, resolution, shadows
         self.appearance = appearance  # the looks' distribution ("appearance" is then in effects)
         self._look = None  # the AppearanceParams of the current worlds (set_appearance)
         self._free_cameras = None  # the agents' free cameras as place_cameras left them (camera jitter)
         self.multisamples, self.supersample = multisamples, supersample  # the agents' views only
         self.grayscale, self.context, self.device = grayscale, context, device
+        self.readback = readback  # the frames are born on `device` (BatchRenderer's readback and device)
         self.overview_renderer = None
         self.renderer = None
         # The next sync must send everything: set before any change that a pose update does not
@@ -130,7 +131,7 @@ class EnvRenderer:
     def _renderer(self, scene: mr.Scene, overview: bool) -> mr.BatchRenderer:
         antialias = {} if overview else dict(multisamples=self.multisamples, supersample=self.supersample)
         renderer = mr.BatchRenderer(scene, color="gray" if self.grayscale and not overview else "rgb",
-                                    context=self.context, **antialias)
+                                    context=self.context, device=self.device, readback=self.readback, **antialias)
         try:
             self.scenario.place_cameras(renderer, overview)
         except BaseException:

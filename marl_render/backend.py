@@ -6,6 +6,10 @@ and every renderer made on it, and releases them all in `close()` (or at the end
 `with` block). Renderers given no context share the default one, created on first use
 and kept for the life of the process.
 
+$MARL_RENDER_PRC, read when the first context is made, adds Panda3D configuration lines
+that take precedence over marl-render's own (lines split by newlines or a literal "\\n"; e.g. "gl-debug #t", which
+has the GL driver say which call failed and why). It is for diagnostics.
+
 Process-wide settings (`configure()`): the first context sets LP_NUM_THREADS (llvmpipe's
 rasteriser threads) unless the user set it, and sends Panda3D's log, which carries
 shader compiler errors, to the "marl_render.gl" logger instead of stderr. Both can be
@@ -338,7 +342,9 @@ def _setup_process(egl_device_index: int | None) -> None:
     from panda3d.core import LineStream, Notify, loadPrcFileData
 
     triton_guard.install()  # before Mesa's LLVM is loaded: see triton_guard.py
-    config = _CONFIG
+    # Diagnostics only: Panda3D configuration lines of the user's, before marl-render's own so that they
+    # win (a page's first value of a variable counts); the GPU kit runs once with "gl-debug #t".
+    config = os.environ.get("MARL_RENDER_PRC", "").replace("\\n", "\n") + "\n" + _CONFIG
     if egl_device_index is not None:
         config += f"egl-device-index {egl_device_index}\n"
     loadPrcFileData("marl_render", config)
@@ -431,6 +437,57 @@ def context(egl_device_index: int | None = None) -> GLContext:
                          f"uses {in_use} (egl_device_index={current.device_index}); one process renders on one "
                          "device: pass the same index everywhere, or use one process per device")
     return current
+
+
+EGL_CUDA_DEVICE_NV = 0x323A  # eglQueryDeviceAttribEXT: the CUDA device index of an NVIDIA EGL device
+
+
+def egl_cuda_devices() -> list:
+    """The CUDA device of each EGL device, in EGL's own order (the order egl_device_index and
+    MARL_RENDER_EGL_DEVICE count in): an int, or None for a device that is not a CUDA one
+    (Mesa's). [] where EGL cannot enumerate its devices (EGL_EXT_device_enumeration)."""
+    egl = ctypes.CDLL("libEGL.so.1")
+    egl.eglGetProcAddress.restype, egl.eglGetProcAddress.argtypes = ctypes.c_void_p, [ctypes.c_char_p]
+    query_devices = egl.eglGetProcAddress(b"eglQueryDevicesEXT")
+    query_attribute = egl.eglGetProcAddress(b"eglQueryDeviceAttribEXT")
+    if not query_devices or not query_attribute:
+        return []
+    query_devices = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_int, ctypes.POINTER(ctypes.c_void_p),
+                                     ctypes.POINTER(ctypes.c_int))(query_devices)
+    query_attribute = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_void_p, ctypes.c_int,
+                                       ctypes.POINTER(ctypes.c_ssize_t))(query_attribute)  # EGLAttrib: intptr_t
+    count = ctypes.c_int(0)
+    if not query_devices(0, None, ctypes.byref(count)) or count.value <= 0:
+        return []
+    devices = (ctypes.c_void_p * count.value)()
+    if not query_devices(count.value, devices, ctypes.byref(count)):
+        return []
+    result = []
+    for device in devices[:count.value]:
+        value = ctypes.c_ssize_t(-1)
+        result.append(int(value.value) if query_attribute(device, EGL_CUDA_DEVICE_NV, ctypes.byref(value)) else None)
+    return result
+
+
+def egl_device_for_cuda(cuda_index: int, devices: list) -> int | None:
+    """The index, in EGL's order, of the EGL device whose EGL_CUDA_DEVICE_NV is `cuda_index`
+    (`devices` as egl_cuda_devices() gives them); None where no EGL device is that CUDA device."""
+    matches = [index for index, cuda in enumerate(devices) if cuda == cuda_index]
+    return matches[0] if matches else None
+
+
+def context_for_cuda(cuda_index: int | None, query=egl_cuda_devices) -> GLContext:
+    """The default context for frames on CUDA device `cuda_index` (None: not a CUDA device). The
+    first context of a process asked for with a CUDA device opens the EGL device that is that CUDA
+    device (EGL's order need not be CUDA's), unless MARL_RENDER_EGL_DEVICE names one; where none
+    matches, or the process has a context already, the default one is used as it is (the interop's
+    cudaGLGetDevices check, interop.py, then names a mismatch). `query`: egl_cuda_devices (tests
+    pass fakes)."""
+    with _lock:
+        chosen = bool(_process_device)  # the first context fixed the process's device already
+    if cuda_index is None or chosen or _env_device_index() is not None:
+        return context()
+    return context(egl_device_for_cuda(cuda_index, query()))
 
 
 def _env_device_index() -> int | None:

@@ -11,7 +11,12 @@ torch) and the bytes land where the batch wants them.
 The calls must run inside `backend.GLContext.current()` (the renderer reads within the
 same block as its frame), which makes the shared context current in the calling thread;
 they touch no binding Panda3D tracks (direct state access) and restore the pack
-alignment they change.
+alignment and pixel-pack buffer binding they change.
+
+`PackBuffer` is the other way to read: every texture of a frame is read into one GL
+pixel-pack buffer (PBO), each at its own offset, in the bytes a direct read would give;
+the batch then takes them from there in one copy per output, to the host
+(`PackBuffer.download`) or, on a CUDA device, device to device (interop.py).
 """
 from __future__ import annotations
 
@@ -27,6 +32,7 @@ GL_UNSIGNED_BYTE = 0x1401
 GL_PACK_ALIGNMENT = 0x0D05
 GL_PIXEL_PACK_BUFFER = 0x88EB
 GL_PIXEL_PACK_BUFFER_BINDING = 0x88ED
+GL_STREAM_READ = 0x88E1
 FORMATS = {1: GL_RED, 3: GL_RGB, 4: GL_RGBA}
 
 _functions = None
@@ -56,6 +62,10 @@ def gl_functions() -> dict:
             "glCopyImageSubData": (None, [uint, uint, sint, sint, sint, sint, uint, uint, sint, sint, sint, sint,
                                           sint, sint, sint]),
             "glDeleteTextures": (None, [sint, ctypes.POINTER(uint)]),
+            "glCreateBuffers": (None, [sint, ctypes.POINTER(uint)]),
+            "glNamedBufferData": (None, [uint, ctypes.c_ssize_t, ptr, uint]),
+            "glGetNamedBufferSubData": (None, [uint, ctypes.c_ssize_t, ctypes.c_ssize_t, ptr]),
+            "glDeleteBuffers": (None, [sint, ctypes.POINTER(uint)]),
         }
         functions = {}
         for function, (restype, argtypes) in signatures.items():
@@ -90,22 +100,87 @@ def read_texture(name: int, width: int, height: int, components: int, destinatio
     if not destination.is_contiguous() or destination.numel() * destination.element_size() != size:
         raise ValueError(f"destination must be a contiguous tensor of {size} bytes, got shape "
                          f"{tuple(destination.shape)} of {destination.dtype}")
+    _get_texture(name, width, height, components, 0, destination.data_ptr())
+
+
+def _get_texture(name: int, width: int, height: int, components: int, pack_buffer: int, pixels: int) -> None:
+    """glGetTextureSubImage of texture `name` into client memory at address `pixels`
+    (pack_buffer 0) or into GL buffer `pack_buffer` at byte offset `pixels`."""
+    size = width * height * components
     functions = gl_functions()
     while functions["glGetError"]():  # errors of earlier calls are not ours to report
         pass
     alignment = _get_integer(functions, GL_PACK_ALIGNMENT)
-    pack_buffer = _get_integer(functions, GL_PIXEL_PACK_BUFFER_BINDING)
-    if pack_buffer:
-        functions["glBindBuffer"](GL_PIXEL_PACK_BUFFER, 0)
+    bound = _get_integer(functions, GL_PIXEL_PACK_BUFFER_BINDING)
+    if bound != pack_buffer:
+        functions["glBindBuffer"](GL_PIXEL_PACK_BUFFER, pack_buffer)
     functions["glPixelStorei"](GL_PACK_ALIGNMENT, 1)
     try:
+        # bufSize counts from the start of the buffer when one is bound (the offset plus the bytes).
         functions["glGetTextureSubImage"](name, 0, 0, 0, 0, width, height, 1, FORMATS[components], GL_UNSIGNED_BYTE,
-                                          size, destination.data_ptr())
+                                          size + (pixels if pack_buffer else 0), pixels)
         error = functions["glGetError"]()
     finally:
         functions["glPixelStorei"](GL_PACK_ALIGNMENT, alignment)
-        if pack_buffer:
-            functions["glBindBuffer"](GL_PIXEL_PACK_BUFFER, pack_buffer)
+        if bound != pack_buffer:
+            functions["glBindBuffer"](GL_PIXEL_PACK_BUFFER, bound)
     if error:
         raise RuntimeError(f"reading back GL texture {name} ({width}x{height}, {components} components) failed "
                            f"with GL error 0x{error:04x}")
+
+
+class PackBuffer:
+    """One GL pixel-pack buffer (PBO) that a frame's textures are read into, each at its own
+    byte offset. Its GL name changes when it grows (a new buffer): `name` is what CUDA
+    registers (interop.py). Every call runs inside `GLContext.current()`."""
+
+    def __init__(self):
+        self.name = 0  # GL buffer name; 0 until the first reserve()
+        self.size = 0
+
+    def reserve(self, size: int) -> None:
+        """At least `size` bytes; a larger need makes a new buffer (a new name)."""
+        if size <= self.size:
+            return
+        self.delete()
+        functions = gl_functions()
+        name = ctypes.c_uint()
+        functions["glCreateBuffers"](1, ctypes.byref(name))
+        # GL_STREAM_READ: written by the GL once a frame, read by the application (or CUDA) once.
+        functions["glNamedBufferData"](name.value, size, None, GL_STREAM_READ)
+        error = functions["glGetError"]()
+        if error or not name.value:
+            if name.value:
+                functions["glDeleteBuffers"](1, ctypes.byref(name))
+            raise RuntimeError(f"could not make a GL pixel-pack buffer of {size} bytes (GL error 0x{error:04x})")
+        self.name, self.size = name.value, size
+
+    def read_texture(self, texture: int, width: int, height: int, components: int, offset: int) -> None:
+        """Texture `texture` as read_texture would give it, into this buffer from byte `offset`."""
+        if offset < 0 or offset + width * height * components > self.size:
+            raise ValueError(f"a read of {width * height * components} bytes at offset {offset} does not fit a "
+                             f"pack buffer of {self.size} bytes")
+        _get_texture(texture, width, height, components, self.name, offset)
+
+    def download(self, offset: int, destination: torch.Tensor) -> None:
+        """Bytes [offset, offset + destination's bytes) of the buffer into `destination`, a
+        contiguous CPU tensor (the host copy; the GL waits for the reads into the buffer)."""
+        size = destination.numel() * destination.element_size()
+        if not destination.is_contiguous() or destination.device.type != "cpu":
+            raise ValueError(f"destination must be a contiguous CPU tensor, got shape {tuple(destination.shape)} "
+                             f"on {destination.device}")
+        if offset < 0 or offset + size > self.size:
+            raise ValueError(f"{size} bytes at offset {offset} are not within the pack buffer's {self.size} bytes")
+        functions = gl_functions()
+        functions["glGetNamedBufferSubData"](self.name, offset, size, destination.data_ptr())
+        error = functions["glGetError"]()
+        if error:
+            raise RuntimeError(f"copying {size} bytes out of GL pack buffer {self.name} failed with GL error "
+                               f"0x{error:04x}")
+
+    def delete(self) -> None:
+        """Free the GL buffer (inside the context that made it); safe to call twice."""
+        if self.name:
+            name = ctypes.c_uint(self.name)
+            gl_functions()["glDeleteBuffers"](1, ctypes.byref(name))
+        self.name = self.size = 0

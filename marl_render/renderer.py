@@ -11,8 +11,10 @@ the buffer textures' memory; this module owns the GL objects, draws and reads ba
    vertex shader places view v in its tile (one column of tiles per framebuffer) and
    clips it to that tile (under the appearance effect, a floor or wall group takes two:
    the worlds whose pattern shows, then the plain ones with the variant without patterns);
-4. once every framebuffer is drawn, one GL read per framebuffer straight into the
-   batch tensor (marl_render/readback.py).
+4. once every framebuffer is drawn, one GL read per framebuffer and output: straight
+   into the batch tensor on the host (marl_render/readback.py), or into one GL pixel-pack
+   buffer that CUDA then copies device to device into tensors born on `device`
+   (marl_render/interop.py; readback="auto" | "gpu").
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import backend, layout, memory, readback, shaders, skinning
+from . import backend, interop, layout, memory, readback, shaders, skinning
 from .meshes import MeshData, to_panda_geom
 from .packing import FramePacker
 from .panda_buffers import TextureMemory, buffer_texture, clip_distances, int_input, panda_texture, vec3_input
@@ -35,7 +37,7 @@ from .sky import SkyImages
 from .threads import one_thread
 from .tiling import TileLayout, column_layout
 from .triangle_corners import to_panda_geom_with_corners
-from .validation import describe, positive_int, unpicklable
+from .validation import describe, positive_int, torch_device, unpicklable
 
 
 @dataclass
@@ -114,26 +116,37 @@ class _Pass:
 class BatchRenderer:
     """Renders scene.num_worlds x scene.agents_per_world views per call of render()."""
 
-    READBACKS = ("zero_copy", "copy")
+    # "auto", "gpu", "host" (interop.READBACKS), and two host reads kept for benchmarks and tests.
+    READBACKS = (*interop.READBACKS, "pbo", "copy")
     COLORS = {"rgb": 3, "gray": 1}  # color -> channels of Frame.rgb
 
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
-                 egl_device_index: int | None = None, readback: str = "zero_copy", supersample: int = 1,
-                 multisamples: int = 0, color: str = "rgb", context: backend.GLContext | None = None):
-        """readback: "zero_copy" (default) reads each framebuffer straight into the output
-        tensor; "copy" reads it into a buffer first and copies that into the output (the
-        usual way, kept only so that benchmarks can show what the direct read saves).
+                 egl_device_index: int | None = None, readback: str = "auto", supersample: int = 1,
+                 multisamples: int = 0, color: str = "rgb", context: backend.GLContext | None = None,
+                 device="cpu"):
+        """device: the torch device the frames are born on ("cpu", or a CUDA device).
+        readback: how they get there. "host" reads each framebuffer straight into a host
+        tensor (then copied to a CUDA `device`); "gpu" reads them into a GL pixel-pack
+        buffer that CUDA copies device to device into `device` (CUDA-OpenGL interop,
+        interop.py; raises where it cannot work, saying why); "auto" (default) is "gpu"
+        where it works and otherwise "host", with one warning when a CUDA device was asked
+        for. Two host reads are for benchmarks and tests: "pbo" reads through the pack
+        buffer and copies it to the host, "copy" reads into a buffer and copies that into
+        the output (the usual way: what the direct read saves).
         color="gray": one channel, ITU-R BT.601 luma computed in the fragment shader, so
         a third of the bytes is read back (and channels_first costs no copy).
         supersample=k renders every view at k x the resolution and box-filters it down
         (anti-aliasing; depth and segmentation take the sample nearest each pixel centre).
         multisamples=n asks the GL for n-sample MSAA (colour only).
         context: the GLContext to render on, which closes this renderer when it closes
-        (None: the default context, shared by every renderer given none)."""
+        (None: the default context, shared by every renderer given none; with a CUDA
+        `device`, a process's first context opens the EGL device that is that CUDA device,
+        backend.context_for_cuda)."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
-        if readback not in self.READBACKS:
-            raise ValueError(f"readback must be one of {list(self.READBACKS)}, got {readback!r}")
+        interop.check_readback(readback, self.READBACKS)
+        self.device = torch_device("device", device)
+        interop.check_device(readback, self.device)
         if not isinstance(color, str) or color not in self.COLORS:
             raise ValueError(f"color must be one of {list(self.COLORS)}, got {color!r}")
         self.color, self.channels = color, self.COLORS[color]
@@ -156,7 +169,10 @@ class BatchRenderer:
         self.channels_first = bool(channels_first)
         self.last_timings: dict[str, float] = {}  # seconds per stage of the last render()
         self._closed = False
-        if context is None:
+        if context is None and egl_device_index is None and self.device.type == "cuda":
+            context = backend.context_for_cuda(self.device.index if self.device.index is not None
+                                               else torch.cuda.current_device())
+        elif context is None:
             context = backend.context(egl_device_index)
         elif not isinstance(context, backend.GLContext):
             raise TypeError(f"context must be a marl_render.GLContext or None, got {describe(context)}")
@@ -186,6 +202,10 @@ class BatchRenderer:
         self._targets = _PandaTargets(self._groups)  # the packer writes into their textures
         self.shadow_pass = None
         self._sky = None  # the appearance effect's sky images (sky.py)
+        self._pack = None  # the GL pixel-pack buffer of the "pbo" and interop reads (readback.PackBuffer)
+        self._pack_layout: dict[str, tuple] = {}  # output -> (byte offset in the pack buffer, bytes per view)
+        self._interop = None  # interop.PackBufferInterop where frames go device to device
+        self._unpack_staging: dict[str, torch.Tensor] = {}  # pack reads that need a copy afterwards
         self._looks_version = -1  # the version of the appearance rows the sky and shadows show
         try:
             # Panda3D opens each framebuffer right away; until it is inactive, any frame
@@ -198,6 +218,10 @@ class BatchRenderer:
                     self.shadow_pass = ShadowPass(self._context, scene, self._groups, gl_max)
                     for render_pass in self._passes:
                         self.shadow_pass.bind(render_pass.root)
+                if readback in interop.READBACKS:  # the GL context must be current for cudaGLGetDevices
+                    self._interop = interop.open_interop(readback, self.device)
+                if readback == "pbo" or self._interop is not None:
+                    self._make_pack_buffer()
         except BaseException:
             self.close()  # free whatever GL objects were made before the failure
             raise
@@ -471,7 +495,7 @@ class BatchRenderer:
         self._check_open()
         with self._context.current():  # raises in a forked child
             self._prepare()
-            self.last_timings.update(gl=0.0, copy=0.0)
+            self.last_timings.update(draw=0.0, read=0.0, copy=0.0)
             try:
                 return self._draw_and_read()
             except AssertionError as error:  # Panda3D's C++ assertions (e.g. an input it could not bind)
@@ -497,14 +521,23 @@ class BatchRenderer:
         return packed_groups
 
     def _draw_and_read(self) -> Frame:
+        """Draw every pass, then read them: last_timings gets "draw" (packing aside, what the
+        frame costs before the reads), "read" (the GL reads, which wait for the drawing they
+        read) and "copy" (the bytes moved and reshaped after them: out of the pack buffer, or
+        to a CUDA device, channels-first and supersampling). These are host clocks: on a GPU
+        the GL returns before its work is done, so the wait for the drawing lands in "read"
+        (host reads) or in "copy" (interop: mapping the buffer for CUDA waits for the GL), and
+        the device-to-device copy itself, queued on the stream, in whatever waits for it next."""
         s = self.scene
         W, A = s.num_worlds, s.agents_per_world
         height, width = s.resolution
         C = self.channels
         rgb_shape = (W * A, C, height, width) if self.channels_first else (W * A, height, width, C)
-        rgb = torch.empty(rgb_shape, dtype=torch.uint8)
-        depth = torch.empty(W * A, height, width, dtype=torch.float32) if "depth" in self.effects else None
-        segmentation = torch.empty(W * A, height, width, dtype=torch.int32) if "segmentation" in self.effects else None
+        on = self.device if self._interop is not None else torch.device("cpu")  # where the reads land
+        rgb = torch.empty(rgb_shape, dtype=torch.uint8, device=on)
+        depth = torch.empty(W * A, height, width, dtype=torch.float32, device=on) if "depth" in self.effects else None
+        segmentation = (torch.empty(W * A, height, width, dtype=torch.int32, device=on)
+                        if "segmentation" in self.effects else None)
         started = time.perf_counter()
         for index in range(len(self._passes)):
             for name, draw in self._groups.items():
@@ -522,14 +555,23 @@ class BatchRenderer:
             for index, render_pass in enumerate(self._passes):
                 self._sky.fill(index, render_pass.texture_ids["color"])
         self._render_frame()
-        copy_seconds = 0.0
+        read_seconds = copy_seconds = 0.0
         for index, render_pass in enumerate(self._passes):
-            copy_seconds += self._read_pass(render_pass, rgb, depth, segmentation)
+            if self._pack is None:
+                read, copy = self._read_pass(render_pass, rgb, depth, segmentation)
+            else:
+                read, copy = self._read_pass_into_pack(render_pass), 0.0
+            read_seconds, copy_seconds = read_seconds + read, copy_seconds + copy
             if self._sky is not None:  # the next frame's sky, while llvmpipe still draws the passes after this one
                 self._sky.refill(index, render_pass.texture_ids["color"])
         self._check_shaders()  # after the reads: Panda3D reports some failures of the frame only then
-        self.last_timings["gl"] = time.perf_counter() - started - copy_seconds
-        self.last_timings["copy"] = copy_seconds
+        read_done = time.perf_counter()
+        if self._pack is not None:
+            self._unpack(rgb, depth, segmentation)
+        if on != self.device:  # the host reads of frames for a CUDA device
+            rgb, depth, segmentation = (None if t is None else t.to(self.device) for t in (rgb, depth, segmentation))
+        self.last_timings.update(draw=read_done - started - read_seconds - copy_seconds, read=read_seconds,
+                                 copy=copy_seconds + time.perf_counter() - read_done)
         rgb = rgb.view((W, A) + rgb_shape[1:])
         return Frame(rgb, None if depth is None else depth.view(W, A, height, width),
                      None if segmentation is None else segmentation.view(W, A, height, width))
@@ -592,9 +634,9 @@ class BatchRenderer:
             text = "\n".join(log or self._context.recent_log[-20:])
             raise backend.ShaderCompileError(f"the shader of group(s) {failed} failed to compile or link:\n{text}")
 
-    def _read_pass(self, render_pass: _Pass, rgb, depth, segmentation) -> float:
-        """Read one framebuffer's textures into the outputs; returns the seconds spent on
-        copies after the GL reads (none for plain channels-last colour and k = 1)."""
+    def _read_pass(self, render_pass: _Pass, rgb, depth, segmentation) -> tuple[float, float]:
+        """Read one framebuffer's textures into the outputs on the host; returns the seconds of
+        the GL reads and of the copies after them (none for plain channels-last colour and k = 1)."""
         self._texture_ids()
         views, k = render_pass.views, self.supersample
         height, width = self.scene.resolution
@@ -602,36 +644,117 @@ class BatchRenderer:
         ids = render_pass.texture_ids
         destination = rgb[views.start:views.stop]
         C = self.channels
-        copy_seconds = 0.0
+        read_seconds = copy_seconds = 0.0
+        started = time.perf_counter()
         # One channel is laid out alike channels first or last: read straight into it too.
-        if k == 1 and (C == 1 or not self.channels_first) and self.readback == "zero_copy":
+        if self._color_reads_straight() and self.readback != "copy":
             readback.read_texture(ids["color"], columns, rows, C, destination)
+            read_seconds += time.perf_counter() - started
         else:
             staging = self._staging_buffer(rows * columns * C)
             readback.read_texture(ids["color"], columns, rows, C, staging)
+            read_seconds += time.perf_counter() - started
             started = time.perf_counter()
-            samples = staging.view(len(views), height * k, width * k, C)
-            if self.channels_first:  # write through a channels-last view of the output
-                destination = destination.permute(0, 2, 3, 1)
-            if k > 1:
-                self._box_filter(samples, destination)
-            else:
-                destination.copy_(samples)
+            self._finish_color(staging.view(len(views), height * k, width * k, C), destination)
             copy_seconds += time.perf_counter() - started
         for name, out in (("depth", depth), ("segmentation", segmentation)):
             if out is None:
                 continue
             target = out[views.start:views.stop]
+            started = time.perf_counter()
             if k == 1:
                 readback.read_texture(ids[name], columns, rows, 4, target)
+                read_seconds += time.perf_counter() - started
                 continue
             staging = self._staging_buffer(rows * columns * 4)
             readback.read_texture(ids[name], columns, rows, 4, staging)
+            read_seconds += time.perf_counter() - started
             started = time.perf_counter()
-            samples = staging.view(out.dtype).view(len(views), height * k, width * k)
-            target.copy_(samples[:, k // 2::k, k // 2::k])  # the sample nearest each output pixel's centre
+            self._finish_aux(staging.view(out.dtype).view(len(views), height * k, width * k), target)
             copy_seconds += time.perf_counter() - started
-        return copy_seconds
+        return read_seconds, copy_seconds
+
+    def _color_reads_straight(self) -> bool:
+        """Whether the colour texture's bytes are the output's: k = 1, and channels last or one channel
+        (laid out alike channels first or last)."""
+        return self.supersample == 1 and (self.channels == 1 or not self.channels_first)
+
+    def _finish_color(self, samples: torch.Tensor, destination: torch.Tensor) -> None:
+        """samples [n, kH, kW, C] as read -> destination (n views of the output): channels first, box filter."""
+        if self.channels_first:  # write through a channels-last view of the output
+            destination = destination.permute(0, 2, 3, 1)
+        if self.supersample > 1:
+            self._box_filter(samples, destination)
+        else:
+            destination.copy_(samples)
+
+    def _finish_aux(self, samples: torch.Tensor, target: torch.Tensor) -> None:
+        """Depth or segmentation samples [n, kH, kW] -> target [n, H, W]: the sample nearest each pixel's centre."""
+        k = self.supersample
+        target.copy_(samples[:, k // 2::k, k // 2::k])
+
+    # ------------------------------------------------------------------ reads through the pack buffer
+    def _make_pack_buffer(self) -> None:
+        """The pack buffer and where each output lies in it: all views' colour, then all views'
+        depth, then segmentation, each as a direct read would give it (so that plain colour, depth
+        and segmentation are the output's bytes, copied in one piece)."""
+        height, width = self.scene.resolution
+        samples = height * width * self.supersample ** 2
+        offset = 0
+        for name, components in (("color", self.channels), ("depth", 4), ("segmentation", 4)):
+            if name == "color" or name in self.effects:
+                self._pack_layout[name] = (offset, samples * components)
+                offset += self.scene.num_views * samples * components
+        self._pack = readback.PackBuffer()
+        self._pack.reserve(offset)
+
+    def _read_pass_into_pack(self, render_pass: _Pass) -> float:
+        """Read one framebuffer's textures into the pack buffer at their places; returns the seconds."""
+        started = time.perf_counter()
+        self._texture_ids()
+        views, k = render_pass.views, self.supersample
+        height, width = self.scene.resolution
+        rows, columns = len(views) * height * k, width * k
+        for name, texture in render_pass.texture_ids.items():
+            offset, per_view = self._pack_layout[name]
+            components = self.channels if name == "color" else 4
+            self._pack.read_texture(texture, columns, rows, components, offset + views.start * per_view)
+        return time.perf_counter() - started
+
+    def _unpack(self, rgb, depth, segmentation) -> None:
+        """The pack buffer into the outputs: each output in one copy (to the host, or device to
+        device through the interop), through a staging tensor where it needs reshaping after."""
+        k, C = self.supersample, self.channels
+        height, width = self.scene.resolution
+        copies, finish = [], []
+        for name, out in (("color", rgb), ("depth", depth), ("segmentation", segmentation)):
+            if out is None:
+                continue
+            offset, per_view = self._pack_layout[name]
+            if (self._color_reads_straight() if name == "color" else k == 1):
+                copies.append((offset, out))
+                continue
+            staging = self._unpack_staging.get(name)
+            if staging is None or staging.device != out.device:
+                staging = self._unpack_staging[name] = torch.empty(self.scene.num_views * per_view, dtype=torch.uint8,
+                                                                   device=out.device)
+            copies.append((offset, staging))
+            finish.append((name, staging, out))
+        if self._interop is not None:
+            self._interop.copy(self._pack.name, copies)
+        else:
+            for offset, destination in copies:
+                self._pack.download(offset, destination)
+        for name, staging, out in finish:  # per pass: the box filter's accumulator holds one pass
+            for render_pass in self._passes:
+                views = render_pass.views
+                _, per_view = self._pack_layout[name]
+                part = staging[views.start * per_view:views.stop * per_view]
+                if name == "color":
+                    self._finish_color(part.view(len(views), height * k, width * k, C), out[views.start:views.stop])
+                else:
+                    self._finish_aux(part.view(out.dtype).view(len(views), height * k, width * k),
+                                     out[views.start:views.stop])
 
     def _staging_buffer(self, size: int) -> torch.Tensor:
         """Reused bytes for reads that need a copy afterwards (channels-first, supersampling, "copy")."""
@@ -644,8 +767,9 @@ class BatchRenderer:
         mean of its k x k samples (through an accumulator made once per renderer)."""
         k, count, C = self.supersample, destination.shape[0], self.channels
         height, width = self.scene.resolution
-        if self._accumulator is None:
-            self._accumulator = torch.empty((self.layout.views_per_pass, height, width, C), dtype=torch.int32)
+        if self._accumulator is None or self._accumulator.device != samples.device:
+            self._accumulator = torch.empty((self.layout.views_per_pass, height, width, C), dtype=torch.int32,
+                                            device=samples.device)
         total = self._accumulator[:count]
         torch.sum(samples.view(count, height, k, width, k, C), dim=(2, 4), dtype=torch.int32, out=total)
         destination.copy_(total.add_((k * k) // 2).div_(k * k, rounding_mode="floor"))
@@ -681,6 +805,10 @@ class BatchRenderer:
         if (passes or shadow_pass is not None) and self._context.pid == os.getpid():
             # a forked child must not touch its parent's GL objects
             with self._context.current():  # Panda3D deletes the framebuffers right away
+                if getattr(self, "_interop", None) is not None:  # CUDA lets go before the GL buffer goes
+                    self._interop.close()
+                if getattr(self, "_pack", None) is not None:
+                    self._pack.delete()
                 if getattr(self, "_sky", None) is not None:
                     self._sky.close()
                 if shadow_pass is not None:
@@ -690,6 +818,7 @@ class BatchRenderer:
                     self._context.engine.remove_window(render_pass.buffer)
                 self._context.drop_render_texture_events()
         self.shadow_pass = None
+        self._interop = self._pack = None
         for render_pass in passes:
             render_pass.root.remove_node()
             textures += [render_pass.color, *render_pass.aux.values()]

@@ -200,3 +200,24 @@ def regular_file(name: str, value, *, kind: str) -> str:
         what = next((text for test, text in _FILE_KINDS if test(mode)), "something else")
         raise ValueError(f"{name} must be a regular {kind} file, got {path!r}, which is {what}")
     return path
+
+
+def torch_device(name: str, value) -> torch.device:
+    """A CPU or CUDA torch.device that exists here, from a str or torch.device."""
+    if not isinstance(value, (str, torch.device)):
+        raise TypeError(f"{name} must be a str or torch.device (e.g. 'cpu', 'cuda:0'), got {describe(value)}")
+    try:
+        dev = torch.device(value)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"{name} must name a torch device (e.g. 'cpu', 'cuda:0'), got {value!r}") from exc
+    if dev.type == "cpu":  # torch has one CPU device; tensors made on 'cpu:0' report plain 'cpu'
+        if dev.index not in (None, 0):
+            raise ValueError(f"{name} must be 'cpu' (torch has a single CPU device) or a CUDA device, got {value!r}")
+        return torch.device("cpu")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"{name} {value!r} was asked for but torch sees no CUDA device; use device='cpu'")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"{name} must be a CPU or CUDA device (e.g. 'cpu', 'cuda:0'), got {value!r}")
+    if dev.type == "cuda" and (dev.index or 0) >= torch.cuda.device_count():
+        raise ValueError(f"{name} {value!r} was asked for but torch sees {torch.cuda.device_count()} CUDA device(s)")
+    return dev

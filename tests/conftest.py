@@ -1,6 +1,26 @@
-"""Fixtures shared by several test modules."""
+"""Fixtures shared by several test modules, and the `gpu` marker's skip."""
+import functools
+
 import pytest
 import torch
+
+
+@functools.cache
+def gpu_unavailable() -> str | None:
+    """Why the `gpu` tests cannot run here (None: CUDA is present and the GL driver is NVIDIA's)."""
+    if not torch.cuda.is_available():
+        return "needs CUDA (torch sees no CUDA device)"
+    import marl_render as mr  # a GL context only where CUDA is there
+
+    vendor = mr.backend.context_for_cuda(torch.cuda.current_device()).info().vendor
+    return None if "NVIDIA" in vendor.upper() else f"needs NVIDIA's GL driver (the GL vendor is {vendor!r})"
+
+
+def pytest_collection_modifyitems(config, items):
+    gpu_items = [item for item in items if item.get_closest_marker("gpu") is not None]
+    reason = gpu_unavailable() if gpu_items else None
+    for item in gpu_items if reason else ():
+        item.add_marker(pytest.mark.skip(reason=reason))
 
 
 @pytest.fixture(scope="module")

@@ -25,7 +25,7 @@ def test_scale_writes_its_files_and_positive_memory(tmp_path):
         assert p["memory_per_view_kib"] == p["memory_mib"] * 1024 / p["views"]
     markdown = (tmp_path / "scale.md").read_text().splitlines()
     assert [cell.strip() for cell in markdown[0].split("|")[1:-1]] == [
-        "views", "px", "passes", "views/s", "Mpixel/s", "ms/frame", "pack", "cull", "gl", "copy", "KiB/view"]
+        "views", "px", "passes", "views/s", "Mpixel/s", "ms/frame", "pack", "cull", "draw", "read", "copy", "KiB/view"]
     assert len(markdown) == 2 + len(points)  # header, alignment row, one row per point
     assert [int(row.split("|")[1]) for row in markdown[2:]] == [p["views"] for p in points]
     assert (tmp_path / "scale.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

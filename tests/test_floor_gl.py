@@ -112,7 +112,7 @@ def test_bench_floor_measures_an_env_against_the_floor_with_its_stages():
     row = floor.measure("spread", 2, 3, 16, rounds=1, block_seconds=0.01, compile_physics=True)
     assert not row["physics_compiled"]  # spread has no compiled kernel: the flag passes it by
     assert (row["env"], row["worlds"], row["agents"], row["resolution"]) == ("spread", 2, 3, 16)
-    assert set(row["stages_ms"]) == {"update", "pack", "cull", "gl", "copy", "physics", "env"}
+    assert set(row["stages_ms"]) == {"update", "pack", "cull", "draw", "read", "copy", "physics", "env"}
     assert row["env_ms_per_step"] > 0 and row["floor_ms_per_frame"] > 0
     # ratio is seconds / seconds; the ms fields are each scaled by 1e3 and rounded, so their quotient may
     # differ from it in the last bit (seen in CI): equal to 12 digits, far below any real error.

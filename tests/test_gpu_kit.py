@@ -54,6 +54,9 @@ def test_the_dry_run_writes_one_json_with_every_stage(tmp_path):
     python.chmod(0o755)
     report = check(tmp_path, "--sizes", "4", "--more", "0 8", "--steps", "2",
                    "--tests", f"{ROOT}/tests/test_renderer.py::test_box_projects_where_a_pinhole_camera_puts_it",
+                   "--interop-tests", f"{ROOT}/tests/test_interop_gpu.py::test_the_gl_context_is_on_the_cuda_device_"
+                   f"of_the_frames {ROOT}/tests/test_interop.py::test_egl_device_is_the_one_whose_cuda_device_matches",
+                   "--gl-debug-worlds", "2",
                    "--render-args", "--worlds 2 --agents 2 --resolution 16 --steps 2 --baseline-steps 1",
                    python=str(python), cwd=ROOT)
     directories = where.read_text().splitlines()
@@ -62,12 +65,13 @@ def test_the_dry_run_writes_one_json_with_every_stage(tmp_path):
     # The GPU-only stages are skipped; a failed size ends its task's larger sizes (0 worlds: refused,
     # so 8 is not tried), and the check goes on to write its JSON.
     assert list(stages) == ["gl-libraries", "install", "nvidia-smi", "gpu", "requirements", "gl-info", "tests",
-                            "env-cartpole-4", "env-spread:4-4", "render", "pybatchrender", "env-cartpole-0",
-                            "env-spread:4-0"]
+                            "interop-tests", "env-cartpole-4", "pybatchrender", "env-spread:4-4", "gl-debug", "render",
+                            "env-cartpole-0", "env-spread:4-0"]
     assert [stages[name]["status"] for name in ("gl-libraries", "install", "nvidia-smi", "gpu", "pybatchrender")] == \
         ["skipped"] * 5
     assert stages["pybatchrender"]["reason"] == "no PyBatchRender clone in the kit"
-    for name in ("requirements", "gl-info", "tests", "env-cartpole-4", "env-spread:4-4", "render"):
+    for name in ("requirements", "gl-info", "tests", "interop-tests", "env-cartpole-4", "env-spread:4-4", "gl-debug",
+                 "render"):
         assert stages[name]["status"] == "ok" and stages[name]["exit_status"] == 0, stages[name]["stderr_tail"]
         assert 0 < stages[name]["seconds"] <= stages[name]["limit_seconds"] + 5
     for name in ("env-cartpole-0", "env-spread:4-0"):
@@ -81,16 +85,27 @@ def test_the_dry_run_writes_one_json_with_every_stage(tmp_path):
     summary = report["summary"]
     assert "llvmpipe" in summary["gl"]["renderer"]
     assert summary["tests"] == {"tests": 1, "failures": 0, "errors": 0, "skipped": 0, "failed": []}
+    # The gpu-marked test is skipped here (no CUDA), the fake-backed one runs.
+    assert summary["interop_tests"] == {"tests": 2, "failures": 0, "errors": 0, "skipped": 1, "failed": []}
+    # The GL's debug output was asked for (MARL_RENDER_PRC) and the run went through; llvmpipe logs no 0x502.
+    assert "MARL_RENDER_PRC=gl-debug\\ #t" in stages["gl-debug"]["command"]
+    assert summary["gl_debug"]["gl_errors_0x502"] == 0
+    assert stages["gl-debug"]["result"]["bench"]["results"][0]["worlds"] == 2
     assert set(summary["env"]) == {"cartpole", "spread:4"}
     for task, agents in (("cartpole", 1), ("spread:4", 4)):
         row = summary["env"][task]["4"]
         assert row["device"] == "cpu" and row["env_steps_per_s"] > 0
         assert row["agent_frames_per_s"] == pytest.approx(row["env_steps_per_s"] * agents)
     (rows,) = [stages["env-spread:4-4"]["result"]["results"]]
-    assert [(r["env"], r["worlds"], r["agents"], r["resolution"], r["device"]) for r in rows] == \
-        [("spread", 4, 4, 64, "cpu")]
+    # On the CPU the two readbacks of one call are the host's: the direct read and the one through the PBO.
+    assert [(r["env"], r["worlds"], r["agents"], r["resolution"], r["device"], r["readback"]) for r in rows] == \
+        [("spread", 4, 4, 64, "cpu", "host"), ("spread", 4, 4, 64, "cpu", "pbo")]
+    for readback in ("host", "pbo"):
+        row = summary["env_by_readback"][readback]["spread:4"]["4"]
+        assert set(row["render_ms"]) == {"pack", "cull", "draw", "read", "copy"}
+        assert 0 < row["readback_share"] < 1
     assert summary["render"]["views"] == 4 and summary["render"]["speedup"] > 0
-    assert summary["stages"] == {"skipped": 5, "ok": 6, "failed": 2}
+    assert summary["stages"] == {"skipped": 5, "ok": 8, "failed": 2}
 
 
 def test_the_dry_run_keeps_to_its_budget(tmp_path):
@@ -107,19 +122,74 @@ def test_the_report_reads_the_gpu_and_pybatchrenders_figures_and_compares_them()
     CartPole script print it."""
     env_row = {"env": "cartpole", "agents": 1, "worlds": 1024, "env_steps_per_s": 400_000.0,
                "agent_frames_per_s": 400_000.0, "ms_per_step": 2.56, "device": "cuda:0"}
+    host_row = {**env_row, "readback": "host", "env_steps_per_s": 100_000.0, "ms_per_step": 10.24,
+                "render_ms": {"pack": 0.1, "cull": 0.0, "draw": 2.0, "read": 5.0, "copy": 0.12}}
+    gpu_row = {**env_row, "readback": "gpu", "render_ms": {"pack": 0.1, "cull": 0.0, "draw": 2.0, "read": 0.1,
+                                                          "copy": 0.156}}
+    gpu_path = ("[pbr_run] cuda.cudart: alias of cuda.bindings.runtime, cuda-bindings 13.0.3\nGPU_AVAILABLE: True\n"
+                "cuda_gl_interop: True\nFrame grabber initialized: <pybatchrender.renderer.frame_grabber."
+                "GPUFrameGrabber object at 0x7fa7400e8080>\n")
+    results = "Results:\n  Steps: 100\n  Total frames: 102,400\n  Time: 0.51s\n  FPS: 200,000\n"
     stages = [{"name": "gpu", "status": "ok", "stdout_tail": "NVIDIA H100 80GB HBM3, 81559 MiB, 580.159.04\n"},
-              {"name": "pybatchrender-cartpole-1024", "status": "ok",
-               "stdout_tail": "Results:\n  Steps: 100\n  Total frames: 102,400\n  Time: 0.51s\n  FPS: 200,000\n"},
-              {"name": "env-cartpole-1024", "status": "ok", "stdout_tail": json.dumps({"results": [env_row]})},
+              {"name": "pybatchrender-cartpole-1024", "status": "ok", "stdout_tail": gpu_path + results},
+              {"name": "env-cartpole-1024", "status": "ok",
+               "stdout_tail": json.dumps({"results": [gpu_row, host_row]})},
               {"name": "pybatchrender-cartpole-4096", "status": "timeout", "stdout_tail": ""}]
     for stage in stages:
         report.parse_result(stage, Path("."))
-    assert stages[1]["result"] == {"FPS": 200_000.0, "Total frames": 102_400.0, "Time": 0.51}
+    assert stages[1]["result"] == {"FPS": 200_000.0, "Total frames": 102_400.0, "Time": 0.51, "gpu_available": True,
+                                   "grabber": "GPUFrameGrabber",
+                                   "cudart": "cuda.cudart: alias of cuda.bindings.runtime, cuda-bindings 13.0.3"}
     summary = report.summary(stages)
     assert summary["gpu"] == [{"name": "NVIDIA H100 80GB HBM3", "memory": "81559 MiB", "driver": "580.159.04"}]
     assert summary["pybatchrender_cartpole_fps"] == {"1024": 200_000.0}  # the timed-out size is left out
-    assert summary["cartpole_ratio_to_pybatchrender"] == {"1024": 2.0}
+    assert summary["cartpole_ratio_to_pybatchrender"] == {"1024": 2.0}  # this project with interop: gpu rows
+    assert summary["interop_to_host"] == {"cartpole": {"1024": 4.0}}
+    assert summary["env_by_readback"]["gpu"]["cartpole"]["1024"]["readback_share"] == pytest.approx(0.1)
+    assert summary["env"]["cartpole"]["1024"]["env_steps_per_s"] == 400_000.0  # the call's first readback
     assert summary["stages"] == {"ok": 3, "timeout": 1}
+
+
+# What PyBatchRender printed on the H200 without its GPU path (docs/bench/gpu/h200_check_*.json), and variants.
+HOST_PATH = ("Error importing CUDA/CuPy/OpenGL: cannot import name 'cudart' from 'cuda'\n"
+             "GPU_AVAILABLE: False\ncuda_gl_interop: True\n"
+             "Frame grabber initialized: <pybatchrender.renderer.frame_grabber.CPUFrameGrabber object at 0x7fa7>\n")
+
+
+@pytest.mark.parametrize("output, reason", [
+    (HOST_PATH, "its output does not say GPU_AVAILABLE: True (GPU_AVAILABLE: False)"),
+    (HOST_PATH.replace("GPU_AVAILABLE: False", "GPU_AVAILABLE: True"), "its frame grabber is not a GPU one "
+                                                                        "(CPUFrameGrabber)"),
+    ("GPU_AVAILABLE: True\n", "its frame grabber is not a GPU one (None)"),
+    ("Frame grabber initialized: <x.GPUFrameGrabber object at 0x1>\n", "its output does not say GPU_AVAILABLE: "
+                                                                        "True (GPU_AVAILABLE: None)"),
+])
+def test_the_report_refuses_pybatchrender_figures_without_its_gpu_path(output, reason):
+    env_row = {"env": "cartpole", "agents": 1, "worlds": 1024, "env_steps_per_s": 400_000.0, "readback": "gpu",
+               "agent_frames_per_s": 400_000.0, "ms_per_step": 2.56, "device": "cuda:0", "render_ms": {}}
+    stages = [{"name": "pybatchrender-cartpole-1024", "status": "ok",
+               "stdout_tail": output + "Results:\n  FPS: 18,496\n"},
+              {"name": "env-cartpole-1024", "status": "ok", "stdout_tail": json.dumps({"results": [env_row]})}]
+    for stage in stages:
+        report.parse_result(stage, Path("."))
+    summary = report.summary(stages)
+    assert "pybatchrender_cartpole_fps" not in summary and "cartpole_ratio_to_pybatchrender" not in summary
+    assert summary["pybatchrender_refused"] == {"1024": reason}
+
+
+def test_the_report_counts_the_gl_errors_of_the_gl_debug_run(tmp_path):
+    err = (":display:gsg:glgsg(error): GL error 0x502 : invalid operation\n"
+           "progress line\n"
+           ":display:gsg:glgsg(error): GL_INVALID_OPERATION error generated. Buffer is mapped.\n"
+           ":display:gsg:glgsg(error): GL error 0x502 : invalid operation\n")
+    (tmp_path / "12-gl-debug.err").write_text(err)
+    stage = {"name": "gl-debug", "status": "ok", "stdout_tail": json.dumps({"results": []}), "stderr_tail": ""}
+    report.parse_result(stage, tmp_path)
+    assert stage["result"]["gl_errors_0x502"] == 2
+    assert stage["result"]["lines"] == [
+        ":display:gsg:glgsg(error): GL error 0x502 : invalid operation",
+        ":display:gsg:glgsg(error): GL_INVALID_OPERATION error generated. Buffer is mapped."]
+    assert report.summary([stage])["gl_debug"] == {"gl_errors_0x502": 2, "lines": stage["result"]["lines"]}
 
 
 # ---------------------------------------------------------------------- the slimmed Panda3D
@@ -255,3 +325,19 @@ def test_the_slimmed_panda3d_layout_renders_here(tmp_path):
     panda_libraries = [path for path in result["libraries"] if "/panda3d/" in path]
     assert panda_libraries and all(Path(path).parent == site / "panda3d" for path in panda_libraries)
     assert not [path for path in result["libraries"] if Path(path).is_relative_to(full)]
+
+
+def test_pbr_run_gives_pybatchrender_a_cuda_cudart_aliasing_cuda_bindings_runtime(tmp_path):
+    # A stand-in for cuda-bindings 13: a namespace package `cuda` with bindings/runtime.py and no cudart.
+    runtime = tmp_path / "site" / "cuda" / "bindings"
+    runtime.mkdir(parents=True)
+    (runtime / "runtime.py").write_text("cudaGraphicsGLRegisterImage = 'the runtime bindings'\n")
+    script = tmp_path / "script.py"
+    script.write_text("import sys\nfrom cuda import cudart\nprint(cudart.cudaGraphicsGLRegisterImage, sys.argv[1:])\n")
+    done = subprocess.run([sys.executable, str(KIT / "pbr_run.py"), str(script), "--num-scenes", "4"],
+                          capture_output=True, text=True, timeout=60, env={"PYTHONPATH": str(tmp_path / "site")})
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["[pbr_run] cuda.cudart: alias of cuda.bindings.runtime, cuda-bindings unknown",
+                                        "the runtime bindings ['--num-scenes', '4']"]
+    parsed = report.pybatchrender_path(done.stdout)
+    assert parsed["cudart"] == "cuda.cudart: alias of cuda.bindings.runtime, cuda-bindings unknown"

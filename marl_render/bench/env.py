@@ -14,6 +14,12 @@ ratio is noisy; `front_end_share` is steadier: the share of each step spent outs
 core's own ``step`` (the front end's conversions), timed around the core's step. The core, `vec`
 and `jax` auto-reset in gymnasium's next-step mode; `sb3` resets in the same step (SB3's
 convention), which renders twice on a step where a world ends.
+
+`--readback` picks how frames reach the env's device (the renderer's readback: "auto",
+"gpu", "host", and "pbo" = through the GL pack buffer to the host); with several, they
+take turns step by step as the front ends do, and each row gets `ratio_to_first_readback`.
+Every row splits the agents' render per step into `render_ms` {pack, cull, draw, read,
+copy} (BatchRenderer.last_timings).
 """
 from __future__ import annotations
 
@@ -24,9 +30,11 @@ import numpy as np
 import torch
 
 from ..extras import require
+from ..renderer import BatchRenderer
 from .common import env_name_or_all_argument, machine, positive_int_argument, progress
 
 APIS = ("core", "vec", "sb3", "jax")
+READBACKS = BatchRenderer.READBACKS[:-1]  # "copy" is the renderer's own ablation (bench effects)
 API_EXTRAS = {"sb3": ("sb3", "stable_baselines3"), "jax": ("jax", "jax")}  # api -> (extra, module it needs)
 
 
@@ -45,15 +53,19 @@ def add_arguments(parser):
                         help="torch device of the env's tensors (e.g. cuda); the GL device is chosen by EGL")
     parser.add_argument("--api", nargs="+", choices=APIS, default=["core"],
                         help="front end(s) to step through; several take turns in one run (default: core)")
+    parser.add_argument("--readback", nargs="+", choices=READBACKS, default=["auto"],
+                        help="how frames reach the device (several take turns in one run; pbo: through the GL "
+                             "pack buffer to the host)")
 
 
 class Stepper:
     """One front end of one environment, stepped with pre-drawn numpy actions [num_envs, ...]."""
 
-    def __init__(self, api: str, name: str, kwargs: dict):
+    def __init__(self, api: str, name: str, kwargs: dict, readback: str = "auto"):
         import marl_render.envs as envs  # the front ends are imported on use (sb3 and jax are optional extras)
 
-        self.api = api
+        self.api, self.readback = api, readback
+        kwargs = {**kwargs, "readback": readback}
         if api == "core":
             self.env = envs.make_env(name, autoreset="next_step", **kwargs)
             self.core = self.env
@@ -110,7 +122,7 @@ def draw_actions(core, count: int, seed: int = 0) -> list:
 
 
 def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, continuous=False,
-            apis=("core",), device: str = "cpu", heldout: str | None = None) -> list:
+            apis=("core",), device: str = "cpu", heldout: str | None = None, readbacks=("auto",)) -> list:
     kwargs = {"num_worlds": worlds, "resolution": resolution, "continuous": continuous, "seed": 0, "device": device}
     if heldout is not None:
         kwargs["heldout"] = heldout
@@ -118,15 +130,16 @@ def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, co
     synchronize = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
     if agents is not None:
         kwargs["num_agents"] = agents
+    variants = [(api, readback) for readback in readbacks for api in apis]
     steppers = []
     try:
-        for api in apis:
-            steppers.append(Stepper(api, name, kwargs))
+        for api, readback in variants:
+            steppers.append(Stepper(api, name, kwargs, readback))
         core = steppers[0].core
         warmup = 3
         actions = draw_actions(core, warmup + steps)
-        seconds = dict.fromkeys(apis, 0.0)
-        render_seconds = dict.fromkeys(apis, 0.0)
+        seconds = dict.fromkeys(variants, 0.0)
+        render_seconds = {variant: {} for variant in variants}
         for a in actions[:warmup]:
             for stepper in steppers:
                 stepper.step(a)
@@ -135,24 +148,30 @@ def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, co
         for k, a in enumerate(actions[warmup:]):
             turn = k % len(steppers)  # who goes first rotates, so that no front end always follows another
             for stepper in steppers[turn:] + steppers[:turn]:
+                variant = (stepper.api, stepper.readback)
                 synchronize()
                 start = time.perf_counter()
                 stepper.step(a)
                 synchronize()
-                seconds[stepper.api] += time.perf_counter() - start
-                render_seconds[stepper.api] += sum(stepper.core.renderer.last_timings.values())
+                seconds[variant] += time.perf_counter() - start
+                for stage, spent in stepper.core.renderer.last_timings.items():
+                    render_seconds[variant][stage] = render_seconds[variant].get(stage, 0.0) + spent
         rows = []
         for stepper in steppers:
-            per_step = seconds[stepper.api] / steps
+            variant = (stepper.api, stepper.readback)
+            per_step = seconds[variant] / steps
             row = {"env": name if heldout is None else f"{name} heldout={heldout}", "api": stepper.api,
-                   "worlds": worlds, "agents": core.num_agents,
+                   "readback": stepper.readback, "worlds": worlds, "agents": core.num_agents,
                    "resolution": resolution, "device": str(core.device), "ms_per_step": per_step * 1e3,
                    "env_steps_per_s": worlds / per_step,
                    "agent_frames_per_s": worlds * core.num_agents / per_step,
-                   "render_share": render_seconds[stepper.api] / seconds[stepper.api],
-                   "front_end_share": 1 - stepper.core_seconds / seconds[stepper.api]}
-            if "core" in seconds:
-                row["ratio_to_core"] = seconds["core"] / seconds[stepper.api]
+                   "render_share": sum(render_seconds[variant].values()) / seconds[variant],
+                   "render_ms": {stage: spent / steps * 1e3 for stage, spent in render_seconds[variant].items()},
+                   "front_end_share": 1 - stepper.core_seconds / seconds[variant]}
+            if "core" in apis:
+                row["ratio_to_core"] = seconds[("core", stepper.readback)] / seconds[variant]
+            if len(readbacks) > 1:
+                row["ratio_to_first_readback"] = seconds[(stepper.api, readbacks[0])] / seconds[variant]
             rows.append(row)
         return rows
     finally:
@@ -173,10 +192,12 @@ def run(args) -> dict:
 
     names = list_envs() if args.env == "all" else [args.env]
     apis = tuple(dict.fromkeys(args.api))  # in the given order, once each
+    readbacks = tuple(dict.fromkeys(args.readback))
     rows = []
     for name, worlds, agents, resolution in itertools.product(names, args.worlds, args.agents, args.resolution):
         each = "default" if agents is None else agents
         progress(f"env {name}: {worlds} worlds of {each} agents at {resolution}px, {args.steps} steps "
                  f"through {', '.join(apis)}")
-        rows += measure(name, worlds, resolution, args.steps, agents, args.continuous, apis, args.device, args.heldout)
+        rows += measure(name, worlds, resolution, args.steps, agents, args.continuous, apis, args.device, args.heldout,
+                        readbacks)
     return {"benchmark": "env", "machine": machine(), "results": rows}

@@ -32,7 +32,8 @@ from .common import (
     write_report,
 )
 
-STAGES = ("update", "pack", "cull", "gl", "copy")  # update: BatchRenderer.update calls; the rest: last_timings
+# update: BatchRenderer.update calls; the rest: last_timings
+STAGES = ("update", "pack", "cull", "draw", "read", "copy")
 
 
 def add_arguments(parser):

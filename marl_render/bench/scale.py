@@ -2,9 +2,10 @@
 
 Two sweeps on the arena scene (floor + 10 instances per world, 4 agents per world):
 views 16..4096 at --resolution, and resolutions 32..512 at --fixed-views. Stages are the
-renderer's own timings: pack (poses, view matrices, instance buffers), cull, gl
-(Panda3D's frame + the GL reads into the batch) and copy (copies after the reads: only
-for channels-first, supersampling or the "copy" readback, so 0 here).
+renderer's own timings: pack (poses, view matrices, instance buffers), cull, draw
+(Panda3D's frame), read (the GL reads into the batch, which wait for the drawing) and copy
+(copies after the reads: only for channels-first, supersampling or the "copy" readback, so
+0 here). Published tables before the split (docs/scale) have one column "gl" = draw + read.
 
 Memory per view: the resident memory (RSS, after garbage collection and malloc_trim) held
 while a renderer and its last frame are alive, above the reading just before the renderer
@@ -29,7 +30,7 @@ from .common import RandomMotion, apply, arena_scene, machine, progress, settled
 from .common import positive_int_argument as count_argument  # a count >= 1
 from .figures import pyplot
 
-STAGES = ("pack", "cull", "gl", "copy")
+STAGES = ("pack", "cull", "draw", "read", "copy")
 
 
 def add_arguments(parser):

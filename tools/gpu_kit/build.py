@@ -10,8 +10,9 @@ The kit holds:
   else those this environment runs);
 - gl/: the GL dispatch libraries as Debian packages (libglvnd's libEGL, libGL, ...), which
   check.sh unpacks when the machine has no libEGL.so.1;
-- tests/: the correctness subset check.sh runs (projection and pixels);
+- tests/: the correctness subset check.sh runs (projection and pixels) and the interop's tests;
 - pybatchrender/: a PyBatchRender clone, when --pybatchrender names one;
+- PyOpenGL's wheel (in wheels/) and pbr_run.py (the `cuda.cudart` alias): PyBatchRender's GPU path;
 - check.sh, report.py, README.md and MANIFEST.json (every file with its size and sha256).
 
 Downloads (PyPI through pip, Debian through apt-get) are kept in --cache, so a second build runs
@@ -87,7 +88,12 @@ ON_THE_MACHINE = {
     "triton", "setuptools", "pyyaml", "imageio", "cupy-cuda13x",
 }
 GL_PACKAGES = ("libegl1", "libglvnd0", "libgl1", "libglx0", "libopengl0", "libgles2")  # as the device notes list
-CORRECTNESS_TESTS = ("conftest.py", "test_renderer.py", "test_transforms.py")
+CORRECTNESS_TESTS = ("conftest.py", "test_renderer.py", "test_transforms.py", "test_interop.py", "test_interop_gpu.py")
+# PyBatchRender's GPU frame grabber imports PyOpenGL (pure Python, checked with `pip download --no-deps
+# pyopengl==3.1.10`: one py3-none-any wheel of 3.1 MB) and `cuda.cudart`, which pbr_run.py aliases to the
+# machine's cuda.bindings.runtime (cuda-python 12.9.0 exists on PyPI too, but would bring a second set of
+# CUDA bindings, about 11 MB of cuda-bindings 12.9, beside the machine's 13).
+PYOPENGL = "pyopengl==3.1.10"
 
 
 def main(argv=None) -> int:
@@ -107,11 +113,12 @@ def main(argv=None) -> int:
     slim = slim_panda3d(panda3d, kit / "wheels")
     for wheel in dependency_wheels(args.cache):
         shutil.copy2(wheel, kit / "wheels")
+    shutil.copy2(download(PYOPENGL, args.cache), kit / "wheels")
     for deb in gl_packages(args.cache):
         shutil.copy2(deb, kit / "gl")
     for name in CORRECTNESS_TESTS:
         shutil.copy2(ROOT / "tests" / name, kit / "tests" / name)
-    for name in ("check.sh", "report.py", "README.md"):
+    for name in ("check.sh", "report.py", "pbr_run.py", "README.md"):
         shutil.copy2(HERE / name, kit / name)
     pybatchrender = None
     if args.pybatchrender and args.pybatchrender.is_dir():

@@ -5,7 +5,8 @@
 # 7.5 minutes); a stage with too little time left is recorded as skipped. See README.md.
 #
 #   bash check.sh [--json FILE] [--budget SECONDS] [--sizes "1024 4096 16384"] [--more "65536"]
-#                 [--steps N] [--python PYTHON] [--device cuda]
+#                 [--steps N] [--python PYTHON] [--device cuda] [--readbacks "gpu host"]
+#                 [--interop-tests "..."] [--gl-debug-worlds N]
 #   bash check.sh --cpu --python .venv/bin/python --sizes 4 --more "" --tests "..." --render-args "..."
 #
 # --cpu is the dry run: nothing is installed (PYTHON's own marl-render is used), tensors stay on the
@@ -22,6 +23,11 @@ STEPS=30
 PBR_STEPS=100
 BUDGET=450
 TESTS="$KIT/tests/test_renderer.py $KIT/tests/test_transforms.py"
+# The interop's own tests: the real ones (marker gpu: interop frames == host frames, bit for bit, every
+# mode) and the control flow with fakes.
+INTEROP_TESTS="$KIT/tests/test_interop_gpu.py $KIT/tests/test_interop.py"
+READBACKS=""                      # bench env --readback, side by side in one call (gpu host; --cpu: host pbo)
+GL_DEBUG_WORLDS=16384             # the one run with gl-debug #t (the 0x502 errors grew with the worlds)
 RENDER_ARGS=""                    # bench render's defaults: 256 worlds x 4 agents at 64 px
 DEVICE=""                         # of the env's tensors: cuda (cpu with --cpu)
 
@@ -37,6 +43,9 @@ while [ $# -gt 0 ]; do
         --pbr-steps) PBR_STEPS=$2; shift 2 ;;
         --budget) BUDGET=$2; shift 2 ;;
         --tests) TESTS=$2; shift 2 ;;
+        --interop-tests) INTEROP_TESTS=$2; shift 2 ;;
+        --readbacks) READBACKS=$2; shift 2 ;;
+        --gl-debug-worlds) GL_DEBUG_WORLDS=$2; shift 2 ;;
         --render-args) RENDER_ARGS=$2; shift 2 ;;
         *) echo "check.sh: unknown argument $1" >&2; exit 2 ;;
     esac
@@ -52,6 +61,10 @@ cd "$WORK"
 if [ -z "$DEVICE" ]; then
     DEVICE=cuda
     [ "$MODE" = cpu ] && DEVICE=cpu
+fi
+if [ -z "$READBACKS" ]; then
+    READBACKS="gpu host"
+    [ "$DEVICE" = cpu ] && READBACKS="host pbo"
 fi
 COUNT=0
 
@@ -122,34 +135,51 @@ stage requirements 60 "$PYTHON" "$KIT/report.py" requirements
 stage gl-info 60 "$PYTHON" -m marl_render.info --json
 # shellcheck disable=SC2086  # TESTS is a list of paths
 stage tests 180 "$PYTHON" -m pytest -q -p no:cacheprovider -o addopts= --junitxml "$WORK/tests.xml" $TESTS
+if [ -n "$INTEROP_TESTS" ]; then
+    # shellcheck disable=SC2086  # INTEROP_TESTS is a list of paths
+    stage interop-tests 150 "$PYTHON" -m pytest -q -p no:cacheprovider -o addopts= -rs \
+        --junitxml "$WORK/interop-tests.xml" $INTEROP_TESTS
+else
+    skip interop-tests "no interop tests given"
+fi
 
-bench_env() {  # bench_env TASK WORLDS [AGENTS]
+bench_env() {  # bench_env TASK WORLDS [AGENTS]: every readback of READBACKS in one call, taking turns
     local name="env-$1-$2" agents=()
     if [ $# -gt 2 ]; then
         name="env-$1:$3-$2"
         agents=(--agents "$3")
     fi
-    stage "$name" 120 "$PYTHON" -m marl_render.bench env --env "$1" --worlds "$2" "${agents[@]}" --resolution 64 \
-        --steps "$STEPS" --device "$DEVICE" --json
+    # shellcheck disable=SC2086  # READBACKS is a list of values
+    stage "$name" 150 "$PYTHON" -m marl_render.bench env --env "$1" --worlds "$2" "${agents[@]}" --resolution 64 \
+        --steps "$STEPS" --device "$DEVICE" --readback $READBACKS --json
+}
+PBR="$KIT/pybatchrender"
+bench_pybatchrender() {  # bench_pybatchrender WORLDS: its CartPole, with the cuda.cudart alias (pbr_run.py)
+    stage "pybatchrender-cartpole-$1" 120 env PYTHONPATH="$PBR${PYTHONPATH:+:$PYTHONPATH}" "$PYTHON" \
+        "$KIT/pbr_run.py" "$PBR/examples/scripts/cartpole_benchmark.py" --num-scenes "$1" --tile-resolution 64 64 \
+        --steps "$PBR_STEPS"
 }
 for worlds in $SIZES; do bench_env cartpole "$worlds"; done
-for worlds in $SIZES; do bench_env spread "$worlds" 4; done
-# shellcheck disable=SC2086  # RENDER_ARGS is a list of arguments
-stage render 150 "$PYTHON" -m marl_render.bench render $RENDER_ARGS --json
-
-PBR="$KIT/pybatchrender"
 if [ -f "$PBR/examples/scripts/cartpole_benchmark.py" ]; then
-    for worlds in $SIZES; do
-        stage "pybatchrender-cartpole-$worlds" 120 env PYTHONPATH="$PBR${PYTHONPATH:+:$PYTHONPATH}" "$PYTHON" \
-            "$PBR/examples/scripts/cartpole_benchmark.py" --num-scenes "$worlds" --tile-resolution 64 64 \
-            --steps "$PBR_STEPS"
-    done
+    for worlds in $SIZES; do bench_pybatchrender "$worlds"; done
 else
     skip pybatchrender "no PyBatchRender clone in the kit"
 fi
+for worlds in $SIZES; do bench_env spread "$worlds" 4; done
+# Once with the GL's debug output (MARL_RENDER_PRC, marl_render/backend.py): which call raises the
+# GL errors 0x502 (invalid operation) that the H200 runs logged, and why.
+FIRST_READBACK=${READBACKS%% *}
+stage gl-debug 90 env MARL_RENDER_PRC='gl-debug #t\nnotify-level-glgsg warning' "$PYTHON" -m marl_render.bench env \
+    --env spread --agents 4 --worlds "$GL_DEBUG_WORLDS" --resolution 64 --steps 3 --device "$DEVICE" \
+    --readback "$FIRST_READBACK" --json
+# shellcheck disable=SC2086  # RENDER_ARGS is a list of arguments
+stage render 150 "$PYTHON" -m marl_render.bench render $RENDER_ARGS --json
 
 # Larger sizes while memory allows: a task stops at its first refusal (the memory guard) or failure.
 for worlds in $MORE; do bench_env cartpole "$worlds" || break; done
+if [ -f "$PBR/examples/scripts/cartpole_benchmark.py" ]; then
+    for worlds in $MORE; do bench_pybatchrender "$worlds" || break; done
+fi
 for worlds in $MORE; do bench_env spread "$worlds" 4 || break; done
 
 mkdir -p "$(dirname "$JSON")"

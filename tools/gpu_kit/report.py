@@ -97,8 +97,11 @@ def parse_result(stage: dict, work: Path) -> None:
     name, out = stage["name"], stage.get("stdout_tail", "")
     if name in ("requirements", "gl-info") or name.startswith(("env-", "render")):
         stage["result"] = last_json(out)
-    elif name == "tests" and (work / "tests.xml").exists():
-        suite = ElementTree.parse(work / "tests.xml").getroot()
+    elif name == "gl-debug":  # the whole of its stderr: the tail may have lost the first errors
+        err = "".join(_text(path) for path in sorted(work.glob("[0-9][0-9]-gl-debug.err")))
+        stage["result"] = {"bench": last_json(out), **gl_debug_lines(err or stage.get("stderr_tail", ""))}
+    elif name in ("tests", "interop-tests") and (work / f"{name}.xml").exists():
+        suite = ElementTree.parse(work / f"{name}.xml").getroot()
         suite = suite.find("testsuite") if suite.tag == "testsuites" else suite
         failed = [f"{case.get('classname')}::{case.get('name')}" for case in suite.iter("testcase")
                   if case.find("failure") is not None or case.find("error") is not None]
@@ -110,11 +113,45 @@ def parse_result(stage: dict, work: Path) -> None:
     elif name.startswith("pybatchrender-"):
         numbers = {key: re.search(rf"{key}:\s*([\d,.]+)", out) for key in ("FPS", "Total frames", "Time")}
         stage["result"] = {key: float(match[1].replace(",", "")) for key, match in numbers.items() if match}
+        stage["result"].update(pybatchrender_path(out))
+
+
+def pybatchrender_path(out: str) -> dict:
+    """What PyBatchRender says of its GPU path: GPU_AVAILABLE, the frame grabber it made (a class
+    name), and the launcher's cuda.cudart line (pbr_run.py)."""
+    available = re.search(r"^GPU_AVAILABLE:\s*(True|False)\s*$", out, re.M)
+    grabber = re.search(r"Frame grabber initialized: <(?:[\w.]*\.)?(\w+) object", out)
+    cudart = re.search(r"^\[pbr_run\] (cuda\.cudart: .*)$", out, re.M)
+    return {"gpu_available": None if available is None else available[1] == "True",
+            "grabber": None if grabber is None else grabber[1], "cudart": None if cudart is None else cudart[1]}
+
+
+def pybatchrender_refusal(result: dict) -> str | None:
+    """Why a PyBatchRender figure must not be recorded (None: it ran its GPU path): its output must
+    say `GPU_AVAILABLE: True` and name a GPU frame grabber."""
+    if result.get("gpu_available") is not True:
+        return f"its output does not say GPU_AVAILABLE: True (GPU_AVAILABLE: {result.get('gpu_available')})"
+    grabber = result.get("grabber")
+    if not grabber or not grabber.startswith("GPU"):
+        return f"its frame grabber is not a GPU one ({grabber})"
+    return None
+
+
+GL_DEBUG_PATTERN = re.compile(r"GL error|0x0*502|GL_INVALID_OPERATION|invalid operation|debug|glgsg", re.I)
+
+
+def gl_debug_lines(err: str) -> dict:
+    """The GL's debug output in a gl-debug run: how many GL errors 0x502 were logged, and the distinct
+    lines about GL errors and debug messages (at most 40), where the call behind them is named."""
+    lines = [line.strip() for line in err.splitlines() if GL_DEBUG_PATTERN.search(line)]
+    return {"gl_errors_0x502": sum("0x502" in line for line in lines), "lines": list(dict.fromkeys(lines))[:40]}
 
 
 def summary(stages: list) -> dict:
-    """The headline figures: env-steps/s per task and size, PyBatchRender's FPS, their ratio, the tests."""
-    env, pybatchrender, out = {}, {}, {"stages": {}}
+    """The headline figures: env-steps/s per task and size (the first readback of each call) and per
+    readback, the draw/read/copy split and readback's share of a step, PyBatchRender's FPS (only from
+    runs of its GPU path) and the ratio of this project with interop to it, the tests, the gl-debug run."""
+    env, by_readback, pybatchrender, refused, out = {}, {}, {}, {}, {"stages": {}}
     for stage in stages:
         out["stages"][stage["status"]] = out["stages"].get(stage["status"], 0) + 1
         result = stage.get("result")
@@ -123,24 +160,44 @@ def summary(stages: list) -> dict:
         if stage["name"].startswith("env-"):
             for row in result.get("results", []):
                 task = row["env"] if row["agents"] == 1 else f"{row['env']}:{row['agents']}"
-                env.setdefault(task, {})[str(row["worlds"])] = {
-                    key: row[key] for key in ("env_steps_per_s", "agent_frames_per_s", "ms_per_step", "device")}
+                figures = {key: row[key] for key in ("env_steps_per_s", "agent_frames_per_s", "ms_per_step", "device")}
+                env.setdefault(task, {}).setdefault(str(row["worlds"]), figures)
+                readback = row.get("readback", "host")
+                split = row.get("render_ms", {})
+                by_readback.setdefault(readback, {}).setdefault(task, {})[str(row["worlds"])] = {
+                    **figures, "render_ms": split,
+                    "readback_share": (split.get("read", 0.0) + split.get("copy", 0.0)) / row["ms_per_step"]}
         elif stage["name"].startswith("pybatchrender-") and "FPS" in result:
-            pybatchrender[stage["name"].rsplit("-", 1)[1]] = result["FPS"]
+            size = stage["name"].rsplit("-", 1)[1]
+            reason = pybatchrender_refusal(result)
+            if reason is None:
+                pybatchrender[size] = result["FPS"]
+            else:
+                refused[size] = reason
         elif stage["name"] == "render":
             out["render"] = {key: result.get(key) for key in ("views", "batched", "plain_panda3d", "speedup")}
         elif stage["name"] == "gl-info":
             out["gl"] = result
         elif stage["name"] == "gpu":
             out["gpu"] = result
-        elif stage["name"] == "tests":
-            out["tests"] = result
+        elif stage["name"] in ("tests", "interop-tests"):
+            out[stage["name"].replace("-", "_")] = result
+        elif stage["name"] == "gl-debug":
+            out["gl_debug"] = {key: result[key] for key in ("gl_errors_0x502", "lines")}
     out["env_steps_per_s"] = {task: {size: row["env_steps_per_s"] for size, row in sizes.items()}
                               for task, sizes in env.items()}
     out["env"] = env
+    out["env_by_readback"] = by_readback
+    if "gpu" in by_readback and "host" in by_readback:  # the same call's two readbacks
+        host = by_readback["host"]
+        out["interop_to_host"] = {task: {size: row["env_steps_per_s"] / host[task][size]["env_steps_per_s"]
+                                         for size, row in sizes.items() if size in host.get(task, {})}
+                                  for task, sizes in by_readback["gpu"].items()}
+    if refused:
+        out["pybatchrender_refused"] = refused
     if pybatchrender:
         out["pybatchrender_cartpole_fps"] = pybatchrender
-        cartpole = env.get("cartpole", {})
+        cartpole = by_readback.get("gpu", {}).get("cartpole", {})  # this project with interop against it
         out["cartpole_ratio_to_pybatchrender"] = {size: cartpole[size]["env_steps_per_s"] / fps
                                                   for size, fps in pybatchrender.items() if size in cartpole}
     return out
