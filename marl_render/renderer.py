@@ -119,7 +119,8 @@ class BatchRenderer:
 
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
                  egl_device_index: int | None = None, readback: str = "zero_copy", supersample: int = 1,
-                 multisamples: int = 0, color: str = "rgb", context: backend.GLContext | None = None):
+                 multisamples: int = 0, color: str = "rgb", context: backend.GLContext | None = None,
+                 exact_tiles: bool = False):
         """readback: "zero_copy" (default) reads each framebuffer straight into the output
         tensor; "copy" reads it into a buffer first and copies that into the output (the
         usual way, kept only so that benchmarks can show what the direct read saves).
@@ -129,9 +130,16 @@ class BatchRenderer:
         (anti-aliasing; depth and segmentation take the sample nearest each pixel centre).
         multisamples=n asks the GL for n-sample MSAA (colour only).
         context: the GLContext to render on, which closes this renderer when it closes
-        (None: the default context, shared by every renderer given none)."""
+        (None: the default context, shared by every renderer given none).
+        exact_tiles=True makes a view's pixels bit-identical wherever its tile sits, so whatever
+        its world's slot and the batch size (a geometry stage clips and places each triangle
+        and the fragment stage evaluates every varying and depth inside the tile: shaders/
+        exact.geom); it costs render time (docs/renderer.md). Shadow maps are not covered."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
+        if not isinstance(exact_tiles, (bool, np.bool_)):
+            raise TypeError(f"exact_tiles must be a bool, got {describe(exact_tiles)}")
+        self.exact_tiles = bool(exact_tiles)
         if readback not in self.READBACKS:
             raise ValueError(f"readback must be one of {list(self.READBACKS)}, got {readback!r}")
         if not isinstance(color, str) or color not in self.COLORS:
@@ -375,7 +383,8 @@ class BatchRenderer:
             variant = functools.partial(
                 shaders.defines_for, self.effects, static=static, textured=textured, flat=procedural and mesh.flat,
                 corners=procedural, gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf, joints=joints,
-                influences=mesh.influences if joints else 4, role=0 if static else ROLES[group.role])
+                influences=mesh.influences if joints else 4, role=0 if static else ROLES[group.role],
+                exact=self.exact_tiles)
             node.set_shader(shaders.compiled(variant(surface=surface)))
             if textured and "texture" in self.effects:
                 node.set_texture(panda_texture(group.texture, group.name), 1)
