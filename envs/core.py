@@ -158,8 +158,9 @@ class BatchedEnv:
     context (a marl_render.GLContext to render on; None: the process's default), and the
     accuracy knobs multisamples (MSAA samples of the agents' views, colour only), supersample
     (k x the resolution, box-filtered down), exact_tiles (the agents' views bit-identical in any
-    world slot and at any batch size, at a cost in render time: docs/levels.md) and physics_substeps (planar physics substeps per
-    step; None: the task's own; coarser than the no-tunnelling bound is refused)), and
+    world slot and at any batch size, at a cost in render time: docs/levels.md) and
+    physics_substeps (planar physics substeps per step; None: the task's own; coarser than the
+    no-tunnelling bound is refused)), and
     compile_physics (torch.compile the task's physics kernel where it has one (cartpole):
     within 1e-12 of the default path, faster at small batches; seconds to compile at construction;
     a RuntimeWarning and the default path where compiling fails), lidar (rays of the "lidar"
