@@ -170,34 +170,39 @@ void main() {
     // Sutherland-Hodgman, one plane at a time. A point on an edge is always computed from the
     // edge's inside end towards its outside end, so the neighbour that shares the edge gets
     // the same point (no cracks).
-    vec4 polygon[9];
-    polygon[0] = corner[0];
-    polygon[1] = corner[1];
-    polygon[2] = corner[2];
+    vec4 polygon[9] = vec4[9](corner[0], corner[1], corner[2], vec4(0.0), vec4(0.0), vec4(0.0), vec4(0.0),
+                              vec4(0.0), vec4(0.0));
     int count = 3;
-    for (int k = 0; k < 6; ++k) {
-        vec4 kept[9];
-        int kept_count = 0;
-        for (int i = 0; i < 9; ++i) {
-            if (i >= count) {
-                break;
-            }
-            vec4 a = polygon[i];
-            vec4 b = polygon[i + 1 < count ? i + 1 : 0];
-            float da = dot(FRUSTUM[k], a);
-            float db = dot(FRUSTUM[k], b);
-            if (da >= 0.0) {
-                kept[kept_count++] = a;
-            }
-            if ((da >= 0.0) != (db >= 0.0)) {
-                kept[kept_count++] = da >= 0.0 ? mix(a, b, da / (da - db)) : mix(b, a, db / (db - da));
-            }
-        }
-        polygon = kept;
-        count = kept_count;
-        if (count < 3) {
-            return;
-        }
+    // Stage k holds at most 3 + k corners: constant bounds, so the loops unroll and only the writes
+    // index by a count that differs between triangles.
+#define CLIP_STAGE(k)                                                                              \
+    {                                                                                              \
+        vec4 kept[9];                                                                              \
+        int kept_count = 0;                                                                        \
+        for (int i = 0; i < 3 + k; ++i) {                                                          \
+            vec4 a = polygon[i];                                                                   \
+            vec4 b = i + 1 < count ? polygon[(i + 1) % 9] : polygon[0];                            \
+            float da = dot(FRUSTUM[k], a);                                                         \
+            float db = dot(FRUSTUM[k], b);                                                         \
+            bool live = i < count;                                                                 \
+            if (live && da >= 0.0) {                                                               \
+                kept[kept_count++] = a;                                                            \
+            }                                                                                      \
+            if (live && (da >= 0.0) != (db >= 0.0)) {                                              \
+                kept[kept_count++] = da >= 0.0 ? mix(a, b, da / (da - db)) : mix(b, a, db / (db - da)); \
+            }                                                                                      \
+        }                                                                                          \
+        polygon = kept;                                                                            \
+        count = kept_count;                                                                        \
+    }
+    CLIP_STAGE(0)
+    CLIP_STAGE(1)
+    CLIP_STAGE(2)
+    CLIP_STAGE(3)
+    CLIP_STAGE(4)
+    CLIP_STAGE(5)
+    if (count < 3) {
+        return;
     }
     // The convex polygon as one strip: 0, 1, n-1, 2, n-2, ... (the winding is kept).
     int low = 0;
