@@ -271,8 +271,12 @@ void main() {
 #if defined(EFFECT_FOG) || defined(LOG_DEPTH)
     v_depth = 1.0 / inverse_w;
 #endif
+    float depth_ndc = dot(g_z_plane, pixel);
+    if (depth_ndc > 1.0) {
+        discard;  // beyond the far plane (exact.geom clips only the others)
+    }
 #ifndef LOG_DEPTH
-    gl_FragDepth = 0.5 * dot(g_z_plane, pixel) + 0.5;
+    gl_FragDepth = 0.5 * depth_ndc + 0.5;
 #endif
 #endif
     vec3 color = v_color.rgb;

@@ -15,7 +15,7 @@
 // - it hands the fragment stage every varying, depth included, as a flat plane of the whole
 //   triangle, which the fragment stage evaluates at the pixel's place inside its tile.
 layout(triangles) in;
-layout(triangle_strip, max_vertices = 9) out;  // a triangle clipped by 6 planes: 9 corners at most
+layout(triangle_strip, max_vertices = 8) out;  // a triangle clipped by 5 planes: 8 corners at most
 
 uniform int tiles;       // tiles in this framebuffer, stacked in one column
 uniform vec2 tile_size;  // (width, height) of a tile in pixels
@@ -76,10 +76,13 @@ flat out vec4 depth_tile;   // tile origin (pixels), smallest and largest w of t
 flat out float g_tile_row;  // the tile's first window row, for the fragment stage
 flat out vec3 g_z_plane;    // . (x/w, y/w, 1) = z/w: depth for the depth test
 
-// The view's frustum in its clip space: inside where dot(plane, position) >= 0.
-const vec4 FRUSTUM[6] = vec4[6](vec4(0.0, 0.0, 1.0, 1.0), vec4(0.0, 0.0, -1.0, 1.0),   // near, far
+// The view's frustum in its clip space: inside where dot(plane, position) >= 0. The far plane
+// (last) only drops triangles wholly beyond it; the fragment stage drops what lies beyond it, so
+// clipping stops at the first five planes.
+const vec4 FRUSTUM[6] = vec4[6](vec4(0.0, 0.0, 1.0, 1.0),                             // near
                                 vec4(1.0, 0.0, 0.0, 1.0), vec4(-1.0, 0.0, 0.0, 1.0),   // left, right
-                                vec4(0.0, 1.0, 0.0, 1.0), vec4(0.0, -1.0, 0.0, 1.0));  // bottom, top
+                                vec4(0.0, 1.0, 0.0, 1.0), vec4(0.0, -1.0, 0.0, 1.0),   // bottom, top
+                                vec4(0.0, 0.0, -1.0, 1.0));                            // far
 
 // The triangle's flat values, computed once; outputs are undefined after each EmitVertex, so
 // set_outputs() writes them again for every vertex.
@@ -136,7 +139,10 @@ void emit(vec4 clip) {
     // Rows from the tile's bottom edge: tiles are stored top row first in memory (GL reads back
     // bottom-up), so each view is flipped vertically; the renderer flips the cull mode to match.
     float row = clamp(floor(0.5 * height * (1.0 - clip.y / clip.w) * 256.0 + 0.5) / 256.0, 0.0, height);
-    gl_Position = vec4(clip.x / clip.w, (2.0 * (v_tile_row[0] + row) - rows) / rows, clip.z / clip.w, 1.0);
+    // z inside [-1, 1], so that the GL clips nothing: the fragment stage writes depth from the
+    // triangle's plane and drops what lies beyond the far plane.
+    gl_Position = vec4(clip.x / clip.w, (2.0 * (v_tile_row[0] + row) - rows) / rows,
+                       clamp(clip.z / clip.w, -1.0, 1.0), 1.0);
     set_outputs();
     EmitVertex();
 }
@@ -200,7 +206,6 @@ void main() {
     CLIP_STAGE(2)
     CLIP_STAGE(3)
     CLIP_STAGE(4)
-    CLIP_STAGE(5)
     if (count < 3) {
         return;
     }
