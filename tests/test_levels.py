@@ -359,3 +359,8 @@ def test_a_level_is_the_same_picture_in_any_slot_and_batch_size(name):
         for other in pictures[1:]:
             assert torch.equal(other, first), (name, level, int((other != first).any(-1).sum()))
     assert not torch.equal(seen[7][0], seen[8][0])  # levels differ
+
+
+def test_exact_tiles_must_be_a_bool():
+    with pytest.raises(TypeError, match="exact_tiles must be a bool, got"):
+        make_env("spread", num_worlds=1, resolution=8, exact_tiles=1)
