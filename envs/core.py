@@ -158,8 +158,10 @@ class BatchedEnv:
     context (a marl_render.GLContext to render on; None: the process's default), readback ("auto",
     "gpu" or "host": how frames reach `device`, marl_render.BatchRenderer's readback), and the
     accuracy knobs multisamples (MSAA samples of the agents' views, colour only), supersample
-    (k x the resolution, box-filtered down) and physics_substeps (planar physics substeps per
-    step; None: the task's own; coarser than the no-tunnelling bound is refused)), and
+    (k x the resolution, box-filtered down), exact_tiles (the agents' views bit-identical in any
+    world slot and at any batch size, at a cost in render time: docs/levels.md) and
+    physics_substeps (planar physics substeps per step; None: the task's own; coarser than the
+    no-tunnelling bound is refused)), and
     compile_physics (torch.compile the task's physics kernel where it has one (cartpole):
     within 1e-12 of the default path, faster at small batches; seconds to compile at construction;
     a RuntimeWarning and the default path where compiling fails), lidar (rays of the "lidar"
@@ -255,6 +257,7 @@ class BatchedEnv:
         multisamples = check.multisamples(options.multisamples)
         supersample = positive_int("supersample", options.supersample)
         compile_physics = check.flag("compile_physics", options.compile_physics)
+        exact_tiles = check.flag("exact_tiles", options.exact_tiles)
 
         self.scenario = scenario(params, Layout(self.num_worlds, self.num_agents, self.continuous, self.device))
         if options.physics_substeps is not None:
@@ -285,7 +288,8 @@ class BatchedEnv:
             self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=effects,
                                      shadows=self.shadows, grayscale=self.grayscale, context=self.context,
                                      device=self.device, multisamples=multisamples, supersample=supersample,
-                                     appearance=self.appearance, readback=self.readback)
+                                     appearance=self.appearance, readback=self.readback,
+                                     exact_tiles=exact_tiles)
         self.renderer = self.views.renderer
         # Last: compiling takes seconds, so every other option has been checked by now.
         if compile_physics:

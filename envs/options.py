@@ -50,6 +50,9 @@ class EnvOptions:
     # planar physics' substeps per step (None: the task's own).
     multisamples: int = 0  # MSAA samples (colour only: not with depth)
     supersample: int = 1  # render k x the resolution and box-filter it down
+    # The agents' views bit-identical in any world slot and at any batch size (BatchRenderer(
+    # exact_tiles=True): docs/levels.md; costs render time).
+    exact_tiles: bool = False
     physics_substeps: int | None = None
     # torch.compile the task's physics kernel (cartpole): envs/compiled.py.
     compile_physics: bool = False

@@ -123,7 +123,7 @@ class BatchRenderer:
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
                  egl_device_index: int | None = None, readback: str = "auto", supersample: int = 1,
                  multisamples: int = 0, color: str = "rgb", context: backend.GLContext | None = None,
-                 device="cpu"):
+                 device="cpu", exact_tiles: bool = False):
         """device: the torch device the frames are born on ("cpu", or a CUDA device).
         readback: how they get there. "host" reads each framebuffer straight into a host
         tensor (then copied to a CUDA `device`); "gpu" reads them into a GL pixel-pack
@@ -141,9 +141,16 @@ class BatchRenderer:
         context: the GLContext to render on, which closes this renderer when it closes
         (None: the default context, shared by every renderer given none; with a CUDA
         `device`, a process's first context opens the EGL device that is that CUDA device,
-        backend.context_for_cuda)."""
+        backend.context_for_cuda).
+        exact_tiles=True makes a view's pixels bit-identical wherever its tile sits, so whatever
+        its world's slot and the batch size (a geometry stage clips and places each triangle
+        and the fragment stage evaluates every varying and depth inside the tile: shaders/
+        exact.geom); it costs render time (docs/renderer.md). Shadow maps are not covered."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
+        if not isinstance(exact_tiles, (bool, np.bool_)):
+            raise TypeError(f"exact_tiles must be a bool, got {describe(exact_tiles)}")
+        self.exact_tiles = bool(exact_tiles)
         interop.check_readback(readback, self.READBACKS)
         self.device = torch_device("device", device)
         interop.check_device(readback, self.device)
@@ -399,7 +406,8 @@ class BatchRenderer:
             variant = functools.partial(
                 shaders.defines_for, self.effects, static=static, textured=textured, flat=procedural and mesh.flat,
                 corners=procedural, gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf, joints=joints,
-                influences=mesh.influences if joints else 4, role=0 if static else ROLES[group.role])
+                influences=mesh.influences if joints else 4, role=0 if static else ROLES[group.role],
+                exact=self.exact_tiles)
             node.set_shader(shaders.compiled(variant(surface=surface)))
             if textured and "texture" in self.effects:
                 node.set_texture(panda_texture(group.texture, group.name), 1)

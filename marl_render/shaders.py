@@ -40,7 +40,8 @@ def source(name: str) -> str:
 
 def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False,
                 corners: bool = False, gray: bool = False, shadow_pcf: bool = False,
-                joints: int = 0, influences: int = 4, role: int = 0, surface: bool = False) -> tuple[str, ...]:
+                joints: int = 0, influences: int = 4, role: int = 0, surface: bool = False,
+                exact: bool = False) -> tuple[str, ...]:
     """The sorted #define lines of one variant (texture only for groups that have one).
 
     Lighting runs per vertex for meshes whose faces each have one normal (flat), where
@@ -55,7 +56,9 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
     joints each (1..4; each vertex blends only that many). Under the appearance effect, role is
     the code (scene.ROLES) of every instance of a moving group (static groups read theirs per
     instance), and surface says that some instance has a role: only then does the variant carry
-    the floor and wall patterns (a world position per fragment)."""
+    the floor and wall patterns (a world position per fragment). exact: the EXACT_TILES variant,
+    whose geometry stage (exact.geom) makes a view's pixels independent of where its tile sits
+    (BatchRenderer(exact_tiles=True)); it computes each triangle's depth plane itself."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
     if "appearance" in effects:
         defines.update(layout.appearance_defines())
@@ -65,7 +68,9 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
             defines.add("APPEARANCE_SURFACE")
     if "lighting" in effects:
         defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
-    if "depth" in effects:
+    if exact:
+        defines.add("EXACT_TILES")
+    elif "depth" in effects:
         defines.add("DEPTH_PLANE_FROM_CORNERS" if corners else "DEPTH_PLANE_FROM_GEOMETRY")
     if "shadows" in effects and shadow_pcf:
         defines.add("SHADOW_PCF")
@@ -110,7 +115,11 @@ def compiled(defines: tuple[str, ...]):
 def _compile_view(defines: tuple[str, ...]):
     from panda3d.core import Shader
 
-    geometry = variant_source("geom", defines) if "DEPTH_PLANE_FROM_GEOMETRY" in defines else ""
+    geometry = ""
+    if "EXACT_TILES" in defines:
+        geometry = GLSL_VERSION + "".join(f"#define {d}\n" for d in defines) + source("exact.geom")
+    elif "DEPTH_PLANE_FROM_GEOMETRY" in defines:
+        geometry = variant_source("geom", defines)
     shader = Shader.make(Shader.SL_GLSL, variant_source("vert", defines), variant_source("frag", defines), geometry)
     if shader is None:
         raise RuntimeError(f"shader variant {defines} failed to parse; see the GL log above")

@@ -1,5 +1,80 @@
 // Colour, then only the declared effects. The renderer reads the render textures back
 // with GL itself, in R, G, B(, A) order.
+#ifdef EXACT_TILES
+// Every input is flat: exact.geom hands over each triangle's values as planes in its view's clip
+// space, evaluated here at the pixel's place inside its tile (the rasteriser would interpolate them
+// from the framebuffer's origin, with rounding that depends on where the tile sits, so on the
+// world's slot and the batch size). Depth too: gl_FragDepth from the plane.
+uniform vec2 tile_size;    // (width, height) of a tile in pixels
+flat in float g_tile_row;  // the tile's first window row
+flat in vec4 g_color;
+flat in vec3 g_z_plane;   // . (x/w, y/w, 1) = z/w, the depth the depth test compares
+#if defined(LIGHT_PER_FRAGMENT) || defined(EFFECT_TEXTURE) || defined(APPEARANCE_SURFACE) || defined(EFFECT_SHADOWS) || defined(EFFECT_FOG) || defined(LOG_DEPTH)
+#define PLANE_W
+flat in vec3 g_w_plane;    // . (x/w, y/w, 1) = 1/w
+#endif
+#ifdef OUTPUT_DEPTH
+flat in vec4 depth_plane;  // the triangle's plane n.(x, y, w) = d in its view's clip space
+flat in vec4 depth_tile;   // tile origin (pixels), smallest and largest w of the triangle
+#endif
+#ifdef EFFECT_TEXTURE
+flat in mat3x2 g_uv_plane;
+vec2 v_uv = vec2(0.0);
+uniform sampler2D p3d_Texture0;
+#endif
+#ifdef LIGHT_PER_FRAGMENT
+flat in mat3 g_normal_plane;
+vec3 v_normal = vec3(0.0);
+#ifdef EFFECT_APPEARANCE
+flat in vec3 g_look_light_direction;  // the world's light (batch.vert reads it)
+flat in vec3 g_look_light_color;
+flat in vec3 g_look_ambient;
+#define light_direction g_look_light_direction
+#define light_color g_look_light_color
+#define ambient_color g_look_ambient
+#else
+uniform vec3 light_direction;  // world frame, pointing from the light
+uniform vec3 light_color;
+uniform vec3 ambient_color;
+#endif
+#endif
+#ifdef APPEARANCE_SURFACE
+flat in mat3x2 g_surface_plane;  // pattern coordinates, in cells
+vec2 v_surface = vec2(0.0);
+flat in vec4 g_pattern;  // factors past the line threshold along u only, v only, both (contrast included); threshold
+#define v_pattern g_pattern
+#endif
+#define v_color g_color
+#if defined(EFFECT_FOG) || defined(LOG_DEPTH)
+float v_depth = float(0.0);
+#endif
+#ifdef EFFECT_FOG
+uniform vec3 fog_color;
+uniform float fog_density;  // exponential fog, per metre
+#endif
+#ifdef LOG_DEPTH
+flat in vec2 g_near_far;
+#define v_near_far g_near_far
+#endif
+#ifdef OUTPUT_SEGMENTATION
+flat in int g_segment;
+#define v_segment g_segment
+#endif
+#ifdef EFFECT_SHADOWS
+flat in mat3 g_light_plane;
+vec3 v_light = vec3(0.0);                    // the fragment in the light's clip space
+flat in ivec2 g_shadow_tile;
+#define v_shadow_tile g_shadow_tile
+uniform sampler2D shadow_atlas;  // depth seen from the light, one square tile per world
+uniform ivec2 shadow_tiles;      // (tiles per atlas row, texels per tile side)
+uniform float shadow_bias;       // depth units: how close a receiver may be to a stored face
+#endif
+#if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
+flat in vec3 g_direct;
+#define v_direct g_direct
+#endif
+
+#else
 #ifdef DEPTH_PLANE_FROM_GEOMETRY
 // The geometry shader batch.geom sits between the stages; its outputs are named g_*.
 #define v_color g_color
@@ -84,6 +159,8 @@ uniform float shadow_bias;       // depth units: how close a receiver may be to 
 #endif
 #if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
 flat in vec3 v_direct;
+#endif
+
 #endif
 
 layout(location = 0) out vec4 out_color;
@@ -171,6 +248,37 @@ float surface_pattern() {
 #endif
 
 void main() {
+#ifdef EXACT_TILES
+    // The pixel's centre in its view's clip space over w: (x/w, y/w, 1), from its place in its
+    // tile (tiles are flipped vertically).
+    vec2 tile_pixel = (gl_FragCoord.xy - vec2(0.0, g_tile_row)) / tile_size * 2.0 - 1.0;
+    vec3 pixel = vec3(tile_pixel.x, -tile_pixel.y, 1.0);
+#ifdef PLANE_W
+    float inverse_w = dot(g_w_plane, pixel);
+#endif
+#ifdef LIGHT_PER_FRAGMENT
+    v_normal = g_normal_plane * pixel;  // normalised below
+#endif
+#ifdef EFFECT_TEXTURE
+    v_uv = g_uv_plane * pixel / inverse_w;
+#endif
+#ifdef APPEARANCE_SURFACE
+    v_surface = g_surface_plane * pixel / inverse_w;
+#endif
+#ifdef EFFECT_SHADOWS
+    v_light = g_light_plane * pixel / inverse_w;
+#endif
+#if defined(EFFECT_FOG) || defined(LOG_DEPTH)
+    v_depth = 1.0 / inverse_w;
+#endif
+    float depth_ndc = dot(g_z_plane, pixel);
+    if (depth_ndc > 1.0) {
+        discard;  // beyond the far plane (exact.geom clips only the others)
+    }
+#ifndef LOG_DEPTH
+    gl_FragDepth = 0.5 * depth_ndc + 0.5;
+#endif
+#endif
     vec3 color = v_color.rgb;
 #if defined(EFFECT_SHADOWS) && defined(LIGHT_PER_VERTEX)
     color += v_direct * light_visibility();

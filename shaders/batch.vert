@@ -65,7 +65,12 @@ out float v_depth;
 #ifdef LOG_DEPTH
 flat out vec2 v_near_far;
 #endif
-#ifdef OUTPUT_DEPTH
+#ifdef EXACT_TILES
+// exact.geom clips each triangle in this view's clip space, moves it into its tile and hands the
+// fragment stage its planes: this stage stays in the view's clip space.
+uniform vec2 tile_size;       // (width, height) of a tile in pixels
+flat out float v_tile_row;    // the first window row of the view's tile
+#elif defined(OUTPUT_DEPTH)
 // Depth comes from each triangle's plane (see batch.frag).
 uniform vec2 tile_size;       // pixels
 #ifdef DEPTH_PLANE_FROM_CORNERS
@@ -205,6 +210,10 @@ void main() {
 #endif
     vec4 clip = view_projection * vec4(world_position, 1.0);
 
+#if defined(EXACT_TILES) && !defined(SHADOW_CASTER)
+    gl_Position = clip;  // exact.geom clips it and moves it into its tile
+    v_tile_row = float(pass_view) * tile_size.y;
+#else
     // Clip against this view's own frustum before moving it into its tile, so nothing
     // spills into a neighbour. Tiles span the framebuffer's width (one column), so the
     // viewport clips x; only the top and bottom need planes.
@@ -223,6 +232,7 @@ void main() {
     // Tiles are stored top row first in memory (GL reads back bottom-up), so each view is
     // flipped vertically; the renderer flips the cull mode to match.
     gl_Position = vec4(clip.x, (float(2 * pass_view + 1 - tiles) * clip.w - clip.y) / float(tiles), clip.z, clip.w);
+#endif
 #endif
 
 #ifdef EFFECT_LIGHTING
@@ -255,7 +265,7 @@ void main() {
 #if defined(EFFECT_FOG) || defined(OUTPUT_DEPTH) || defined(LOG_DEPTH)
     v_depth = clip.w;
 #endif
-#ifdef OUTPUT_DEPTH
+#if defined(OUTPUT_DEPTH) && !defined(EXACT_TILES)
     // Tile t of the column covers window rows [t * H, (t + 1) * H) from the bottom.
     vec2 tile_origin = vec2(0.0, float(pass_view)) * tile_size;
 #ifdef DEPTH_PLANE_FROM_CORNERS

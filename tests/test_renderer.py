@@ -470,3 +470,43 @@ def test_supersampled_depth_and_segmentation_take_the_centre_sample():
         mr.BatchRenderer(scene, multisamples=4)
     with pytest.raises(ValueError, match="supersample must be an int >= 1, got 0"):
         mr.BatchRenderer(scene, supersample=0)
+
+
+@pytest.mark.parametrize("effects", [("lighting", "fog", "depth", "segmentation"), ("lighting", "log_depth", "depth")])
+def test_exact_tiles_draw_every_world_alike_in_any_tile(effects):
+    """exact_tiles=True: 20 worlds holding the same scene (a floor under the cameras, which the near
+    plane clips; boxes; a ball lit per fragment) give bit-identical colour, depth and segmentation in
+    every world's tiles, in one framebuffer and split over several; and the picture is the default
+    renderer's (the option changes rounding, not what is drawn)."""
+    worlds, agents, capacity = 20, 3, 4
+    scene = mr.Scene(num_worlds=worlds, agents_per_world=agents, resolution=(20, 30), effects=effects,
+                     background=BACKGROUND)
+    scene.add_static("floor", "plane", position=[0, 0, 0], scale=[30, 30, 1], color=[0.3, 0.6, 0.3])
+    scene.add_group("boxes", "box", capacity=capacity)
+    scene.add_group("balls", "sphere", capacity=1)
+    instances, camera, target = random_scene_inputs(torch.Generator().manual_seed(7), 1, agents, capacity)
+    frames = []
+    for exact, max_size in ((True, None), (True, 7 * 20), (False, None)):
+        with mr.BatchRenderer(scene, max_framebuffer_size=max_size, exact_tiles=exact) as renderer:
+            renderer.update("boxes", **{k: v.expand(worlds, *v.shape[1:]) for k, v in instances.items()})
+            renderer.update("balls", position=torch.tensor([0.3, 2.5, 0.6]).expand(worlds, 1, 3),
+                            active=torch.ones(worlds, 1, dtype=torch.bool))
+            renderer.set_cameras(position=camera.expand(worlds, agents, 3), look_at=target.expand(worlds, agents, 3))
+            frames.append((renderer.layout.num_passes, renderer.render()))
+    (passes_one, one), (passes_many, many), (_, default) = frames
+    assert passes_one == 1 and passes_many == 9  # 7 tiles of 20 rows a framebuffer
+    for frame in (one, many):
+        for output in ("rgb", "depth", "segmentation"):
+            value = getattr(frame, output)
+            if value is None:
+                continue
+            assert torch.equal(value, getattr(one, output)), output
+            assert all(torch.equal(value[w], value[0]) for w in range(1, worlds)), output
+    assert one.rgb.float().std() > 0 and torch.isfinite(one.depth).float().mean() > 0.3
+    differing = (one.rgb != default.rgb).any(-1).float().mean()
+    assert differing < 0.01, float(differing)
+
+
+def test_exact_tiles_must_be_a_bool():
+    with pytest.raises(TypeError, match="exact_tiles must be a bool, got"):
+        mr.BatchRenderer(mr.Scene(num_worlds=1, agents_per_world=1, resolution=8), exact_tiles="yes")
