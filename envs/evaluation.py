@@ -13,8 +13,10 @@ opponents (``Scenario.opponents``: tag's prey, push's and capture_flag's second 
 other agents are evaluated, and the opponents play random actions in both rows: the rows then
 say how well a team does against random opponents.
 
-``evaluate(name, policy)`` takes any policy ``policy(env, obs) -> actions`` (e.g. a trained
-network), so learners are measured the same way.
+``evaluate(name, policy)`` takes any policy: a function ``policy(env, obs, generator) -> actions``
+of every agent (random_policy, heuristic_policy, the trainer's greedy policy) or an object with
+``act`` (``marl_render.policies.load_policy``'s saved run, ``heuristic_policy()``, a bot), both
+through ``marl_render.policies.as_policy``, so learners are measured the same way.
 """
 from __future__ import annotations
 
@@ -44,20 +46,25 @@ def heuristic_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
 def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution: int = 16, **kwargs) -> dict:
     """Mean, std, min and max episode return of `policy` over `episodes` episodes (one per world), and
     each episode's return (``per_episode``, in world order)."""
+    # Imported here: marl_render.policies imports the baselines' networks, whose package imports this module.
+    from marl_render.policies import as_policy, joint_actions
+
+    generator = torch.Generator().manual_seed(seed + 1)
+    player = as_policy(policy, generator)  # before the env is built: a policy of no kind fails at once
     env = make_env(name, num_worlds=episodes, resolution=resolution, seed=seed, **kwargs)
     try:
-        generator = torch.Generator().manual_seed(seed + 1)
         opponents = opponent_mask(env)
         evaluated = ~opponents
         if not bool(evaluated.any()):  # the mean over no agents would be NaN
             raise ValueError(f"{type(env.scenario).__name__}.opponents {list(env.scenario.opponents)} names every team "
                              f"{list(env.groups)}, so no agent is evaluated; leave at least one team out of it")
         obs = env.reset()
+        player.reset(env, torch.ones(episodes, dtype=torch.bool))
         episode_return = torch.zeros(episodes, env.num_agents, dtype=torch.float64)
         running = torch.ones(episodes, dtype=torch.bool)
         steps = 0
         while bool(running.any()) and steps < env.max_steps:
-            actions = policy(env, obs, generator)
+            actions = joint_actions(player, env, obs)
             if bool(opponents.any()):
                 actions = torch.where(_expand_like(opponents, actions), random_policy(env, obs, generator), actions)
             obs, reward, terminated, truncated, info = env.step(actions)

@@ -45,8 +45,9 @@ import torch
 from marl_render.bots import POPULATIONS, bot_names, make_bot
 from marl_render.elo import elo_ratings
 from marl_render.envs import Population, env_class, list_envs, make_env
+from marl_render.envs.levels import levels_option
 from marl_render.heldout import HELDOUT, heldout_scenario, list_heldout
-from marl_render.policies import Policy, RandomPolicy, heuristic_policy, load_policy
+from marl_render.policies import Policy, RandomPolicy, as_policy, heuristic_policy, load_policy, required_env_kwargs
 from marl_render.task_imports import add_import_option, load_user_tasks
 
 COMPETITIVE = ("tag", "push", "capture_flag")  # the cross-play tasks: team A (rows) against team B (columns)
@@ -55,10 +56,10 @@ DOCS_EPISODES, CROSSPLAY_EPISODES, DOCS_SEED, DOCS_RESOLUTION = 32, 16, 0, 16
 
 
 def make_policy(spec, task: str, seed: int = 0) -> Policy:
-    """A fresh focal policy from `spec`: a Policy (returned as it is), "random", "heuristic", a bot
-    name of `task`, or a run folder."""
-    if isinstance(spec, Policy):
-        return spec
+    """A fresh focal policy from `spec`: a policy object or function (``as_policy``), "random",
+    "heuristic", a bot name of `task`, or a run folder."""
+    if not isinstance(spec, (str, os.PathLike)):
+        return as_policy(spec, torch.Generator().manual_seed(seed + 1))
     if spec == "random":
         return RandomPolicy(seed + 1)
     if spec == "heuristic" and task not in POPULATIONS:  # a user's task: its own scripted heuristic
@@ -96,21 +97,22 @@ def play(env, policy: Policy) -> dict:
 
 
 def _env(task: str, episodes: int, seed: int, resolution: int, policy: Policy, max_steps=None, **kwargs):
+    # A trained actor's resolution and colours, never the levels and looks it trained on: those are the caller's.
     return make_env(task, num_worlds=episodes, seed=seed, max_steps=max_steps,
-                    **{"resolution": resolution, **policy.env_kwargs, **kwargs})
+                    **{"resolution": resolution, **required_env_kwargs(policy), **kwargs})
 
 
 def scenario_returns(spec, scenario, *, episodes: int = 32, seed: int = 0, resolution: int = 16,
-                     max_steps: int | None = None) -> dict:
-    """play() of policy `spec` on held-out `scenario`."""
+                     max_steps: int | None = None, **looks) -> dict:
+    """play() of policy `spec` on held-out `scenario`; `looks`: levels= and appearance= of its env."""
     scenario = heldout_scenario(scenario)
     policy = make_policy(spec, scenario.task, seed)
-    with _env(scenario.task, episodes, seed, resolution, policy, max_steps, heldout=scenario) as env:
+    with _env(scenario.task, episodes, seed, resolution, policy, max_steps, heldout=scenario, **looks) as env:
         return play(env, policy)
 
 
 def training_condition(spec, scenario, *, episodes: int = 32, seed: int = 0, resolution: int = 16,
-                       max_steps: int | None = None) -> dict:
+                       max_steps: int | None = None, **looks) -> dict:
     """play() of policy `spec` on the focal slots of `scenario` in the condition the reference trainer
     trains in: its partners (the background slots of the focal agents' teams, or every slot of a
     cooperative task) are copies of itself, opponents play random actions."""
@@ -122,7 +124,7 @@ def training_condition(spec, scenario, *, episodes: int = 32, seed: int = 0, res
     roles = {team: [RandomPolicy(seed + 3) if competitive and team not in focal_teams else policy]
              for team in scenario.bots_by_role}
     with _env(scenario.task, episodes, seed, resolution, policy, max_steps, num_agents=scenario.num_agents,
-              **scenario.params,
+              **scenario.params, **looks,
               background=Population(roles, focal=scenario.focal)) as env:
         return play(env, policy)
 
@@ -150,27 +152,30 @@ def normalised(value: float, random: float, heuristic: float) -> float:
 
 
 def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: int = 16, max_steps: int | None = None,
-             references: dict | None = None, gap: bool = False) -> list:
+             references: dict | None = None, gap: bool = False, levels=None, appearance=None) -> list:
     """One row per scenario (see the module docstring); `references` caches the random and heuristic
     returns per scenario between calls; `gap` adds the training condition's return; `max_steps`
-    shortens the episodes (None: the task's length, the published protocol)."""
+    shortens the episodes (None: the task's length, the published protocol); `levels` and
+    `appearance` are make_env's (None: the scenario's default resets and looks)."""
     if episodes < 2:
         raise ValueError(f"episodes must be >= 2 (a mean and a std over episodes), got {episodes}")
     references = {} if references is None else references
     rows = []
     for name in scenarios:
         scenario = heldout_scenario(name)
-        same = dict(episodes=episodes, seed=seed, resolution=resolution, max_steps=max_steps)
+        same = dict(episodes=episodes, seed=seed, resolution=resolution, max_steps=max_steps,
+                    **{k: v for k, v in (("levels", levels), ("appearance", appearance)) if v is not None})
         result = scenario_returns(spec, scenario, **same)
         for label in ("random", "heuristic"):
-            key = (scenario.name, label, *same.values())
+            key = (scenario.name, label, repr(sorted(same.items())))
             if key not in references:
                 references[key] = result if label == spec else scenario_returns(label, scenario, **same)
         mean, std = _summary(result["focal"])
-        random, heuristic = (float(references[(scenario.name, label, *same.values())]["focal"].mean())
+        random, heuristic = (float(references[(scenario.name, label, repr(sorted(same.items())))]["focal"].mean())
                              for label in ("random", "heuristic"))
         row = {"scenario": scenario.name, "task": scenario.task, "tags": " ".join(scenario.tags),
-               "policy": spec if isinstance(spec, str) else spec.name, "episodes": episodes, "seed": seed,
+               "policy": spec if isinstance(spec, str) else make_policy(spec, scenario.task, seed).name,
+               "episodes": episodes, "seed": seed,
                "focal_return_mean": mean, "focal_return_std": std,
                "background_return_mean": _summary(result["background"])[0],
                "background_return_std": _summary(result["background"])[1],
@@ -287,7 +292,7 @@ def matrix_env_kwargs(task: str, roster: dict, resolution: int, seed: int) -> di
     required: dict = {}
     owner: dict = {}
     for label, spec in roster.items():
-        needs = dict(make_policy(spec, task, seed).env_kwargs)
+        needs = required_env_kwargs(make_policy(spec, task, seed))
         if isinstance(spec, str) and os.path.isdir(spec):  # the team sizes a trained actor was trained with
             with open(os.path.join(spec, "result.json")) as f:
                 options = json.load(f).get("env_options") or {}
@@ -565,6 +570,10 @@ def main(argv=None) -> int:
     parser.add_argument("--resolution", type=int, default=16, help="pixels per side (a run folder's own wins)")
     parser.add_argument("--max-steps", type=int, default=None, help="shorter episodes (default: the task's length)")
     parser.add_argument("--gap", action="store_true", help="also play the training condition (generalisation gap)")
+    parser.add_argument("--levels", type=levels_option, default=None,
+                        help="levels of the scenarios' envs: a count n, train, test or published (default: none)")
+    parser.add_argument("--appearance", choices=("train", "heldout"), default=None,
+                        help="per-level looks of the scenarios' envs (default: off)")
     parser.add_argument("--out", help="write OUT.json and OUT.csv instead of printing JSON")
     parser.add_argument("--docs", action="store_true", help="regenerate docs/heldout.md and docs/crossplay.md")
     parser.add_argument("--crossplay-episodes", type=int, default=CROSSPLAY_EPISODES,
@@ -612,7 +621,7 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> in
     try:
         scenarios = scenario_names(args.scenario)
         rows = evaluate(args.policy, scenarios, episodes=args.episodes, seed=args.seed, resolution=args.resolution,
-                        max_steps=args.max_steps, gap=args.gap)
+                        max_steps=args.max_steps, gap=args.gap, levels=args.levels, appearance=args.appearance)
     except (ValueError, FileNotFoundError) as error:
         parser.error(str(error))
     if args.out:

@@ -31,6 +31,16 @@ import torch
 from marl_render.baselines.networks import Actor
 from marl_render.validation import describe
 
+# Keys of a loaded run's env_kwargs that say where it trained, not what its actor needs: an
+# evaluation chooses its own levels and looks (cross-play and held-out scenarios play the defaults).
+TRAINING_CONDITION = ("levels", "appearance")
+
+
+def required_env_kwargs(policy) -> dict:
+    """The make_env keywords `policy`'s actor needs (resolution, grayscale, state_obs), without the
+    levels and looks it trained on."""
+    return {k: v for k, v in getattr(policy, "env_kwargs", {}).items() if k not in TRAINING_CONDITION}
+
 
 class Policy:
     """The interface: ``act(env, obs, worlds, slots)`` and ``reset(env, worlds)``; see the module docstring."""
@@ -47,6 +57,54 @@ class Policy:
 
     def __repr__(self):
         return f"{type(self).__name__}({self.name!r})"
+
+
+class CallablePolicy(Policy):
+    """A policy given as a function ``policy(env, obs, generator) -> actions`` of every agent of every
+    world ([W, A] or [W, A, action_dim]): the protocol of ``marl_render.envs.evaluation`` (its
+    ``random_policy`` and ``heuristic_policy``, the trainer's ``GreedyPolicy``) as a Policy. The
+    function is handed the observations of every agent, its own pairs' in their places (zeros
+    elsewhere, every action allowed), and `generator`; of its actions, its pairs' are taken."""
+
+    needs = frozenset({"pixels", "depth", "state", "lidar", "agent_id", "action_mask"})
+
+    def __init__(self, function, generator: torch.Generator | None = None, name: str | None = None):
+        self.function = function
+        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.name = name or getattr(function, "__name__", type(function).__name__)
+
+    def act(self, env, obs, worlds, slots):
+        full = {}
+        for key, value in obs.items():
+            # Every action allowed where the function sees no pair of its own: a random draw there stays valid.
+            fill = value.new_ones if key == "action_mask" else value.new_zeros
+            full[key] = fill((env.num_worlds, env.num_agents, *value.shape[1:]))
+            full[key][worlds, slots] = value
+        return self.function(env, full, self.generator)[worlds, slots]
+
+
+def as_policy(policy, generator: torch.Generator | None = None) -> Policy:
+    """Whatever plays an env, as a Policy: an object with ``act`` (a Policy: ``load_policy``'s
+    actor, ``heuristic_policy()``, ``RandomPolicy``, a bot) as it is, a function ``policy(env, obs,
+    generator)`` (``marl_render.envs.evaluation.random_policy`` and ``heuristic_policy``, the
+    trainer's greedy policy) as a CallablePolicy drawing from `generator`. Every evaluation
+    (``marl_render.envs.evaluation.evaluate``, ``marl_render.evaluate.evaluate``, cross-play,
+    ``marl_render.generalise``) takes its policies through this one adapter."""
+    if callable(getattr(policy, "act", None)):
+        return policy
+    if callable(policy) and not isinstance(policy, (str, type)):
+        return CallablePolicy(policy, generator)
+    raise TypeError(f"policy must be an object with act(env, obs, worlds, slots) (a Policy, e.g. load_policy's) or a "
+                    f"function policy(env, obs, generator) -> actions, got {describe(policy)}")
+
+
+def joint_actions(policy: Policy, env, obs: dict) -> torch.Tensor:
+    """`policy`'s actions for every agent of every world of the driver `env` ([W, A] or [W, A,
+    action_dim]) from its observations `obs` ([W, A, ...] each): one ``act`` call for all pairs."""
+    W, A = env.num_worlds, env.num_agents
+    worlds, slots = torch.arange(W).repeat_interleave(A), torch.arange(A).repeat(W)
+    seen = {key: value.flatten(0, 1) for key, value in obs.items() if key in policy.needs}
+    return policy.act(env, seen, worlds, slots).reshape(W, A, *env.spec.action.shape)
 
 
 class RandomPolicy(Policy):
@@ -133,7 +191,8 @@ class ActorPolicy(Policy):
 def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
     """The greedy policy of a run folder that ``python -m marl_render.baselines`` wrote (its
     result.json and actor.pt); `name` defaults to the folder's path. ``policy.env_kwargs`` holds the
-    resolution, grayscale and state_obs the actor needs: build the env with them."""
+    resolution, grayscale and state_obs the actor needs, and the ``levels`` and ``appearance`` it
+    trained with (where it did): build the env with them to play its training condition."""
     if not isinstance(run_folder, (str, os.PathLike)):
         raise TypeError(f"run_folder must be a path (str), got {describe(run_folder)}")
     paths = {f: os.path.join(run_folder, f) for f in ("result.json", "actor.pt")}
@@ -154,8 +213,22 @@ def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
         raise ValueError(f"{paths['actor.pt']} does not fit the actor that {paths['result.json']} describes: "
                          f"{type(error).__name__}: {str(error)[:300]}") from error
     env_kwargs = {"resolution": resolution, "grayscale": grayscale} if obs_key == "pixels" else {"state_obs": True}
+    env_kwargs.update(_levels_and_looks(result, paths["result.json"]))
     return ActorPolicy(actor, name=name or str(run_folder), obs_key=obs_key, frames=frames,
                        action_repeat=action_repeat, num_agents=agents, env_kwargs=env_kwargs)
+
+
+def _levels_and_looks(result: dict, path: str) -> dict:
+    """The levels (``--levels``: train_options) and looks (``--appearance``: env_options) the run
+    trained with, as make_env keywords; none where it trained on the env's default resets."""
+    found = {}
+    for section, key in (("train_options", "levels"), ("env_options", "appearance")):
+        options = result.get(section) or {}
+        if not isinstance(options, dict):
+            raise ValueError(f"{path}: {section} must be a JSON object, got {options!r}")
+        if options.get(key) is not None:
+            found[key] = options[key]
+    return found
 
 
 def _actor(weights: dict, hp: dict, obs_key: str, resolution: int, channels: int) -> tuple:

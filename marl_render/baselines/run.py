@@ -66,7 +66,7 @@ import torch
 
 from marl_render.envs import list_envs, make_env
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
-from marl_render.envs.levels import NAMED as NAMED_LEVELS
+from marl_render.envs.levels import levels_option
 from marl_render.extras import command_needs_extra
 from marl_render.task_imports import add_import_option, load_user_tasks
 
@@ -241,15 +241,6 @@ def writable_folder(path: str) -> str | None:
     except OSError as exc:
         return f"{existing} takes no files ({exc.strerror or exc})"
     return None
-
-
-def levels_option(text: str):
-    """--levels / --eval-levels: a count n >= 1, or one of the named sets (envs/levels.py)."""
-    if text.isdigit() and int(text) >= 1:
-        return int(text)
-    if text in NAMED_LEVELS:
-        return text
-    raise argparse.ArgumentTypeError(f"expected a count n >= 1 or one of {list(NAMED_LEVELS)}, got {text!r}")
 
 
 def env_option(text: str) -> tuple:
