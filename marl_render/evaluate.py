@@ -409,11 +409,30 @@ def heldout_page(rows_by_policy: dict, command: str, note: str) -> str:
                          f"{_fmt(r['focal_return_std'])} | {_fmt(r['background_return_mean'])} | "
                          f"{_fmt(r['normalised_score'])} | {_fmt(r.get('training_condition_return', math.nan))} | "
                          f"{_fmt(r.get('generalisation_gap', math.nan))} | {bots} |")
-        gaps = [r["generalisation_gap"] for r in rows if "generalisation_gap" in r]
-        if gaps:
-            lines += ["", f"Mean generalisation gap over {len(gaps)} scenarios: {np.mean(gaps):.2f}."]
+        lines += mean_gap_lines(rows)
         lines.append("")
     return "\n".join(lines)
+
+
+def normalised_gaps(rows: list) -> list:
+    """Each row's generalisation gap on its scenario's scale, (training condition - held-out) /
+    (heuristic - random): comparable across tasks whose returns differ by orders of magnitude. Rows
+    without a gap, or whose heuristic and random tie (no scale), are left out."""
+    scales = [r.get("heuristic_return", math.nan) - r.get("random_return", math.nan) for r in rows]
+    return [r["generalisation_gap"] / scale for r, scale in zip(rows, scales, strict=True)
+            if math.isfinite(r.get("generalisation_gap", math.nan)) and math.isfinite(scale) and scale != 0]
+
+
+def mean_gap_lines(rows: list) -> list:
+    """The page's summary of a policy's gaps: their mean on each scenario's random-heuristic scale."""
+    gaps = normalised_gaps(rows)
+    if not gaps:
+        return []
+    left_out = sum("generalisation_gap" in r for r in rows) - len(gaps)
+    return ["", f"Mean generalisation gap over {len(gaps)} scenarios, each normalised by its heuristic - random: "
+            f"{np.mean(gaps):.2f}" + (f" ({left_out} scenario(s) without a scale, where heuristic and random tie or "
+                                      "a return is undefined, left out)."
+                                      if left_out else ".")]
 
 
 def crossplay_page(results: list, command: str, note: str) -> str:

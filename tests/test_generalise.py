@@ -125,3 +125,19 @@ def test_evaluate_cli_takes_levels_and_appearance(tmp_path, capsys):
     with pytest.raises(SystemExit):
         heldout_evaluation.main([*argv, "--levels", "0"])
     assert "--levels" in capsys.readouterr().err
+
+
+def test_the_held_out_pages_mean_gap_is_normalised_per_scenario():
+    # Raw gaps of 10 (scale 100) and 0.1 (scale 1) averaged to 5.05; normalised they are 0.1 each.
+    rows = [{"generalisation_gap": 10.0, "random_return": 0.0, "heuristic_return": 100.0},
+            {"generalisation_gap": 0.1, "random_return": -1.0, "heuristic_return": 0.0},
+            {"generalisation_gap": 3.0, "random_return": 2.0, "heuristic_return": 2.0}]  # no scale: left out
+    assert heldout_evaluation.normalised_gaps(rows) == pytest.approx([0.1, 0.1])
+    line = heldout_evaluation.mean_gap_lines(rows)[-1]
+    assert line.startswith("Mean generalisation gap over 2 scenarios, each normalised by its heuristic - random: 0.10")
+    assert "1 scenario(s) without a scale" in line
+    page = heldout_evaluation.heldout_page({"p": [{**rows[0], "scenario": "s", "tags": "visitor",
+                                                   "focal_return_mean": 1.0, "focal_return_std": 0.0,
+                                                   "background_return_mean": 0.0, "normalised_score": 0.5,
+                                                   "bots_sampled": {}}]}, "cmd", "note")
+    assert "Mean generalisation gap over 1 scenarios, each normalised by its heuristic - random: 0.10." in page
