@@ -3,6 +3,7 @@
     python -m marl_render.envs.evaluation --env all --episodes 32 --json
     python -m marl_render.envs.evaluation --env all --difficulty all --json   # every preset
     python -m marl_render.envs.evaluation --env rooms --levels published        # on the published test levels
+    python -m marl_render.envs.evaluation --import my_tasks --env my_task       # a user's task (or my_tasks:MyTask)
 
 For each task it plays `episodes` episodes at once (one per world, no autoreset, the task's
 default length) with the scripted heuristic (``Scenario.heuristic``, which reads the state)
@@ -27,6 +28,8 @@ import sys
 import time
 
 import torch
+
+from marl_render.task_imports import add_import_option, load_user_tasks
 
 from .registry import env_class, list_envs, make_env
 
@@ -107,9 +110,12 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m marl_render.envs.evaluation", description=__doc__,
-                                     formatter_class=HelpFormatter)
-    parser.add_argument("--env", nargs="+", default=["all"], help="task names, or all")
+    prog = "python -m marl_render.envs.evaluation"
+    load_user_tasks(argv, prog)  # a user's task (--import MODULE, or --env module:Class) before the names are checked
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--env", nargs="+", default=["all"],
+                        help="task names (a user's: with --import MODULE, or as module:Class), or all")
+    add_import_option(parser)
     parser.add_argument("--episodes", type=int, default=32, help="episodes per policy (one per world)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the envs and the random policy")
     parser.add_argument("--difficulty", choices=("easy", "medium", "hard", "all"), default=None,

@@ -6,7 +6,7 @@
     python -m marl_render.evaluate --docs            # regenerates docs/heldout.md and docs/crossplay.md
     python -m marl_render.evaluate --docs --crossplay-only --task tag   # only tag's cross-play section
     python -m marl_render.evaluate --crossplay tag --roster random heuristic docs/selfplay/tag/seed0 --out out/x
-    python -m marl_render.evaluate --import my_tasks --crossplay my_task --roster random out/my_task
+    python -m marl_render.evaluate --import my_tasks --crossplay my_task --roster random out/my_task --out out/x
 
 A policy is ``random``, ``heuristic``, a heuristic variant of the task (a bot name of
 marl_render/bots.py, e.g. ``interceptor``) or a run folder of ``python -m marl_render.baselines``
@@ -24,7 +24,10 @@ printed.
 
 ``--crossplay TASK`` plays every policy of ``--roster`` as the task's first team against every one
 as its second (any registered task of two or more teams, a user's too: ``--import MODULE`` or
-``module:Class``), and writes the matrices and Elo ratings (PREFIX.json, or printed). Self-play
+``module:Class``; its bots by name once ``register_bot`` made them known), and writes the matrices
+and Elo ratings to PREFIX.json, the tables (Elo, returns, win rates) to PREFIX.md, which it also
+prints, and the win-rate heatmap to PREFIX.png (matplotlib: the plots extra); without ``--out``
+it prints the JSON. Self-play
 snapshots are run folders (``python -m marl_render.baselines --self-play`` writes them under
 OUT/snapshots/).
 """
@@ -46,6 +49,7 @@ from marl_render.bots import POPULATIONS, bot_names, make_bot
 from marl_render.elo import elo_ratings
 from marl_render.envs import Population, env_class, list_envs, make_env
 from marl_render.envs.levels import levels_option
+from marl_render.extras import command_needs_extra
 from marl_render.heldout import HELDOUT, heldout_scenario, list_heldout
 from marl_render.policies import Policy, RandomPolicy, as_policy, heuristic_policy, load_policy, required_env_kwargs
 from marl_render.task_imports import add_import_option, load_user_tasks
@@ -445,18 +449,31 @@ def crossplay_page(results: list, command: str, note: str) -> str:
              "`snapshot K@Nk` its K-th snapshot, taken after N thousand env steps (docs/training.md). A trained "
              "actor plays either side (its agent one-hot names its slot).", ""]
     for result in results:
-        task, labels = result["task"], result["policies"]
-        side_a, side_b = result["sides"]
-        lines += [f"## {task} ({side_a} vs {side_b}, {result['episodes']} episodes per pair)", "",
-                  f"![{task} cross-play](crossplay/{task}.png)", "", "| Elo | policy |", "|---:|---|"]
-        for rating, label in sorted(zip(result["elo"], labels, strict=True), reverse=True):
-            lines.append(f"| {rating:.0f} | {label} |")
-        lines += ["", *self_play_verdict(result), f"Per-capita return of the row team ({side_a}):", "",
-                  "| row \\ column | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
-        for label, values in zip(labels, result["returns_a"], strict=True):
+        lines += crossplay_section(result, f"crossplay/{result['task']}.png")
+    return "\n".join(lines)
+
+
+def crossplay_section(result: dict, picture: str | None = None, win_rates: bool = False) -> list:
+    """One cross-play result as markdown lines: the Elo ranking, the self-play verdict, the row
+    team's per-capita returns (and, with `win_rates`, the row policy's win rate) per pair."""
+    task, labels = result["task"], result["policies"]
+    side_a, side_b = result["sides"]
+    lines = [f"## {task} ({side_a} vs {side_b}, {result['episodes']} episodes per pair)", ""]
+    if picture:
+        lines += [f"![{task} cross-play]({picture})", ""]
+    lines += ["| Elo | policy |", "|---:|---|"]
+    for rating, label in sorted(zip(result["elo"], labels, strict=True), reverse=True):
+        lines.append(f"| {rating:.0f} | {label} |")
+    tables = [(f"Per-capita return of the row team ({side_a}):", result["returns_a"])]
+    if win_rates:
+        tables.append(("Win rate of the row policy over both sides (a draw counts half):", result["win_rate"]))
+    lines += ["", *self_play_verdict(result)]
+    for title, matrix in tables:
+        lines += [title, "", "| row \\ column | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
+        for label, values in zip(labels, matrix, strict=True):
             lines.append(f"| {label} | " + " | ".join(f"{v:.2f}" for v in values) + " |")
         lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def self_play_verdict(result: dict) -> list:
@@ -655,6 +672,9 @@ def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace)
     """--crossplay TASK --roster ...: the matrices and Elo, written to OUT.json or printed."""
     if args.crossplay_episodes < 1:
         parser.error(f"--crossplay-episodes must be >= 1, got {args.crossplay_episodes}")
+    if args.out:  # its heatmap: a missing matplotlib ends here, before the matrix is played
+        with command_needs_extra("plots", "python -m marl_render.evaluate --crossplay --out (its heatmap)"):
+            import matplotlib  # noqa: F401
     roster = {}
     for spec in args.roster:
         label = run_label(spec) if os.path.isfile(os.path.join(spec, "result.json")) else spec
@@ -670,7 +690,12 @@ def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace)
             os.makedirs(folder, exist_ok=True)
         with open(args.out + ".json", "w") as f:
             json.dump(result, f, indent=1)
-        print(f"wrote {args.out}.json ({len(roster)} policies)")
+        table = "\n".join(crossplay_section(result, os.path.basename(args.out) + ".png", win_rates=True))
+        with open(args.out + ".md", "w") as f:
+            f.write(table)
+        heatmap(result, args.out + ".png")
+        print(table)
+        print(f"wrote {args.out}.json, {args.out}.md and {args.out}.png (win-rate heatmap; {len(roster)} policies)")
     else:
         print(json.dumps(result))
     return 0
