@@ -25,7 +25,9 @@ myst_heading_anchors = 3  # `[spread](#spread)`: links to headings, as on GitHub
 autodoc_member_order = "bysource"
 autodoc_inherit_docstrings = False  # the libraries' own docstrings (gymnasium, torchrl) are not Sphinx-clean
 autodoc_typehints = "description"
-autodoc_default_options = {"members": True, "undoc-members": False, "show-inheritance": True}
+# No default "members": on Sphinx 9 it overrode each automodule's own :members: list (api.md), and
+# every function of a module (main, write, HelpFormatter) was listed; the lists say what is public.
+autodoc_default_options = {"undoc-members": False, "show-inheritance": True}
 napoleon_google_docstring = True
 napoleon_numpy_docstring = False
 

@@ -171,6 +171,8 @@ def list_heldout(task: str | None = None) -> list:
 
 
 def heldout_scenario(name) -> HeldOutScenario:
+    """The HeldOutScenario registered as `name` (see list_heldout); a HeldOutScenario is returned as
+    it is. ValueError listing the registered names for any other value."""
     if isinstance(name, HeldOutScenario):
         return name
     if name not in HELDOUT:

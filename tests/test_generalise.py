@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -141,3 +142,36 @@ def test_the_held_out_pages_mean_gap_is_normalised_per_scenario():
                                                    "background_return_mean": 0.0, "normalised_score": 0.5,
                                                    "bots_sampled": {}}]}, "cmd", "note")
     assert "Mean generalisation gap over 1 scenarios, each normalised by its heuristic - random: 0.10." in page
+
+
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+
+
+def test_the_generalisation_page_shows_the_commands_real_output(tmp_path):
+    from marl_render.baselines import generalisation as study
+
+    page = (DOCS / "generalisation.md").read_text()
+    assert study.report(str(DOCS / "generalisation"), str(tmp_path / "page.md")) == page  # regenerated, not edited
+    example = (DOCS / "generalisation" / "example.md").read_text()
+    assert "**tiny run**" in page and "python -m marl_render.generalise out/gen_example/seed0" in page
+    # the example is the command's own table: its runs and sets, as table() writes them
+    for run in ("out/gen_example/seed0", "out/gen_example/seed1"):
+        for name in generalisation.SETS:
+            assert f"| {run} | {name} |" in example
+    assert "Across 2 run(s)" in example and "Held-out scenarios of out/gen_example/seed1:" in example
+
+
+def test_interactive_play_is_linked_from_the_readme_and_the_docs_index(capsys):
+    readme = (DOCS.parent / "README.md").read_text()
+    index = (DOCS / "index.md").read_text()
+    assert "[play a task](docs/play.md)" in readme
+    assert ":link: play" in index and "\nplay\n" in index  # a card and the toctree
+    page = (DOCS / "play.md").read_text()
+    from marl_render import play
+
+    with pytest.raises(SystemExit) as exit:
+        play.main(["--help"])
+    assert exit.value.code == 0
+    shown = capsys.readouterr().out
+    for option in sorted(set(re.findall(r"(--[a-z]+)", page))):  # every option the page names is one of play's
+        assert re.search(rf"{option}\b", shown), option
