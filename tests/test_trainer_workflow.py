@@ -76,3 +76,27 @@ def test_seed_command_reproduces_one_seed_of_a_seeds_run():
     argv = ["--env", "tag", "--seeds", "0", "1", "--out", "o", "--tensorboard=t", "--updates", "3"]
     assert trainer.seed_command(argv, 1, "o/seed1", "t/seed1") == [
         "--env", "tag", "--updates", "3", "--seed", "1", "--out", "o/seed1", "--tensorboard", "t/seed1"]
+
+
+def test_the_published_self_play_commands_give_the_hyperparameters_their_runs_trained_with():
+    """training.md's commands of docs/selfplay/*: parsed, the very hyperparameters of each run's
+    result.json, and torch's initial weights (the runs predate the init option, whose default is now
+    orthogonal: without --init torch they would not reproduce)."""
+    import dataclasses
+    import shlex
+    from pathlib import Path
+
+    from marl_render.baselines.settings import FIELDS, task_hyperparameters
+
+    root = Path(__file__).resolve().parent.parent
+    lines = [line for line in (root / "docs" / "training.md").read_text().splitlines()
+             if line.startswith("python -m marl_render.baselines ") and "--out docs/selfplay/" in line]
+    assert len(lines) == 3
+    for line in lines:
+        argv = shlex.split(line)[3:]
+        args = trainer.parse_args(argv)
+        hp = dataclasses.asdict(task_hyperparameters(args.env, **{name: getattr(args, name) for name in FIELDS}))
+        recorded = json.loads((root / args.out / "result.json").read_text())
+        assert recorded["command"].split(" --out ")[0] in line.replace(" --init torch", "")
+        trained = {"init": "torch", **recorded["hyperparameters"]}  # no init recorded: torch's, the only one then
+        assert hp == trained, line
