@@ -42,6 +42,7 @@ class ActionSpec:
 
     @property
     def dtype(self) -> torch.dtype:
+        """The actions' dtype: float32 continuous, int64 discrete."""
         return torch.float32 if self.continuous else torch.int64
 
 
@@ -61,10 +62,12 @@ class EnvSpec:
 
     @property
     def num_agents(self) -> int:
+        """A: the agents of each world."""
         return len(self.agent_names)
 
     @property
     def obs_keys(self) -> tuple:
+        """The observation keys, in the order of ``observations``."""
         return tuple(self.observations)
 
 

@@ -36,6 +36,7 @@ class HeldOutScenario:
 
     @property
     def tags(self) -> tuple:
+        """("resident",) when the focal agents hold most of the slots, else ("visitor",)."""
         return ("resident",) if 2 * len(self.focal) > self.num_agents else ("visitor",)
 
     def population(self, seed: int = 0) -> Population:
@@ -44,6 +45,7 @@ class HeldOutScenario:
                            for i, (team, names) in enumerate(self.bots_by_role.items())}, focal=self.focal)
 
     def env_kwargs(self) -> dict:
+        """make_env keywords of the scenario's task: its slot count and parameters."""
         return {"num_agents": self.num_agents, **self.params}
 
 

@@ -53,6 +53,8 @@ class Policy:
         """Worlds (bool [W]) that start a new episode: forget what was kept for them. Stateless: nothing."""
 
     def act(self, env, obs: dict, worlds: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+        """Actions of the (world, slot) pairs `worlds`, `slots` (int64 [P]): [P] (or [P, action_dim]),
+        from `obs`, the observations of exactly those pairs ([P, ...] for the keys in ``needs``)."""
         raise NotImplementedError
 
     def __repr__(self):

@@ -55,6 +55,7 @@ class TrainingRun:
 
     @property
     def env_steps(self) -> int:
+        """Env steps collected, summed over worlds (with overlap, the last rollout's too; see learned_env_steps)."""
         return self.trainer.env_steps
 
     def policy(self) -> GreedyPolicy:
