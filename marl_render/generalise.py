@@ -47,11 +47,12 @@ import torch
 
 from marl_render.baselines import stats
 from marl_render.bots import POPULATIONS
+from marl_render.envs import env_class
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
 from marl_render.evaluate import evaluate as evaluate_heldout
 from marl_render.heldout import heldout_scenario, list_heldout
 from marl_render.policies import load_policy, required_env_kwargs
-from marl_render.task_imports import add_import_option, load_user_tasks
+from marl_render.task_imports import add_import_option, load_user_tasks, register_task_option
 
 SETS = {  # evaluation set -> its make_env keywords (None: the run's own)
     "training levels": {"levels": None, "appearance": None},
@@ -71,6 +72,10 @@ def run_settings(run: str) -> dict:
     task = result.get("env")
     if not isinstance(task, str):
         raise ValueError(f"{run}/result.json names no task (its 'env'), got {task!r}")
+    if not env_class(task).has_levels():
+        raise ValueError(f"run {run}: task {task!r} draws its resets with spawn(generator), so it has no levels to "
+                         f"hold out (spawn_level(draws) gives it levels: docs/authoring.md); score it on held-out "
+                         f"scenarios with python -m marl_render.evaluate instead")
     options = {k: v for k, v in (result.get("env_options") or {}).items() if k != "appearance"}
     return {"task": task, "env_kwargs": {**options, **required_env_kwargs(policy)},
             "levels": policy.env_kwargs.get("levels"), "appearance": policy.env_kwargs.get("appearance"),
@@ -260,6 +265,13 @@ def main(argv=None) -> int:
         if not os.path.isfile(os.path.join(run, "result.json")) or not os.path.isfile(os.path.join(run, "actor.pt")):
             parser.error(f"RUN must be a run folder of python -m marl_render.baselines (result.json and actor.pt), "
                          f"got {run!r}")
+        try:  # a run of a task given as module:Class (--env my_tasks:MyTask) registers it again, by that name
+            with open(os.path.join(run, "result.json")) as f:
+                task = json.load(f).get("env")
+        except (OSError, ValueError, AttributeError) as error:
+            parser.error(f"RUN {run!r}: its result.json does not read as a run's ({error})")
+        if isinstance(task, str):
+            register_task_option(parser, f"RUN {run}'s env", task)
     threads = torch.get_num_threads()
     torch.set_num_threads(args.torch_threads)
     try:

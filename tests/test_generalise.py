@@ -175,3 +175,19 @@ def test_interactive_play_is_linked_from_the_readme_and_the_docs_index(capsys):
     shown = capsys.readouterr().out
     for option in sorted(set(re.findall(r"(--[a-z]+)", page))):  # every option the page names is one of play's
         assert re.search(rf"{option}\b", shown), option
+
+
+def test_generalise_takes_a_run_of_a_module_class_task_and_names_what_it_cannot_do(tmp_path, capsys, monkeypatch):
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent))
+    folder = tmp_path / "duel"
+    folder.mkdir()
+    torch.save(Actor("state", (8,), 2, 5, 8).state_dict(), folder / "actor.pt")
+    hp = {"resolution": 8, "grayscale": False, "frames": 1, "action_repeat": 1, "hidden": 8, "encoder": "conv",
+          "precision": "float32"}
+    (folder / "result.json").write_text(json.dumps({"env": "selfplay_user_task:BeaconDuel", "obs": "state",
+                                                    "hyperparameters": hp}))
+    # registered from the run's own env name (no --import), then refused by name: the task has no levels
+    with pytest.raises(SystemExit):
+        generalisation.main([str(folder), "--episodes", "2"])
+    err = capsys.readouterr().err
+    assert "task 'selfplay_user_task:BeaconDuel' draws its resets with spawn(generator), so it has no levels" in err
