@@ -42,7 +42,7 @@ class ActionSpec:
 
     @property
     def dtype(self) -> torch.dtype:
-        """The actions' dtype: float32 continuous, int64 discrete."""
+        """The dtype of the actions (float32 for continuous actions, int64 for discrete ones)."""
         return torch.float32 if self.continuous else torch.int64
 
 
@@ -62,7 +62,7 @@ class EnvSpec:
 
     @property
     def num_agents(self) -> int:
-        """A: the agents of each world."""
+        """The number of agents of each world, A."""
         return len(self.agent_names)
 
     @property

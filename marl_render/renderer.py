@@ -662,7 +662,7 @@ class BatchRenderer:
 
     @property
     def num_views(self) -> int:
-        """V = W * A: the views each render draws."""
+        """The number of views each render draws, V = W * A."""
         return self.scene.num_views
 
     @property
