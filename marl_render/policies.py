@@ -76,6 +76,7 @@ class CallablePolicy(Policy):
         self.name = name or getattr(function, "__name__", type(function).__name__)
 
     def act(self, env, obs, worlds, slots):
+        """The function's actions of the pairs `worlds`, `slots` (it sees every agent, theirs in place)."""
         full = {}
         for key, value in obs.items():
             # Every action allowed where the function sees no pair of its own: a random draw there stays valid.
@@ -118,6 +119,7 @@ class RandomPolicy(Policy):
         self.name, self.generator = name, torch.Generator().manual_seed(seed)
 
     def act(self, env, obs, worlds, slots):
+        """A uniformly random valid action per pair (uniform in [-1, 1] per dimension for continuous actions)."""
         if env.continuous:
             return torch.rand(len(worlds), env.action_dim, generator=self.generator) * 2 - 1
         mask = obs["action_mask"].to(torch.float32)
@@ -136,6 +138,7 @@ class ScriptedPolicy(Policy):
         self.name, self.script, self.description = name, script, description
 
     def act(self, env, obs, worlds, slots):
+        """The script's actions for every agent of every world, taken at the pairs `worlds`, `slots`."""
         return self.script(env)[worlds, slots]
 
 
@@ -159,12 +162,14 @@ class ActorPolicy(Policy):
         self.stack = self.held = self.fresh = None  # [W, A, ...] once the first call shows W and A
 
     def reset(self, env, worlds):
+        """Worlds (bool [W]) that start a new episode: their frame stacks and held actions start afresh."""
         if self.fresh is not None:
             self.fresh |= worlds.cpu()[:, None]
 
     @torch.inference_mode(False)
     @torch.no_grad()
     def act(self, env, obs, worlds, slots):
+        """The actor's greedy actions of the pairs, deciding every action_repeat steps on its frame stack."""
         if env.num_agents != self.num_agents:
             raise ValueError(f"policy {self.name!r} was trained with {self.num_agents} agents; env {env.name!r} has "
                              f"{env.num_agents}")
