@@ -50,7 +50,7 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/pip install --quiet --disable-pip-version-check uv==$(UV_VERSION)
 	$(VENV)/bin/uv pip install --quiet --python $(PY) $(addprefix --find-links ,$(sort $(PIP_FIND_LINKS_CONFIG))) \
-		-c constraints.txt -e ".[bench,docs,test,video,jax,sb3,gltf,plots]"
+		-c constraints.txt -e ".[bench,docs,test,video,jax,sb3,gltf,plots,tensorboard]"
 	touch $(STAMP)
 
 demo: $(STAMP)

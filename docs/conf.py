@@ -14,9 +14,10 @@ extensions = ["myst_parser", "sphinx_design", "sphinx.ext.autodoc", "sphinx.ext.
 source_suffix = {".md": "markdown", ".rst": "restructuredtext"}
 root_doc = "index"
 # Tables the benchmarks write without a title are shown inside performance.md ({include}); learning_notes.md
-# is part of accuracy/learning.md, which learning_accuracy writes with it.
+# is part of accuracy/learning.md, which learning_accuracy writes with it; generalisation/example.md is
+# part of generalisation.md, whose report() copies it in.
 exclude_patterns = ["_build", "**/train.log", "bench/floor*.md", "effects/effects.md", "scale/scale.md",
-                    "accuracy/learning_notes.md"]
+                    "accuracy/learning_notes.md", "generalisation/example.md"]
 suppress_warnings = ["myst.header"]  # generated notes (baselines/notes.md) start at a lower heading level
 
 myst_enable_extensions = ["colon_fence", "attrs_inline"]
@@ -25,7 +26,9 @@ myst_heading_anchors = 3  # `[spread](#spread)`: links to headings, as on GitHub
 autodoc_member_order = "bysource"
 autodoc_inherit_docstrings = False  # the libraries' own docstrings (gymnasium, torchrl) are not Sphinx-clean
 autodoc_typehints = "description"
-autodoc_default_options = {"members": True, "undoc-members": False, "show-inheritance": True}
+# No default "members": on Sphinx 9 it overrode each automodule's own :members: list (api.md), and
+# every function of a module (main, write, HelpFormatter) was listed; the lists say what is public.
+autodoc_default_options = {"undoc-members": False, "show-inheritance": True}
 napoleon_google_docstring = True
 napoleon_numpy_docstring = False
 

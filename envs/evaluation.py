@@ -3,6 +3,7 @@
     python -m marl_render.envs.evaluation --env all --episodes 32 --json
     python -m marl_render.envs.evaluation --env all --difficulty all --json   # every preset
     python -m marl_render.envs.evaluation --env rooms --levels published        # on the published test levels
+    python -m marl_render.envs.evaluation --import my_tasks --env my_task       # a user's task (or my_tasks:MyTask)
 
 For each task it plays `episodes` episodes at once (one per world, no autoreset, the task's
 default length) with the scripted heuristic (``Scenario.heuristic``, which reads the state)
@@ -13,8 +14,10 @@ opponents (``Scenario.opponents``: tag's prey, push's and capture_flag's second 
 other agents are evaluated, and the opponents play random actions in both rows: the rows then
 say how well a team does against random opponents.
 
-``evaluate(name, policy)`` takes any policy ``policy(env, obs) -> actions`` (e.g. a trained
-network), so learners are measured the same way.
+``evaluate(name, policy)`` takes any policy: a function ``policy(env, obs, generator) -> actions``
+of every agent (random_policy, heuristic_policy, the trainer's greedy policy) or an object with
+``act`` (``marl_render.policies.load_policy``'s saved run, ``heuristic_policy()``, a bot), both
+through ``marl_render.policies.as_policy``, so learners are measured the same way.
 """
 from __future__ import annotations
 
@@ -26,6 +29,7 @@ import time
 import torch
 
 from marl_render import strict_json
+from marl_render.task_imports import add_import_option, load_user_tasks
 
 from .registry import env_class, list_envs, make_env
 
@@ -45,20 +49,25 @@ def heuristic_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
 def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution: int = 16, **kwargs) -> dict:
     """Mean, std, min and max episode return of `policy` over `episodes` episodes (one per world), and
     each episode's return (``per_episode``, in world order)."""
+    # Imported here: marl_render.policies imports the baselines' networks, whose package imports this module.
+    from marl_render.policies import as_policy, joint_actions
+
+    generator = torch.Generator().manual_seed(seed + 1)
+    player = as_policy(policy, generator)  # before the env is built: a policy of no kind fails at once
     env = make_env(name, num_worlds=episodes, resolution=resolution, seed=seed, **kwargs)
     try:
-        generator = torch.Generator().manual_seed(seed + 1)
         opponents = opponent_mask(env)
         evaluated = ~opponents
         if not bool(evaluated.any()):  # the mean over no agents would be NaN
             raise ValueError(f"{type(env.scenario).__name__}.opponents {list(env.scenario.opponents)} names every team "
                              f"{list(env.groups)}, so no agent is evaluated; leave at least one team out of it")
         obs = env.reset()
+        player.reset(env, torch.ones(episodes, dtype=torch.bool))
         episode_return = torch.zeros(episodes, env.num_agents, dtype=torch.float64)
         running = torch.ones(episodes, dtype=torch.bool)
         steps = 0
         while bool(running.any()) and steps < env.max_steps:
-            actions = policy(env, obs, generator)
+            actions = joint_actions(player, env, obs)
             if bool(opponents.any()):
                 actions = torch.where(_expand_like(opponents, actions), random_policy(env, obs, generator), actions)
             obs, reward, terminated, truncated, info = env.step(actions)
@@ -101,9 +110,12 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m marl_render.envs.evaluation", description=__doc__,
-                                     formatter_class=HelpFormatter)
-    parser.add_argument("--env", nargs="+", default=["all"], help="task names, or all")
+    prog = "python -m marl_render.envs.evaluation"
+    load_user_tasks(argv, prog)  # a user's task (--import MODULE, or --env module:Class) before the names are checked
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("--env", nargs="+", default=["all"],
+                        help="task names (a user's: with --import MODULE, or as module:Class), or all")
+    add_import_option(parser)
     parser.add_argument("--episodes", type=int, default=32, help="episodes per policy (one per world)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the envs and the random policy")
     parser.add_argument("--difficulty", choices=("easy", "medium", "hard", "all"), default=None,

@@ -38,6 +38,7 @@ always drew. A task that only implements ``spawn(generator)`` still works, witho
 """
 from __future__ import annotations
 
+import argparse
 import numbers
 
 import numpy as np
@@ -194,6 +195,15 @@ def as_sampler(value):
                              f"[{int(ids.min())}, {int(ids.max())}]")
         return LevelSet(f"train[{ids.numel()} ids]", ids=ids.unique())
     raise TypeError(f"levels must be {want}, got {describe(value)}")
+
+
+def levels_option(text: str):
+    """A command line's ``--levels`` / ``--eval-levels``: a count n >= 1, or one of the named sets."""
+    if text.isdigit() and int(text) >= 1:
+        return int(text)
+    if text in NAMED:
+        return text
+    raise argparse.ArgumentTypeError(f"expected a count n >= 1 or one of {list(NAMED)}, got {text!r}")
 
 
 def check_level_ids(name: str, ids: torch.Tensor, num_worlds: int, where: torch.Tensor | None = None) -> torch.Tensor:

@@ -138,6 +138,7 @@ class Scenario(abc.ABC):
 
     @property
     def agent_names(self) -> list:
+        """Every agent's name, team after team in the order of ``teams``."""
         return [name for names in self.teams.values() for name in names]
 
     # ------------------------------------------------------------------ rules

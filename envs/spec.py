@@ -42,6 +42,7 @@ class ActionSpec:
 
     @property
     def dtype(self) -> torch.dtype:
+        """The dtype of the actions (float32 for continuous actions, int64 for discrete ones)."""
         return torch.float32 if self.continuous else torch.int64
 
 
@@ -61,10 +62,12 @@ class EnvSpec:
 
     @property
     def num_agents(self) -> int:
+        """The number of agents of each world, A."""
         return len(self.agent_names)
 
     @property
     def obs_keys(self) -> tuple:
+        """The observation keys, in the order of ``observations``."""
         return tuple(self.observations)
 
 

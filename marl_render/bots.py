@@ -9,7 +9,10 @@ scenario gives it is in marl_render/heldout.py.
     POPULATIONS["tag"]["train"]             # names of the bots users may train with
     POPULATIONS["tag"]["test"]              # names held out for evaluation: none is in "train"
 
-Each task's two populations share no bot: held-out scenarios use test bots only.
+Each task's two populations share no bot: held-out scenarios use test bots only. A user's task
+(or a built-in one) gets bots with ``register_bot`` (docs/authoring.md): every command line that
+takes bot names (``python -m marl_render.evaluate``, its cross-play roster) then knows them,
+through ``--import MODULE`` of the module that registers them.
 """
 from __future__ import annotations
 
@@ -17,7 +20,9 @@ import math
 
 import torch
 
+from marl_render.envs import list_envs
 from marl_render.envs.masking import sample_allowed
+from marl_render.validation import describe
 
 from .policies import Policy, ScriptedPolicy, heuristic_policy
 
@@ -213,6 +218,55 @@ POPULATIONS: dict = {  # task -> {"train": bots users may train with, "test": bo
 }
 
 
+FACTORIES: dict = {}  # task -> bot name -> (factory(seed) -> Policy, one line): register_bot's factory bots
+
+
+def register_bot(task: str, name: str, script=None, *, factory=None, description: str = "",
+                 population: str = "test", overwrite: bool = False) -> None:
+    """Make bot `name` of registered task `task` known to make_bot, bot_names, held-out scenarios
+    (``register_heldout``) and every command line that takes bot names.
+
+    Give one of: `script`, a function ``script(env) -> actions`` of every agent of every world
+    ([W, A] or [W, A, action_dim]) that reads ``env.sim`` (a scripted bot, as the built-in ones);
+    `factory`, a function ``factory(seed) -> Policy`` (an object with ``act``, ``needs`` and
+    ``reset``: a bot with its own state or generator); or neither, for a heuristic variant of
+    ``PERTURBED`` ("noisy0.5", "lazy0.5", ...). `population`: "test" (held-out scenarios use these
+    only) or "train" (bots a user may train with); the two stay disjoint. A task's first bot gives it
+    the populations, with its scripted heuristic (``Scenario.heuristic``) in "train"."""
+    if not isinstance(task, str) or task not in list_envs():
+        raise ValueError(f"task must be a registered task (register_env first) among {list_envs()}, got {task!r}")
+    if not isinstance(name, str) or not name:
+        raise TypeError(f"name must be a non-empty str, got {describe(name)}")
+    if population not in ("train", "test"):
+        raise ValueError(f"population must be 'train' or 'test', got {population!r}")
+    if script is not None and factory is not None:
+        raise ValueError(f"bot {name!r}: give script or factory, not both")
+    for label, value in (("script", script), ("factory", factory)):
+        if value is not None and not callable(value):
+            raise TypeError(f"{label} of bot {name!r} must be callable, got {describe(value)}")
+    if script is None and factory is None and name not in PERTURBED:
+        raise ValueError(f"bot {name!r} needs a script or a factory (only the heuristic variants {list(PERTURBED)} "
+                         f"need neither)")
+    if name == "heuristic":
+        raise ValueError("bot 'heuristic' is the task's own Scenario.heuristic, in every task's train population: "
+                         "choose another name")
+    populations = POPULATIONS.get(task, {"train": ("heuristic",), "test": ()})
+    other = "train" if population == "test" else "test"
+    if name in populations[other]:
+        raise ValueError(f"bot {name!r} is in {task}'s {other} population: the train and test populations share "
+                         f"no bot")
+    if name in populations[population] and not overwrite:
+        raise ValueError(f"bot {name!r} of {task} is already registered; pass overwrite=True to replace it")
+    # New entries, never edits of the tables' own dicts (which the built-in tasks share).
+    POPULATIONS[task] = {**populations, population: (*[n for n in populations[population] if n != name], name)}
+    SCRIPTS[task] = {k: v for k, v in SCRIPTS.get(task, {}).items() if k != name}
+    FACTORIES[task] = {k: v for k, v in FACTORIES.get(task, {}).items() if k != name}
+    if script is not None:
+        SCRIPTS[task][name] = (script, description or (script.__doc__ or "").strip() or name)
+    if factory is not None:
+        FACTORIES[task][name] = (factory, description or name)
+
+
 def bot_names(task: str) -> list:
     """Every bot of `task` (its populations' union)."""
     if task not in POPULATIONS:
@@ -223,7 +277,9 @@ def bot_names(task: str) -> list:
 def describe_bot(task: str, name: str) -> str:
     if name == "heuristic":
         return "the task's scripted heuristic"
-    if name in PERTURBED:
+    if name in FACTORIES.get(task, {}):
+        return FACTORIES[task][name][1]
+    if name in PERTURBED and name not in SCRIPTS.get(task, {}):
         kind, p = PERTURBED[name]
         return f"the heuristic, playing {'noop' if kind == 'lazy' else 'a random action'} with probability {p:g}"
     return SCRIPTS[task][name][1]
@@ -235,7 +291,13 @@ def make_bot(task: str, name: str, seed: int = 0) -> Policy:
         raise ValueError(f"bot must be one of {task}'s bots {bot_names(task)}, got {name!r}")
     if name == "heuristic":
         return heuristic_policy()
-    if name in PERTURBED:
+    if name in FACTORIES.get(task, {}):
+        bot = FACTORIES[task][name][0](seed)
+        if not callable(getattr(bot, "act", None)):
+            raise TypeError(f"the factory of bot {name!r} of {task} must return a Policy (an object with act), got "
+                            f"{describe(bot)}")
+        return bot
+    if name in PERTURBED and name not in SCRIPTS.get(task, {}):
         kind, p = PERTURBED[name]
         return Perturbed(heuristic_policy(), p, kind, seed)
     script, description = SCRIPTS[task][name]

@@ -6,7 +6,7 @@
     python -m marl_render.evaluate --docs            # regenerates docs/heldout.md and docs/crossplay.md
     python -m marl_render.evaluate --docs --crossplay-only --task tag   # only tag's cross-play section
     python -m marl_render.evaluate --crossplay tag --roster random heuristic docs/selfplay/tag/seed0 --out out/x
-    python -m marl_render.evaluate --import my_tasks --crossplay my_task --roster random out/my_task
+    python -m marl_render.evaluate --import my_tasks --crossplay my_task --roster random out/my_task --out out/x
 
 A policy is ``random``, ``heuristic``, a heuristic variant of the task (a bot name of
 marl_render/bots.py, e.g. ``interceptor``) or a run folder of ``python -m marl_render.baselines``
@@ -24,7 +24,10 @@ printed.
 
 ``--crossplay TASK`` plays every policy of ``--roster`` as the task's first team against every one
 as its second (any registered task of two or more teams, a user's too: ``--import MODULE`` or
-``module:Class``), and writes the matrices and Elo ratings (PREFIX.json, or printed). Self-play
+``module:Class``; its bots by name once ``register_bot`` made them known), and writes the matrices
+and Elo ratings to PREFIX.json, the tables (Elo, returns, win rates) to PREFIX.md, which it also
+prints, and the win-rate heatmap to PREFIX.png (matplotlib: the plots extra); without ``--out``
+it prints the JSON. Self-play
 snapshots are run folders (``python -m marl_render.baselines --self-play`` writes them under
 OUT/snapshots/).
 """
@@ -46,8 +49,10 @@ from marl_render import strict_json
 from marl_render.bots import POPULATIONS, bot_names, make_bot
 from marl_render.elo import elo_ratings
 from marl_render.envs import Population, env_class, list_envs, make_env
+from marl_render.envs.levels import levels_option
+from marl_render.extras import command_needs_extra
 from marl_render.heldout import HELDOUT, heldout_scenario, list_heldout
-from marl_render.policies import Policy, RandomPolicy, heuristic_policy, load_policy
+from marl_render.policies import Policy, RandomPolicy, as_policy, heuristic_policy, load_policy, required_env_kwargs
 from marl_render.task_imports import add_import_option, load_user_tasks
 from marl_render.threads import MAX_THREADS
 
@@ -57,10 +62,10 @@ DOCS_EPISODES, CROSSPLAY_EPISODES, DOCS_SEED, DOCS_RESOLUTION = 32, 16, 0, 16
 
 
 def make_policy(spec, task: str, seed: int = 0) -> Policy:
-    """A fresh focal policy from `spec`: a Policy (returned as it is), "random", "heuristic", a bot
-    name of `task`, or a run folder."""
-    if isinstance(spec, Policy):
-        return spec
+    """A fresh focal policy from `spec`: a policy object or function (``as_policy``), "random",
+    "heuristic", a bot name of `task`, or a run folder."""
+    if not isinstance(spec, (str, os.PathLike)):
+        return as_policy(spec, torch.Generator().manual_seed(seed + 1))
     if spec == "random":
         return RandomPolicy(seed + 1)
     if spec == "heuristic" and task not in POPULATIONS:  # a user's task: its own scripted heuristic
@@ -108,21 +113,22 @@ def play(env, policy: Policy) -> dict:
 
 
 def _env(task: str, episodes: int, seed: int, resolution: int, policy: Policy, max_steps=None, **kwargs):
+    # A trained actor's resolution and colours, never the levels and looks it trained on: those are the caller's.
     return make_env(task, num_worlds=episodes, seed=seed, max_steps=max_steps,
-                    **{"resolution": resolution, **policy.env_kwargs, **kwargs})
+                    **{"resolution": resolution, **required_env_kwargs(policy), **kwargs})
 
 
 def scenario_returns(spec, scenario, *, episodes: int = 32, seed: int = 0, resolution: int = 16,
-                     max_steps: int | None = None) -> dict:
-    """play() of policy `spec` on held-out `scenario`."""
+                     max_steps: int | None = None, **looks) -> dict:
+    """play() of policy `spec` on held-out `scenario`; `looks`: levels= and appearance= of its env."""
     scenario = heldout_scenario(scenario)
     policy = make_policy(spec, scenario.task, seed)
-    with _env(scenario.task, episodes, seed, resolution, policy, max_steps, heldout=scenario) as env:
+    with _env(scenario.task, episodes, seed, resolution, policy, max_steps, heldout=scenario, **looks) as env:
         return play(env, policy)
 
 
 def training_condition(spec, scenario, *, episodes: int = 32, seed: int = 0, resolution: int = 16,
-                       max_steps: int | None = None) -> dict:
+                       max_steps: int | None = None, **looks) -> dict:
     """play() of policy `spec` on the focal slots of `scenario` in the condition the reference trainer
     trains in: its partners (the background slots of the focal agents' teams, or every slot of a
     cooperative task) are copies of itself, opponents play random actions."""
@@ -134,7 +140,7 @@ def training_condition(spec, scenario, *, episodes: int = 32, seed: int = 0, res
     roles = {team: [RandomPolicy(seed + 3) if competitive and team not in focal_teams else policy]
              for team in scenario.bots_by_role}
     with _env(scenario.task, episodes, seed, resolution, policy, max_steps, num_agents=scenario.num_agents,
-              **scenario.params,
+              **scenario.params, **looks,
               background=Population(roles, focal=scenario.focal)) as env:
         return play(env, policy)
 
@@ -162,10 +168,11 @@ def normalised(value: float, random: float, heuristic: float) -> float:
 
 
 def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: int = 16, max_steps: int | None = None,
-             references: dict | None = None, gap: bool = False) -> list:
+             references: dict | None = None, gap: bool = False, levels=None, appearance=None) -> list:
     """One row per scenario (see the module docstring); `references` caches the random and heuristic
     returns per scenario between calls; `gap` adds the training condition's return; `max_steps`
-    shortens the episodes (None: the task's length, the published protocol)."""
+    shortens the episodes (None: the task's length, the published protocol); `levels` and
+    `appearance` are make_env's (None: the scenario's default resets and looks)."""
     if isinstance(scenarios, str):  # one name is not a list of its characters
         raise TypeError(f"scenarios must be a list of held-out scenario names, got the str {scenarios!r}: pass "
                         f"[{scenarios!r}], or scenario_names({scenarios!r}) for a task's scenarios or 'all'")
@@ -176,17 +183,19 @@ def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: 
     rows = []
     for name in scenarios:
         scenario = heldout_scenario(name)
-        same = dict(episodes=episodes, seed=seed, resolution=resolution, max_steps=max_steps)
+        same = dict(episodes=episodes, seed=seed, resolution=resolution, max_steps=max_steps,
+                    **{k: v for k, v in (("levels", levels), ("appearance", appearance)) if v is not None})
         result = scenario_returns(spec, scenario, **same)
         for label in ("random", "heuristic"):
-            key = (scenario.name, label, *same.values())
+            key = (scenario.name, label, repr(sorted(same.items())))
             if key not in references:
                 references[key] = result if label == spec else scenario_returns(label, scenario, **same)
         mean, std = _summary(result["focal"])
-        random, heuristic = (float(references[(scenario.name, label, *same.values())]["focal"].mean())
+        random, heuristic = (float(references[(scenario.name, label, repr(sorted(same.items())))]["focal"].mean())
                              for label in ("random", "heuristic"))
         row = {"scenario": scenario.name, "task": scenario.task, "tags": " ".join(scenario.tags),
-               "policy": spec if isinstance(spec, str) else spec.name, "episodes": episodes, "seed": seed,
+               "policy": spec if isinstance(spec, str) else make_policy(spec, scenario.task, seed).name,
+               "episodes": episodes, "seed": seed,
                "focal_return_mean": mean, "focal_return_std": std,
                "background_return_mean": _summary(result["background"])[0],
                "background_return_std": _summary(result["background"])[1],
@@ -306,7 +315,7 @@ def matrix_env_kwargs(task: str, roster: dict, resolution: int, seed: int) -> di
     required: dict = {}
     owner: dict = {}
     for label, spec in roster.items():
-        needs = dict(make_policy(spec, task, seed).env_kwargs)
+        needs = required_env_kwargs(make_policy(spec, task, seed))
         if isinstance(spec, str) and os.path.isdir(spec):  # the team sizes a trained actor was trained with
             with open(os.path.join(spec, "result.json")) as f:
                 options = json.load(f).get("env_options") or {}
@@ -439,11 +448,33 @@ def heldout_page(rows_by_policy: dict, command: str, note: str) -> str:
                          f"{_fmt(r['focal_return_std'])} | {_fmt(r['background_return_mean'])} | "
                          f"{_fmt(r['normalised_score'])} | {_fmt(r.get('training_condition_return', math.nan))} | "
                          f"{_fmt(r.get('generalisation_gap', math.nan))} | {bots} |")
-        gaps = [r["generalisation_gap"] for r in rows if r.get("generalisation_gap") is not None]  # null: undefined
-        if gaps:
-            lines += ["", f"Mean generalisation gap over {len(gaps)} scenarios: {_fmt(float(np.mean(gaps)))}."]
+        lines += mean_gap_lines(rows)
         lines.append("")
     return "\n".join(lines)
+
+
+def normalised_gaps(rows: list) -> list:
+    """Each row's generalisation gap on its scenario's scale, (training condition - held-out) /
+    (heuristic - random): comparable across tasks whose returns differ by orders of magnitude. Rows
+    without a gap, or whose heuristic and random tie (no scale), are left out."""
+    def number(row, key):  # null in JSON (an undefined value) counts as missing, like NaN
+        value = row.get(key)
+        return math.nan if value is None else value
+    scales = [number(r, "heuristic_return") - number(r, "random_return") for r in rows]
+    return [r["generalisation_gap"] / scale for r, scale in zip(rows, scales, strict=True)
+            if math.isfinite(number(r, "generalisation_gap")) and math.isfinite(scale) and scale != 0]
+
+
+def mean_gap_lines(rows: list) -> list:
+    """The page's summary of a policy's gaps: their mean on each scenario's random-heuristic scale."""
+    gaps = normalised_gaps(rows)
+    if not gaps:
+        return []
+    left_out = sum("generalisation_gap" in r for r in rows) - len(gaps)
+    return ["", f"Mean generalisation gap over {len(gaps)} scenarios, each normalised by its heuristic - random: "
+            f"{np.mean(gaps):.2f}" + (f" ({left_out} scenario(s) without a scale, where heuristic and random tie or "
+                                      "a return is undefined, left out)."
+                                      if left_out else ".")]
 
 
 def crossplay_page(results: list, command: str, note: str) -> str:
@@ -456,18 +487,31 @@ def crossplay_page(results: list, command: str, note: str) -> str:
              "`snapshot K@Nk` its K-th snapshot, taken after N thousand env steps (docs/training.md). A trained "
              "actor plays either side (its agent one-hot names its slot).", ""]
     for result in results:
-        task, labels = result["task"], result["policies"]
-        side_a, side_b = result["sides"]
-        lines += [f"## {task} ({side_a} vs {side_b}, {result['episodes']} episodes per pair)", "",
-                  f"![{task} cross-play](crossplay/{task}.png)", "", "| Elo | policy |", "|---:|---|"]
-        for rating, label in sorted(zip(result["elo"], labels, strict=True), reverse=True):
-            lines.append(f"| {_fmt(rating, 0)} | {label} |")
-        lines += ["", *self_play_verdict(result), f"Per-capita return of the row team ({side_a}):", "",
-                  "| row \\ column | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
-        for label, values in zip(labels, result["returns_a"], strict=True):
+        lines += crossplay_section(result, f"crossplay/{result['task']}.png")
+    return "\n".join(lines)
+
+
+def crossplay_section(result: dict, picture: str | None = None, win_rates: bool = False) -> list:
+    """One cross-play result as markdown lines: the Elo ranking, the self-play verdict, the row
+    team's per-capita returns (and, with `win_rates`, the row policy's win rate) per pair."""
+    task, labels = result["task"], result["policies"]
+    side_a, side_b = result["sides"]
+    lines = [f"## {task} ({side_a} vs {side_b}, {result['episodes']} episodes per pair)", ""]
+    if picture:
+        lines += [f"![{task} cross-play]({picture})", ""]
+    lines += ["| Elo | policy |", "|---:|---|"]
+    for rating, label in sorted(zip(result["elo"], labels, strict=True), reverse=True):
+        lines.append(f"| {_fmt(rating, 0)} | {label} |")
+    tables = [(f"Per-capita return of the row team ({side_a}):", result["returns_a"])]
+    if win_rates:
+        tables.append(("Win rate of the row policy over both sides (a draw counts half):", result["win_rate"]))
+    lines += ["", *self_play_verdict(result)]
+    for title, matrix in tables:
+        lines += [title, "", "| row \\ column | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
+        for label, values in zip(labels, matrix, strict=True):
             lines.append(f"| {label} | " + " | ".join(_fmt(v) for v in values) + " |")
         lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def self_play_verdict(result: dict) -> list:
@@ -616,6 +660,10 @@ def main(argv=None) -> int:
     parser.add_argument("--resolution", type=int, default=16, help="pixels per side (a run folder's own wins)")
     parser.add_argument("--max-steps", type=int, default=None, help="shorter episodes (default: the task's length)")
     parser.add_argument("--gap", action="store_true", help="also play the training condition (generalisation gap)")
+    parser.add_argument("--levels", type=levels_option, default=None,
+                        help="levels of the scenarios' envs: a count n, train, test or published (default: none)")
+    parser.add_argument("--appearance", choices=("train", "heldout"), default=None,
+                        help="per-level looks of the scenarios' envs (default: off)")
     parser.add_argument("--out", help="write OUT.json and OUT.csv instead of printing JSON")
     parser.add_argument("--docs", action="store_true", help="regenerate docs/heldout.md and docs/crossplay.md")
     parser.add_argument("--crossplay-episodes", type=int, default=CROSSPLAY_EPISODES,
@@ -672,7 +720,7 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> in
     try:
         scenarios = scenario_names(args.scenario)
         rows = evaluate(args.policy, scenarios, episodes=args.episodes, seed=args.seed, resolution=args.resolution,
-                        max_steps=args.max_steps, gap=args.gap)
+                        max_steps=args.max_steps, gap=args.gap, levels=args.levels, appearance=args.appearance)
     except (ValueError, FileNotFoundError) as error:
         parser.error(str(error))
     if args.out:
@@ -694,6 +742,9 @@ def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace)
         parser.error(f"--crossplay {args.crossplay}: {error}")
     if len(teams) < 2:  # the task first: no roster plays a task of one team
         parser.error(f"cross-play needs a task of two or more teams; {args.crossplay} has {teams}")
+    if args.out:  # its heatmap: a missing matplotlib ends here, before the matrix is played
+        with command_needs_extra("plots", "python -m marl_render.evaluate --crossplay --out (its heatmap)"):
+            import matplotlib  # noqa: F401
     roster = roster_of(parser, args.roster, args.crossplay, args.seed)
     try:
         result = crossplay(args.crossplay, roster, episodes=args.crossplay_episodes, seed=args.seed,
@@ -706,7 +757,12 @@ def crossplay_command(parser: argparse.ArgumentParser, args: argparse.Namespace)
             os.makedirs(folder, exist_ok=True)
         with open(args.out + ".json", "w") as f:
             strict_json.dump(result, f, indent=1)
-        print(f"wrote {args.out}.json ({len(roster)} policies)", flush=True)
+        table = "\n".join(crossplay_section(result, os.path.basename(args.out) + ".png", win_rates=True))
+        with open(args.out + ".md", "w") as f:
+            f.write(table)
+        heatmap(result, args.out + ".png")
+        print(table)
+        print(f"wrote {args.out}.json, {args.out}.md and {args.out}.png (win-rate heatmap; {len(roster)} policies)")
     else:
         print(strict_json.dumps(result), flush=True)
     return 0

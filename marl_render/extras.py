@@ -28,6 +28,7 @@ EXTRAS = {
     "video": ("imageio",),
     "jax": ("jax", "jaxlib"),
     "sb3": ("stable_baselines3",),
+    "tensorboard": ("tensorboard",),  # python -m marl_render.baselines --tensorboard
     "gltf": ("gltf",),
     "human": ("matplotlib",),
     "docs": ("sphinx", "myst_parser", "furo", "sphinx_copybutton", "sphinx_design"),  # make docs

@@ -6,12 +6,16 @@ background bots by role, all drawn from the task's test population (marl_render/
     make_env("tag", heldout="tag/prey_vs_interceptors", num_worlds=32)   # its focal-only env
 
 Tags: "resident" when the focal agents are the majority of the slots, else "visitor".
+
+A user's task gets scenarios with ``register_heldout(HeldOutScenario(...))`` once its test bots
+are registered (``marl_render.bots.register_bot``; docs/authoring.md).
 """
 from __future__ import annotations
 
 import dataclasses
 
 from marl_render.envs.focal import Population
+from marl_render.envs.registry import list_envs, make_env
 from marl_render.validation import describe
 
 from .bots import POPULATIONS, make_bot
@@ -33,6 +37,7 @@ class HeldOutScenario:
 
     @property
     def tags(self) -> tuple:
+        """("resident",) when the focal agents hold most of the slots, else ("visitor",)."""
         return ("resident",) if 2 * len(self.focal) > self.num_agents else ("visitor",)
 
     def population(self, seed: int = 0) -> Population:
@@ -41,6 +46,7 @@ class HeldOutScenario:
                            for i, (team, names) in enumerate(self.bots_by_role.items())}, focal=self.focal)
 
     def env_kwargs(self) -> dict:
+        """make_env keywords of the scenario's task: its slot count and parameters."""
         return {"num_agents": self.num_agents, **self.params}
 
 
@@ -125,6 +131,41 @@ _SCENARIOS = [
 HELDOUT: dict = {s.name: s for s in _SCENARIOS}
 
 
+def register_heldout(scenario: HeldOutScenario, *, overwrite: bool = False) -> None:
+    """Make `scenario` known to make_env(heldout=...), list_heldout and every command line
+    (``python -m marl_render.evaluate --scenario NAME`` or ``--scenario TASK``). Its task must be
+    registered, its bots in the task's test population (``register_bot``), its focal agents and
+    roles among the task's agents and teams at its ``num_agents`` and ``params`` (checked on a
+    one-world env)."""
+    if not isinstance(scenario, HeldOutScenario):
+        raise TypeError(f"scenario must be a HeldOutScenario, got {type(scenario).__name__}")
+    if not isinstance(scenario.name, str) or not scenario.name:
+        raise ValueError(f"scenario.name must be a non-empty str, got {scenario.name!r}")
+    if scenario.name in HELDOUT and not overwrite:
+        raise ValueError(f"a held-out scenario named {scenario.name!r} is already registered; pass overwrite=True "
+                         f"to replace it")
+    if scenario.task not in list_envs():
+        raise ValueError(f"scenario.task must be a registered task among {list_envs()}, got {scenario.task!r}")
+    test = POPULATIONS.get(scenario.task, {}).get("test", ())
+    strangers = sorted({n for names in scenario.bots_by_role.values() for n in names} - set(test))
+    if strangers or not scenario.bots_by_role:
+        raise ValueError(f"scenario {scenario.name!r}: bots_by_role must name bots of {scenario.task}'s test "
+                         f"population {list(test)} (marl_render.bots.register_bot), got {strangers or 'none'}")
+    with make_env(scenario.task, num_worlds=1, resolution=8, **scenario.env_kwargs()) as probe:
+        agents, teams = probe.agent_names, dict(probe.groups)
+    unknown = [name for name in scenario.focal if name not in agents]
+    if not scenario.focal or unknown:
+        raise ValueError(f"scenario {scenario.name!r}: focal must name agents among {agents}, got "
+                         f"{list(scenario.focal)}")
+    if set(scenario.bots_by_role) - set(teams):
+        raise ValueError(f"scenario {scenario.name!r}: bots_by_role's roles must be teams among {list(teams)}, got "
+                         f"{list(scenario.bots_by_role)}")
+    if scenario.name in HELDOUT:
+        _SCENARIOS.remove(HELDOUT[scenario.name])
+    _SCENARIOS.append(scenario)
+    HELDOUT[scenario.name] = scenario
+
+
 def list_heldout(task: str | None = None) -> list:
     """Names of the held-out scenarios (of `task` only, if given), in registry order."""
     if task is not None and task not in POPULATIONS:
@@ -133,6 +174,8 @@ def list_heldout(task: str | None = None) -> list:
 
 
 def heldout_scenario(name) -> HeldOutScenario:
+    """The HeldOutScenario registered as `name` (see list_heldout); a HeldOutScenario is returned as
+    it is. ValueError listing the registered names for any other value."""
     if isinstance(name, HeldOutScenario):
         return name
     if not isinstance(name, str):

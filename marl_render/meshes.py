@@ -129,6 +129,8 @@ def lathe(name: str, profile, segments: int) -> MeshData:
 
 
 def sphere(segments: int = 16, rings: int = 8) -> MeshData:
+    """Sphere of diameter 1 centred at the origin (a lathe about +Z): `segments` steps around,
+    `rings` from pole to pole; smooth normals, u around the axis, v from bottom to top."""
     profile = []
     for j in range(rings + 1):
         phi = math.pi * j / rings - math.pi / 2  # bottom to top
@@ -138,6 +140,8 @@ def sphere(segments: int = 16, rings: int = 8) -> MeshData:
 
 
 def cylinder(segments: int = 16) -> MeshData:
+    """Closed cylinder along Z, diameter 1 and height 1, centred at the origin (z in [-0.5, 0.5]):
+    flat caps, a smooth side, `segments` steps around (a lathe about +Z)."""
     profile = [
         (0.0, -0.5, 0, -1, 0.0), (0.5, -0.5, 0, -1, 0.1),  # bottom cap
         (0.5, -0.5, 1, 0, 0.1), (0.5, 0.5, 1, 0, 0.9),  # side
@@ -147,6 +151,8 @@ def cylinder(segments: int = 16) -> MeshData:
 
 
 def cone(segments: int = 16) -> MeshData:
+    """Cone along Z: a base disc of diameter 1 at z = -0.5, the apex at z = 0.5; smooth side
+    normals tilted by the slope, `segments` steps around (a lathe about +Z)."""
     slope = math.atan2(0.5, 1.0)  # side normal tilts up by atan(r / h)
     nr, nz = math.cos(slope), math.sin(slope)
     profile = [

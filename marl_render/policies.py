@@ -33,6 +33,16 @@ from marl_render.envs import env_class, list_envs
 from marl_render.envs.masking import sample_allowed
 from marl_render.validation import describe
 
+# Keys of a loaded run's env_kwargs that say where it trained, not what its actor needs: an
+# evaluation chooses its own levels and looks (cross-play and held-out scenarios play the defaults).
+TRAINING_CONDITION = ("levels", "appearance")
+
+
+def required_env_kwargs(policy) -> dict:
+    """The make_env keywords `policy`'s actor needs (resolution, grayscale, state_obs), without the
+    levels and looks it trained on."""
+    return {k: v for k, v in getattr(policy, "env_kwargs", {}).items() if k not in TRAINING_CONDITION}
+
 
 class Policy:
     """The interface: ``act(env, obs, worlds, slots)`` and ``reset(env, worlds)``; see the module docstring."""
@@ -45,10 +55,61 @@ class Policy:
         """Worlds (bool [W]) that start a new episode: forget what was kept for them. Stateless: nothing."""
 
     def act(self, env, obs: dict, worlds: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+        """Actions of the (world, slot) pairs `worlds`, `slots` (int64 [P]): [P] (or [P, action_dim]),
+        from `obs`, the observations of exactly those pairs ([P, ...] for the keys in ``needs``)."""
         raise NotImplementedError
 
     def __repr__(self):
         return f"{type(self).__name__}({self.name!r})"
+
+
+class CallablePolicy(Policy):
+    """A policy given as a function ``policy(env, obs, generator) -> actions`` of every agent of every
+    world ([W, A] or [W, A, action_dim]): the protocol of ``marl_render.envs.evaluation`` (its
+    ``random_policy`` and ``heuristic_policy``, the trainer's ``GreedyPolicy``) as a Policy. The
+    function is handed the observations of every agent, its own pairs' in their places (zeros
+    elsewhere, every action allowed), and `generator`; of its actions, its pairs' are taken."""
+
+    needs = frozenset({"pixels", "depth", "state", "lidar", "agent_id", "action_mask"})
+
+    def __init__(self, function, generator: torch.Generator | None = None, name: str | None = None):
+        self.function = function
+        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.name = name or getattr(function, "__name__", type(function).__name__)
+
+    def act(self, env, obs, worlds, slots):
+        """The function's actions of the pairs `worlds`, `slots` (it sees every agent, theirs in place)."""
+        full = {}
+        for key, value in obs.items():
+            # Every action allowed where the function sees no pair of its own: a random draw there stays valid.
+            fill = value.new_ones if key == "action_mask" else value.new_zeros
+            full[key] = fill((env.num_worlds, env.num_agents, *value.shape[1:]))
+            full[key][worlds, slots] = value
+        return self.function(env, full, self.generator)[worlds, slots]
+
+
+def as_policy(policy, generator: torch.Generator | None = None) -> Policy:
+    """Whatever plays an env, as a Policy: an object with ``act`` (a Policy: ``load_policy``'s
+    actor, ``heuristic_policy()``, ``RandomPolicy``, a bot) as it is, a function ``policy(env, obs,
+    generator)`` (``marl_render.envs.evaluation.random_policy`` and ``heuristic_policy``, the
+    trainer's greedy policy) as a CallablePolicy drawing from `generator`. Every evaluation
+    (``marl_render.envs.evaluation.evaluate``, ``marl_render.evaluate.evaluate``, cross-play,
+    ``marl_render.generalise``) takes its policies through this one adapter."""
+    if callable(getattr(policy, "act", None)):
+        return policy
+    if callable(policy) and not isinstance(policy, (str, type)):
+        return CallablePolicy(policy, generator)
+    raise TypeError(f"policy must be an object with act(env, obs, worlds, slots) (a Policy, e.g. load_policy's) or a "
+                    f"function policy(env, obs, generator) -> actions, got {describe(policy)}")
+
+
+def joint_actions(policy: Policy, env, obs: dict) -> torch.Tensor:
+    """`policy`'s actions for every agent of every world of the driver `env` ([W, A] or [W, A,
+    action_dim]) from its observations `obs` ([W, A, ...] each): one ``act`` call for all pairs."""
+    W, A = env.num_worlds, env.num_agents
+    worlds, slots = torch.arange(W).repeat_interleave(A), torch.arange(A).repeat(W)
+    seen = {key: value.flatten(0, 1) for key, value in obs.items() if key in policy.needs}
+    return policy.act(env, seen, worlds, slots).reshape(W, A, *env.spec.action.shape)
 
 
 class RandomPolicy(Policy):
@@ -60,6 +121,7 @@ class RandomPolicy(Policy):
         self.name, self.generator = name, torch.Generator().manual_seed(seed)
 
     def act(self, env, obs, worlds, slots):
+        """A uniformly random valid action per pair (uniform in [-1, 1] per dimension for continuous actions)."""
         if env.continuous:
             return torch.rand(len(worlds), env.action_dim, generator=self.generator) * 2 - 1
         if not len(worlds):
@@ -77,6 +139,7 @@ class ScriptedPolicy(Policy):
         self.name, self.script, self.description = name, script, description
 
     def act(self, env, obs, worlds, slots):
+        """The script's actions for every agent of every world, taken at the pairs `worlds`, `slots`."""
         return self.script(env)[worlds, slots]
 
 
@@ -123,12 +186,14 @@ class ActorPolicy(Policy):
                              f"{env.num_agents}")
 
     def reset(self, env, worlds):
+        """Worlds (bool [W]) that start a new episode: their frame stacks and held actions start afresh."""
         if self.fresh is not None:
             self.fresh |= worlds.cpu()[:, None]
 
     @torch.inference_mode(False)
     @torch.no_grad()
     def act(self, env, obs, worlds, slots):
+        """The actor's greedy actions of the pairs, deciding every action_repeat steps on its frame stack."""
         self.check_env(env)
         observation = obs[self.obs_key]
         if self.stack is None or self.stack.shape[0] != env.num_worlds:
@@ -155,7 +220,8 @@ class ActorPolicy(Policy):
 def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
     """The greedy policy of a run folder that ``python -m marl_render.baselines`` wrote (its
     result.json and actor.pt); `name` defaults to the folder's path. ``policy.env_kwargs`` holds the
-    resolution, grayscale and state_obs the actor needs: build the env with them."""
+    resolution, grayscale and state_obs the actor needs, and the ``levels`` and ``appearance`` it
+    trained with (where it did): build the env with them to play its training condition."""
     if not isinstance(run_folder, (str, os.PathLike)):
         raise TypeError(f"run_folder must be a path (str), got {describe(run_folder)}")
     paths = {f: os.path.join(run_folder, f) for f in ("result.json", "actor.pt")}
@@ -179,6 +245,7 @@ def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
     task = result.get("env")
     if task is not None and not isinstance(task, str):
         raise ValueError(f"{paths['result.json']}: env must be the name of the task the run trained on, got {task!r}")
+    env_kwargs.update(_levels_and_looks(result, paths["result.json"]))
     return ActorPolicy(actor, name=name or str(run_folder), obs_key=obs_key, frames=frames,
                        action_repeat=action_repeat, num_agents=agents, env_kwargs=env_kwargs, task=task,
                        num_actions=int(weights["head.4.weight"].shape[0]))
@@ -195,6 +262,19 @@ def _same_task(name: str, other) -> bool:
     if name in list_envs():
         return env_class(name) is target
     return name == f"{target.__module__}:{target.__qualname__}"
+
+
+def _levels_and_looks(result: dict, path: str) -> dict:
+    """The levels (``--levels``: train_options) and looks (``--appearance``: env_options) the run
+    trained with, as make_env keywords; none where it trained on the env's default resets."""
+    found = {}
+    for section, key in (("train_options", "levels"), ("env_options", "appearance")):
+        options = result.get(section) or {}
+        if not isinstance(options, dict):
+            raise ValueError(f"{path}: {section} must be a JSON object, got {options!r}")
+        if options.get(key) is not None:
+            found[key] = options[key]
+    return found
 
 
 def _actor(weights: dict, hp: dict, obs_key: str, resolution: int, channels: int) -> tuple:

@@ -241,22 +241,27 @@ class BatchRenderer:
 
     @property
     def camera_position(self) -> torch.Tensor:
+        """Every view's camera position in its world's frame, float64 [W, A, 3] (set_cameras sets it)."""
         return self.packer.camera_position
 
     @property
     def camera_rotation(self) -> torch.Tensor:
+        """Every view's camera orientation, a unit quaternion (w, x, y, z), float32 [W, A, 4] (set_cameras sets it)."""
         return self.packer.camera_rotation
 
     @property
     def fov_y(self) -> torch.Tensor:
+        """Every view's vertical field of view in degrees, float64 [W, A]."""
         return self.packer.fov_y
 
     @property
     def near(self) -> torch.Tensor:
+        """Every view's near clipping distance, float64 [W, A]."""
         return self.packer.near
 
     @property
     def far(self) -> torch.Tensor:
+        """Every view's far clipping distance, float64 [W, A]."""
         return self.packer.far
 
     # ------------------------------------------------------------------ GL objects
@@ -789,6 +794,7 @@ class BatchRenderer:
 
     @property
     def num_views(self) -> int:
+        """The number of views each render draws, V = W * A."""
         return self.scene.num_views
 
     @property

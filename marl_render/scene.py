@@ -212,6 +212,7 @@ class Scene:
 
     @property
     def num_views(self) -> int:
+        """The number of views, V = W * A (one per agent of every world)."""
         return self.num_worlds * self.agents_per_world
 
     def _check_name(self, name: str) -> None:

@@ -76,6 +76,7 @@ class SkinnedMesh(MeshData):
 
     @property
     def num_joints(self) -> int:
+        """The joints of the skeleton (len(joint_names))."""
         return len(self.joint_names)
 
     @functools.cached_property
@@ -118,6 +119,7 @@ class SkinnedMesh(MeshData):
         return float(bound.max(initial=0.0))
 
     def joint_index(self, name: str) -> int:
+        """The index of joint `name` in joint_names (and in a pose's joint axis); ValueError naming the joints."""
         if name not in self.joint_names:
             raise ValueError(f"mesh {self.name!r} has no joint {name!r}; its joints are {list(self.joint_names)}")
         return self.joint_names.index(name)

@@ -31,8 +31,8 @@ def load_user_tasks(argv, prog: str, task_options: tuple = ("--env",)) -> None:
     subclass, exits with status 2 and one line naming the option, as argparse does."""
     pre = argparse.ArgumentParser(prog=prog, add_help=False)
     add_import_option(pre)
-    for option in task_options:
-        pre.add_argument(option, default=None)
+    for option in task_options:  # every value an option is given (python -m marl_render.envs.evaluation --env a b)
+        pre.add_argument(option, nargs="*", default=[])
     known, _ = pre.parse_known_args(sys.argv[1:] if argv is None else argv)
     if "" not in sys.path and "." not in sys.path:  # as python -m does: modules of the current folder import
         sys.path.insert(0, "")
@@ -42,17 +42,22 @@ def load_user_tasks(argv, prog: str, task_options: tuple = ("--env",)) -> None:
         except Exception as error:  # any error of the user's module: name it, do not print a traceback
             pre.error(f"--import {module}: the module did not import ({type(error).__name__}: {error})")
     for option in task_options:
-        value = getattr(known, option.lstrip("-").replace("-", "_"))
-        if value is None or ":" not in value or value in list_envs():
-            continue
-        if value.count(":") != 1 or not all(value.split(":")):
-            pre.error(f"{option} must be a registered task or module:Class, got {value!r}")
-        module, name = value.split(":")
-        try:
-            scenario = getattr(importlib.import_module(module), name)
-        except Exception as error:
-            pre.error(f"{option} {value}: could not import it ({type(error).__name__}: {error})")
-        if not (isinstance(scenario, type) and issubclass(scenario, Scenario)):
-            pre.error(f"{option} {value}: expected module:Class naming a Scenario subclass "
-                      f"(marl_render.envs.Scenario), got {describe(scenario)}")
-        register_env(value, scenario)
+        for value in getattr(known, option.lstrip("-").replace("-", "_")):
+            register_task_option(pre, option, value)
+
+
+def register_task_option(pre: argparse.ArgumentParser, option: str, value: str) -> None:
+    """Register `value` of `option` if it is a ``module:Class`` not registered yet."""
+    if ":" not in value or value in list_envs():
+        return
+    if value.count(":") != 1 or not all(value.split(":")):
+        pre.error(f"{option} must be a registered task or module:Class, got {value!r}")
+    module, name = value.split(":")
+    try:
+        scenario = getattr(importlib.import_module(module), name)
+    except Exception as error:
+        pre.error(f"{option} {value}: could not import it ({type(error).__name__}: {error})")
+    if not (isinstance(scenario, type) and issubclass(scenario, Scenario)):
+        pre.error(f"{option} {value}: expected module:Class naming a Scenario subclass "
+                  f"(marl_render.envs.Scenario), got {describe(scenario)}")
+    register_env(value, scenario)

@@ -47,9 +47,17 @@ def tutorial_blocks() -> list:
     return python_blocks(text.split(SECOND_TASK)[0])
 
 
+BOTS_SECTION = "## 7. Bots and held-out scenarios"
+
+
 def second_task_blocks() -> list:
     """The blocks of section 6 (hide and seek): its definitions, then its use."""
-    return python_blocks(DOC.read_text().split(SECOND_TASK)[1])
+    return python_blocks(DOC.read_text().split(SECOND_TASK)[1].split(BOTS_SECTION)[0])
+
+
+def bots_blocks() -> list:
+    """The block of section 7: a user's bots and held-out scenario for the tutorial's task."""
+    return python_blocks(DOC.read_text().split(BOTS_SECTION)[1])
 
 
 @pytest.fixture(scope="module")
@@ -287,3 +295,23 @@ def test_a_hook_that_breaks_its_contract_is_named(task, words):
             env.step(torch.zeros(2, 2, dtype=torch.long))
     finally:
         env.close()
+
+
+def test_bots_and_held_out_scenarios_of_the_tutorial_task_run_as_written(tutorial, capsys):
+    from marl_render import bots, heldout
+
+    saved = [(table, dict(table)) for table in (bots.POPULATIONS, bots.SCRIPTS, bots.FACTORIES, heldout.HELDOUT)]
+    scenarios = list(heldout._SCENARIOS)
+    try:
+        blocks = bots_blocks()
+        assert len(blocks) == 1
+        exec(compile(blocks[0], str(DOC), "exec"), dict(tutorial))  # noqa: S102
+        assert heldout.list_heldout("rendezvous") == ["rendezvous/meet_the_stubborn"]
+        assert bots.POPULATIONS["rendezvous"] == {"train": ("heuristic",), "test": ("stayer", "lazy0.5")}
+        printed = capsys.readouterr().out
+        assert "stayer" in printed or "lazy0.5" in printed  # bots_sampled names the bots that played
+    finally:
+        for table, before in saved:
+            table.clear()
+            table.update(before)
+        heldout._SCENARIOS[:] = scenarios

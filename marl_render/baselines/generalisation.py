@@ -47,6 +47,13 @@ from .training import train
 
 ROOT = "docs/generalisation"
 PAGE = "docs/generalisation.md"
+EXAMPLE = "example.md"  # ROOT/EXAMPLE: python -m marl_render.generalise's output on a tiny run, shown on the page
+EXAMPLE_COMMANDS = (
+    "python -m marl_render.baselines --env forage --seeds 0 1 --updates 4 --worlds 4 --rollout 8 --levels 200 "
+    "--appearance train --episodes 4 --checkpoint-every 0 --out out/gen_example",
+    "python -m marl_render.generalise out/gen_example/seed0 out/gen_example/seed1 --episodes 8 --max-steps 50 "
+    "--heldout --out out/gen_example/generalise",
+)
 STUDY_STEPS = {"forage": 100_000, "speaker_listener": 100_000, "rooms": 100_000}  # env steps per run
 # Training-only shaping, as the published rows use it (docs/baselines.md); evaluations keep the task's reward.
 TRAIN_OPTIONS = {"rooms": {"explore_reward": 0.1}}
@@ -146,6 +153,31 @@ def interval(values: list) -> str:
     return f"{estimate.point:.2f} [{estimate.low:.2f}, {estimate.high:.2f}]"
 
 
+def own_runs_section(root: str) -> list:
+    """The page's section on scoring your own saved runs with python -m marl_render.generalise, with
+    its output on a tiny run (ROOT/example.md, made by EXAMPLE_COMMANDS) where there is one."""
+    lines = ["## Your own runs: `python -m marl_render.generalise`", "",
+             "The same protocol for any run folder that `python -m marl_render.baselines` wrote (train it with "
+             "`--levels 200 --appearance train` for a finite train set with per-level looks; `--seeds 0 1 2` trains "
+             "several). One command scores its greedy policy on its training levels, on the published test levels "
+             "and on the test levels under held-out looks, each beside random and the heuristic on the same levels, "
+             "with a 95% bootstrap interval over episodes, the normalised score (random 0, heuristic 1) and the gap "
+             "(training levels minus the set, raw and on the test set's random-heuristic scale); several runs of a "
+             "task add a summary across runs. `--heldout` adds the task's held-out scenarios (docs/heldout.md) with "
+             "each gap normalised by its scenario's heuristic - random; `--json` prints the JSON, `--out PREFIX` "
+             "writes PREFIX.json and PREFIX.md. From Python: "
+             "`marl_render.generalise.generalise([\"runs/seed0\", \"runs/seed1\"])` returns the same dictionary.", ""]
+    path = os.path.join(root, EXAMPLE)
+    if os.path.exists(path):
+        with open(path) as f:
+            example = f.read().strip()
+        lines += ["Its output on a **tiny run**, made only to show the format (2 seeds of 4 updates x 4 worlds x 8 "
+                  "steps = 128 env steps each: far too short to learn, so the numbers say nothing about forage):", "",
+                  "```bash", *EXAMPLE_COMMANDS, "```", "",
+                  example.replace("\n## forage\n", "\n### forage (tiny run)\n", 1), ""]
+    return lines
+
+
 def report(root: str = ROOT, page: str = PAGE) -> str:
     """docs/generalisation.md from the runs' result.json files."""
     lines = ["# The generalisation gap: unseen levels and unseen looks", "",
@@ -159,7 +191,8 @@ def report(root: str = ROOT, page: str = PAGE) -> str:
              f"test levels under held-out appearances (`appearance=\"heldout\"`). Each cell: mean episode return "
              f"over {len(SEEDS)} training seeds with a 95% percentile bootstrap interval over seeds "
              f"(marl_render/baselines/stats.py); each seed's return is the mean of {EVALUATION} evaluation "
-             f"episodes (env seed {EVALUATION_SEED}). Random and the heuristic play the same test levels.", ""]
+             f"episodes (env seed {EVALUATION_SEED}). Random and the heuristic play the same test levels.", "",
+             *own_runs_section(root)]
     for task, steps in STUDY_STEPS.items():
         refs_path = os.path.join(root, task, "references.json")
         if not os.path.exists(refs_path):

@@ -3,6 +3,7 @@
     python -m marl_render.baselines --env spread                          # the task's step budget
     python -m marl_render.baselines --env spread --env-steps 300000 --eval-set publication
     python -m marl_render.baselines --env spread --obs state              # the same learner on the state
+    python -m marl_render.baselines --env forage --seeds 0 1 2 --tensorboard runs/forage   # three seeds, logged
 
 Training stops on its budget: --env-steps (summed over worlds, rounded up to whole updates) or
 --updates; without either, the task's budget (settings.STEP_BUDGETS). The wall-clock is recorded,
@@ -48,6 +49,13 @@ holds each one as a run folder (actor.pt, result.json) that marl_render.policies
 A run into a folder that holds an earlier run replaces it, snapshots included (those of the earlier
 run are removed when the new run's files are written; until then it is left whole).
 
+``--seeds 0 1 2`` trains one run per seed into OUT/seedS (the same command with ``--seed S --out
+OUT/seedS`` reproduces each), then prints the across-seed summary (the final policy's return per
+seed, their mean with a 95% bootstrap interval over seeds, and the normalised score: random 0,
+heuristic 1) and writes it to OUT/seeds.json. ``--tensorboard DIR`` logs every update's curve point
+(episode return, entropy, losses), the checkpoints and the final evaluations for TensorBoard, at
+the env steps learned from (DIR/seedS with --seeds; needs ``pip install 'marl-render[tensorboard]'``).
+
 A task registered by the user: --import MODULE (a module that calls register_env), or --env
 module:Class (a Scenario subclass, registered under that name).
 """
@@ -66,16 +74,18 @@ import sys
 import tempfile
 import time
 
+import numpy as np
 import torch
 
 from marl_render import strict_json
 from marl_render.envs import list_envs, make_env
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
-from marl_render.envs.levels import NAMED as NAMED_LEVELS
+from marl_render.envs.levels import levels_option
 from marl_render.extras import command_needs_extra
 from marl_render.task_imports import add_import_option, load_user_tasks
 from marl_render.threads import MAX_THREADS
 
+from . import stats
 from .curve import plot_curve
 from .networks import ENCODERS, INITS, PRECISIONS
 from .selfplay import PLAY_LATEST, SNAPSHOT_EVERY, SWAP_EVERY, WINDOW, SelfPlay, setting_problem, team_index
@@ -118,7 +128,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--obs", choices=("pixels", "state"), default="pixels", help="what the actor sees")
     parser.add_argument("--out", default=None, help="folder for result.json, actor.pt and curve.png "
                                                     "(default: out/baselines/ENV, or ENV-state with --obs state)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the training env and the networks")
+    parser.add_argument("--seed", type=int, default=None, help="seed of the training env and the networks (default 0)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=None, metavar="SEED",
+                        help="one run per seed, into OUT/seedS, then the across-seed summary (instead of --seed)")
+    parser.add_argument("--tensorboard", default=None, metavar="DIR",
+                        help="log the training curve, checkpoints and evaluations to DIR for TensorBoard")
     budget = parser.add_mutually_exclusive_group()
     budget.add_argument("--env-steps", type=int, default=None,
                         help="budget in env steps summed over worlds (default: the task's, settings.STEP_BUDGETS)")
@@ -213,6 +227,19 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
         parser.error(f"--levels {args.levels}: the test levels are for evaluation only (--eval-levels {args.levels}); "
                      f"train on a count n (levels 0..n-1) or train")
     check_self_play(parser, args, env_options={**dict(args.env_option), **dict(args.train_option)})
+    if args.seeds is not None:
+        if args.seed is not None:
+            parser.error(f"--seed and --seeds exclude each other: give one, got --seed {args.seed} and --seeds "
+                         f"{' '.join(map(str, args.seeds))}")
+        repeated = sorted({seed for seed in args.seeds if args.seeds.count(seed) > 1})
+        if repeated:
+            parser.error(f"--seeds must name each seed once, got {repeated} more than once")
+    args.seed = 0 if args.seed is None else args.seed
+    if args.tensorboard is not None:
+        problem = writable_folder(args.tensorboard)
+        if problem:
+            parser.error(f"--tensorboard must be a folder this process can write to, got {args.tensorboard!r}: "
+                         f"{problem}")
     if args.out is None:
         args.out = os.path.join("out", "baselines", args.env if args.obs == "pixels" else f"{args.env}-state")
     problem = writable_folder(args.out)
@@ -255,15 +282,6 @@ def writable_folder(path: str) -> str | None:
     return None
 
 
-def levels_option(text: str):
-    """--levels / --eval-levels: a count n >= 1, or one of the named sets (envs/levels.py)."""
-    if text.isdigit() and int(text) >= 1:
-        return int(text)
-    if text in NAMED_LEVELS:
-        return text
-    raise argparse.ArgumentTypeError(f"expected a count n >= 1 or one of {list(NAMED_LEVELS)}, got {text!r}")
-
-
 def env_option(text: str) -> tuple:
     """KEY=VALUE -> (KEY, the Python literal VALUE)."""
     key, sep, value = text.partition("=")
@@ -280,6 +298,88 @@ def require_matplotlib() -> None:
     """Exit at once (one line naming the extra, status 1) when curve.png could not be drawn at the end."""
     with command_needs_extra("plots", "python -m marl_render.baselines (its curve.png)"):
         import matplotlib  # noqa: F401 (only its presence is checked here)
+
+
+def require_tensorboard() -> None:
+    """Exit at once (one line naming the extra, status 1) when --tensorboard could not log."""
+    with command_needs_extra("tensorboard", "python -m marl_render.baselines --tensorboard"):
+        import tensorboard  # noqa: F401 (torch.utils.tensorboard needs it; imported only when asked for)
+
+
+def tensorboard_writer(folder: str):
+    """A SummaryWriter into `folder` (torch's, imported only when --tensorboard asks for it)."""
+    require_tensorboard()
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(folder)
+
+
+def log_update(writer, run, point: dict) -> None:
+    """One update's curve point (and a checkpoint it made) as TensorBoard scalars at the env steps learned from."""
+    step = run.learned_env_steps
+    for key, value in point.items():
+        if key not in ("env_steps", "seconds") and isinstance(value, (int, float)):
+            writer.add_scalar(f"train/{key}", value, step)
+    if run.checkpoints and run.checkpoints[-1]["updates"] == run.updates:
+        writer.add_scalar("checkpoint/return_mean", run.checkpoints[-1]["mean"], step)
+
+
+def seed_command(argv: list, seed: int, out: str, tensorboard: str | None) -> list:
+    """The command line of one seed of a --seeds run: --seeds, --out and --tensorboard replaced by
+    this seed's --seed, --out and --tensorboard (--out and --tensorboard take one value, --seeds
+    every number that follows it)."""
+    kept, dropping = [], None
+    for token in argv:
+        if dropping == "--seeds" and token.lstrip("-").isdigit():
+            continue
+        if dropping in ("--out", "--tensorboard"):
+            dropping = None
+            continue
+        dropping = None
+        if token in ("--seeds", "--out", "--tensorboard"):
+            dropping = token
+            continue
+        if token.startswith(("--out=", "--tensorboard=")):
+            continue
+        kept.append(token)
+    return kept + ["--seed", str(seed), "--out", out] + (["--tensorboard", tensorboard] if tensorboard else [])
+
+
+def seeds_summary(results: list) -> dict:
+    """The final policy's return per seed, their mean with a 95% bootstrap interval over seeds, the
+    references of the (shared) evaluation set and the normalised scores (random 0, heuristic 1)."""
+    returns = [r["evaluation"]["policy"]["mean"] for r in results]
+    random, heuristic = (results[0]["evaluation"][k]["mean"] for k in ("random", "heuristic"))
+    estimate = stats.stratified_bootstrap(np.asarray(returns)[:, None], stats.mean) if len(returns) > 1 else None
+    scale = heuristic - random
+    return {"env": results[0]["env"], "obs": results[0]["obs"], "seeds": [r["seeds"]["train"] for r in results],
+            "returns": returns, "mean": float(np.mean(returns)),
+            "interval": None if estimate is None else [estimate.low, estimate.high],
+            "random": random, "heuristic": heuristic,
+            "normalised": [(v - random) / scale if scale else None for v in returns],
+            "normalised_mean": (float(np.mean(returns)) - random) / scale if scale else None,
+            "evaluation_set": evaluation_label(results[0]), "folders": [r["out"] for r in results]}
+
+
+def evaluation_label(result: dict) -> str:
+    """What a run's final evaluation played: its evaluation set, or the levels and env seed it was given."""
+    if result.get("evaluation_levels") is None:
+        return f"{result['evaluation_set']} set"
+    return f"levels {result['evaluation_levels']!r}, env seed {result['seeds']['evaluation']}"
+
+
+def print_seeds_summary(summary: dict) -> None:
+    print(f"\n{summary['env']} from {summary['obs']}: {len(summary['seeds'])} seeds ({summary['evaluation_set']})")
+    print("| seed | return | normalised | folder |\n|---:|---:|---:|---|")
+    for seed, value, score, folder in zip(summary["seeds"], summary["returns"], summary["normalised"],
+                                          summary["folders"], strict=True):
+        print(f"| {seed} | {value:.4g} | {'n/a' if score is None else f'{score:.2f}'} | {folder} |")
+    interval = "" if summary["interval"] is None else \
+        f" [{summary['interval'][0]:.4g}, {summary['interval'][1]:.4g}] (95% bootstrap over seeds)"
+    normalised = summary["normalised_mean"]
+    print(f"mean {summary['mean']:.4g}{interval}; random {summary['random']:.4g}, heuristic "
+          f"{summary['heuristic']:.4g}; normalised {'n/a' if normalised is None else f'{normalised:.2f}'}",
+          flush=True)
 
 
 def versions() -> dict:
@@ -362,6 +462,32 @@ def train_and_write(argv, stage: dict) -> int:
     started = time.perf_counter()
     args = parse_args(argv)
     require_matplotlib()
+    if args.tensorboard is not None:
+        require_tensorboard()  # a missing extra ends here, before any training
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if args.seeds is None:
+        return train_one(args, argv, started, stage)[0]
+    results = []
+    for seed in args.seeds:
+        one = argparse.Namespace(**{**vars(args), "seed": seed, "out": os.path.join(args.out, f"seed{seed}"),
+                                    "tensorboard": None if args.tensorboard is None else
+                                    os.path.join(args.tensorboard, f"seed{seed}")})
+        print(f"== seed {seed} of {len(args.seeds)} seeds: {one.out}", flush=True)
+        status, result = train_one(one, seed_command(argv, seed, one.out, one.tensorboard), time.perf_counter(),
+                                   stage)
+        if status:
+            return status
+        results.append({**result, "out": one.out})
+    summary = seeds_summary(results)
+    print_seeds_summary(summary)
+    write_atomically(os.path.join(args.out, "seeds.json"),
+                     lambda f: f.write(strict_json.dumps(summary, indent=1).encode()))
+    return 0
+
+
+def train_one(args: argparse.Namespace, argv: list, started: float, stage: dict) -> tuple:
+    """One run of `args` (its --seed, into its --out): (exit status, result.json's content);
+    stage["writing"] is set once its files are being written."""
     hp = task_hyperparameters(args.env, **{name: getattr(args, name) for name in FIELDS})
     if hp.torch_threads == 0:  # the cores this process may use
         hp = dataclasses.replace(hp, torch_threads=len(os.sched_getaffinity(0)))
@@ -370,6 +496,9 @@ def train_and_write(argv, stage: dict) -> int:
     eval_seed = evaluation_set["seed"] if args.eval_seed is None else args.eval_seed
     episodes = evaluation_set["episodes"] if args.episodes is None else args.episodes
     set_name = args.eval_set if eval_seed == evaluation_set["seed"] else f"seed {eval_seed}"
+    # The development and publication sets are env seeds of the default resets: other levels are another set.
+    shown_set = f"{set_name} set" if args.eval_levels is None else \
+        f"levels {args.eval_levels!r}, env seed {eval_seed}"
     env_steps = args.env_steps if args.env_steps is not None or args.updates is not None else \
         step_budget(args.env, args.obs)
     load_start = os.getloadavg()[0]
@@ -390,47 +519,70 @@ def train_and_write(argv, stage: dict) -> int:
     except (ValueError, TypeError) as error:
         print(f"error: the {args.env} env refused its options (--resolution, --grayscale, --obs, --env-option, "
               f"--appearance, --eval-levels): {error}", file=sys.stderr)
-        return 2
+        return 2, None
     print(f"random {references['random']['mean']:.4g} ± {references['random']['std']:.2g}, heuristic "
           f"{references['heuristic']['mean']:.4g} ± {references['heuristic']['std']:.2g} "
-          f"({episodes} episodes, {set_name} set)", flush=True)
+          f"({episodes} episodes, {shown_set})", flush=True)
 
     printed = [0.0]
+    writer = None if args.tensorboard is None else tensorboard_writer(args.tensorboard)
 
     def progress(run, point):
+        if writer is not None:
+            log_update(writer, run, point)
         now = time.perf_counter()
         if now - printed[0] < PROGRESS_SECONDS:
             return
         printed[0] = now
         shown = [p["episode_return"] for p in run.curve if p["episode_return"] is not None]
         last = f"{shown[-1]:.4g}" if shown else "- (no episode ended yet)"
-        print(f"[{now - started:6.0f} s] update {run.updates}/{run.budget_updates}, {run.env_steps:,} env steps "
-              f"({run.env_steps / point['seconds']:,.0f}/s), episode return {last}, "
+        # The env steps learned from: with --overlap the next rollout, collected meanwhile, is not counted yet.
+        print(f"[{now - started:6.0f} s] update {run.updates}/{run.budget_updates}, {run.learned_env_steps:,} env "
+              f"steps ({run.env_steps / point['seconds']:,.0f}/s), episode return {last}, "
               f"entropy {point['entropy']:.3f}", flush=True)
 
     checkpoint_every = args.checkpoint_every
     if checkpoint_every is None:
         checkpoint_every = math.ceil((env_steps or args.updates * hp.worlds * hp.rollout * hp.action_repeat)
                                      / CHECKPOINTS)
-    run = train(args.env, obs=args.obs, env_steps=env_steps, updates=args.updates, seed=args.seed,
-                hyperparameters=hp, env_options=env_options, train_options=train_options,
-                checkpoint_every=checkpoint_every, checkpoint_episodes=args.checkpoint_episodes,
-                max_seconds=None if args.max_minutes is None else args.max_minutes * 60, progress=progress,
-                self_play=self_play_settings(args))
-    trainer = run.trainer
+    try:
+        run = train(args.env, obs=args.obs, env_steps=env_steps, updates=args.updates, seed=args.seed,
+                    hyperparameters=hp, env_options=env_options, train_options=train_options,
+                    checkpoint_every=checkpoint_every, checkpoint_episodes=args.checkpoint_episodes,
+                    max_seconds=None if args.max_minutes is None else args.max_minutes * 60, progress=progress,
+                    self_play=self_play_settings(args))
+        trainer = run.trainer
 
-    eval_start = time.perf_counter()
-    policy = evaluate(args.env, run.policy(), **eval_kwargs)
-    evaluation_seconds = time.perf_counter() - eval_start
-    print(f"learned greedy policy {policy['mean']:.4g} ± {policy['std']:.2g} (random "
-          f"{references['random']['mean']:.4g}, heuristic {references['heuristic']['mean']:.4g}; "
-          f"{set_name} set)", flush=True)
+        eval_start = time.perf_counter()
+        policy = evaluate(args.env, run.policy(), **eval_kwargs)
+        print(f"learned greedy policy {policy['mean']:.4g} ± {policy['std']:.2g} (random "
+              f"{references['random']['mean']:.4g}, heuristic {references['heuristic']['mean']:.4g}; "
+              f"{shown_set})", flush=True)
+        on_training_levels = None
+        if args.eval_levels is not None:  # scored on other levels: on its own training levels too, for the gap
+            own = {key: value for key, value in eval_kwargs.items() if key != "levels"}
+            if args.levels is not None:
+                own["levels"] = args.levels
+            on_training_levels = {"levels": args.levels, "policy": evaluate(args.env, run.policy(), **own),
+                                  **{name: evaluate(args.env, reference, **own) for name, reference in
+                                     (("random", random_policy), ("heuristic", heuristic_policy))}}
+            print(f"on its training levels ({'the default resets' if args.levels is None else repr(args.levels)}, "
+                  f"env seed {eval_seed}): learned {on_training_levels['policy']['mean']:.4g}, random "
+                  f"{on_training_levels['random']['mean']:.4g}, heuristic "
+                  f"{on_training_levels['heuristic']['mean']:.4g}", flush=True)
+        evaluation_seconds = time.perf_counter() - eval_start
+        if writer is not None:
+            for name, value in (("policy", policy), *references.items()):
+                writer.add_scalar(f"evaluation/{name}", value["mean"], run.learned_env_steps)
+    finally:
+        if writer is not None:
+            writer.close()
 
     result = {
         "env": args.env, "obs": args.obs,
         "algorithm": "MAPPO (clipped PPO objective, GAE as TorchRL's): shared actor on each agent's own observation, "
                      "centralised critic on all agents' state observations",
-        "command": "python -m marl_render.baselines " + shlex.join(sys.argv[1:] if argv is None else argv),
+        "command": "python -m marl_render.baselines " + shlex.join(argv),
         "seeds": {"train": args.seed, "evaluation": eval_seed},
         "evaluation_set": set_name,
         "budget": {"env_steps": run.budget_env_steps, "updates": run.budget_updates,
@@ -455,6 +607,8 @@ def train_and_write(argv, stage: dict) -> int:
         "checkpoints": run.checkpoints,
         "curve": run.curve,
     }
+    if on_training_levels is not None:
+        result["evaluation_training_levels"] = on_training_levels
     stage["writing"] = True
     os.makedirs(args.out, exist_ok=True)
     stale = clear_snapshots(args.out)  # an earlier run's in this folder: the new result.json does not describe them
@@ -468,7 +622,7 @@ def train_and_write(argv, stage: dict) -> int:
                      lambda f: f.write(strict_json.dumps(result, indent=1).encode()))
     plot_curve(result, os.path.join(args.out, "curve.png"))
     print(f"wrote {args.out}/actor.pt, result.json and curve.png in {result['wall_clock_seconds']:.0f} s", flush=True)
-    return 0
+    return 0, result
 
 
 if __name__ == "__main__":

@@ -50,9 +50,13 @@ class TrainingRun:
     training_cpu_seconds: float  # CPU time of this process (all its threads, the renderer's too) in training
     checkpoint_seconds: float
     truncated: bool  # stopped by max_seconds before the budget
+    # Env steps of the rollouts the updates so far learned from: with hp.overlap, env_steps also counts
+    # the next rollout, collected while the last update ran.
+    learned_env_steps: int = 0
 
     @property
     def env_steps(self) -> int:
+        """Env steps collected, summed over worlds (with overlap, the last rollout's too; see learned_env_steps)."""
         return self.trainer.env_steps
 
     def policy(self) -> GreedyPolicy:
@@ -117,6 +121,7 @@ def _train(env, obs, hp, updates, budget_steps, seed, env_options, train_options
         while run.updates < updates:
             samples, ended = collected or trainer.collect()
             collected = None
+            learned = trainer.env_steps  # every rollout collected so far is in this update or an earlier one
             if learner is None:
                 terms = trainer.update(samples)
             else:  # the next rollout (with the weights before this update) while the update runs
@@ -126,6 +131,7 @@ def _train(env, obs, hp, updates, budget_steps, seed, env_options, train_options
                 terms = update.result()
             trainer.publish()
             run.updates += 1
+            run.learned_env_steps = learned
             if next_snapshot is not None and trainer.env_steps >= next_snapshot:
                 trainer.pool.add(trainer.acting_actor, trainer.env_steps, run.updates)
                 while next_snapshot <= trainer.env_steps:
