@@ -1,0 +1,254 @@
+"""num_processes=: one env over several worker processes (envs/multiprocess.py).
+
+Each worker process costs an interpreter start and the imports (seconds), so the tests share a
+few small envs (5 worlds at 16x16 over 2 workers: an uneven split, 3 + 2)."""
+import os
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from marl_render.envs import MultiProcessEnv, make_env
+from marl_render.envs.multiprocess import WorkerTraceback, output_layout, worker_seed, world_bounds
+from marl_render.envs.spec import ActionSpec, ArraySpec, EnvSpec
+from marl_render.wrappers.torchrl import make_torchrl_env
+from multiprocess_task import FailingCartPole
+
+W = 5
+KWARGS = dict(num_worlds=W, resolution=16, seed=3, levels=100, depth=True, state_obs=True)
+LEVELS = torch.tensor([7, 3, 99, 0, 42])
+ALL = torch.ones(W, dtype=torch.bool)
+
+
+@pytest.fixture(scope="module")
+def envs():
+    """(the env over 2 worker processes, the same env in this process), both reset to LEVELS."""
+    multi = make_env(FailingCartPole, num_processes=2, **KWARGS)
+    single = make_env(FailingCartPole, **KWARGS)
+    for env in (multi, single):
+        env.reset(seed=0)
+        env.reset_to_level(ALL, LEVELS)
+    yield multi, single
+    multi.close()
+    single.close()
+
+
+def assert_same(a, b):
+    """Equal bit for bit: tensors, or dicts of them with the same keys."""
+    if isinstance(a, dict):
+        assert sorted(a) == sorted(b)
+        for key in a:
+            assert_same(a[key], b[key])
+    else:
+        assert a.dtype == b.dtype and a.shape == b.shape and a.device == b.device
+        assert torch.equal(a, b)
+
+
+def without_rng(state: dict) -> dict:
+    return {key: value for key, value in state.items() if key != "rng"}
+
+
+def actions_of(step: int) -> torch.Tensor:
+    """Never all ones in a worker's worlds (FailingCartPole would refuse them)."""
+    return torch.tensor([[step % 2], [1], [0], [(step + 1) % 2], [step % 2]])
+
+
+def test_worlds_are_split_in_contiguous_slices_differing_by_at_most_one():
+    assert world_bounds(5, 2) == [0, 3, 5]
+    assert world_bounds(8, 4) == [0, 2, 4, 6, 8]
+    assert world_bounds(7, 3) == [0, 3, 5, 7]
+    assert world_bounds(3, 3) == [0, 1, 2, 3]
+
+
+def test_worker_0_keeps_the_seed_and_the_others_get_distinct_ones():
+    assert worker_seed(3, 0) == 3
+    seeds = {worker_seed(3, rank) for rank in range(8)}
+    assert len(seeds) == 8 and all(0 <= seed < 2 ** 63 for seed in seeds)
+    assert worker_seed(3, 1) == worker_seed(3, 1) != worker_seed(4, 1)
+
+
+@pytest.mark.parametrize("value, error, text", [
+    (0, ValueError, "num_processes must be an int in [1, 4], got 0"),
+    (-1, ValueError, "num_processes must be an int in [1, 4], got -1"),
+    (5, ValueError, "num_processes must be an int in [1, 4], got 5"),
+    (2.0, TypeError, "num_processes must be an int in [1, 4], got 2.0"),
+    (True, TypeError, "num_processes must be an int in [1, 4], got True"),
+])
+def test_a_bad_num_processes_is_refused_before_any_worker_starts(value, error, text):
+    before = _children()
+    with pytest.raises(error) as caught:
+        make_env("cartpole", num_worlds=4, num_processes=value)
+    assert str(caught.value) == text
+    assert _children() == before
+
+
+def _parent_of(pid: str) -> str:
+    """The "PPid:" line of process `pid` ("" if it is gone)."""
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            return next((line for line in status if line.startswith("PPid:")), "")
+    except OSError:
+        return ""
+
+
+def _children() -> list:
+    """Live or zombie child processes of this process, but multiprocessing's resource tracker (started
+    with the first spawned process, it lives as long as this process)."""
+    return sorted(pid for pid in os.listdir("/proc")
+                  if pid.isdigit() and _parent_of(pid).split()[1:] == [str(os.getpid())]
+                  and "resource_tracker" not in _command_line(pid))
+
+
+def _command_line(pid: str) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as cmdline:
+            return cmdline.read().decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def test_num_processes_is_refused_with_bots_and_with_a_given_context():
+    with pytest.raises(ValueError, match="num_processes applies to the batched core"):
+        make_env("tag", num_worlds=2, num_processes=2, heldout="tag/prey_vs_interceptors")
+    with pytest.raises(ValueError, match="context must be None with num_processes .* got 'mine'"):
+        make_env("cartpole", num_worlds=2, num_processes=2, context="mine")
+
+
+def test_the_output_layout_has_every_output_of_every_call():
+    env_spec = EnvSpec(name="t", num_worlds=1, agent_names=("a", "b"), groups={"t": ["a", "b"]},
+                       observations={"pixels": ArraySpec((4, 6, 3), torch.uint8, 0, 255)},
+                       action=ActionSpec(continuous=False, num_actions=3), info={"score": torch.float32},
+                       max_steps=10, dt=0.1)
+    layout = output_layout(env_spec, 2, "same_step", has_levels=True)
+    assert layout["obs/pixels"] == ((2, 4, 6, 3), torch.uint8)
+    assert layout["final_obs/pixels"] == ((2, 4, 6, 3), torch.uint8)
+    assert layout["reward"] == ((2,), torch.float32)
+    assert layout["info/score"] == ((), torch.float32)
+    assert {"info/final_level", "info/level", "info/autoreset_worlds", "state/level_ids"} <= set(layout)
+    plain = output_layout(env_spec, 2, False, has_levels=False)
+    assert not any(name.startswith("final_obs/") or "level" in name or "autoreset" in name for name in plain)
+
+
+def test_frames_rewards_and_states_equal_the_single_process_env_bit_for_bit(envs):
+    multi, single = envs
+    assert isinstance(multi, MultiProcessEnv) and multi.bounds == [0, 3, 5]
+    assert_same(multi.get_state()["qstate"], single.get_state()["qstate"])
+    for step in range(4):
+        got, want = multi.step(actions_of(step)), single.step(actions_of(step))
+        for a, b in zip(got, want, strict=True):
+            assert_same(a, b)
+    assert_same(without_rng(multi.get_state()), without_rng(single.get_state()))
+    assert multi.get_state()["rng"].shape == (2, single.get_state()["rng"].numel())
+    assert_same(multi.alive, single.alive)
+    assert_same(multi.step_count, single.step_count)
+    assert_same(multi.level_ids, single.level_ids)
+
+
+def test_the_outputs_are_the_callers_memory(envs):
+    multi, _ = envs
+    obs, reward, *_ = multi.step(actions_of(0))
+    kept = obs["pixels"].clone(), reward.clone()
+    multi.step(actions_of(1))
+    assert torch.equal(obs["pixels"], kept[0]) and torch.equal(reward, kept[1])
+    assert obs["pixels"].untyped_storage().data_ptr() != multi._outputs["obs/pixels"].untyped_storage().data_ptr()
+
+
+def test_partial_resets_and_set_state_match_the_single_process_env(envs):
+    multi, single = envs
+    multi.set_state({**single.get_state(), "rng": multi.get_state()["rng"]})  # the same worlds
+    mask = torch.tensor([False, True, False, True, False])  # one world in each worker
+    chosen = torch.tensor([0, 11, 0, 12, 0])
+    assert_same(multi.reset_to_level(mask, chosen), single.reset_to_level(mask, chosen))
+    assert_same(without_rng(multi.get_state()), without_rng(single.get_state()))
+    saved = multi.get_state()
+    first = [multi.step(actions_of(step))[0] for step in range(2)]
+    multi.set_state(saved)
+    again = [multi.step(actions_of(step))[0] for step in range(2)]
+    want = [single.step(actions_of(step))[0] for step in range(2)]
+    for a, b, c in zip(first, again, want, strict=True):
+        assert_same(a, b)
+        assert_same(b, c)
+    # reset_worlds draws from each worker's own generator: the reset world restarts, the others stay
+    before = multi.get_state()
+    obs = multi.reset_worlds(torch.tensor([True, False, False, False, False]))
+    assert obs["pixels"].shape == (W, 1, 16, 16, 3) and obs["depth"].shape == (W, 1, 16, 16)
+    after = multi.get_state()
+    assert torch.equal(after["qstate"][1:], before["qstate"][1:])
+    assert after["step_count"].tolist() == [0, *before["step_count"][1:].tolist()] and before["step_count"][0] > 0
+
+
+def test_a_worker_error_is_raised_with_its_traceback_and_the_other_worker_is_undone(envs):
+    multi, single = envs
+    multi.set_state({**single.get_state(), "rng": multi.get_state()["rng"]})  # the same worlds
+    before = multi.get_state()
+    failing = torch.tensor([[0], [1], [0], [1], [1]])  # worker 1's worlds (3, 4) all 1: only it fails
+    with pytest.raises(ValueError, match="refuses a batch of all-ones actions") as caught:
+        multi.step(failing)
+    cause = caught.value.__cause__
+    assert isinstance(cause, WorkerTraceback)
+    assert str(cause).startswith("in worker process 1:")
+    assert "multiprocess_task.py" in str(cause) and "in step" in str(cause)
+    assert_same(multi.get_state(), before)  # worker 0 stepped, then was undone
+    assert_same(multi.step_count, before["step_count"])
+    # still usable, and on the single env's trajectory
+    for step in range(2):
+        got, want = multi.step(actions_of(step)), single.step(actions_of(step))
+        assert_same(got[0], want[0])
+        assert_same(got[1], want[1])
+
+
+def test_bad_input_is_refused_in_the_parent_and_changes_nothing(envs):
+    multi, _ = envs
+    before = multi.get_state()
+    with pytest.raises(ValueError, match=r"actions must be an integer tensor of shape \[5, 1\]"):
+        multi.step(torch.zeros(4, 1, dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"mask must be a bool tensor of shape \[5\]"):
+        multi.reset_worlds(torch.ones(4, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"state\['rng'\] must be the workers' generator states"):
+        multi.set_state({**before, "rng": before["rng"][0]})
+    with pytest.raises(ValueError, match=r"state\['qstate'\] must have shape"):  # the worker's own check
+        multi.set_state({**before, "qstate": before["qstate"][:, :2]})
+    assert_same(multi.get_state(), before)
+
+
+def test_a_build_error_in_the_workers_is_raised_and_leaves_no_process():
+    before = _children()
+    with pytest.raises(ValueError, match="num_agents must be an int in") as caught:
+        make_env("cartpole", num_worlds=2, num_processes=1, num_agents=3)
+    assert isinstance(caught.value.__cause__, WorkerTraceback)
+    assert _children() == before
+
+
+def test_torchrl_front_end_over_workers_equals_the_single_process_one_and_closes_cleanly():
+    kwargs = dict(num_worlds=4, resolution=16, seed=1, levels=50, group_map="one_group")
+    multi, single = make_torchrl_env("cartpole", num_processes=2, **kwargs), make_torchrl_env("cartpole", **kwargs)
+    pids = multi.core.pids
+    assert len(pids) == 2 and all(os.path.exists(f"/proc/{pid}") for pid in pids)
+    levels = TensorDict({"level_ids": torch.tensor([5, 6, 7, 8])}, batch_size=[4])
+    got, want = multi.reset(levels.clone()), single.reset(levels.clone())
+    assert torch.equal(got["agents", "pixels"], want["agents", "pixels"])
+    for step in range(3):
+        action = torch.tensor([[step % 2], [1], [0], [1]])
+        got = multi.step(got.set(("agents", "action"), action))["next"]
+        want = single.step(want.set(("agents", "action"), action))["next"]
+        for key in (("agents", "pixels"), ("agents", "reward"), ("agents", "done"), "done"):
+            assert torch.equal(got[key], want[key]), key
+    multi.close()
+    single.close()
+    assert all(not os.path.exists(f"/proc/{pid}") for pid in pids)  # joined: exited and reaped, no zombie
+    with pytest.raises(RuntimeError, match="is closed"):
+        multi.core.step(torch.zeros(4, 1, dtype=torch.int64))
+
+
+def test_a_dead_worker_closes_the_env_with_a_clear_error_and_no_zombie():
+    env = make_env("cartpole", num_worlds=2, num_processes=2, resolution=8)
+    env.reset(seed=0)
+    pids = env.pids
+    os.kill(pids[1], 9)
+    with pytest.raises(RuntimeError, match=r"worker process 1 \(pid \d+\) exited with code -9 without answering"):
+        env.step(torch.zeros(2, 1, dtype=torch.int64))
+    assert env.closed
+    with pytest.raises(RuntimeError, match="is closed"):
+        env.reset()
+    assert all(not os.path.exists(f"/proc/{pid}") for pid in pids)
+    env.close()  # twice: nothing
