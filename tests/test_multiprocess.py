@@ -252,3 +252,61 @@ def test_a_dead_worker_closes_the_env_with_a_clear_error_and_no_zombie():
         env.reset()
     assert all(not os.path.exists(f"/proc/{pid}") for pid in pids)
     env.close()  # twice: nothing
+
+
+class _Logged:
+    """A fake CUDA event / stream that logs what is done with it."""
+
+    def __init__(self, name: str, log: list):
+        self.name, self.log = name, log
+
+    def record(self):
+        self.log.append(f"record {self.name}")
+
+    def wait_event(self, event):
+        self.log.append(f"wait {event.name}")
+
+
+class _FakeEnv:
+    """Just enough of a BatchedEnv for a worker's step: it logs its step and returns fixed outputs."""
+
+    def __init__(self, log: list):
+        self.log, self._needs_reset = log, False
+        self.alive, self.step_count = torch.ones(2, 1, dtype=torch.bool), torch.tensor([4, 5])
+
+    def get_state(self):
+        return {}
+
+    def step(self, actions):
+        self.log.append(f"step {actions.tolist()}")
+        obs = {"pixels": torch.full((2, 1, 2, 2, 3), 7, dtype=torch.uint8)}
+        info = {"step_count": self.step_count, "done_worlds": torch.zeros(2, dtype=torch.bool)}
+        return obs, torch.ones(2, 1), torch.zeros(2, 1, dtype=torch.bool), torch.zeros(2, 1, dtype=torch.bool), info
+
+
+def test_a_cuda_worker_waits_for_the_parents_event_before_it_writes_and_records_its_own_after(monkeypatch):
+    """The CUDA path's ordering, with fakes (no GPU here): the worker's stream waits on "free" (the
+    parent's actions written, its last copies done) before stepping and writing its slice, and records
+    "ready" (which the parent's stream waits on) only once every output is written."""
+    from marl_render.envs.multiprocess import _Worker
+
+    log = []
+    layout = {"obs/pixels": ((1, 2, 2, 3), torch.uint8), "reward": ((1,), torch.float32),
+              "terminated": ((1,), torch.bool), "truncated": ((1,), torch.bool), "state/alive": ((1,), torch.bool),
+              "state/step_count": ((), torch.int64), "info/step_count": ((), torch.int64),
+              "info/done_worlds": ((), torch.bool)}
+
+    class Watched(torch.Tensor):  # logs every write into the worker's slice of an output
+        def copy_(self, source, non_blocking=False):
+            log.append("write")
+            return super().copy_(source)
+
+    outputs = {name: torch.zeros((2, *shape), dtype=dtype).as_subclass(Watched) for name, (shape, dtype)
+               in layout.items()}
+    monkeypatch.setattr(torch.cuda, "current_stream", lambda: _Logged("stream", log))
+    worker = _Worker(_FakeEnv(log), outputs, torch.tensor([[1], [0]]), (_Logged("free", log), _Logged("ready", log)))
+    worker.run("step", None)
+    writes = len(layout)
+    assert log == ["wait free", "step [[1], [0]]", *["write"] * writes, "record ready"]
+    assert torch.equal(outputs["obs/pixels"], torch.full((2, 1, 2, 2, 3), 7, dtype=torch.uint8))
+    assert outputs["state/step_count"].tolist() == [4, 5]
