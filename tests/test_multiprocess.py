@@ -240,6 +240,23 @@ def test_torchrl_front_end_over_workers_equals_the_single_process_one_and_closes
         multi.core.step(torch.zeros(4, 1, dtype=torch.int64))
 
 
+def test_one_worker_is_the_single_process_env_on_the_default_path_with_autoreset_outputs():
+    """num_processes=1: worker 0 keeps the seed, so even the default path's draws (no levels) are the
+    single-process env's; same_step autoreset's final_obs and autoreset_worlds come through too."""
+    kwargs = dict(num_worlds=2, resolution=8, seed=5, max_steps=2, autoreset="same_step")
+    with make_env("cartpole", num_processes=1, **kwargs) as multi, make_env("cartpole", **kwargs) as single:
+        assert_same(multi.reset(), single.reset())
+        for step in range(3):
+            actions = torch.tensor([[step % 2], [1]])
+            got, want = multi.step(actions), single.step(actions)
+            assert "final_obs" in got[4] and set(got[4]) == set(want[4])
+            for a, b in zip(got, want, strict=True):
+                assert_same(a, b)
+        assert got[4]["autoreset_worlds"].tolist() == [False, False]  # steps 2, then 1 of the new episode
+        assert_same(without_rng(multi.get_state()), without_rng(single.get_state()))
+        assert torch.equal(multi.get_state()["rng"][0], single.get_state()["rng"])
+
+
 def test_a_dead_worker_closes_the_env_with_a_clear_error_and_no_zombie():
     env = make_env("cartpole", num_worlds=2, num_processes=2, resolution=8)
     env.reset(seed=0)
