@@ -147,8 +147,6 @@ class MultiProcessEnv:
         self.device = check.device(options.device)
         if self.device.type not in ("cpu", "cuda"):
             raise ValueError(f"device must be a CPU or CUDA device with num_processes, got {self.device}")
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise ValueError(f"device={str(self.device)!r} needs CUDA, which this process cannot use")
         seed = check.seed("seed", options.seed)
         self.seed = int(torch.Generator().seed() % 2 ** 63) if seed is None else seed
         self.levels = level_sets.as_sampler(options.levels)
@@ -299,9 +297,10 @@ class MultiProcessEnv:
         self._check_open()
         self._check_started()
         parts = self._call("get_state", [None] * self.num_processes)
-        state = {key: torch.cat([torch.from_numpy(part[key]) for part in parts]).to(self.device)
-                 for key in parts[0] if key != "rng"}
-        state["rng"] = torch.stack([torch.from_numpy(part["rng"]) for part in parts])
+        devices = parts[0][1]  # each key where the single-process env keeps it (level ids on the CPU, ...)
+        state = {key: torch.cat([torch.from_numpy(arrays[key]) for arrays, _ in parts]).to(devices[key])
+                 for key in devices if key != "rng"}
+        state["rng"] = torch.stack([torch.from_numpy(arrays["rng"]) for arrays, _ in parts])
         return state
 
     @_env_call
@@ -396,7 +395,9 @@ class MultiProcessEnv:
             raise
         failed = [rank for rank, (status, _) in enumerate(replies) if status == "error"]
         if failed and command in _MUTATING:
-            undo = [rank for rank in range(self.num_processes) if rank not in failed]
+            # Every worker goes back to its state from before the call: those that failed too, in case
+            # one failed after its env had changed (undoing an unchanged env changes nothing).
+            undo = range(self.num_processes)
             try:
                 for rank in undo:
                     self._connections[rank].send(("undo", None))
@@ -536,8 +537,10 @@ def _serve(connection, rank: int, scenario, options: EnvOptions, params) -> None
         if command != "buffers":  # "close": the parent gave up (another worker failed to build)
             return
         outputs, actions, lo, hi, events = argument
-        if env.device.type == "cuda":
+        if env.device.type == "cuda" and env.device.index is not None:  # the events' and copies' device
             torch.cuda.set_device(env.device)
+        if options.torch_threads is not None:  # the copies outside env calls too: N workers share the cores
+            torch.set_num_threads(options.torch_threads)
         worker = _Worker(env, {name: value[lo:hi] for name, value in outputs.items()}, actions[lo:hi], events)
         connection.send(("ok", None))
         while True:
@@ -618,7 +621,9 @@ class _Worker:
         self.env.set_state({key: torch.from_numpy(value).to(devices.get(key, "cpu")) for key, value in part.items()})
 
     def get_state(self, _):
-        return {key: _wire(value) for key, value in self.env.get_state().items()}
+        state = self.env.get_state()
+        return {key: _wire(value) for key, value in state.items()}, {key: str(value.device) for key, value in
+                                                                      state.items()}
 
     def render_overview(self, resolution):
         return _wire(self.env.render_overview(resolution))

@@ -114,6 +114,15 @@ def test_num_processes_is_refused_with_bots_and_with_a_given_context():
         make_env("cartpole", num_worlds=2, num_processes=2, context="mine")
 
 
+def test_a_cuda_device_without_cuda_is_refused_before_any_worker_starts():
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is available here: tests/test_multiprocess_gpu.py covers device='cuda'")
+    before = _children()
+    with pytest.raises(ValueError, match="device 'cuda' was asked for but torch sees no CUDA device"):
+        make_env("cartpole", num_worlds=2, num_processes=2, device="cuda")
+    assert _children() == before
+
+
 def test_the_output_layout_has_every_output_of_every_call():
     env_spec = EnvSpec(name="t", num_worlds=1, agent_names=("a", "b"), groups={"t": ["a", "b"]},
                        observations={"pixels": ArraySpec((4, 6, 3), torch.uint8, 0, 255)},
