@@ -141,7 +141,7 @@ stage gl-info 60 "$PYTHON" -m marl_render.info --json
 stage tests 180 "$PYTHON" -m pytest -q -p no:cacheprovider -o addopts= --junitxml "$WORK/tests.xml" $TESTS
 if [ -n "$INTEROP_TESTS" ]; then
     # shellcheck disable=SC2086  # INTEROP_TESTS is a list of paths
-    stage interop-tests 150 "$PYTHON" -m pytest -q -p no:cacheprovider -o addopts= -rs \
+    stage interop-tests 200 "$PYTHON" -m pytest -q -p no:cacheprovider -o addopts= -rs \
         --junitxml "$WORK/interop-tests.xml" $INTEROP_TESTS
 else
     skip interop-tests "no interop tests given"
