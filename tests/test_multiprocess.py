@@ -114,6 +114,18 @@ def test_num_processes_is_refused_with_bots_and_with_a_given_context():
         make_env("cartpole", num_worlds=2, num_processes=2, context="mine")
 
 
+@pytest.mark.parametrize("front_end", ["make_vec_env", "make_gym_env", "make_sb3_env", "make_parallel_env",
+                                       "make_aec_env"])
+def test_the_other_front_ends_refuse_num_processes_before_any_worker_starts(front_end):
+    import marl_render.envs as envs
+
+    before = _children()
+    with pytest.raises(TypeError, match=r"does not accept 'num_processes': only marl_render.envs.make_env and "
+                                        r"make_torchrl_env split the worlds over worker processes"):
+        getattr(envs, front_end)("cartpole", num_processes=2)
+    assert _children() == before
+
+
 def test_a_cuda_device_without_cuda_is_refused_before_any_worker_starts():
     if torch.cuda.is_available():
         pytest.skip("CUDA is available here: tests/test_multiprocess_gpu.py covers device='cuda'")
