@@ -115,7 +115,7 @@ def test_num_processes_is_refused_with_bots_and_with_a_given_context():
 
 
 @pytest.mark.parametrize("front_end", ["make_vec_env", "make_gym_env", "make_sb3_env", "make_parallel_env",
-                                       "make_aec_env"])
+                                       "make_aec_env", "make_jax_env"])
 def test_the_other_front_ends_refuse_num_processes_before_any_worker_starts(front_end):
     import marl_render.envs as envs
 
