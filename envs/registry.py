@@ -24,6 +24,7 @@ from marl_render.validation import describe
 
 from .core import BatchedEnv
 from .focal import FocalEnv
+from .multiprocess import MultiProcessEnv
 from .options import OPTION_NAMES, EnvOptions
 from .scenario import Scenario
 
@@ -132,9 +133,13 @@ def with_difficulty(scenario: type[Scenario], kwargs: dict) -> dict:
     return {**presets[difficulty], **explicit}
 
 
-def make_env(name, *, heldout=None, background=None, **kwargs):
+def make_env(name, *, heldout=None, background=None, num_processes=None, **kwargs):
     """The batched core of task `name` (a registered name or a Scenario subclass), built with
     `kwargs`: the driver's options (EnvOptions) and the task's own keywords (its Params).
+
+    With `num_processes` (an int in [1, num_worlds]; None: this process), the worlds are split over
+    that many worker processes, each with its own GL context, writing into one set of shared
+    output tensors: a MultiProcessEnv (envs/multiprocess.py, docs/distributed.md).
 
     With `heldout` (a name of ``marl_render.heldout.list_heldout()`` or a HeldOutScenario) or
     `background` (a Population of bots by role), a focal-only env (envs/focal.py) over that core:
@@ -164,6 +169,11 @@ def make_env(name, *, heldout=None, background=None, **kwargs):
                              f"difficulty that leaves them alone, or none")
         kwargs = {**kwargs, **fixed}
     options, params = split_kwargs(scenario, kwargs)
+    if num_processes is not None:
+        if heldout is not None or background is not None:
+            raise ValueError(f"num_processes applies to the batched core; it cannot be combined with heldout or "
+                             f"background (bots), got num_processes={num_processes!r}")
+        return MultiProcessEnv(scenario, options, params, num_processes)
     core = BatchedEnv(scenario, options, params)
     if heldout is None and background is None:
         return core

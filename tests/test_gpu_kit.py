@@ -58,7 +58,7 @@ def test_the_dry_run_writes_one_json_with_every_stage(tmp_path):
                    f"of_the_frames {ROOT}/tests/test_interop.py::test_egl_device_is_the_one_whose_cuda_device_matches",
                    "--gl-debug-worlds", "2",
                    "--render-args", "--worlds 2 --agents 2 --resolution 16 --steps 2 --baseline-steps 1",
-                   python=str(python), cwd=ROOT)
+                   "--processes", "2", "--processes-worlds", "3", python=str(python), cwd=ROOT)
     directories = where.read_text().splitlines()
     assert len(directories) >= 7 and not any(Path(d).is_relative_to(ROOT) for d in directories), directories
     stages = {stage["name"]: stage for stage in report["stages"]}
@@ -66,12 +66,12 @@ def test_the_dry_run_writes_one_json_with_every_stage(tmp_path):
     # so 8 is not tried), and the check goes on to write its JSON.
     assert list(stages) == ["gl-libraries", "install", "nvidia-smi", "gpu", "requirements", "gl-info", "tests",
                             "interop-tests", "env-cartpole-4", "pybatchrender", "env-spread:4-4", "gl-debug", "render",
-                            "env-cartpole-0", "env-spread:4-0"]
+                            "processes", "env-cartpole-0", "env-spread:4-0"]
     assert [stages[name]["status"] for name in ("gl-libraries", "install", "nvidia-smi", "gpu", "pybatchrender")] == \
         ["skipped"] * 5
     assert stages["pybatchrender"]["reason"] == "no PyBatchRender clone in the kit"
     for name in ("requirements", "gl-info", "tests", "interop-tests", "env-cartpole-4", "env-spread:4-4", "gl-debug",
-                 "render"):
+                 "render", "processes"):
         assert stages[name]["status"] == "ok" and stages[name]["exit_status"] == 0, stages[name]["stderr_tail"]
         assert 0 < stages[name]["seconds"] <= stages[name]["limit_seconds"] + 5
     for name in ("env-cartpole-0", "env-spread:4-0"):
@@ -105,7 +105,13 @@ def test_the_dry_run_writes_one_json_with_every_stage(tmp_path):
         assert set(row["render_ms"]) == {"pack", "cull", "draw", "read", "copy"}
         assert 0 < row["readback_share"] < 1
     assert summary["render"]["views"] == 4 and summary["render"]["speedup"] > 0
-    assert summary["stages"] == {"skipped": 5, "ok": 8, "failed": 2}
+    # num_processes=2 against one process with the same 3 worlds (split 2 + 1), in one call
+    processes = summary["processes"]
+    assert (processes["env"], processes["device"], processes["worlds"]) == ("cartpole", "cpu", 3)
+    assert set(processes["by_processes"]) == {"2"} and processes["single_env_steps_per_s"] > 0
+    assert processes["by_processes"]["2"]["ratio_to_single"] == pytest.approx(
+        processes["by_processes"]["2"]["env_steps_per_s"] / processes["single_env_steps_per_s"])
+    assert summary["stages"] == {"skipped": 5, "ok": 9, "failed": 2}
 
 
 def test_the_dry_run_keeps_to_its_budget(tmp_path):

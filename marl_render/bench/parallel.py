@@ -5,6 +5,10 @@ The same total number of worlds W is run three ways, random actions throughout:
   single      make_torchrl_env(num_worlds=W) in this process, env.rollout
   parallel-N  torchrl.envs.ParallelEnv(N, make_torchrl_env(num_worlds=W/N)), spawn, rollout
   collect-N   torchrl.collectors.MultiSyncCollector over N workers of W/N worlds, random policy
+  processes-N make_torchrl_env(num_worlds=W, num_processes=N) in this process, env.rollout: the
+              same call as `single`, its worlds stepped and rendered by N worker processes that
+              write into shared output tensors (envs/multiprocess.py); --processes picks the N,
+              and each such row gets `ratio_to_single`
 
 Every worker process is started with 'spawn' and owns its own GL context. env-steps/s
 counts world steps, agent-frames/s rendered agent views; "scaling" is N=2 over N=1 of the
@@ -26,7 +30,7 @@ import torch
 
 from .common import env_name_argument, machine, positive_int_argument, progress
 
-KINDS = ("single", "parallel", "collect")
+KINDS = ("single", "parallel", "collect", "processes")
 
 
 def add_arguments(parser):
@@ -41,7 +45,10 @@ def add_arguments(parser):
                         help="timed repeats per configuration (median reported)")
     parser.add_argument("--workers", type=positive_int_argument, nargs="+", default=[1, 2],
                         help="worker counts to measure")
+    parser.add_argument("--processes", type=positive_int_argument, nargs="+", default=[1, 2],
+                        help="num_processes values of the 'processes' kind (worlds split unevenly if need be)")
     parser.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
+    parser.add_argument("--device", default="cpu", help="torch device of the envs' tensors (e.g. cuda)")
     parser.add_argument("--lp-threads", nargs="+", default=["default", "1"],
                         help="LP_NUM_THREADS of the worker processes: 'default' (unset) and/or integers")
 
@@ -115,6 +122,24 @@ def measure_single(args, env_kwargs) -> dict:
                 args.steps, seconds, setup)
 
 
+def measure_processes(args, env_kwargs, processes: int) -> dict:
+    """The single row's call over `processes` worker processes (num_processes=)."""
+    from marl_render.wrappers.torchrl import make_torchrl_env
+
+    t0 = time.perf_counter()
+    env = make_torchrl_env(args.env, num_worlds=args.worlds, num_processes=processes, **env_kwargs)
+    try:
+        env.set_seed(0)
+        env.rollout(3, break_when_any_done=False)  # warm-up: resets, shader compile, first frames
+        setup = time.perf_counter() - t0
+        agents = env.core.num_agents
+        seconds = _timed_rollouts(env, args.steps, args.repeats)
+    finally:
+        env.close(raise_if_closed=False)
+    return _row("processes", processes, os.environ.get("LP_NUM_THREADS", "default"), args.worlds, agents,
+                args.steps, seconds, setup)
+
+
 def measure_parallel(args, env_kwargs, workers: int, lp: str) -> dict:
     from torchrl.envs import ParallelEnv
 
@@ -168,15 +193,18 @@ def _agents(spec_or_td, batch_dims: int) -> int:
 
 def run(args) -> dict:
     torch.set_num_threads(1)  # tiny tensors in this process too; llvmpipe gets the cores
-    env_kwargs = {"resolution": args.resolution, "seed": 0}
+    env_kwargs = {"resolution": args.resolution, "seed": 0, "device": args.device}
     if args.agents is not None:
         env_kwargs["num_agents"] = args.agents
-    for workers in args.workers:
+    for workers in args.workers if {"parallel", "collect"} & set(args.kinds) else ():
         if args.worlds % workers:
             raise SystemExit(f"--worlds {args.worlds} must be divisible by every --workers value ({workers})")
     for lp in args.lp_threads:
         if lp != "default" and not (lp.isdigit() and int(lp) >= 1):
             raise SystemExit(f"--lp-threads values must be 'default' or positive integers, got {lp!r}")
+    too_many = [n for n in args.processes if n > args.worlds] if "processes" in args.kinds else []
+    if too_many:
+        raise SystemExit(f"--processes values must be at most --worlds ({args.worlds}), got {too_many[0]}")
     load_before = os.getloadavg()
     rows = []
     if "single" in args.kinds:
@@ -189,6 +217,14 @@ def run(args) -> dict:
             for workers in args.workers:
                 progress(f"{kind}: {workers} worker(s) x {args.worlds // workers} worlds, LP_NUM_THREADS={lp}")
                 rows.append(measure(args, env_kwargs, workers, lp))
+    if "processes" in args.kinds:
+        for processes in args.processes:
+            progress(f"processes: {args.worlds} worlds over {processes} worker process(es)")
+            rows.append(measure_processes(args, env_kwargs, processes))
+    single = next((r for r in rows if r["kind"] == "single"), None)
+    for row in rows:
+        if row["kind"] == "processes" and single is not None:
+            row["ratio_to_single"] = row["env_steps_per_s"] / single["env_steps_per_s"]
     scaling = []
     for kind in ("parallel", "collect"):
         for lp in args.lp_threads:
@@ -209,6 +245,7 @@ def run(args) -> dict:
     best = max(rows, key=lambda r: r["env_steps_per_s"]) if rows else None
     # Other processes on the machine distort every number here: the load averages tell.
     return {"benchmark": "parallel", "machine": machine(), "env": args.env, "resolution": args.resolution,
+            "device": args.device,
             "cpu_count": os.cpu_count(), "load_avg_before": load_before, "load_avg_after": os.getloadavg(),
             "results": rows, "scaling": scaling, "lp_effect": lp_effect,
             "best": None if best is None else {k: best[k] for k in ("kind", "workers", "lp_num_threads",

@@ -99,6 +99,9 @@ def make_vec_env(name: str, num_worlds: int = 1, *, autoreset_mode=AutoresetMode
     kwargs go to ``marl_render.envs.make_env`` (resolution, num_agents, max_steps, continuous,
     state_obs, depth, seed, device and the env's own arguments); ``autoreset`` is set from
     autoreset_mode and may not be passed."""
+    if "num_processes" in kwargs:
+        raise TypeError("make_vec_env() does not accept 'num_processes': only marl_render.envs.make_env and "
+                        "make_torchrl_env split the worlds over worker processes (docs/distributed.md)")
     if "autoreset" in kwargs:
         raise TypeError("make_vec_env() does not accept 'autoreset'; pass autoreset_mode="
                         "gymnasium.vector.AutoresetMode.NEXT_STEP, SAME_STEP or DISABLED")

@@ -70,6 +70,9 @@ def make_jax_env(name: str, num_worlds: int = 1, **kwargs) -> JaxEnv:
 
     kwargs go to ``marl_render.envs.make_env`` (resolution, num_agents, max_steps, continuous,
     state_obs, depth, seed, autoreset, device and the env's own arguments)."""
+    if "num_processes" in kwargs:
+        raise TypeError("make_jax_env() does not accept 'num_processes': only marl_render.envs.make_env and "
+                        "make_torchrl_env split the worlds over worker processes (docs/distributed.md)")
     core = make_env(name, num_worlds=num_worlds, **kwargs)
     try:
         return JaxEnv(core)

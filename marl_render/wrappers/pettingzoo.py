@@ -125,6 +125,9 @@ def make_parallel_env(name, *, render_mode: str | None = None, action_mask: bool
     kwargs go to ``marl_render.envs.registry.make_env`` (resolution, num_agents, max_steps,
     continuous, state_obs, depth, seed, device and the env's own arguments); num_worlds
     (always 1) and autoreset (always False) are set here and may not be passed."""
+    if "num_processes" in kwargs:
+        raise TypeError("make_parallel_env() does not accept 'num_processes': only marl_render.envs.make_env and "
+                        "make_torchrl_env split the worlds over worker processes (docs/distributed.md)")
     for key in ("num_worlds", "autoreset"):
         if key in kwargs:
             raise TypeError(f"make_parallel_env() does not accept {key!r}: a PettingZoo env is one world "

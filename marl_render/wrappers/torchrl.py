@@ -91,6 +91,7 @@ from torchrl.envs.utils import MarlGroupMapType, check_marl_grouping
 from marl_render.envs.core import BatchedEnv
 from marl_render.envs.focal import FocalEnv
 from marl_render.envs.levels import check_level_ids
+from marl_render.envs.multiprocess import MultiProcessEnv
 from marl_render.envs.registry import make_env
 from marl_render.validation import describe, unpicklable
 
@@ -103,8 +104,9 @@ def make_torchrl_env(name: str, num_worlds: int = 1, group_map="team", **kwargs)
     """A TorchRL env of the registered environment `name` with `num_worlds` worlds.
 
     kwargs go to ``marl_render.envs.registry.make_env`` (resolution, num_agents, max_steps,
-    continuous, state_obs, depth, seed, device and the env's own arguments); autoreset is
-    always False (TorchRL resets) and may not be passed."""
+    continuous, state_obs, depth, seed, device, num_processes (the worlds over that many worker
+    processes: envs/multiprocess.py) and the env's own arguments); autoreset is always False
+    (TorchRL resets) and may not be passed."""
     if "autoreset" in kwargs:
         raise TypeError("make_torchrl_env() does not accept 'autoreset': TorchRL resets done worlds itself "
                         "(env.rollout / collectors call reset with '_reset' masks), so the core is always "
@@ -172,7 +174,7 @@ class MarlRenderTorchRLEnv(EnvBase):
     resolved {group: [agent names]}."""
 
     def __init__(self, env, group_map="team"):
-        if not isinstance(env, (BatchedEnv, FocalEnv)):
+        if not isinstance(env, (BatchedEnv, FocalEnv, MultiProcessEnv)):
             raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
                             f"got {describe(env)}")
         if env.autoreset:

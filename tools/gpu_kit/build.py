@@ -88,7 +88,8 @@ ON_THE_MACHINE = {
     "triton", "setuptools", "pyyaml", "imageio", "cupy-cuda13x",
 }
 GL_PACKAGES = ("libegl1", "libglvnd0", "libgl1", "libglx0", "libopengl0", "libgles2")  # as the device notes list
-CORRECTNESS_TESTS = ("conftest.py", "test_renderer.py", "test_transforms.py", "test_interop.py", "test_interop_gpu.py")
+CORRECTNESS_TESTS = ("conftest.py", "test_renderer.py", "test_transforms.py", "test_interop.py", "test_interop_gpu.py",
+                     "test_multiprocess_gpu.py")
 # PyBatchRender's GPU frame grabber imports PyOpenGL (pure Python, checked with `pip download --no-deps
 # pyopengl==3.1.10`: one py3-none-any wheel of 3.1 MB) and `cuda.cudart`, which pbr_run.py aliases to the
 # machine's cuda.bindings.runtime (cuda-python 12.9.0 exists on PyPI too, but would bring a second set of

@@ -6,7 +6,7 @@
 #
 #   bash check.sh [--json FILE] [--budget SECONDS] [--sizes "1024 4096 16384"] [--more "65536"]
 #                 [--steps N] [--python PYTHON] [--device cuda] [--readbacks "gpu host"]
-#                 [--interop-tests "..."] [--gl-debug-worlds N]
+#                 [--interop-tests "..."] [--gl-debug-worlds N] [--processes "1 2 4"] [--processes-worlds N]
 #   bash check.sh --cpu --python .venv/bin/python --sizes 4 --more "" --tests "..." --render-args "..."
 #
 # --cpu is the dry run: nothing is installed (PYTHON's own marl-render is used), tensors stay on the
@@ -24,12 +24,14 @@ PBR_STEPS=100
 BUDGET=450
 TESTS="$KIT/tests/test_renderer.py $KIT/tests/test_transforms.py"
 # The interop's own tests: the real ones (marker gpu: interop frames == host frames, bit for bit, every
-# mode) and the control flow with fakes.
-INTEROP_TESTS="$KIT/tests/test_interop_gpu.py $KIT/tests/test_interop.py"
+# mode; num_processes= on CUDA equal to one process) and the control flow with fakes.
+INTEROP_TESTS="$KIT/tests/test_interop_gpu.py $KIT/tests/test_multiprocess_gpu.py $KIT/tests/test_interop.py"
 READBACKS=""                      # bench env --readback, side by side in one call (gpu host; --cpu: host pbo)
 GL_DEBUG_WORLDS=16384             # the one run with gl-debug #t (the 0x502 errors grew with the worlds)
 RENDER_ARGS=""                    # bench render's defaults: 256 worlds x 4 agents at 64 px
 DEVICE=""                         # of the env's tensors: cuda (cpu with --cpu)
+PROCESSES="1 2 4"                 # num_processes= against one process with all the worlds, in one call
+PROCESSES_WORLDS=4096             # ... of cartpole at 64 px
 
 while [ $# -gt 0 ]; do
     case "$1" in
@@ -47,6 +49,8 @@ while [ $# -gt 0 ]; do
         --readbacks) READBACKS=$2; shift 2 ;;
         --gl-debug-worlds) GL_DEBUG_WORLDS=$2; shift 2 ;;
         --render-args) RENDER_ARGS=$2; shift 2 ;;
+        --processes) PROCESSES=$2; shift 2 ;;
+        --processes-worlds) PROCESSES_WORLDS=$2; shift 2 ;;
         *) echo "check.sh: unknown argument $1" >&2; exit 2 ;;
     esac
 done
@@ -137,7 +141,7 @@ stage gl-info 60 "$PYTHON" -m marl_render.info --json
 stage tests 180 "$PYTHON" -m pytest -q -p no:cacheprovider -o addopts= --junitxml "$WORK/tests.xml" $TESTS
 if [ -n "$INTEROP_TESTS" ]; then
     # shellcheck disable=SC2086  # INTEROP_TESTS is a list of paths
-    stage interop-tests 150 "$PYTHON" -m pytest -q -p no:cacheprovider -o addopts= -rs \
+    stage interop-tests 200 "$PYTHON" -m pytest -q -p no:cacheprovider -o addopts= -rs \
         --junitxml "$WORK/interop-tests.xml" $INTEROP_TESTS
 else
     skip interop-tests "no interop tests given"
@@ -174,6 +178,16 @@ stage gl-debug 90 env MARL_RENDER_PRC='gl-debug #t\nnotify-level-glgsg warning' 
     --readback "$FIRST_READBACK" --json
 # shellcheck disable=SC2086  # RENDER_ARGS is a list of arguments
 stage render 150 "$PYTHON" -m marl_render.bench render $RENDER_ARGS --json
+# Several processes on one GPU (envs/multiprocess.py): the same rollout with all the worlds in this
+# process, then over each count of worker processes, each with its own GL context on the device.
+if [ -n "$PROCESSES" ]; then
+    # shellcheck disable=SC2086  # PROCESSES is a list of values
+    stage processes 150 "$PYTHON" -m marl_render.bench parallel --env cartpole --worlds "$PROCESSES_WORLDS" \
+        --resolution 64 --steps "$STEPS" --repeats 3 --kinds single processes --processes $PROCESSES \
+        --device "$DEVICE" --json
+else
+    skip processes "no process counts given"
+fi
 
 # Larger sizes while memory allows: a task stops at its first refusal (the memory guard) or failure.
 for worlds in $MORE; do bench_env cartpole "$worlds" || break; done

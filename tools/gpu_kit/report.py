@@ -95,7 +95,7 @@ def last_json(text: str):
 def parse_result(stage: dict, work: Path) -> None:
     """The stage's own figures, read from its output, as stage["result"]."""
     name, out = stage["name"], stage.get("stdout_tail", "")
-    if name in ("requirements", "gl-info") or name.startswith(("env-", "render")):
+    if name in ("requirements", "gl-info", "processes") or name.startswith(("env-", "render")):
         stage["result"] = last_json(out)
     elif name == "gl-debug":  # the whole of its stderr: the tail may have lost the first errors
         err = "".join(_text(path) for path in sorted(work.glob("[0-9][0-9]-gl-debug.err")))
@@ -174,6 +174,8 @@ def summary(stages: list) -> dict:
                 pybatchrender[size] = result["FPS"]
             else:
                 refused[size] = reason
+        elif stage["name"] == "processes":
+            out["processes"] = processes_figures(result)
         elif stage["name"] == "render":
             out["render"] = {key: result.get(key) for key in ("views", "batched", "plain_panda3d", "speedup")}
         elif stage["name"] == "gl-info":
@@ -201,6 +203,20 @@ def summary(stages: list) -> dict:
         out["cartpole_ratio_to_pybatchrender"] = {size: cartpole[size]["env_steps_per_s"] / fps
                                                   for size, fps in pybatchrender.items() if size in cartpole}
     return out
+
+
+def processes_figures(result: dict) -> dict:
+    """bench parallel's single and processes rows: env-steps/s with all the worlds in one process and
+    over each count of worker processes (num_processes=), with the ratio to the single process."""
+    rows = result.get("results", [])
+    single = next((row for row in rows if row["kind"] == "single"), None)
+    return {"env": result.get("env"), "device": result.get("device"), "resolution": result.get("resolution"),
+            "worlds": None if not rows else rows[0]["worlds"],
+            "single_env_steps_per_s": None if single is None else single["env_steps_per_s"],
+            "by_processes": {str(row["workers"]): {"env_steps_per_s": row["env_steps_per_s"],
+                                                   "ratio_to_single": row.get("ratio_to_single"),
+                                                   "setup_s": row["setup_s"]}
+                             for row in rows if row["kind"] == "processes"}}
 
 
 def compose(work: Path, target: Path, mode: str, budget: int, started: float) -> int:
