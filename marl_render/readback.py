@@ -27,6 +27,7 @@ GL_UNSIGNED_BYTE = 0x1401
 GL_PACK_ALIGNMENT = 0x0D05
 GL_PIXEL_PACK_BUFFER = 0x88EB
 GL_PIXEL_PACK_BUFFER_BINDING = 0x88ED
+GL_MAX_ARRAY_TEXTURE_LAYERS = 0x88FF
 FORMATS = {1: GL_RED, 3: GL_RGB, 4: GL_RGBA}
 
 _functions = None
@@ -82,11 +83,18 @@ def _get_integer(functions, name: int) -> int:
     return value.value
 
 
-def read_texture(name: int, width: int, height: int, components: int, destination: torch.Tensor) -> None:
-    """Rows [0, height) of texture `name`, bottom-up as GL stores them, as 8-bit
-    `components` (1: red, 3: RGB, 4: RGBA) per pixel into `destination`, a contiguous CPU
-    tensor of exactly width * height * components bytes."""
-    size = width * height * components
+def max_array_texture_layers() -> int:
+    """GL_MAX_ARRAY_TEXTURE_LAYERS of the current context."""
+    return _get_integer(gl_functions(), GL_MAX_ARRAY_TEXTURE_LAYERS)
+
+
+def read_texture(name: int, width: int, height: int, components: int, destination: torch.Tensor,
+                 layers: int = 1) -> None:
+    """Rows [0, height) of texture `name` (of each of its first `layers` layers, for an array
+    texture), bottom-up as GL stores them, as 8-bit `components` (1: red, 3: RGB, 4: RGBA)
+    per pixel into `destination`, a contiguous CPU tensor of exactly
+    layers * width * height * components bytes."""
+    size = layers * width * height * components
     if not destination.is_contiguous() or destination.numel() * destination.element_size() != size:
         raise ValueError(f"destination must be a contiguous tensor of {size} bytes, got shape "
                          f"{tuple(destination.shape)} of {destination.dtype}")
@@ -99,8 +107,8 @@ def read_texture(name: int, width: int, height: int, components: int, destinatio
         functions["glBindBuffer"](GL_PIXEL_PACK_BUFFER, 0)
     functions["glPixelStorei"](GL_PACK_ALIGNMENT, 1)
     try:
-        functions["glGetTextureSubImage"](name, 0, 0, 0, 0, width, height, 1, FORMATS[components], GL_UNSIGNED_BYTE,
-                                          size, destination.data_ptr())
+        functions["glGetTextureSubImage"](name, 0, 0, 0, 0, width, height, layers, FORMATS[components],
+                                          GL_UNSIGNED_BYTE, size, destination.data_ptr())
         error = functions["glGetError"]()
     finally:
         functions["glPixelStorei"](GL_PACK_ALIGNMENT, alignment)

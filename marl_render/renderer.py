@@ -29,11 +29,12 @@ from .meshes import MeshData, to_panda_geom
 from .packing import FramePacker
 from .panda_buffers import TextureMemory, buffer_texture, clip_distances, int_input, panda_texture, vec3_input
 from .provoking import shared_corner_mesh
+from .readback import max_array_texture_layers
 from .scene import ROLES, Scene
 from .shadows import ShadowPass, atlas_layout, light_projection
 from .sky import SkyImages
 from .threads import one_thread
-from .tiling import TileLayout, column_layout
+from .tiling import TileLayout, column_layout, layer_layout
 from .triangle_corners import to_panda_geom_with_corners
 from .validation import describe, positive_int, unpicklable
 
@@ -120,7 +121,7 @@ class BatchRenderer:
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
                  egl_device_index: int | None = None, readback: str = "zero_copy", supersample: int = 1,
                  multisamples: int = 0, color: str = "rgb", context: backend.GLContext | None = None,
-                 exact_tiles: bool = False):
+                 exact_tiles: bool = False, layered: bool = False):
         """readback: "zero_copy" (default) reads each framebuffer straight into the output
         tensor; "copy" reads it into a buffer first and copies that into the output (the
         usual way, kept only so that benchmarks can show what the direct read saves).
@@ -134,12 +135,22 @@ class BatchRenderer:
         exact_tiles=True makes a view's pixels bit-identical wherever its tile sits, so whatever
         its world's slot and the batch size (a geometry stage clips and places each triangle
         and the fragment stage evaluates every varying and depth inside the tile: shaders/
-        exact.geom); it costs render time (docs/renderer.md). Shadow maps are not covered."""
+        exact.geom); it costs render time (docs/renderer.md). Shadow maps are not covered.
+        layered=True (PROTOTYPE) draws every view into its own layer of an array texture instead
+        of a tile of a column (gl_Layer from the vertex shader): every view is rasterised at the
+        same window coordinates, so its pixels do not depend on its slot either; not with
+        exact_tiles, multisamples or the appearance effect."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
         if not isinstance(exact_tiles, (bool, np.bool_)):
             raise TypeError(f"exact_tiles must be a bool, got {describe(exact_tiles)}")
         self.exact_tiles = bool(exact_tiles)
+        if not isinstance(layered, (bool, np.bool_)):
+            raise TypeError(f"layered must be a bool, got {describe(layered)}")
+        self.layered = bool(layered)
+        if self.layered and (self.exact_tiles or multisamples or "appearance" in scene.effects):
+            raise ValueError("layered=True cannot be combined with exact_tiles, multisamples or the appearance "
+                             "effect (not implemented in this prototype)")
         if readback not in self.READBACKS:
             raise ValueError(f"readback must be one of {list(self.READBACKS)}, got {readback!r}")
         if not isinstance(color, str) or color not in self.COLORS:
@@ -186,7 +197,13 @@ class BatchRenderer:
                           "lower num_worlds, agents_per_world, resolution or supersample")
         height, width = scene.resolution
         k = self.supersample
-        self.layout: TileLayout = column_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
+        if self.layered:
+            with self._context.current():
+                max_layers = max_array_texture_layers()  # the `readback` argument hides the module here
+            self.layout: TileLayout = layer_layout(scene.num_views, height * k, width * k, max_framebuffer_size,
+                                                   max_layers)
+        else:
+            self.layout = column_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
         self.effects = frozenset(scene.effects)
         self.packer = FramePacker(scene, self.layout)  # the state and its packing; this class draws it
         self._passes: list[_Pass] = []
@@ -277,7 +294,7 @@ class BatchRenderer:
         )
 
         ctx, layout = self._context, self.layout
-        width, height = layout.tile_width, layout.tile_height * len(views)
+        width, height = layout.tile_width, layout.tile_height * (1 if self.layered else len(views))
         aux_names = [e for e in ("depth", "segmentation") if e in self.effects]
         props = FrameBufferProperties()
         props.set_rgba_bits(8, 8, 8, 8)
@@ -301,13 +318,20 @@ class BatchRenderer:
                 f"multisamples={self.multisamples} was asked for but the GL ({ctx.gsg.get_driver_renderer()}) "
                 f"gave {granted}; lower multisamples (or use supersample)")
         # Render into textures that stay in GL; readback.py reads them once all passes are drawn.
+        # layered: one array texture layer per view, all attached at once (Panda3D makes its depth
+        # buffer a layered texture too); a vertex shader picks the layer (gl_Layer).
+        mode = GraphicsOutput.RTM_bind_layered if self.layered else GraphicsOutput.RTM_bind_or_copy
         color = Texture("color")
-        buffer.add_render_texture(color, GraphicsOutput.RTM_bind_or_copy, GraphicsOutput.RTP_color)
+        if self.layered:
+            color.setup_2d_texture_array(len(views))
+        buffer.add_render_texture(color, mode, GraphicsOutput.RTP_color)
         aux = {}
         for index, name in enumerate(aux_names):
             texture = Texture(name)
+            if self.layered:
+                texture.setup_2d_texture_array(len(views))
             plane = GraphicsOutput.RTP_aux_rgba_0 + index
-            buffer.add_render_texture(texture, GraphicsOutput.RTM_bind_or_copy, plane)
+            buffer.add_render_texture(texture, mode, plane)
             # Clear values as RGBA bytes of the little-endian value: depth +inf (0x7f800000), segment 0.
             clear = (0.0, 0.0, 128 / 255, 127 / 255) if name == "depth" else (0.0, 0.0, 0.0, 0.0)
             buffer.set_clear_active(plane, True)
@@ -331,7 +355,8 @@ class BatchRenderer:
         root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
         root.set_transparency(TransparencyAttrib.M_none)
         root.set_attrib(ColorBlendAttrib.make_off())
-        root.set_attrib(clip_distances(2))  # the tiles' top and bottom (shaders/batch.vert)
+        if not self.layered:
+            root.set_attrib(clip_distances(2))  # the tiles' top and bottom (shaders/batch.vert)
         for name, value in self._shared_inputs.items():
             root.set_shader_input(name, value)
         root.set_shader_input("tiles", int_input(len(views)))
@@ -384,7 +409,7 @@ class BatchRenderer:
                 shaders.defines_for, self.effects, static=static, textured=textured, flat=procedural and mesh.flat,
                 corners=procedural, gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf, joints=joints,
                 influences=mesh.influences if joints else 4, role=0 if static else ROLES[group.role],
-                exact=self.exact_tiles)
+                exact=self.exact_tiles, layered=self.layered)
             node.set_shader(shaders.compiled(variant(surface=surface)))
             if textured and "texture" in self.effects:
                 node.set_texture(panda_texture(group.texture, group.name), 1)
@@ -607,17 +632,19 @@ class BatchRenderer:
         self._texture_ids()
         views, k = render_pass.views, self.supersample
         height, width = self.scene.resolution
-        rows, columns = len(views) * height * k, width * k
+        # layered: each view is a layer of rows height * k; the layers follow each other in memory.
+        layers = len(views) if self.layered else 1
+        rows, columns = len(views) * height * k // layers, width * k
         ids = render_pass.texture_ids
         destination = rgb[views.start:views.stop]
         C = self.channels
         copy_seconds = 0.0
         # One channel is laid out alike channels first or last: read straight into it too.
         if k == 1 and (C == 1 or not self.channels_first) and self.readback == "zero_copy":
-            readback.read_texture(ids["color"], columns, rows, C, destination)
+            readback.read_texture(ids["color"], columns, rows, C, destination, layers)
         else:
-            staging = self._staging_buffer(rows * columns * C)
-            readback.read_texture(ids["color"], columns, rows, C, staging)
+            staging = self._staging_buffer(layers * rows * columns * C)
+            readback.read_texture(ids["color"], columns, rows, C, staging, layers)
             started = time.perf_counter()
             samples = staging.view(len(views), height * k, width * k, C)
             if self.channels_first:  # write through a channels-last view of the output
@@ -632,10 +659,10 @@ class BatchRenderer:
                 continue
             target = out[views.start:views.stop]
             if k == 1:
-                readback.read_texture(ids[name], columns, rows, 4, target)
+                readback.read_texture(ids[name], columns, rows, 4, target, layers)
                 continue
-            staging = self._staging_buffer(rows * columns * 4)
-            readback.read_texture(ids[name], columns, rows, 4, staging)
+            staging = self._staging_buffer(layers * rows * columns * 4)
+            readback.read_texture(ids[name], columns, rows, 4, staging, layers)
             started = time.perf_counter()
             samples = staging.view(out.dtype).view(len(views), height * k, width * k)
             target.copy_(samples[:, k // 2::k, k // 2::k])  # the sample nearest each output pixel's centre
