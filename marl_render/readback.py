@@ -54,6 +54,8 @@ def gl_functions() -> dict:
             "glCreateTextures": (None, [uint, sint, ctypes.POINTER(uint)]),
             "glTextureStorage2D": (None, [uint, sint, uint, sint, sint]),
             "glTextureSubImage2D": (None, [uint, sint, sint, sint, sint, sint, uint, uint, ptr]),
+            "glTextureStorage3D": (None, [uint, sint, uint, sint, sint, sint]),
+            "glTextureSubImage3D": (None, [uint, sint, sint, sint, sint, sint, sint, sint, uint, uint, ptr]),
             "glCopyImageSubData": (None, [uint, uint, sint, sint, sint, sint, uint, uint, sint, sint, sint, sint,
                                           sint, sint, sint]),
             "glDeleteTextures": (None, [sint, ctypes.POINTER(uint)]),

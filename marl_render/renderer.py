@@ -139,7 +139,7 @@ class BatchRenderer:
         layered=True (PROTOTYPE) draws every view into its own layer of an array texture instead
         of a tile of a column (gl_Layer from the vertex shader): every view is rasterised at the
         same window coordinates, so its pixels do not depend on its slot either; not with
-        exact_tiles, multisamples or the appearance effect."""
+        exact_tiles or multisamples."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
         if not isinstance(exact_tiles, (bool, np.bool_)):
@@ -148,9 +148,9 @@ class BatchRenderer:
         if not isinstance(layered, (bool, np.bool_)):
             raise TypeError(f"layered must be a bool, got {describe(layered)}")
         self.layered = bool(layered)
-        if self.layered and (self.exact_tiles or multisamples or "appearance" in scene.effects):
-            raise ValueError("layered=True cannot be combined with exact_tiles, multisamples or the appearance "
-                             "effect (not implemented in this prototype)")
+        if self.layered and (self.exact_tiles or multisamples):
+            raise ValueError("layered=True cannot be combined with exact_tiles or multisamples "
+                             "(not implemented in this prototype)")
         if readback not in self.READBACKS:
             raise ValueError(f"readback must be one of {list(self.READBACKS)}, got {readback!r}")
         if not isinstance(color, str) or color not in self.COLORS:
@@ -272,7 +272,8 @@ class BatchRenderer:
             self.appearance_texture = self._targets.appearance_texture = buffer_texture(
                 "appearance", self.scene.num_worlds * layout.APPEARANCE.texels)
             self._shared_inputs["appearance"] = self.appearance_texture
-            self._sky = SkyImages(self.layout, self.scene.agents_per_world, gray=self.color == "gray")
+            self._sky = SkyImages(self.layout, self.scene.agents_per_world, gray=self.color == "gray",
+                                  layered=self.layered)
         for index in range(self.layout.num_passes):
             self._passes.append(self._make_pass(self.layout.pass_views(index)))
 

@@ -9,12 +9,27 @@ camera 0.3 m above the floor (the near plane clips the floor), lighting; 64 x 64
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
 import torch
 
 import marl_render as mr
+
+
+def raster_thread_seconds() -> list[float]:
+    """CPU seconds so far of each of llvmpipe's rasteriser threads (named llvmpipe-N) in this process."""
+    tick = os.sysconf("SC_CLK_TCK")
+    seconds = []
+    for task in sorted(os.listdir("/proc/self/task")):
+        with open(f"/proc/self/task/{task}/comm") as comm:
+            if not comm.read().startswith("llvmpipe-"):
+                continue
+        with open(f"/proc/self/task/{task}/stat") as stat:
+            fields = stat.read().rsplit(")", 1)[1].split()
+        seconds.append((int(fields[11]) + int(fields[12])) / tick)  # utime + stime
+    return seconds
 
 
 def build(worlds: int, size: int, layered: bool, effects) -> mr.BatchRenderer:
@@ -48,11 +63,17 @@ def main():
         frames = {name: r.render() for name, r in renderers.items()}  # warm up (compile, first upload)
         times = {name: [] for name in renderers}
         gl = {name: [] for name in renderers}
+        cpu = {name: [] for name in renderers}  # process CPU seconds per wall second: the GL's threads at work
+        raster = {name: [0.0] * len(raster_thread_seconds()) for name in renderers}  # per rasteriser thread
         for step in range(args.steps):
             for name in (("tiles", "layers") if step % 2 == 0 else ("layers", "tiles")):
-                started = time.perf_counter()
+                started, cpu_started = time.perf_counter(), sum(os.times()[:2])
+                before = raster_thread_seconds()
                 renderers[name].render()
+                after = raster_thread_seconds()
+                raster[name] = [r + a - b for r, a, b in zip(raster[name], after, before, strict=True)]
                 times[name].append(time.perf_counter() - started)
+                cpu[name].append((sum(os.times()[:2]) - cpu_started) / times[name][-1])
                 gl[name].append(renderers[name].last_timings["gl"])
         ratios = [b / a for a, b in zip(times["tiles"], times["layers"], strict=True)]
         differ = (frames["tiles"].rgb != frames["layers"].rgb).any(-1).float().mean().item()
@@ -61,7 +82,12 @@ def main():
               f"(gl {statistics.median(gl['tiles']) * 1e3:.1f}, {t.layout.num_passes} passes)  layers "
               f"{statistics.median(times['layers']) * 1e3:7.1f} ms (gl {statistics.median(gl['layers']) * 1e3:.1f}, "
               f"{lay.layout.num_passes} passes)  layers/tiles median {statistics.median(ratios):.2f}"
-              f" (min {min(ratios):.2f} max {max(ratios):.2f})  px differing {differ * 100:.3f}%")
+              f" (min {min(ratios):.2f} max {max(ratios):.2f})  px differing {differ * 100:.3f}%  cpu/wall tiles "
+              f"{statistics.median(cpu['tiles']):.2f} layers {statistics.median(cpu['layers']):.2f}")
+        for name in renderers:  # how the rasterising was shared among llvmpipe's threads
+            total = sum(raster[name]) or 1.0
+            print(f"      {name} rasteriser threads: {sum(raster[name]):.2f} s in all, busiest thread "
+                  f"{max(raster[name]) / total * 100:.0f}% ({len(raster[name])} threads)")
         for r in renderers.values():
             r.close()
 
