@@ -33,6 +33,7 @@ GL_PACK_ALIGNMENT = 0x0D05
 GL_PIXEL_PACK_BUFFER = 0x88EB
 GL_PIXEL_PACK_BUFFER_BINDING = 0x88ED
 GL_STREAM_READ = 0x88E1
+GL_MAX_ARRAY_TEXTURE_LAYERS = 0x88FF
 FORMATS = {1: GL_RED, 3: GL_RGB, 4: GL_RGBA}
 
 _functions = None
@@ -59,6 +60,8 @@ def gl_functions() -> dict:
             "glCreateTextures": (None, [uint, sint, ctypes.POINTER(uint)]),
             "glTextureStorage2D": (None, [uint, sint, uint, sint, sint]),
             "glTextureSubImage2D": (None, [uint, sint, sint, sint, sint, sint, uint, uint, ptr]),
+            "glTextureStorage3D": (None, [uint, sint, uint, sint, sint, sint]),
+            "glTextureSubImage3D": (None, [uint, sint, sint, sint, sint, sint, sint, sint, uint, uint, ptr]),
             "glCopyImageSubData": (None, [uint, uint, sint, sint, sint, sint, uint, uint, sint, sint, sint, sint,
                                           sint, sint, sint]),
             "glDeleteTextures": (None, [sint, ctypes.POINTER(uint)]),
@@ -92,21 +95,30 @@ def _get_integer(functions, name: int) -> int:
     return value.value
 
 
-def read_texture(name: int, width: int, height: int, components: int, destination: torch.Tensor) -> None:
-    """Rows [0, height) of texture `name`, bottom-up as GL stores them, as 8-bit
-    `components` (1: red, 3: RGB, 4: RGBA) per pixel into `destination`, a contiguous CPU
-    tensor of exactly width * height * components bytes."""
-    size = width * height * components
+def max_array_texture_layers() -> int:
+    """GL_MAX_ARRAY_TEXTURE_LAYERS of the current context."""
+    return _get_integer(gl_functions(), GL_MAX_ARRAY_TEXTURE_LAYERS)
+
+
+def read_texture(name: int, width: int, height: int, components: int, destination: torch.Tensor,
+                 layers: int = 1) -> None:
+    """Rows [0, height) of texture `name` (of each of its first `layers` layers, for an array
+    texture), bottom-up as GL stores them, as 8-bit `components` (1: red, 3: RGB, 4: RGBA)
+    per pixel into `destination`, a contiguous CPU tensor of exactly
+    layers * width * height * components bytes."""
+    size = layers * width * height * components
     if not destination.is_contiguous() or destination.numel() * destination.element_size() != size:
         raise ValueError(f"destination must be a contiguous tensor of {size} bytes, got shape "
                          f"{tuple(destination.shape)} of {destination.dtype}")
-    _get_texture(name, width, height, components, 0, destination.data_ptr())
+    _get_texture(name, width, height, components, 0, destination.data_ptr(), layers)
 
 
-def _get_texture(name: int, width: int, height: int, components: int, pack_buffer: int, pixels: int) -> None:
-    """glGetTextureSubImage of texture `name` into client memory at address `pixels`
-    (pack_buffer 0) or into GL buffer `pack_buffer` at byte offset `pixels`."""
-    size = width * height * components
+def _get_texture(name: int, width: int, height: int, components: int, pack_buffer: int, pixels: int,
+                 layers: int = 1) -> None:
+    """glGetTextureSubImage of texture `name` (its first `layers` layers, for an array texture) into
+    client memory at address `pixels` (pack_buffer 0) or into GL buffer `pack_buffer` at byte offset
+    `pixels`."""
+    size = layers * width * height * components
     functions = gl_functions()
     while functions["glGetError"]():  # errors of earlier calls are not ours to report
         pass
@@ -117,8 +129,8 @@ def _get_texture(name: int, width: int, height: int, components: int, pack_buffe
     functions["glPixelStorei"](GL_PACK_ALIGNMENT, 1)
     try:
         # bufSize counts from the start of the buffer when one is bound (the offset plus the bytes).
-        functions["glGetTextureSubImage"](name, 0, 0, 0, 0, width, height, 1, FORMATS[components], GL_UNSIGNED_BYTE,
-                                          size + (pixels if pack_buffer else 0), pixels)
+        functions["glGetTextureSubImage"](name, 0, 0, 0, 0, width, height, layers, FORMATS[components],
+                                          GL_UNSIGNED_BYTE, size + (pixels if pack_buffer else 0), pixels)
         error = functions["glGetError"]()
     finally:
         functions["glPixelStorei"](GL_PACK_ALIGNMENT, alignment)

@@ -31,11 +31,12 @@ from .meshes import MeshData, to_panda_geom
 from .packing import FramePacker
 from .panda_buffers import TextureMemory, buffer_texture, clip_distances, int_input, panda_texture, vec3_input
 from .provoking import shared_corner_mesh
+from .readback import max_array_texture_layers
 from .scene import ROLES, Scene
 from .shadows import ShadowPass, atlas_layout, light_projection
 from .sky import SkyImages
 from .threads import one_thread
-from .tiling import TileLayout, column_layout
+from .tiling import TileLayout, column_layout, layer_layout
 from .triangle_corners import to_panda_geom_with_corners
 from .validation import describe, positive_int, torch_device, unpicklable
 
@@ -123,7 +124,7 @@ class BatchRenderer:
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
                  egl_device_index: int | None = None, readback: str = "auto", supersample: int = 1,
                  multisamples: int = 0, color: str = "rgb", context: backend.GLContext | None = None,
-                 device="cpu", exact_tiles: bool = False):
+                 device="cpu", exact_tiles: bool = False, layered: bool = False):
         """device: the torch device the frames are born on ("cpu", or a CUDA device).
         readback: how they get there. "host" reads each framebuffer straight into a host
         tensor (then copied to a CUDA `device`); "gpu" reads them into a GL pixel-pack
@@ -145,7 +146,11 @@ class BatchRenderer:
         exact_tiles=True makes a view's pixels bit-identical wherever its tile sits, so whatever
         its world's slot and the batch size (a geometry stage clips and places each triangle
         and the fragment stage evaluates every varying and depth inside the tile: shaders/
-        exact.geom); it costs render time (docs/renderer.md). Shadow maps are not covered."""
+        exact.geom); it costs render time (docs/renderer.md). Shadow maps are not covered.
+        layered=True (PROTOTYPE) draws every view into its own layer of an array texture instead
+        of a tile of a column (gl_Layer from the vertex shader): every view is rasterised at the
+        same window coordinates, so its pixels do not depend on its slot either; not with
+        exact_tiles or multisamples."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
         if not isinstance(exact_tiles, (bool, np.bool_)):
@@ -154,6 +159,16 @@ class BatchRenderer:
         interop.check_readback(readback, self.READBACKS)
         self.device = torch_device("device", device)
         interop.check_device(readback, self.device)
+        if not isinstance(layered, (bool, np.bool_)):
+            raise TypeError(f"layered must be a bool, got {describe(layered)}")
+        self.layered = bool(layered)
+        if self.layered and (self.exact_tiles or multisamples):
+            raise ValueError("layered=True cannot be combined with exact_tiles or multisamples "
+                             "(not implemented in this prototype)")
+        if self.layered and (readback in ("gpu", "pbo") or self.device.type != "cpu"):
+            raise ValueError("layered=True reads back to the host only (not implemented with the pack buffer or "
+                             f"a CUDA device in this prototype), got readback={readback!r}, "
+                             f"device={str(self.device)!r}")
         if not isinstance(color, str) or color not in self.COLORS:
             raise ValueError(f"color must be one of {list(self.COLORS)}, got {color!r}")
         self.color, self.channels = color, self.COLORS[color]
@@ -201,7 +216,13 @@ class BatchRenderer:
                           "lower num_worlds, agents_per_world, resolution or supersample")
         height, width = scene.resolution
         k = self.supersample
-        self.layout: TileLayout = column_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
+        if self.layered:
+            with self._context.current():
+                max_layers = max_array_texture_layers()  # the `readback` argument hides the module here
+            self.layout: TileLayout = layer_layout(scene.num_views, height * k, width * k, max_framebuffer_size,
+                                                   max_layers)
+        else:
+            self.layout = column_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
         self.effects = frozenset(scene.effects)
         self.packer = FramePacker(scene, self.layout)  # the state and its packing; this class draws it
         self._passes: list[_Pass] = []
@@ -283,7 +304,8 @@ class BatchRenderer:
             self.appearance_texture = self._targets.appearance_texture = buffer_texture(
                 "appearance", self.scene.num_worlds * layout.APPEARANCE.texels)
             self._shared_inputs["appearance"] = self.appearance_texture
-            self._sky = SkyImages(self.layout, self.scene.agents_per_world, gray=self.color == "gray")
+            self._sky = SkyImages(self.layout, self.scene.agents_per_world, gray=self.color == "gray",
+                                  layered=self.layered)
         for index in range(self.layout.num_passes):
             self._passes.append(self._make_pass(self.layout.pass_views(index)))
 
@@ -305,7 +327,7 @@ class BatchRenderer:
         )
 
         ctx, layout = self._context, self.layout
-        width, height = layout.tile_width, layout.tile_height * len(views)
+        width, height = layout.tile_width, layout.tile_height * (1 if self.layered else len(views))
         aux_names = [e for e in ("depth", "segmentation") if e in self.effects]
         props = FrameBufferProperties()
         props.set_rgba_bits(8, 8, 8, 8)
@@ -329,13 +351,20 @@ class BatchRenderer:
                 f"multisamples={self.multisamples} was asked for but the GL ({ctx.gsg.get_driver_renderer()}) "
                 f"gave {granted}; lower multisamples (or use supersample)")
         # Render into textures that stay in GL; readback.py reads them once all passes are drawn.
+        # layered: one array texture layer per view, all attached at once (Panda3D makes its depth
+        # buffer a layered texture too); a vertex shader picks the layer (gl_Layer).
+        mode = GraphicsOutput.RTM_bind_layered if self.layered else GraphicsOutput.RTM_bind_or_copy
         color = Texture("color")
-        buffer.add_render_texture(color, GraphicsOutput.RTM_bind_or_copy, GraphicsOutput.RTP_color)
+        if self.layered:
+            color.setup_2d_texture_array(len(views))
+        buffer.add_render_texture(color, mode, GraphicsOutput.RTP_color)
         aux = {}
         for index, name in enumerate(aux_names):
             texture = Texture(name)
+            if self.layered:
+                texture.setup_2d_texture_array(len(views))
             plane = GraphicsOutput.RTP_aux_rgba_0 + index
-            buffer.add_render_texture(texture, GraphicsOutput.RTM_bind_or_copy, plane)
+            buffer.add_render_texture(texture, mode, plane)
             # Clear values as RGBA bytes of the little-endian value: depth +inf (0x7f800000), segment 0.
             clear = (0.0, 0.0, 128 / 255, 127 / 255) if name == "depth" else (0.0, 0.0, 0.0, 0.0)
             buffer.set_clear_active(plane, True)
@@ -359,7 +388,8 @@ class BatchRenderer:
         root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
         root.set_transparency(TransparencyAttrib.M_none)
         root.set_attrib(ColorBlendAttrib.make_off())
-        root.set_attrib(clip_distances(2))  # the tiles' top and bottom (shaders/batch.vert)
+        if not self.layered:
+            root.set_attrib(clip_distances(2))  # the tiles' top and bottom (shaders/batch.vert)
         for name, value in self._shared_inputs.items():
             root.set_shader_input(name, value)
         root.set_shader_input("tiles", int_input(len(views)))
@@ -412,7 +442,7 @@ class BatchRenderer:
                 shaders.defines_for, self.effects, static=static, textured=textured, flat=procedural and mesh.flat,
                 corners=procedural, gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf, joints=joints,
                 influences=mesh.influences if joints else 4, role=0 if static else ROLES[group.role],
-                exact=self.exact_tiles)
+                exact=self.exact_tiles, layered=self.layered)
             node.set_shader(shaders.compiled(variant(surface=surface)))
             if textured and "texture" in self.effects:
                 node.set_texture(panda_texture(group.texture, group.name), 1)
@@ -653,7 +683,9 @@ class BatchRenderer:
         self._texture_ids()
         views, k = render_pass.views, self.supersample
         height, width = self.scene.resolution
-        rows, columns = len(views) * height * k, width * k
+        # layered: each view is a layer of rows height * k; the layers follow each other in memory.
+        layers = len(views) if self.layered else 1
+        rows, columns = len(views) * height * k // layers, width * k
         ids = render_pass.texture_ids
         destination = rgb[views.start:views.stop]
         C = self.channels
@@ -661,11 +693,11 @@ class BatchRenderer:
         started = time.perf_counter()
         # One channel is laid out alike channels first or last: read straight into it too.
         if self._color_reads_straight() and self.readback != "copy":
-            readback.read_texture(ids["color"], columns, rows, C, destination)
+            readback.read_texture(ids["color"], columns, rows, C, destination, layers)
             read_seconds += time.perf_counter() - started
         else:
-            staging = self._staging_buffer(rows * columns * C)
-            readback.read_texture(ids["color"], columns, rows, C, staging)
+            staging = self._staging_buffer(layers * rows * columns * C)
+            readback.read_texture(ids["color"], columns, rows, C, staging, layers)
             read_seconds += time.perf_counter() - started
             started = time.perf_counter()
             self._finish_color(staging.view(len(views), height * k, width * k, C), destination)
@@ -676,11 +708,11 @@ class BatchRenderer:
             target = out[views.start:views.stop]
             started = time.perf_counter()
             if k == 1:
-                readback.read_texture(ids[name], columns, rows, 4, target)
+                readback.read_texture(ids[name], columns, rows, 4, target, layers)
                 read_seconds += time.perf_counter() - started
                 continue
-            staging = self._staging_buffer(rows * columns * 4)
-            readback.read_texture(ids[name], columns, rows, 4, staging)
+            staging = self._staging_buffer(layers * rows * columns * 4)
+            readback.read_texture(ids[name], columns, rows, 4, staging, layers)
             read_seconds += time.perf_counter() - started
             started = time.perf_counter()
             self._finish_aux(staging.view(out.dtype).view(len(views), height * k, width * k), target)

@@ -41,7 +41,7 @@ def source(name: str) -> str:
 def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool = False,
                 corners: bool = False, gray: bool = False, shadow_pcf: bool = False,
                 joints: int = 0, influences: int = 4, role: int = 0, surface: bool = False,
-                exact: bool = False) -> tuple[str, ...]:
+                exact: bool = False, layered: bool = False) -> tuple[str, ...]:
     """The sorted #define lines of one variant (texture only for groups that have one).
 
     Lighting runs per vertex for meshes whose faces each have one normal (flat), where
@@ -58,7 +58,8 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
     instance), and surface says that some instance has a role: only then does the variant carry
     the floor and wall patterns (a world position per fragment). exact: the EXACT_TILES variant,
     whose geometry stage (exact.geom) makes a view's pixels independent of where its tile sits
-    (BatchRenderer(exact_tiles=True)); it computes each triangle's depth plane itself."""
+    (BatchRenderer(exact_tiles=True)); it computes each triangle's depth plane itself. layered:
+    each view is drawn into its own layer of an array texture (BatchRenderer(layered=True))."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
     if "appearance" in effects:
         defines.update(layout.appearance_defines())
@@ -68,6 +69,8 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
             defines.add("APPEARANCE_SURFACE")
     if "lighting" in effects:
         defines.add("LIGHT_PER_VERTEX" if flat else "LIGHT_PER_FRAGMENT")
+    if layered:
+        defines.add("LAYERED_VIEWS")
     if exact:
         defines.add("EXACT_TILES")
     elif "depth" in effects:

@@ -27,6 +27,7 @@ from .readback import GL_RGBA, GL_UNSIGNED_BYTE, gl_functions
 from .tiling import TileLayout
 
 GL_TEXTURE_2D = 0x0DE1
+GL_TEXTURE_2D_ARRAY = 0x8C1A
 GL_RGBA8 = 0x8058
 GL_PIXEL_UNPACK_BUFFER = 0x88EC
 GL_PIXEL_UNPACK_BUFFER_BINDING = 0x88EF
@@ -35,10 +36,12 @@ GRAY_WEIGHTS = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)  # shade
 
 class SkyImages:
     """One image per pass of `layout` (tile_width x views * tile_height, RGBA8) with each view's tile
-    in its world's sky colour (gray: its BT.601 luma, as the gray output reads the red channel)."""
+    in its world's sky colour (gray: its BT.601 luma, as the gray output reads the red channel).
+    layered: one array texture per pass instead, a layer per view (BatchRenderer(layered=True))."""
 
-    def __init__(self, layout: TileLayout, agents: int, gray: bool):
-        self.layout, self.agents, self.gray = layout, agents, gray
+    def __init__(self, layout: TileLayout, agents: int, gray: bool, layered: bool = False):
+        self.layout, self.agents, self.gray, self.layered = layout, agents, gray, layered
+        self.target = GL_TEXTURE_2D_ARRAY if layered else GL_TEXTURE_2D
         self.names: list[int] = []  # GL textures, one per pass
         self._uploaded = torch.zeros(layout.num_passes, dtype=torch.bool)  # passes that have been uploaded once
         self._held = torch.zeros(layout.num_views, 4, dtype=torch.uint8)  # [views, 4]: what the images hold
@@ -48,13 +51,17 @@ class SkyImages:
         functions = gl_functions()
         for index in range(layout.num_passes):
             name = ctypes.c_uint()
-            functions["glCreateTextures"](GL_TEXTURE_2D, 1, ctypes.byref(name))
+            functions["glCreateTextures"](self.target, 1, ctypes.byref(name))
             if not name.value:
                 raise RuntimeError("the GL made no texture for the appearance effect's sky")
             self.names.append(name.value)
             views = layout.pass_views(index)
-            functions["glTextureStorage2D"](name.value, 1, GL_RGBA8, layout.tile_width,
-                                            len(views) * layout.tile_height)
+            if layered:
+                functions["glTextureStorage3D"](name.value, 1, GL_RGBA8, layout.tile_width, layout.tile_height,
+                                                len(views))
+            else:
+                functions["glTextureStorage2D"](name.value, 1, GL_RGBA8, layout.tile_width,
+                                                len(views) * layout.tile_height)
 
     def set_sky(self, sky: torch.Tensor) -> None:
         """Each world's sky colour, sky [W, 3] float in [0, 1] (uploaded at the next copy)."""
@@ -82,9 +89,10 @@ class SkyImages:
         views = self.layout.pass_views(index)
         functions = gl_functions()
         self._upload(index, views, functions)
-        height = len(views) * self.layout.tile_height
-        functions["glCopyImageSubData"](self.names[index], GL_TEXTURE_2D, 0, 0, 0, 0, target, GL_TEXTURE_2D, 0, 0, 0,
-                                        0, self.layout.tile_width, height, 1)
+        height, depth = (self.layout.tile_height, len(views)) if self.layered else \
+            (len(views) * self.layout.tile_height, 1)
+        functions["glCopyImageSubData"](self.names[index], self.target, 0, 0, 0, 0, target, self.target, 0, 0, 0,
+                                        0, self.layout.tile_width, height, depth)
 
     def _upload(self, index: int, views: range, functions: dict) -> None:
         """The rows of the views (first to last) whose colour changed since the last upload."""
@@ -108,8 +116,12 @@ class SkyImages:
         if unpack.value:  # a bound buffer would turn the pointer into an offset into it
             functions["glBindBuffer"](GL_PIXEL_UNPACK_BUFFER, 0)
         try:
-            functions["glTextureSubImage2D"](self.names[index], 0, 0, first * th, tw, (last - first) * th, GL_RGBA,
-                                             GL_UNSIGNED_BYTE, rows.data_ptr())
+            if self.layered:
+                functions["glTextureSubImage3D"](self.names[index], 0, 0, 0, first, tw, th, last - first, GL_RGBA,
+                                                 GL_UNSIGNED_BYTE, rows.data_ptr())
+            else:
+                functions["glTextureSubImage2D"](self.names[index], 0, 0, first * th, tw, (last - first) * th,
+                                                 GL_RGBA, GL_UNSIGNED_BYTE, rows.data_ptr())
         finally:
             if unpack.value:
                 functions["glBindBuffer"](GL_PIXEL_UNPACK_BUFFER, unpack.value)

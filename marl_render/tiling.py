@@ -48,6 +48,15 @@ def column_layout(num_views: int, tile_height: int, tile_width: int, max_size: i
     return TileLayout(num_views, tile_height, tile_width, 1, min(num_views, max_size // tile_height))
 
 
+def layer_layout(num_views: int, tile_height: int, tile_width: int, max_size: int, max_layers: int) -> TileLayout:
+    """One view per layer of an array texture, as many layers per framebuffer as the GL allows
+    (BatchRenderer(layered=True)); `rows` counts the layers of one pass."""
+    if tile_height > max_size or tile_width > max_size:
+        raise ValueError(f"resolution must be at most {max_size} pixels per side (framebuffer limit), "
+                         f"got {(tile_height, tile_width)}")
+    return TileLayout(num_views, tile_height, tile_width, 1, min(num_views, max_layers))
+
+
 def plan_layout(num_views: int, tile_height: int, tile_width: int, max_size: int) -> TileLayout:
     """A near-square grid of tiles no larger than max_size x max_size pixels."""
     if tile_height > max_size or tile_width > max_size:

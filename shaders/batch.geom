@@ -54,6 +54,9 @@ flat out vec4 g_pattern;
 #endif
 in vec3 v_clip[];              // (x, y, w) before the move into the tile
 flat in vec2 v_tile_origin[];
+#ifdef LAYERED_VIEWS
+flat in int v_layer[];
+#endif
 flat out vec4 depth_plane;     // n.(x, y, w) = d
 flat out vec4 depth_tile;      // tile origin, smallest and largest w
 
@@ -66,8 +69,12 @@ void main() {
         gl_Position = gl_in[i].gl_Position;
         // The vertex shader's clip distances, which a geometry shader must write again
         // (tiles span the framebuffer's width, so only the top and bottom: see batch.vert).
+#ifdef LAYERED_VIEWS
+        gl_Layer = v_layer[0];  // one layer per view, no tile to clip to
+#else
         gl_ClipDistance[0] = v_clip[i].z + v_clip[i].y;
         gl_ClipDistance[1] = v_clip[i].z - v_clip[i].y;
+#endif
         g_color = v_color[i];
 #ifdef LIGHT_PER_FRAGMENT
         g_normal = v_normal[i];

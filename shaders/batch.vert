@@ -1,3 +1,7 @@
+#ifdef LAYERED_VIEWS
+// Every view is drawn into its own layer of an array texture (BatchRenderer(layered=True)).
+#extension GL_ARB_shader_viewport_layer_array : require
+#endif
 // One instanced draw covers every view of every world. Instance k of the draw is the
 // k-th visible (view, instance) pair of this pass, listed by the renderer after
 // frustum culling in torch; pairs are sorted by view.
@@ -84,6 +88,9 @@ flat out vec4 depth_tile;     // tile origin (pixels), smallest and largest w of
 // For the geometry shader (batch.geom), which has the whole triangle (model files, skinned meshes).
 out vec3 v_clip;              // (x, y, w) before the move into the tile
 flat out vec2 v_tile_origin;  // pixel of the tile's lower-left corner (window coordinates)
+#ifdef LAYERED_VIEWS
+flat out int v_layer;
+#endif
 #endif
 #endif
 #ifdef OUTPUT_SEGMENTATION
@@ -213,6 +220,15 @@ void main() {
 #if defined(EXACT_TILES) && !defined(SHADOW_CASTER)
     gl_Position = clip;  // exact.geom clips it and moves it into its tile
     v_tile_row = float(pass_view) * tile_size.y;
+#elif defined(LAYERED_VIEWS) && !defined(SHADOW_CASTER)
+    // Its own layer, at the same window coordinates as every other view: no tile offset, so
+    // llvmpipe's snapping, clipping and interpolation see the same numbers in every layer.
+    // Flipped vertically like the tiles (GL reads back bottom-up).
+    gl_Layer = pass_view;
+#ifdef DEPTH_PLANE_FROM_GEOMETRY
+    v_layer = pass_view;  // a geometry stage must write gl_Layer itself
+#endif
+    gl_Position = vec4(clip.x, -clip.y, clip.z, clip.w);
 #else
     // Clip against this view's own frustum before moving it into its tile, so nothing
     // spills into a neighbour. Tiles span the framebuffer's width (one column), so the
@@ -267,7 +283,11 @@ void main() {
 #endif
 #if defined(OUTPUT_DEPTH) && !defined(EXACT_TILES)
     // Tile t of the column covers window rows [t * H, (t + 1) * H) from the bottom.
+#ifdef LAYERED_VIEWS
+    vec2 tile_origin = vec2(0.0);  // every layer starts at window (0, 0)
+#else
     vec2 tile_origin = vec2(0.0, float(pass_view)) * tile_size;
+#endif
 #ifdef DEPTH_PLANE_FROM_CORNERS
     vec3 q0 = (view_projection * vec4(relative + rotate(rotation, corner_a * scale), 1.0)).xyw;
     vec3 q1 = (view_projection * vec4(relative + rotate(rotation, corner_b * scale), 1.0)).xyw;

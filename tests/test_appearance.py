@@ -535,3 +535,23 @@ def test_bench_effects_measures_the_appearance_effect(tmp_path):
     assert len(result["time_ratios_on_off"]) == 1 and result["cost_vs_off"] == result["time_ratio_on_off"] - 1
     report = (tmp_path / "effects.md").read_text()
     assert report.count("lighting + appearance") == 1 and report.count("without patterns") == 1
+
+
+def test_layered_views_show_each_worlds_sky_and_its_changes():
+    """layered=True (PROTOTYPE): the sky is copied into every view's layer (one array image per pass)."""
+    scene = free_scene(3, agents=2)
+    with mr.BatchRenderer(scene, layered=True) as r:
+        look_from(r, [0, 0, 0], UP)
+        r.set_appearance(sky=SKIES)
+        rgb = r.render().rgb
+        for w in range(3):
+            assert (rgb[w] == to_byte(SKIES[w])).all(), w
+        r.set_appearance(sky=torch.cat((SKIES[:1], torch.tensor([[0.0, 0.0, 0.0]], dtype=F64), SKIES[2:])))
+        again = r.render().rgb
+        assert (again[1] == 0).all()
+        assert torch.equal(again[0], rgb[0]) and torch.equal(again[2], rgb[2])
+        for active in (True, False):  # the next frame's sky replaces what a box drew
+            r.update("boxes", position=torch.tensor([0.0, 0.0, 2.0], dtype=F64).expand(3, 1, 3),
+                     active=torch.full((3, 1), active))
+            boxed = r.render().rgb
+            assert torch.equal(boxed, again) != active
