@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
 import dataclasses
 import importlib.metadata
 import json
@@ -70,6 +71,7 @@ from marl_render.envs.levels import NAMED as NAMED_LEVELS
 from marl_render.extras import command_needs_extra
 from marl_render.task_imports import add_import_option, load_user_tasks
 
+from . import reproducible
 from .curve import plot_curve
 from .networks import ENCODERS, INITS, PRECISIONS
 from .selfplay import PLAY_LATEST, SNAPSHOT_EVERY, SWAP_EVERY, WINDOW, SelfPlay, setting_problem, team_index
@@ -146,6 +148,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                     help="the actor's initial weights (torch: torch's default, as before issue 25's fix)")
     hp.add_argument("--precision", choices=list(PRECISIONS), default=None,
                     help="the actor's compute (bfloat16: CPU autocast, float32 weights)")
+    parser.add_argument("--reproducible", action=argparse.BooleanOptionalAction, default=False,
+                        help="train and evaluate in the reproducible mode (reproducible.py): the same bits on any "
+                             "x86-64 CPU, float32 and one torch thread; the command restarts itself with "
+                             "the mode's environment")
     sp = parser.add_argument_group("self-play (a task of two or more teams; see selfplay.py for the defaults' why)")
     sp.add_argument("--self-play", action="store_true",
                     help="train every team against a pool of frozen snapshots of the actor")
@@ -186,7 +192,18 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
         value = getattr(args, name)
         if value is not None and value < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    if args.reproducible:
+        if args.precision not in (None, reproducible.PRECISION):
+            parser.error(f"--precision must be {reproducible.PRECISION} with --reproducible (bfloat16 kernels "
+                         f"depend on the CPU), got {args.precision}")
+        if args.torch_threads not in (None, reproducible.THREADS):
+            parser.error(f"--torch-threads must be {reproducible.THREADS} with --reproducible (reductions split "
+                         f"over threads sum in another order), got {args.torch_threads}")
+        args.precision = reproducible.PRECISION
     hp = task_hyperparameters(args.env, **{name: getattr(args, name) for name in FIELDS})
+    problem = reproducible.settings_problem(hp.precision, hp.torch_threads) if args.reproducible else None
+    if problem:  # a task's own defaults
+        parser.error(f"--reproducible: the task's {problem}")
     if args.obs == "pixels" and hp.resolution < ENCODERS[hp.encoder]:
         parser.error(f"--resolution must be >= {ENCODERS[hp.encoder]} for the {hp.encoder!r} encoder, got "
                      f"{hp.resolution} (--encoder conv takes {ENCODERS['conv']})")
@@ -272,10 +289,21 @@ def require_matplotlib() -> None:
 
 def versions() -> dict:
     import marl_render
-    # TorchRL's and TensorDict's versions from their metadata: importing them costs seconds, the trainer does not.
+    # The other libraries' versions from their metadata: importing TorchRL and TensorDict costs seconds, the
+    # trainer does not.
     return {"marl_render": getattr(marl_render, "__version__", "unknown"), "torch": torch.__version__,
-            "torchrl": installed_version("torchrl"), "tensordict": installed_version("tensordict"),
-            "python": platform.python_version()}
+            **{name: installed_version(name) for name in LIBRARIES}, "python": platform.python_version()}
+
+
+LIBRARIES = ("torchrl", "tensordict", "numpy", "panda3d")  # besides torch, what a run's numbers rest on
+
+
+def arithmetic() -> dict:
+    """How this process computes: the reproducible mode's variables as set, oneDNN and deterministic
+    algorithms as they are now (inside reproducible.mode() when the run uses it), torch's threads."""
+    return {"environment": {name: os.environ.get(name) for name in reproducible.ENVIRONMENT},
+            "onednn": torch.backends.mkldnn.enabled, "deterministic_algorithms":
+                torch.are_deterministic_algorithms_enabled(), "torch_threads": torch.get_num_threads()}
 
 
 def installed_version(distribution: str) -> str:
@@ -320,6 +348,19 @@ def main(argv=None) -> int:
     started = time.perf_counter()
     args = parse_args(argv)
     require_matplotlib()
+    if args.reproducible and reproducible.problems():
+        if argv is not None:  # called from Python: torch has chosen its kernels in this process already
+            print("error: --reproducible needs a process started with its environment ("
+                  + "; ".join(reproducible.problems()) + "): run `python -m marl_render.baselines --reproducible "
+                  "...`, which restarts itself with it", file=sys.stderr)
+            return 2
+        reproducible.restart()  # the command line again, in a process that loads torch pinned
+    with reproducible.mode() if args.reproducible else contextlib.nullcontext():
+        return train_and_write(args, argv, started)
+
+
+def train_and_write(args: argparse.Namespace, argv, started: float) -> int:
+    """The run of main's checked arguments: references, training, the final evaluation, the files."""
     hp = task_hyperparameters(args.env, **{name: getattr(args, name) for name in FIELDS})
     if hp.torch_threads == 0:  # the cores this process may use
         hp = dataclasses.replace(hp, torch_threads=len(os.sched_getaffinity(0)))
@@ -374,7 +415,7 @@ def main(argv=None) -> int:
                 hyperparameters=hp, env_options=env_options, train_options=train_options,
                 checkpoint_every=checkpoint_every, checkpoint_episodes=args.checkpoint_episodes,
                 max_seconds=None if args.max_minutes is None else args.max_minutes * 60, progress=progress,
-                self_play=self_play_settings(args))
+                self_play=self_play_settings(args), reproducible=args.reproducible)
     trainer = run.trainer
 
     eval_start = time.perf_counter()
@@ -396,7 +437,10 @@ def main(argv=None) -> int:
         "budget_minutes": args.max_minutes,  # the opt-in cap (None: none); the budget is in env steps
         "truncated": run.truncated,
         "versions": versions(),
-        "machine": {"cpu_count": os.cpu_count(), "cores_available": len(os.sched_getaffinity(0)),
+        "mode": "reproducible" if args.reproducible else "default",
+        "arithmetic": arithmetic(),
+        "machine": {"cpu": reproducible.cpu(), "cpu_count": os.cpu_count(),
+                    "cores_available": len(os.sched_getaffinity(0)),
                     "load_average_1min_start": load_start, "load_average_1min_end": os.getloadavg()[0],
                     "platform": platform.platform(), "processor": platform.processor()},
         "wall_clock_seconds": time.perf_counter() - started,
