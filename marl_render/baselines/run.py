@@ -66,7 +66,7 @@ import time
 import torch
 
 from marl_render.envs import list_envs, make_env
-from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
+from marl_render.envs.evaluation import SEALED_SEEDS, evaluate, heuristic_policy, random_policy
 from marl_render.envs.levels import NAMED as NAMED_LEVELS
 from marl_render.extras import command_needs_extra
 from marl_render.task_imports import add_import_option, load_user_tasks
@@ -122,6 +122,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--eval-set", choices=list(EVALUATION_SETS), default="development",
                         help="evaluation episodes of the final policy and the references: " + "; ".join(
                             f"{k}: env seed {v['seed']}, {v['episodes']} episodes" for k, v in EVALUATION_SETS.items()))
+    parser.add_argument("--final", action="store_true",
+                        help="allow scoring the sealed final set (--eval-set final): once, by the final runs")
     parser.add_argument("--eval-seed", type=int, default=None, help="env seed of the evaluation (default: the set's)")
     parser.add_argument("--episodes", type=int, default=None, help="evaluation episodes (default: the set's)")
     parser.add_argument("--checkpoint-every", type=int, default=None,
@@ -207,6 +209,12 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
     if args.obs == "pixels" and hp.resolution < ENCODERS[hp.encoder]:
         parser.error(f"--resolution must be >= {ENCODERS[hp.encoder]} for the {hp.encoder!r} encoder, got "
                      f"{hp.resolution} (--encoder conv takes {ENCODERS['conv']})")
+    eval_seed = EVALUATION_SETS[args.eval_set]["seed"] if args.eval_seed is None else args.eval_seed
+    if eval_seed in SEALED_SEEDS and not args.final:
+        parser.error(f"--eval-set {SEALED_SEEDS[eval_seed]} is sealed: it is scored once, by the final runs, with "
+                     f"--final; got no --final")
+    if args.final and eval_seed not in SEALED_SEEDS:
+        parser.error(f"--final applies to the sealed set (--eval-set final), got evaluation seed {eval_seed}")
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
         parser.error(f"--checkpoint-every must be >= 0 (0: no checkpoints), got {args.checkpoint_every}")
     if args.max_minutes is not None and not (math.isfinite(args.max_minutes) and args.max_minutes > 0):
@@ -380,8 +388,8 @@ def train_and_write(args: argparse.Namespace, argv, started: float) -> int:
         env_options["appearance"] = args.appearance
     if args.levels is not None:
         train_options["levels"] = args.levels
-    eval_kwargs = dict(episodes=episodes, seed=eval_seed, resolution=hp.resolution, grayscale=hp.grayscale,
-                       state_obs=args.obs == "state", **env_options,
+    eval_kwargs = dict(episodes=episodes, seed=eval_seed, final=args.final, resolution=hp.resolution,
+                       grayscale=hp.grayscale, state_obs=args.obs == "state", **env_options,
                        **({} if args.eval_levels is None else {"levels": args.eval_levels}))
     try:  # the first env this run builds: an option the env refuses ends here, in one line, before training
         references = {name: evaluate(args.env, policy, **eval_kwargs)

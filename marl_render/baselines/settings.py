@@ -8,6 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 
+from marl_render.envs.evaluation import SEALED_SEEDS
+
+SEALED_SEEDS_BY_NAME = {name: seed for seed, name in SEALED_SEEDS.items()}
+
 
 @dataclasses.dataclass(frozen=True)
 class Hyperparameters:
@@ -71,11 +75,14 @@ STEP_BUDGETS: dict = {
 DEFAULT_STEP_BUDGET = 500_000  # a task without an entry above (e.g. one a user registered)
 
 # Named sets of evaluation episodes: env seed (one episode per world of that env) and episode count.
-# "development" scored every choice made so far (shaping, hyperparameters, tries); "publication" is
-# kept for the published rows and was never used to choose anything.
+# "development" scored every choice made so far (shaping, hyperparameters, tries); "publication" was
+# kept for the published rows (docs/baselines/notes.md says which choices followed its scores);
+# "final" is sealed: committed (issue 38) before anything was scored on it, refused by evaluate()
+# without final=True (--final), for one scoring of the final runs. Its episodes: final_set.py.
 EVALUATION_SETS: dict = {
     "development": {"seed": 1000, "episodes": 32},
     "publication": {"seed": 7_000_000, "episodes": 64},
+    "final": {"seed": SEALED_SEEDS_BY_NAME["final"], "episodes": 256},
 }
 
 
