@@ -198,7 +198,8 @@ def test_marl_eval_steps_leave_out_the_checkpoint_at_the_budgets_end():
 
 
 @pytest.mark.parametrize("ablated, constant, expected", [
-    ({"zeros": [1.0, 2.0], "shifted": [1.0, 3.5]}, 0.0, "yes"),  # both views cost return on every episode
+    # both views cost return on every episode (of the one ablated seed)
+    ({"zeros": [1.0, 2.0], "shifted": [1.0, 3.5]}, 0.0, "yes (view ablation of seed 0 only)"),
     ({"zeros": [1.0, 2.0], "shifted": [4.0, 6.0]}, 0.0, "no (view ablation costs no return)"),  # shifted: nothing
     ({"zeros": [1.0, 2.0], "shifted": [1.0, 3.5]}, 5.0, "no (not above the best constant action)"),  # seed 1 1.5
     (None, 0.0, "not judged (no view ablation)"),
