@@ -1,4 +1,4 @@
-"""The sealed final evaluation set: its size from the committed runs, its guard, and that nothing is scored on it yet."""
+"""The sealed final evaluation set: its size from the committed runs, its guard, nothing scored on it yet."""
 import json
 import math
 import statistics
