@@ -1,14 +1,14 @@
 """Which knobs change a training run's bits: the tiny golden run (marl_render/baselines/golden.py) in
 the default and the reproducible mode, under environment settings that emulate another CPU's kernels.
 
-    python tools/reproducible_knobs.py        # a markdown table (minutes: two processes per line)
+    python tools/reproducible_knobs.py        # a markdown table (minutes: three processes per line)
 
 Each line runs ``python -m marl_render.baselines.golden`` in a fresh process with one variable set (the
 libraries read them when they load): ATEN_CPU_CAPABILITY picks ATen's AVX-512, AVX2 or baseline
 kernels, ONEDNN_MAX_CPU_ISA caps oneDNN's, MKL_CBWR / MKL_ENABLE_INSTRUCTIONS / MKL_DEBUG_CPU_TYPE choose
 MKL's branch, LP_NATIVE_VECTOR_WIDTH llvmpipe's vectors, and --threads torch's threads. The reproducible
-mode sets its own pins (reproducible.ENVIRONMENT) over the first three of those it pins, so a line that
-sets one of them shows that the mode overrides it; the others it leaves alone.
+mode sets its own pins (reproducible.ENVIRONMENT: ATEN_CPU_CAPABILITY, MKL_CBWR) over a line's, so such a
+line shows that the mode overrides it; the other variables it leaves as given.
 """
 from __future__ import annotations
 
