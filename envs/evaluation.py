@@ -46,9 +46,21 @@ def heuristic_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
     return env.heuristic_actions()
 
 
-def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution: int = 16, **kwargs) -> dict:
+# Env seeds of sealed evaluation sets (marl_render/baselines/settings.py, final_set.py): committed before
+# anything was scored on them, scored only when the caller says so (final=True), by the final runs.
+SEALED_SEEDS = {52_813_907: "final"}
+
+
+def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution: int = 16, final: bool = False,
+             **kwargs) -> dict:
     """Mean, std, min and max episode return of `policy` over `episodes` episodes (one per world), and
-    each episode's return (``per_episode``, in world order)."""
+    each episode's return (``per_episode``, in world order). A sealed set's seed (``SEALED_SEEDS``) is
+    refused unless `final` is True, and `final` is refused with any other seed."""
+    if (seed in SEALED_SEEDS) != bool(final):
+        raise ValueError(f"seed {seed} is the sealed {SEALED_SEEDS[seed]!r} evaluation set: it is scored only with "
+                         f"final=True (python -m marl_render.baselines --eval-set final --final), got final={final!r}"
+                         if seed in SEALED_SEEDS else
+                         f"final=True applies to a sealed set's seed {sorted(SEALED_SEEDS)}, got seed {seed}")
     # Imported here: marl_render.policies imports the baselines' networks, whose package imports this module.
     from marl_render.policies import as_policy, joint_actions
 
@@ -81,6 +93,33 @@ def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution
                 "evaluated_agents": [n for n, e in zip(env.agent_names, evaluated.tolist(), strict=True) if e]}
     finally:
         env.close()
+
+
+def constant_policy(action: int):
+    """A policy that holds `action` for every agent at every step; an agent whose action mask forbids it
+    takes its lowest allowed action instead (so in speaker_listener, whose speaker and listener allow
+    different actions, each index is one constant listener action). Discrete actions only."""
+    def policy(env, obs, generator: torch.Generator) -> torch.Tensor:
+        mask = obs["action_mask"]
+        lowest = mask.to(torch.int8).argmax(-1)  # the first allowed action of each agent
+        return torch.where(mask[..., action], action, lowest)
+    return policy
+
+
+def best_constant_action(name: str, *, episodes: int = 32, seed: int = 0, resolution: int = 16, **kwargs) -> dict:
+    """Every action held for whole episodes (``constant_policy``), each scored by ``evaluate`` on the same
+    episodes: the best one's evaluation, with ``"action"`` (its index) and ``"per_action"`` (each action's
+    mean return, by index). A baseline a learned policy must beat: one that never looks can reach it.
+    ValueError for an env built with continuous actions (it has no finite set of actions to hold)."""
+    with make_env(name, num_worlds=1, resolution=8, **kwargs) as probe:
+        if probe.continuous:
+            raise ValueError(f"the best constant action needs discrete actions; {name} was built with "
+                             f"continuous=True (a constant continuous action is not one of finitely many)")
+        actions = probe.num_actions
+    scores = [evaluate(name, constant_policy(a), episodes=episodes, seed=seed, resolution=resolution, **kwargs)
+              for a in range(actions)]
+    best = max(range(actions), key=lambda a: scores[a]["mean"])  # the lowest index among equals
+    return {**scores[best], "action": best, "per_action": [score["mean"] for score in scores]}
 
 
 def opponent_mask(env) -> torch.Tensor:

@@ -16,7 +16,7 @@ import pytest
 import torch
 from PIL import Image
 
-from marl_render.baselines import report, run
+from marl_render.baselines import report, reproducible, run
 from marl_render.baselines.ppo import FrameStack
 from marl_render.baselines.settings import Hyperparameters, task_hyperparameters
 
@@ -51,7 +51,10 @@ def test_result_json_has_every_field(runs, folder, env, obs, trained):
     assert result["env"] == env and result["obs"] == obs
     assert result["command"].startswith("python -m marl_render.baselines --env ")
     assert result["seeds"] == {"train": 0, "evaluation": 1000} and result["evaluation_set"] == "development"
-    assert set(result["versions"]) >= {"marl_render", "torch", "torchrl", "tensordict"}
+    assert set(result["versions"]) == {"marl_render", "torch", "torchrl", "tensordict", "numpy", "panda3d", "python"}
+    assert result["mode"] == "default" and result["machine"]["cpu"] == reproducible.cpu()
+    assert result["arithmetic"] == {"environment": {name: os.environ.get(name) for name in reproducible.ENVIRONMENT},
+                                    "onednn": True, "deterministic_algorithms": False, "torch_threads": 1}
     assert result["hyperparameters"] == {**vars(task_hyperparameters(env)), "worlds": 2, "resolution": 12,
                                          "rollout": 4, "overlap": obs == "pixels"}
     assert len(result["trained_agents"]) == trained

@@ -55,6 +55,24 @@ def write_runs(root, policies=POLICIES):
             path.write_text(json.dumps(synthetic_result(env, obs, seed, returns)))
 
 
+# The best constant action on the runs' worlds: spread's 0.0 (below every seed), commons' 10.0 (above them).
+CONSTANTS = {"spread": 0.0, "commons": 10.0}
+# Spread seed 0's ablated returns (its own: 4.0, 6.0): zeros costs return on both episodes, shifted on one only.
+ABLATED = {"zeros": [1.0, 2.0], "shifted": [4.0, 5.0]}
+
+
+def write_baselines(results, ablated=ABLATED):
+    """constant_actions.json for CONSTANTS and spread pixels seed 0's ablation.json."""
+    constants = {env: {"evaluation_set": "publication", "seed": 2000, "env_options": {}, **evaluation([mean, mean]),
+                       "action": 3, "per_action": [mean - 1, mean - 1, mean - 1, mean]}
+                 for env, mean in CONSTANTS.items()}
+    (results / "constant_actions.json").write_text(json.dumps(constants))
+    views = {"none": evaluation(POLICIES[("spread", "pixels")][0]), **{v: evaluation(r) for v, r in ablated.items()}}
+    (results / "spread" / "seed0" / "ablation.json").write_text(json.dumps(
+        {"run": "x", "env": "spread", "evaluation_set": "publication", "seed": 2000, "episodes": 2, "views": views,
+         "reproduces_run": True}))
+
+
 @pytest.fixture(scope="module")
 def written(tmp_path_factory):
     root = tmp_path_factory.mktemp("report")
@@ -62,6 +80,7 @@ def written(tmp_path_factory):
     write_runs(results)
     readme = root / "README.md"
     readme.write_text(f"intro\n{report.START}\nold table\n{report.END}\nrest\n")
+    write_baselines(results)
     out = root / "docs" / "baselines.md"
     assert report.main(["--results", str(results), "--out", str(out), "--readme", str(readme)]) == 0
     rows = {line.split("|")[1].strip(): line.split("|")[2:-1] for line in out.read_text().splitlines()
@@ -72,7 +91,8 @@ def written(tmp_path_factory):
 def test_rows_show_the_mean_its_interval_and_every_seed(written):
     rows = written["rows"]
     assert set(list_envs()) <= set(rows)
-    random, heuristic, pixels, state, above, normalised, scored_on, pixel_cost, state_cost = rows["spread"]
+    (random, heuristic, pixels, state, above, normalised, scored_on, pixel_cost, state_cost, constant,
+     learned) = rows["spread"]
     assert (random.strip(), heuristic.strip()) == ("-2.00", "7.00")
     # 3 seeds: the interval of the mean is exactly [lowest, highest] seed
     assert pixels.strip() == "4.00 [1.50, 5.50]; seeds 0/1/2: 5.00 / 1.50 / 5.50"
@@ -85,7 +105,12 @@ def test_rows_show_the_mean_its_interval_and_every_seed(written):
     assert pixel_cost.strip() == "100,000 steps; 1.0 min (1.0-1.0)"
     commons = rows["commons"]
     assert commons[3].strip() == "–" and commons[4].strip() == "no; –"  # seed 1 below random; no state runs
-    assert [cell.strip() for cell in rows["cartpole"]] == ["–"] * 4 + ["–; –"] + ["–"] * 4
+    assert [cell.strip() for cell in rows["cartpole"]] == ["–"] * 4 + ["–; –"] + ["–"] * 5 + ["–; –"]
+    assert constant.strip() == "0.00 (action 3)"
+    # shifted views cost seed 0 a return of 0.5 on average, with a paired interval that reaches below 0
+    assert learned.strip() == "no (view ablation costs no return); yes"
+    assert rows["commons"][-2:] == [" 10.0 (action 3) ",
+                                    " no (not above random, not above the best constant action); – "]
 
 
 def test_document_says_final_policy_and_lists_commands_and_checkpoints(written):
@@ -127,7 +152,8 @@ def test_readme_table_is_rewritten_short(written):
     readme = written["readme"]
     assert readme.startswith("intro\n") and readme.endswith("\nrest\n") and "old table" not in readme
     row = next(line for line in readme.splitlines() if line.startswith("| spread |"))
-    assert row == "| spread | -2.00 | 7.00 | 4.00 [1.50, 5.50] | 6.33 [5.50, 7.00] | yes; yes |"
+    assert row == ("| spread | -2.00 | 7.00 | 4.00 [1.50, 5.50] | 6.33 [5.50, 7.00] | yes; yes | 0.00 (action 3) "
+                   "| no (view ablation costs no return); yes |")
 
 
 def test_marl_eval_layout(written):
@@ -169,6 +195,37 @@ def test_marl_eval_steps_leave_out_the_checkpoint_at_the_budgets_end():
     assert [before_end[k]["step_count"] for k in ("step_0", "step_1")] == list(CHECKPOINTS[:2])
     result["checkpoints"] = []  # a run from before the checkpoints: its final evaluation is its one step
     assert marl_eval.run_entry(result)["step_0"] == {"step_count": BUDGET, "return": [1.0, 2.0]}
+
+
+@pytest.mark.parametrize("ablated, constant, expected", [
+    # both views cost return on every episode (of the one ablated seed)
+    ({"zeros": [1.0, 2.0], "shifted": [1.0, 3.5]}, 0.0, "yes (view ablation of seed 0 only)"),
+    ({"zeros": [1.0, 2.0], "shifted": [4.0, 6.0]}, 0.0, "no (view ablation costs no return)"),  # shifted: nothing
+    ({"zeros": [1.0, 2.0], "shifted": [1.0, 3.5]}, 5.0, "no (not above the best constant action)"),  # seed 1 1.5
+    (None, 0.0, "not judged (no view ablation)"),
+    ({"zeros": [1.0, 2.0], "shifted": [1.0, 3.5]}, None, "not judged (no best constant action on its worlds)"),
+])
+def test_a_row_counts_as_learned_only_above_random_the_constant_action_and_with_its_view(tmp_path, ablated, constant,
+                                                                                        expected):
+    write_runs(tmp_path, {("spread", "pixels"): POLICIES[("spread", "pixels")]})
+    if ablated is not None:
+        write_baselines(tmp_path, ablated)
+    runs = report.load_results(tmp_path)
+    constants = None if constant is None else {"evaluation_set": "publication", "seed": 2000, "mean": constant}
+    assert report.learned_verdict(runs["spread"]["pixels"], constants) == expected
+    # the same constant scored on other worlds than the runs' judges nothing
+    assert report.above_constant(runs["spread"]["pixels"], {"evaluation_set": "development", "seed": 1000,
+                                                            "mean": -100.0}) is None
+
+
+def test_the_view_ablation_and_the_constant_action_are_written_under_the_task(written):
+    section = written["text"].split("### spread from pixels")[1].split("###")[0]
+    assert "- Best constant action on the publication worlds: action 3, 0.00 (each action, by index: -1.00, -1.00, " \
+           "-1.00, 0.00)." in section
+    # zeros: drops 3 and 4 (mean 3.5, std 0.71 over 2 episodes); shifted: drops 0 and 1
+    half = 1.96 * np.std([3.0, 4.0], ddof=1) / np.sqrt(2)
+    assert (f"- View ablation of seed 0 (2 episodes of its evaluation worlds): as trained 5.00; zeros 1.50 (drop "
+            f"3.50 [{3.5 - half:.2f}, {3.5 + half:.2f}]); shifted 4.50 (drop 0.50 [") in section
 
 
 def test_older_flat_runs_are_read_only_where_no_seed_folders_exist(tmp_path):

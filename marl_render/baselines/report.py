@@ -29,10 +29,12 @@ from pathlib import Path
 import numpy as np
 
 from marl_render.envs import list_envs
+from marl_render.envs.evaluation import SEALED_SEEDS
 
 from . import figures, marl_eval, stats
+from .ablate import ABLATION, CONSTANT_ACTIONS
 from .published import BUDGET_FLAG, EVALUATION_SET_FLAG, OBSERVATIONS, ROOT, folder, learner_argv
-from .settings import Hyperparameters
+from .settings import EVALUATION_SETS, Hyperparameters
 
 START, END = "<!-- baselines:start -->", "<!-- baselines:end -->"
 DEFAULTS = dataclasses.asdict(Hyperparameters())
@@ -72,10 +74,20 @@ def read_result(path: Path) -> dict:
             if isinstance(point.get("per_episode"), list):
                 point["per_episode"] = [math.nan if x is None else x for x in point["per_episode"]]
     result["folder"] = path.parent
+    ablation = path.parent / ABLATION
+    if ablation.is_file():  # python -m marl_render.baselines.ablate RUN
+        result["ablation"] = json.loads(ablation.read_text())
     # Runs before the split into development and publication worlds were scored on the worlds
     # every development choice used.
     result.setdefault("evaluation_set", "development")
     return result
+
+
+def load_constant_actions(folder_: Path) -> dict:
+    """{task: best constant action} of FOLDER/constant_actions.json (python -m marl_render.baselines.ablate
+    --constant); {} without the file."""
+    path = Path(folder_) / CONSTANT_ACTIONS
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 def load_results(folder_: Path) -> dict:
@@ -167,6 +179,65 @@ def verdict(results: list | None) -> str:
     return "yes" if difference.low > 0 else "no"
 
 
+VIEW_Z = 1.96  # a view ablation costs return when its paired drop's 95% normal interval is above 0
+
+
+def view_drop(result: dict, view: str) -> stats.Estimate:
+    """The policy's return minus the ablated one's, episode by episode (the same episodes), its mean
+    with a 95% normal interval."""
+    drop = (np.array(result["ablation"]["views"]["none"]["per_episode"])
+            - np.array(result["ablation"]["views"][view]["per_episode"]))
+    half = VIEW_Z * drop.std(ddof=1) / math.sqrt(len(drop)) if len(drop) > 1 else math.inf
+    return stats.Estimate(float(drop.mean()), float(drop.mean() - half), float(drop.mean() + half))
+
+
+def above_constant(results: list, constant: dict | None) -> stats.Estimate | None:
+    """Learned minus the best constant action's return, run by run, mean over runs with its interval;
+    None for fewer than 2 runs, or a constant action scored on other worlds than the runs."""
+    if constant is None or len(results) < 2 or any(r["evaluation_set"] != constant["evaluation_set"]
+                                                   or r["seeds"]["evaluation"] != constant["seed"] for r in results):
+        return None
+    return across_seeds(scores(results) - constant["mean"])
+
+
+def learned_verdict(results: list | None, constant: dict | None) -> str:
+    """Whether a row counts as learned: it beats random and the best constant action across seeds
+    (the lower ends of both intervals above 0) and, from pixels, every ablated seed loses return when
+    its view is zeros and when it is another world's (view_drop): "yes", "no (why)", or "not judged
+    (what is missing)"."""
+    if not results:
+        return "–"
+    if len(results) < 2:
+        return "not judged (1 seed)"
+    failed, missing = [], []
+    if above_random(results).low <= 0:
+        failed.append("not above random")
+    versus_constant = above_constant(results, constant)
+    if versus_constant is None:
+        missing.append("no best constant action on its worlds")
+    elif versus_constant.low <= 0:
+        failed.append("not above the best constant action")
+    partly = ""  # the seeds a "yes" rests on, when the view ablation covers only some
+    if results[0]["obs"] == "pixels":
+        ablated = [r for r in results if "ablation" in r]
+        if 0 < len(ablated) < len(results):
+            partly = f" (view ablation of seed {', '.join(str(r['seeds']['train']) for r in ablated)} only)"
+        if not ablated:
+            missing.append("no view ablation")
+        elif any(view_drop(r, view).low <= 0 for r in ablated for view in ("zeros", "shifted")):
+            failed.append("view ablation costs no return")
+    if failed:
+        return f"no ({', '.join(failed)})"
+    return f"not judged ({', '.join(missing)})" if missing else "yes" + partly
+
+
+def constant_cell(constant: dict | None) -> str:
+    """The best constant action's return and its index."""
+    if constant is None:
+        return "–"
+    return f"{number(constant['mean'], digits(constant['mean']))} (action {constant['action']})"
+
+
 def reference_cell(by_obs: dict, policy: str) -> str:
     """Random's or the heuristic's return, from the pixel runs where there are some."""
     results = by_obs.get("pixels") or by_obs.get("state")
@@ -229,7 +300,8 @@ def cost_cell(results: list | None) -> str:
 
 # --- the tables -----------------------------------------------------------------------------------
 
-def table(runs: dict, short: bool = False) -> str:
+def table(runs: dict, short: bool = False, constants: dict | None = None) -> str:
+    """The results table; `constants` ({task: best constant action}) fills the last two columns."""
     head = "| task | random | heuristic | learned from pixels | learned from state |"
     rule = "|---|---:|---:|---:|---:|"
     if short:
@@ -239,15 +311,20 @@ def table(runs: dict, short: bool = False) -> str:
         head += (" above random (pixels; state) | pixels normalised (random 0%, heuristic 100%) | scored on "
                  "| pixels: budget, wall-clock | state: budget, wall-clock |")
         rule += "---|---:|---|---:|---:|"
+    head += " best constant action | counts as learned (pixels; state) |"
+    rule += "---:|---|"
     rows = [head, rule]
     for env in tasks(runs):
         by_obs = runs.get(env, {})
         pixels, state = by_obs.get("pixels"), by_obs.get("state")
+        constant = (constants or {}).get(env)
         row = (f"| {env} | {reference_cell(by_obs, 'random')} | {reference_cell(by_obs, 'heuristic')} "
                f"| {learned_cell(pixels, short)} | {learned_cell(state, short)} "
                f"| {verdict(pixels)}; {verdict(state)} |")
         if not short:
             row += f" {normalised_cell(pixels)} | {scored_on(by_obs)} | {cost_cell(pixels)} | {cost_cell(state)} |"
+        row += (f" {constant_cell(constant)} | {learned_verdict(pixels, constant)}; "
+                f"{learned_verdict(state, constant)} |")
         rows.append(row)
     return "\n".join(rows)
 
@@ -318,9 +395,10 @@ def reproducing_command(run: dict) -> str:
             "--updates", str(budget["updates"])]
         if budget.get("max_minutes"):
             flags += ["--max-minutes", f"{budget['max_minutes']:g}"]
-        named = run["evaluation_set"] in ("development", "publication")
+        named = run["evaluation_set"] in EVALUATION_SETS
         evaluation = [EVALUATION_SET_FLAG, run["evaluation_set"]] if named else [
             "--eval-seed", str(run["seeds"]["evaluation"])]
+        evaluation += ["--final"] if run["seeds"]["evaluation"] in SEALED_SEEDS else []
     else:  # the wall-clock budget and the evaluation seed of the runs before step budgets
         flags = ["--budget-minutes", f"{run['budget_minutes']:g}"]
         evaluation = ["--eval-seed", str(run["seeds"]["evaluation"])]
@@ -385,7 +463,8 @@ def details(env: str, obs: str, results: list, results_root: Path, docs: Path) -
     return parts + [*checkpoints_table(results), ""]
 
 
-def document(runs: dict, results_root: Path, docs: Path, notes: str = "", marl_eval_problems=()) -> str:
+def document(runs: dict, results_root: Path, docs: Path, notes: str = "", marl_eval_problems=(),
+             constants: dict | None = None) -> str:
     defaults = ", ".join(f"{k}={v}" for k, v in DEFAULTS.items())
     parts = [
         "# Reference results: every task trained from pixels",
@@ -419,7 +498,18 @@ def document(runs: dict, results_root: Path, docs: Path, notes: str = "", marl_e
         "on the machine of the run. Runs from before the step budgets were stopped by a wall-clock budget instead, "
         "so their env steps depend on the machine's speed and load.",
         "",
-        table(runs),
+        "- **Best constant action**: each action held by every evaluated agent for whole episodes, on the "
+        "publication worlds, the best one (`python -m marl_render.baselines.ablate --constant`, "
+        f"`{CONSTANT_ACTIONS}`; where an agent's mask forbids the action it takes its lowest allowed one). A "
+        "policy that never looks can reach it.",
+        "- **Counts as learned**: *yes* only when the row beats random and the best constant action across seeds "
+        "(both differences, run by run, with the lower end of their 95% interval above 0) and, from pixels, the "
+        "view ablation costs return: every ablated run (`python -m marl_render.baselines.ablate RUN`, its "
+        f"`{ABLATION}`; only runs whose actor is kept can be ablated) scores lower, episode by episode on its own "
+        "evaluation worlds, with its views replaced by zeros and by another world's views (the paired drop's 95% "
+        "normal interval above 0). *not judged* says what is missing.",
+        "",
+        table(runs, constants=constants),
         "",
         f"Default hyperparameters: {defaults}.",
         "",
@@ -442,18 +532,41 @@ def document(runs: dict, results_root: Path, docs: Path, notes: str = "", marl_e
             results = runs.get(env, {}).get(obs)
             if results:
                 parts += details(env, obs, results, results_root, docs)
+                parts += baselines_lines(results, (constants or {}).get(env))
     if notes:
         parts += ["## Findings", "", notes.strip(), ""]
     return "\n".join(parts)
 
 
-def update_readme(path: Path, runs: dict) -> None:
+def baselines_lines(results: list, constant: dict | None) -> list[str]:
+    """What the row must beat: the best constant action, and each ablated run's returns under the
+    view ablation."""
+    parts = []
+    if constant is not None:
+        places = digits(*constant["per_action"])
+        parts.append(f"Best constant action on the {constant['evaluation_set']} worlds: action {constant['action']}, "
+                     f"{number(constant['mean'], places)} (each action, by index: "
+                     + ", ".join(number(m, places) for m in constant["per_action"]) + ").")
+    for r in results:
+        if "ablation" not in r:
+            continue
+        views = r["ablation"]["views"]
+        places = digits(*(v["mean"] for v in views.values()))
+        drops = "; ".join(f"{view} {number(views[view]['mean'], places)} (drop "
+                          f"{interval(view_drop(r, view), places)})" for view in ("zeros", "shifted"))
+        parts.append(f"View ablation of seed {r['seeds']['train']} ({r['ablation']['episodes']} episodes of its "
+                     f"evaluation worlds): as trained {number(views['none']['mean'], places)}"
+                     + ("" if r["ablation"]["reproduces_run"] else " (NOT the run's own returns)") + f"; {drops}.")
+    return [*(f"- {line}" for line in parts), ""] if parts else []
+
+
+def update_readme(path: Path, runs: dict, constants: dict | None = None) -> None:
     text = path.read_text()
     if START not in text or END not in text:
         raise ValueError(f"{path} has no {START} ... {END} markers to put the table between")
     head, rest = text.split(START, 1)
     _, tail = rest.split(END, 1)
-    path.write_text(f"{head}{START}\n{table(runs, short=True)}\n{END}{tail}")
+    path.write_text(f"{head}{START}\n{table(runs, short=True, constants=constants)}\n{END}{tail}")
 
 
 def main(argv=None) -> int:
@@ -480,12 +593,13 @@ def write_report(args: argparse.Namespace) -> int:
         readme_text = Path(args.readme).read_text()
         if START not in readme_text or END not in readme_text:
             raise ValueError(f"{args.readme} has no {START} ... {END} markers to put the table between")
+    constants = load_constant_actions(results_root)
     layout = marl_eval.write(runs, results_root / "marl_eval.json")
     notes = results_root / "notes.md"
     out.write_text(document(runs, results_root, out.parent, notes.read_text() if notes.is_file() else "",
-                            marl_eval.problems(layout)))
+                            marl_eval.problems(layout), constants))
     if args.readme:
-        update_readme(Path(args.readme), runs)
+        update_readme(Path(args.readme), runs, constants)
     count = sum(len(results) for by_obs in runs.values() for results in by_obs.values())
     print(f"wrote {out}, {results_root / 'marl_eval.json'} and the pictures ({count} runs)"
           + (f" and {args.readme}" if args.readme else ""))

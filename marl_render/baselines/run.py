@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
 import dataclasses
 import importlib.metadata
 import math
@@ -79,13 +80,13 @@ import torch
 
 from marl_render import strict_json
 from marl_render.envs import list_envs, make_env
-from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
+from marl_render.envs.evaluation import SEALED_SEEDS, evaluate, heuristic_policy, random_policy
 from marl_render.envs.levels import levels_option
 from marl_render.extras import command_needs_extra
 from marl_render.task_imports import add_import_option, load_user_tasks
 from marl_render.threads import MAX_THREADS
 
-from . import stats
+from . import reproducible, stats
 from .curve import plot_curve
 from .networks import ENCODERS, INITS, PRECISIONS
 from .selfplay import PLAY_LATEST, SNAPSHOT_EVERY, SWAP_EVERY, WINDOW, SelfPlay, setting_problem, team_index
@@ -142,6 +143,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--eval-set", choices=list(EVALUATION_SETS), default="development",
                         help="evaluation episodes of the final policy and the references: " + "; ".join(
                             f"{k}: env seed {v['seed']}, {v['episodes']} episodes" for k, v in EVALUATION_SETS.items()))
+    parser.add_argument("--final", action="store_true",
+                        help="allow scoring the sealed final set (--eval-set final): once, by the final runs")
     parser.add_argument("--eval-seed", type=int, default=None, help="env seed of the evaluation (default: the set's)")
     parser.add_argument("--episodes", type=int, default=None, help="evaluation episodes (default: the set's)")
     parser.add_argument("--checkpoint-every", type=int, default=None,
@@ -169,6 +172,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                     help="the actor's initial weights (torch: torch's default, as before issue 25's fix)")
     hp.add_argument("--precision", choices=list(PRECISIONS), default=None,
                     help="the actor's compute (bfloat16: CPU autocast, float32 weights)")
+    parser.add_argument("--reproducible", action=argparse.BooleanOptionalAction, default=False,
+                        help="train and evaluate in the reproducible mode (reproducible.py): the same bits on any "
+                             "x86-64 CPU, float32 and one torch thread; the command restarts itself with "
+                             "the mode's environment")
     sp = parser.add_argument_group("self-play (a task of two or more teams; see selfplay.py for the defaults' why)")
     sp.add_argument("--self-play", action="store_true",
                     help="train every team against a pool of frozen snapshots of the actor")
@@ -209,10 +216,27 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
         value = getattr(args, name)
         if value is not None and value < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    if args.reproducible:
+        if args.precision not in (None, reproducible.PRECISION):
+            parser.error(f"--precision must be {reproducible.PRECISION} with --reproducible (bfloat16 kernels "
+                         f"depend on the CPU), got {args.precision}")
+        if args.torch_threads not in (None, reproducible.THREADS):
+            parser.error(f"--torch-threads must be {reproducible.THREADS} with --reproducible (reductions split "
+                         f"over threads sum in another order), got {args.torch_threads}")
+        args.precision = reproducible.PRECISION
     hp = task_hyperparameters(args.env, **{name: getattr(args, name) for name in FIELDS})
+    problem = reproducible.settings_problem(hp.precision, hp.torch_threads) if args.reproducible else None
+    if problem:  # a task's own defaults
+        parser.error(f"--reproducible: the task's {problem}")
     if args.obs == "pixels" and hp.resolution < ENCODERS[hp.encoder]:
         parser.error(f"--resolution must be >= {ENCODERS[hp.encoder]} for the {hp.encoder!r} encoder, got "
                      f"{hp.resolution} (--encoder conv takes {ENCODERS['conv']})")
+    eval_seed = EVALUATION_SETS[args.eval_set]["seed"] if args.eval_seed is None else args.eval_seed
+    if eval_seed in SEALED_SEEDS and not args.final:
+        parser.error(f"--eval-set {SEALED_SEEDS[eval_seed]} is sealed: it is scored once, by the final runs, with "
+                     f"--final; got no --final")
+    if args.final and eval_seed not in SEALED_SEEDS:
+        parser.error(f"--final applies to the sealed set (--eval-set final), got evaluation seed {eval_seed}")
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
         parser.error(f"--checkpoint-every must be >= 0 (0: no checkpoints), got {args.checkpoint_every}")
     if args.max_minutes is not None and not (math.isfinite(args.max_minutes) and args.max_minutes > 0):
@@ -384,10 +408,21 @@ def print_seeds_summary(summary: dict) -> None:
 
 def versions() -> dict:
     import marl_render
-    # TorchRL's and TensorDict's versions from their metadata: importing them costs seconds, the trainer does not.
+    # The other libraries' versions from their metadata: importing TorchRL and TensorDict costs seconds, the
+    # trainer does not.
     return {"marl_render": getattr(marl_render, "__version__", "unknown"), "torch": torch.__version__,
-            "torchrl": installed_version("torchrl"), "tensordict": installed_version("tensordict"),
-            "python": platform.python_version()}
+            **{name: installed_version(name) for name in LIBRARIES}, "python": platform.python_version()}
+
+
+LIBRARIES = ("torchrl", "tensordict", "numpy", "panda3d")  # besides torch, what a run's numbers rest on
+
+
+def arithmetic() -> dict:
+    """How this process computes: the reproducible mode's variables as set, oneDNN and deterministic
+    algorithms as they are now (inside reproducible.mode() when the run uses it), torch's threads."""
+    return {"environment": {name: os.environ.get(name) for name in reproducible.ENVIRONMENT},
+            "onednn": torch.backends.mkldnn.enabled, "deterministic_algorithms":
+                torch.are_deterministic_algorithms_enabled(), "torch_threads": torch.get_num_threads()}
 
 
 def installed_version(distribution: str) -> str:
@@ -464,7 +499,20 @@ def train_and_write(argv, stage: dict) -> int:
     require_matplotlib()
     if args.tensorboard is not None:
         require_tensorboard()  # a missing extra ends here, before any training
+    if args.reproducible and reproducible.problems():
+        if argv is not None:  # called from Python: torch has chosen its kernels in this process already
+            print("error: --reproducible needs a process started with its environment ("
+                  + "; ".join(reproducible.problems()) + "): run `python -m marl_render.baselines --reproducible "
+                  "...`, which restarts itself with it", file=sys.stderr)
+            return 2
+        reproducible.restart()  # the command line again, in a process that loads torch pinned
     argv = sys.argv[1:] if argv is None else list(argv)
+    with reproducible.mode() if args.reproducible else contextlib.nullcontext():
+        return train_seeds(args, argv, started, stage)
+
+
+def train_seeds(args: argparse.Namespace, argv: list, started: float, stage: dict) -> int:
+    """One run, or one per seed of --seeds followed by the across-seed summary."""
     if args.seeds is None:
         return train_one(args, argv, started, stage)[0]
     results = []
@@ -510,8 +558,8 @@ def train_one(args: argparse.Namespace, argv: list, started: float, stage: dict)
         env_options["appearance"] = args.appearance
     if args.levels is not None:
         train_options["levels"] = args.levels
-    eval_kwargs = dict(episodes=episodes, seed=eval_seed, resolution=hp.resolution, grayscale=hp.grayscale,
-                       state_obs=args.obs == "state", **env_options,
+    eval_kwargs = dict(episodes=episodes, seed=eval_seed, final=args.final, resolution=hp.resolution,
+                       grayscale=hp.grayscale, state_obs=args.obs == "state", **env_options,
                        **({} if args.eval_levels is None else {"levels": args.eval_levels}))
     try:  # the first env this run builds: an option the env refuses ends here, in one line, before training
         references = {name: evaluate(args.env, policy, **eval_kwargs)
@@ -550,7 +598,7 @@ def train_one(args: argparse.Namespace, argv: list, started: float, stage: dict)
                     hyperparameters=hp, env_options=env_options, train_options=train_options,
                     checkpoint_every=checkpoint_every, checkpoint_episodes=args.checkpoint_episodes,
                     max_seconds=None if args.max_minutes is None else args.max_minutes * 60, progress=progress,
-                    self_play=self_play_settings(args))
+                    self_play=self_play_settings(args), reproducible=args.reproducible)
         trainer = run.trainer
 
         eval_start = time.perf_counter()
@@ -590,7 +638,10 @@ def train_one(args: argparse.Namespace, argv: list, started: float, stage: dict)
         "budget_minutes": args.max_minutes,  # the opt-in cap (None: none); the budget is in env steps
         "truncated": run.truncated,
         "versions": versions(),
-        "machine": {"cpu_count": os.cpu_count(), "cores_available": len(os.sched_getaffinity(0)),
+        "mode": "reproducible" if args.reproducible else "default",
+        "arithmetic": arithmetic(),
+        "machine": {"cpu": reproducible.cpu(), "cpu_count": os.cpu_count(),
+                    "cores_available": len(os.sched_getaffinity(0)),
                     "load_average_1min_start": load_start, "load_average_1min_end": os.getloadavg()[0],
                     "platform": platform.platform(), "processor": platform.processor()},
         "wall_clock_seconds": time.perf_counter() - started,

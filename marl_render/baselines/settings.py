@@ -8,6 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 
+from marl_render.envs.evaluation import SEALED_SEEDS
+
+SEALED_SEEDS_BY_NAME = {name: seed for seed, name in SEALED_SEEDS.items()}
+
 
 @dataclasses.dataclass(frozen=True)
 class Hyperparameters:
@@ -72,10 +76,13 @@ DEFAULT_STEP_BUDGET = 500_000  # a task without an entry above (e.g. one a user 
 
 # Named sets of evaluation episodes: env seed (one episode per world of that env) and episode count.
 # "development" scored every choice made so far (shaping, hyperparameters, tries); "publication" scored the
-# published rows, and three choices followed its scores (docs/baselines/notes.md): a second development set.
+# published rows, and three choices followed its scores (docs/baselines/notes.md): a second development set;
+# "final" is sealed: committed (issue 38) before anything was scored on it, refused by evaluate()
+# without final=True (--final), for one scoring of the final runs. Its episodes: final_set.py.
 EVALUATION_SETS: dict = {
     "development": {"seed": 1000, "episodes": 32},
     "publication": {"seed": 7_000_000, "episodes": 64},
+    "final": {"seed": SEALED_SEEDS_BY_NAME["final"], "episodes": 256},
 }
 
 

@@ -17,6 +17,7 @@ choose which policy is returned: that is always the final one.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 import math
 import os
@@ -28,6 +29,8 @@ from marl_render.envs.evaluation import evaluate
 
 from .policy import GreedyPolicy
 from .ppo import MAPPO
+from .reproducible import mode as reproducible_mode
+from .reproducible import settings_problem
 from .selfplay import SelfPlay
 from .settings import EVALUATION_SETS, Hyperparameters, step_budget, task_hyperparameters
 
@@ -73,7 +76,8 @@ def updates_for(env_steps: int, hp: Hyperparameters) -> int:
 def train(env: str, *, obs: str = "pixels", env_steps: int | None = None, updates: int | None = None, seed: int = 0,
           hyperparameters: Hyperparameters | None = None, env_options: dict | None = None,
           train_options: dict | None = None, checkpoint_every: int = 0, checkpoint_episodes: int = 8,
-          max_seconds: float | None = None, progress=None, self_play: SelfPlay | None = None) -> TrainingRun:
+          max_seconds: float | None = None, progress=None, self_play: SelfPlay | None = None,
+          reproducible: bool = False) -> TrainingRun:
     """Train MAPPO on task `env` from `obs` for `env_steps` env steps (rounded up to whole updates) or
     `updates` updates (default: the task's step budget, settings.STEP_BUDGETS).
 
@@ -87,23 +91,32 @@ def train(env: str, *, obs: str = "pixels", env_steps: int | None = None, update
     With `self_play` (a ``SelfPlay``; the task needs two or more teams) every team is trained against
     a pool of frozen snapshots of the actor (selfplay.py): ``run.trainer.pool`` holds the snapshots and
     what each faced. The policy evaluated (``run.policy()``, the checkpoints) plays the task's usual
-    trained team against random opponents, as without self-play."""
+    trained team against random opponents, as without self-play.
+
+    `reproducible` trains in the reproducible mode (reproducible.py): the same bits on any x86-64 CPU.
+    It needs float32 precision, one torch thread, and a process started with
+    ``reproducible.ENVIRONMENT`` (ValueError naming what is missing, before any work)."""
     if env_steps is not None and updates is not None:
         raise ValueError(f"give env_steps or updates, not both (got {env_steps} and {updates})")
     hp = hyperparameters if hyperparameters is not None else task_hyperparameters(env)
     if hp.torch_threads == 0:
         hp = dataclasses.replace(hp, torch_threads=len(os.sched_getaffinity(0)))
+    if reproducible:
+        problem = settings_problem(hp.precision, hp.torch_threads)
+        if problem:
+            raise ValueError(f"hyperparameters: {problem}")
     env_options, train_options = dict(env_options or {}), dict(train_options or {})
     if updates is None:
         updates = updates_for(step_budget(env, obs) if env_steps is None else env_steps, hp)
     budget_steps = env_steps if env_steps is not None else updates * hp.worlds * hp.rollout * hp.action_repeat
     threads = torch.get_num_threads()
-    torch.set_num_threads(hp.torch_threads)
-    try:
-        return _train(env, obs, hp, updates, budget_steps, seed, env_options, train_options, checkpoint_every,
-                      checkpoint_episodes, max_seconds, progress, self_play)
-    finally:
-        torch.set_num_threads(threads)
+    with reproducible_mode() if reproducible else contextlib.nullcontext():  # ValueError if not pinned
+        torch.set_num_threads(hp.torch_threads)
+        try:
+            return _train(env, obs, hp, updates, budget_steps, seed, env_options, train_options, checkpoint_every,
+                          checkpoint_episodes, max_seconds, progress, self_play)
+        finally:
+            torch.set_num_threads(threads)
 
 
 def _train(env, obs, hp, updates, budget_steps, seed, env_options, train_options, checkpoint_every,

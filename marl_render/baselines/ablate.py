@@ -1,0 +1,140 @@
+"""Baselines a learned policy must beat: the best constant action, and the policy with its view taken away.
+
+    python -m marl_render.baselines.ablate docs/baselines/tag/seed0   # view ablations: RUN/ablation.json
+    python -m marl_render.baselines.ablate --constant   # every task: docs/baselines/constant_actions.json
+
+- **The best constant action** (``marl_render.envs.evaluation.best_constant_action``): each action
+  held by every evaluated agent for whole episodes, the best one. No learning, so it is computed per
+  task on the publication worlds, with the published rows' env options.
+- **The view ablation** of a saved run from pixels: its final greedy actor scored on the run's own
+  evaluation episodes three ways: as trained (``none``: it must give the run's own returns, episode
+  for episode), with every view replaced by zeros (``zeros``) and with every world's views replaced by
+  those of the next world (``shifted``: world w sees world w-1's pictures, agent by agent). A policy
+  that uses its eyes loses return under both.
+
+The report (report.py) reads both: a row counts as learned only if it beats random and the best
+constant action across seeds, and the view ablation costs it return.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from marl_render.envs.evaluation import best_constant_action, evaluate, opponent_mask
+from marl_render.policies import load_policy
+
+from .policy import GreedyPolicy
+from .published import ROOT, RUNS
+from .settings import EVALUATION_SETS
+
+VIEWS = ("none", "zeros", "shifted")
+CONSTANT_ACTIONS = "constant_actions.json"  # under the runs' root
+ABLATION = "ablation.json"  # in a run's folder
+CONSTANT_RESOLUTION = 8  # the constant actions never look: the smallest views (returns do not depend on them)
+
+
+def ablate_view(pixels: torch.Tensor, view: str) -> torch.Tensor:
+    """Pixels [W, A, ...] as the ablated actor sees them: unchanged ("none"), zeros, or each world's
+    views replaced by the previous world's ("shifted", world 0 taking the last's)."""
+    if view == "none":
+        return pixels
+    if view == "zeros":
+        return torch.zeros_like(pixels)
+    if view == "shifted":
+        if pixels.shape[0] < 2:
+            raise ValueError(f"the shifted view needs at least 2 worlds (another world's pixels), got "
+                             f"{pixels.shape[0]}")
+        return pixels.roll(1, 0)
+    raise ValueError(f"view must be one of {list(VIEWS)}, got {view!r}")
+
+
+class AblatedPolicy:
+    """A greedy pixel actor (as ``evaluate`` takes it) that sees ``ablate_view(pixels, view)``."""
+
+    def __init__(self, actor, frames: int, action_repeat: int, view: str):
+        if view not in VIEWS:
+            raise ValueError(f"view must be one of {list(VIEWS)}, got {view!r}")
+        self.actor, self.frames, self.action_repeat, self.view = actor, frames, action_repeat, view
+        self.greedy = None  # built at the first call, when the env shows which agents are evaluated
+
+    def __call__(self, env, obs: dict, generator: torch.Generator) -> torch.Tensor:
+        if self.greedy is None:
+            self.greedy = GreedyPolicy(self.actor, ~opponent_mask(env), "pixels", self.frames, self.action_repeat)
+        return self.greedy(env, {**obs, "pixels": ablate_view(obs["pixels"], self.view)}, generator)
+
+
+def view_ablation(run_folder, views=VIEWS) -> dict:
+    """The run's final actor scored on its own evaluation episodes with each of `views`:
+    {"run", "evaluation_set", "seed", "episodes", "views": {view: evaluate's result},
+    "reproduces_run": whether "none" gave the run's returns episode for episode (None without "none")}.
+    ValueError for a run from the state (it has no view to take away)."""
+    folder = Path(run_folder)
+    result = json.loads((folder / "result.json").read_text())
+    if result["obs"] != "pixels":
+        raise ValueError(f"a view ablation needs a run from pixels; {folder} learned from {result['obs']!r}")
+    hp = result["hyperparameters"]
+    actor = load_policy(str(folder)).actor
+    episodes, seed = result["evaluation"]["policy"]["episodes"], result["seeds"]["evaluation"]
+    kwargs = dict(episodes=episodes, seed=seed, resolution=hp["resolution"], grayscale=hp.get("grayscale", False),
+                  **result.get("env_options", {}),
+                  **({} if result.get("evaluation_levels") is None else {"levels": result["evaluation_levels"]}))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(hp.get("torch_threads", 1) or threads)  # as the run evaluated
+    try:
+        scores = {view: evaluate(result["env"], AblatedPolicy(actor, hp.get("frames", 1), hp.get("action_repeat", 1),
+                                                              view), **kwargs) for view in views}
+    finally:
+        torch.set_num_threads(threads)
+    reproduces = scores["none"]["per_episode"] == result["evaluation"]["policy"]["per_episode"] \
+        if "none" in scores else None
+    return {"run": str(folder), "env": result["env"], "evaluation_set": result.get("evaluation_set", "development"),
+            "seed": seed, "episodes": episodes, "views": scores, "reproduces_run": reproduces}
+
+
+def constant_actions(tasks=None, evaluation_set: str = "publication") -> dict:
+    """{task: best_constant_action on `evaluation_set`'s worlds, with the published rows' env options}."""
+    worlds = EVALUATION_SETS[evaluation_set]
+    out = {}
+    for env in tasks or RUNS:
+        options = dict(RUNS[env]["pixels"].env_options) if env in RUNS else {}
+        out[env] = {"evaluation_set": evaluation_set, "seed": worlds["seed"], "env_options": options,
+                    **best_constant_action(env, episodes=worlds["episodes"], seed=worlds["seed"],
+                                           resolution=CONSTANT_RESOLUTION, **options)}
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m marl_render.baselines.ablate", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="*", help="run folders from pixels (result.json and actor.pt): writes each "
+                                                f"one's {ABLATION}")
+    parser.add_argument("--constant", action="store_true",
+                        help=f"the best constant action of every published task on the publication worlds: "
+                             f"writes ROOT/{CONSTANT_ACTIONS}")
+    parser.add_argument("--root", default=ROOT, help="folder of the runs (default: %(default)s)")
+    args = parser.parse_args(argv)
+    if not args.runs and not args.constant:
+        parser.error("give run folders, --constant, or both")
+    for run in args.runs:
+        if not (Path(run) / "result.json").is_file() or not (Path(run) / "actor.pt").is_file():
+            parser.error(f"runs: {run!r} must be a run folder holding result.json and actor.pt")
+    if args.constant:
+        found = constant_actions()
+        (Path(args.root) / CONSTANT_ACTIONS).write_text(json.dumps(found, indent=1) + "\n")
+        for env, best in found.items():
+            print(f"{env}: action {best['action']} holds {best['mean']:.4g} (each: "
+                  + ", ".join(f"{m:.4g}" for m in best["per_action"]) + ")", flush=True)
+    for run in args.runs:
+        found = view_ablation(run)
+        (Path(run) / ABLATION).write_text(json.dumps(found, indent=1) + "\n")
+        print(f"{run}: " + ", ".join(f"{view} {score['mean']:.4g}" for view, score in found["views"].items())
+              + ("" if found["reproduces_run"] else " (as trained it did NOT give the run's returns)"), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

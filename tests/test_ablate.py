@@ -1,0 +1,97 @@
+"""Baselines a policy must beat: the best constant action and the view ablation (marl_render/baselines/ablate.py)."""
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from marl_render.baselines import ablate, run
+from marl_render.envs.evaluation import best_constant_action, constant_policy, evaluate
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--env-steps", "8", "--checkpoint-every", "0", "--worlds", "2", "--resolution", "12", "--episodes", "3",
+        "--rollout", "4"]
+
+
+def test_a_constant_action_is_held_where_allowed_and_the_lowest_allowed_elsewhere():
+    mask = torch.tensor([[[True, True, True], [False, True, True]],
+                         [[False, False, True], [True, True, True]]])  # [W=2, A=2, 3 actions]
+    assert constant_policy(0)(None, {"action_mask": mask}, None).tolist() == [[0, 1], [2, 0]]
+    assert constant_policy(2)(None, {"action_mask": mask}, None).tolist() == [[2, 2], [2, 2]]
+
+
+def test_the_best_constant_action_is_the_best_of_every_action_on_the_same_episodes():
+    best = best_constant_action("tag", episodes=3, seed=5, resolution=8)
+    each = [evaluate("tag", constant_policy(a), episodes=3, seed=5, resolution=8)["mean"] for a in range(5)]
+    assert best["per_action"] == each and best["action"] == each.index(max(each)) and best["mean"] == max(each)
+    assert best["episodes"] == 3 and len(best["per_episode"]) == 3
+
+
+def test_the_best_constant_action_refuses_continuous_actions():
+    with pytest.raises(ValueError, match="needs discrete actions; tag was built with continuous=True"):
+        best_constant_action("tag", episodes=2, continuous=True)
+
+
+def test_ablated_views_are_zeros_or_the_previous_worlds():
+    pixels = torch.arange(3 * 2 * 4, dtype=torch.uint8).reshape(3, 2, 2, 2, 1)  # [W, A, H, W, C]
+    assert ablate.ablate_view(pixels, "none") is pixels
+    assert ablate.ablate_view(pixels, "zeros").eq(0).all() and ablate.ablate_view(pixels, "zeros").shape == pixels.shape
+    shifted = ablate.ablate_view(pixels, "shifted")
+    assert torch.equal(shifted[1:], pixels[:-1]) and torch.equal(shifted[0], pixels[-1])
+    with pytest.raises(ValueError, match="view must be one of"):
+        ablate.ablate_view(pixels, "noise")
+    with pytest.raises(ValueError, match="needs at least 2 worlds"):
+        ablate.ablate_view(pixels[:1], "shifted")
+
+
+@pytest.fixture(scope="module")
+def tiny_runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ablate")
+    assert run.main(["--env", "spread", "--out", str(root / "spread"), *TINY]) == 0
+    assert run.main(["--env", "spread", "--obs", "state", "--out", str(root / "spread-state"), *TINY]) == 0
+    return root
+
+
+def test_the_view_ablation_scores_the_runs_actor_on_its_own_episodes(tiny_runs):
+    found = ablate.view_ablation(tiny_runs / "spread")
+    result = json.loads((tiny_runs / "spread" / "result.json").read_text())
+    assert found["reproduces_run"] is True  # as trained, episode for episode
+    assert (found["seed"], found["episodes"], found["evaluation_set"]) == (1000, 3, "development")
+    assert set(found["views"]) == set(ablate.VIEWS)
+    assert all(len(v["per_episode"]) == 3 for v in found["views"].values())
+    assert found["views"]["none"]["per_episode"] == result["evaluation"]["policy"]["per_episode"]
+
+
+def test_the_view_ablation_refuses_a_run_from_the_state(tiny_runs):
+    with pytest.raises(ValueError, match="needs a run from pixels; .* learned from 'state'"):
+        ablate.view_ablation(tiny_runs / "spread-state")
+
+
+def test_the_command_writes_ablation_json_and_refuses_a_folder_without_a_run(tiny_runs, tmp_path, capsys):
+    folder = tmp_path / "run"
+    shutil.copytree(tiny_runs / "spread", folder)
+    assert ablate.main([str(folder)]) == 0
+    written = json.loads((folder / ablate.ABLATION).read_text())
+    assert written["views"]["none"]["per_episode"] == json.loads((folder / "result.json").read_text())[
+        "evaluation"]["policy"]["per_episode"]
+    assert f"{folder}: none " in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        ablate.main([str(tmp_path)])
+    assert "must be a run folder holding result.json and actor.pt" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        ablate.main([])
+    assert "give run folders, --constant, or both" in capsys.readouterr().err
+
+
+def test_the_committed_tag_actor_from_pixels_ignores_its_view_and_ties_the_best_constant_action():
+    """Issue 38: tag's seed-0 pixel actor holds 'backward' (action 4); the committed numbers say so."""
+    constants = json.loads((ROOT / "docs" / "baselines" / ablate.CONSTANT_ACTIONS).read_text())
+    ablation = json.loads((ROOT / "docs" / "baselines" / "tag" / "seed0" / ablate.ABLATION).read_text())
+    assert ablation["reproduces_run"] is True
+    views = {view: score["per_episode"] for view, score in ablation["views"].items()}
+    assert views["zeros"] == views["shifted"] == views["none"]
+    assert constants["tag"]["action"] == 4 and constants["tag"]["mean"] == ablation["views"]["none"]["mean"]
+    assert set(constants) == set(run.list_envs())
+    assert all(c["evaluation_set"] == "publication" and c["seed"] == 7_000_000 and c["episodes"] == 64
+               for c in constants.values())
