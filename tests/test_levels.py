@@ -317,7 +317,8 @@ def test_the_generalisation_study_runs_end_to_end(tmp_path):
     assert all(r["episodes"] == 2 for r in result["evaluation"].values())
     generalisation.references("speaker_listener", root=str(tmp_path), episodes=2)
     text = generalisation.report(str(tmp_path), str(tmp_path / "page.md"))
-    assert "## speaker_listener" in text and "| `levels=200` |" in text and "heuristic (test levels)" in text
+    assert "## speaker_listener" in text and "| `levels=200` |" in text and "| heuristic |" in text
+    assert "gap: train - test levels" in text and "Runs above random on their own train levels: " in text
     assert generalisation.command("speaker_listener", "levels200", 0) in text
 
 

@@ -7,11 +7,11 @@ heuristic on the same test levels (envs/levels.py, marl_render/appearance.py).
     python -m marl_render.baselines.generalisation run --all --jobs 2     # every run not done yet
     python -m marl_render.baselines.generalisation report                # docs/generalisation.md
 
-Training: the task's hyperparameters (settings.py), one torch thread, appearance "train" (every
-level's look drawn from its id, from the train hue sectors and patterns), ``levels=200`` (ids
-0..199) or ``levels="train"`` (every id below 2**40), for STUDY_STEPS env steps (rooms with the
-published rows' training-only exploration reward): short runs, so that the whole study fits
-about 30 core-minutes of a shared 2-core machine (see the page).
+Training: each task's published pixel run (published.py: its step budget, hyperparameters and
+training-only options), one torch thread, appearance "train" (every level's look drawn from its id,
+from the train hue sectors and patterns), ``levels=200`` (ids 0..199) or ``levels="train"`` (every
+id below 2**40). Shorter runs learn too little to show a gap: at 100,000 env steps speaker_listener's
+and rooms' policies stayed at random's level on their own training levels.
 
 Evaluation (EVALUATION episodes, env seed EVALUATION_SEED, one episode per world, greedy policy):
 
@@ -21,8 +21,11 @@ Evaluation (EVALUATION episodes, env seed EVALUATION_SEED, one episode per world
 * test levels, held-out looks: the same levels under ``appearance="heldout"`` (sky, floor and wall
   hues and patterns that never appear in training).
 
-Random and the heuristic play the same test levels (appearance changes neither). Each run writes
-ROOT/TASK/CONDITION/seedS/result.json; ROOT/TASK/references.json holds random and the heuristic.
+Random and the heuristic play every set too (each condition's train levels, the test levels, and
+the test levels under held-out looks), so that each column has its own reference. The gap of a run is
+its return on its train levels minus on the test levels (and test levels minus test levels under
+held-out looks), with a 95% interval over seeds. Each run writes ROOT/TASK/CONDITION/seedS/result.json;
+ROOT/TASK/references.json holds random and the heuristic.
 """
 from __future__ import annotations
 
@@ -39,9 +42,10 @@ import time
 import numpy as np
 import torch
 
+from marl_render import strict_json
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
 
-from . import stats
+from . import published, stats
 from .settings import task_hyperparameters
 from .training import train
 
@@ -54,9 +58,10 @@ EXAMPLE_COMMANDS = (
     "python -m marl_render.generalise out/gen_example/seed0 out/gen_example/seed1 --episodes 8 --max-steps 50 "
     "--heldout --out out/gen_example/generalise",
 )
-STUDY_STEPS = {"forage": 100_000, "speaker_listener": 100_000, "rooms": 100_000}  # env steps per run
-# Training-only shaping, as the published rows use it (docs/baselines.md); evaluations keep the task's reward.
-TRAIN_OPTIONS = {"rooms": {"explore_reward": 0.1}}
+# The tasks of the study, each trained as its published pixel row (budget, hyperparameters, training-only
+# options): the three with the smallest published pixel budgets, so the study fits a shared 2-core machine.
+STUDY_TASKS = ("forage", "speaker_listener", "commons")
+STUDY_STEPS = {task: published.RUNS[task]["pixels"].env_steps for task in STUDY_TASKS}  # env steps per run
 CONDITIONS = {"levels200": 200, "unbounded": "train"}  # the training levels= of each condition
 SEEDS = (0, 1, 2)
 EVALUATION_SEED, EVALUATION = 1000, 32
@@ -90,11 +95,13 @@ def run_one(task: str, condition: str, seed: int, *, root: str = ROOT, env_steps
     """Train one policy of `condition` and evaluate it on every set; writes and returns its result."""
     if condition not in CONDITIONS:
         raise ValueError(f"condition must be one of {list(CONDITIONS)}, got {condition!r}")
-    hp = task_hyperparameters(task, torch_threads=1, **hyperparameters)
-    steps = STUDY_STEPS.get(task, 60_000) if env_steps is None else env_steps
+    entry = published.RUNS[task]["pixels"]
+    hp = task_hyperparameters(task, torch_threads=1, **{**entry.hyperparameters, **hyperparameters})
+    steps = entry.env_steps if env_steps is None else env_steps
     started = time.perf_counter()
-    run = train(task, env_steps=steps, seed=seed, hyperparameters=hp, env_options={"appearance": "train"},
-                train_options={**TRAIN_OPTIONS.get(task, {}), "levels": CONDITIONS[condition]})
+    run = train(task, env_steps=steps, seed=seed, hyperparameters=hp,
+                env_options={**entry.env_options, "appearance": "train"},
+                train_options={**entry.train_options, "levels": CONDITIONS[condition]})
     result = {"task": task, "condition": condition, "training_levels": CONDITIONS[condition], "seed": seed,
               "command": command(task, condition, seed), "env_steps": run.env_steps,
               "training_seconds": run.training_seconds, "training_cpu_seconds": run.training_cpu_seconds,
@@ -106,20 +113,28 @@ def run_one(task: str, condition: str, seed: int, *, root: str = ROOT, env_steps
     folder = run_folder(root, task, condition, seed)
     os.makedirs(folder, exist_ok=True)
     with open(os.path.join(folder, "result.json"), "w") as f:
-        json.dump(result, f, indent=1)
+        strict_json.dump(result, f, indent=1)
     return result
 
 
+def reference_sets() -> dict:
+    """{column name: make_env keywords} of every set random and the heuristic play: each condition's
+    train levels and the evaluation sets that do not depend on the condition."""
+    sets = {f"train levels of levels={levels!r}": {"levels": levels, "appearance": SETS["train levels"]["appearance"]}
+            for levels in CONDITIONS.values()}
+    return {**sets, **{name: keywords for name, keywords in SETS.items() if keywords["levels"] is not None}}
+
+
 def references(task: str, *, root: str = ROOT, episodes: int = EVALUATION) -> dict:
-    """Random and the heuristic on the test levels (written once per task)."""
+    """Random and the heuristic on every reference set (written once per task)."""
     resolution = task_hyperparameters(task).resolution
-    out = {name: {k: r[k] for k in ("mean", "std", "episodes")} for name, r in (
-        (label, evaluate(task, policy, episodes=episodes, seed=EVALUATION_SEED, resolution=resolution,
-                         levels="published"))
-        for label, policy in (("random", random_policy), ("heuristic", heuristic_policy)))}
+    out = {label: {name: {k: r[k] for k in ("mean", "std", "episodes")} for name, r in (
+        (name, evaluate(task, policy, episodes=episodes, seed=EVALUATION_SEED, resolution=resolution, **keywords))
+        for name, keywords in reference_sets().items())}
+        for label, policy in (("random", random_policy), ("heuristic", heuristic_policy))}
     os.makedirs(os.path.join(root, task), exist_ok=True)
     with open(os.path.join(root, task, "references.json"), "w") as f:
-        json.dump(out, f, indent=1)
+        strict_json.dump(out, f, indent=1)
     return out
 
 
@@ -191,22 +206,24 @@ def report(root: str = ROOT, page: str = PAGE) -> str:
              f"test levels under held-out appearances (`appearance=\"heldout\"`). Each cell: mean episode return "
              f"over {len(SEEDS)} training seeds with a 95% percentile bootstrap interval over seeds "
              f"(marl_render/baselines/stats.py); each seed's return is the mean of {EVALUATION} evaluation "
-             f"episodes (env seed {EVALUATION_SEED}). Random and the heuristic play the same test levels.", "",
+             f"episodes (env seed {EVALUATION_SEED}). Random and the heuristic play every set; a gap is "
+             "train minus test per seed, with its interval over seeds.", "",
              *own_runs_section(root)]
+    gaps = {"gap: train - test levels": ("train levels", "test levels"),
+            "gap: test levels - held-out looks": ("test levels", "test levels, held-out looks")}
     for task, steps in STUDY_STEPS.items():
         refs_path = os.path.join(root, task, "references.json")
         if not os.path.exists(refs_path):
             continue
         with open(refs_path) as f:
             refs = json.load(f)
-        shaping = TRAIN_OPTIONS.get(task)
-        budget = f"Budget: {steps:,} env steps per run" + (
-            f", trained with {', '.join(f'`{k}={v}`' for k, v in shaping.items())} (evaluated on the task's own "
-            f"reward)." if shaping else ".")
-        lines += [f"## {task}", "", budget, "",
-                  "| trained on | " + " | ".join(SETS) + " | seeds | CPU s per run |",
-                  "|---|" + "---:|" * (len(SETS) + 2)]
-        commands, everything = [], []
+        entry = published.RUNS[task]["pixels"]
+        differs = {**entry.hyperparameters, **entry.train_options}
+        lines += [f"## {task}", "", f"Budget: {steps:,} env steps per run, as the published pixel row"
+                  + (f" ({', '.join(f'`{k}={v}`' for k, v in differs.items())})." if differs else "."), "",
+                  "| trained on | " + " | ".join([*SETS, *gaps]) + " | seeds | CPU s per run |",
+                  "|---|" + "---:|" * (len(SETS) + len(gaps) + 2)]
+        commands, above = [], {"train": [], "test": []}
         for condition, levels in CONDITIONS.items():
             results = []
             for seed in SEEDS:
@@ -215,15 +232,21 @@ def report(root: str = ROOT, page: str = PAGE) -> str:
                     with open(path) as f:
                         results.append(json.load(f))
                     commands.append(results[-1]["command"])
-            everything += results
-            cells = [interval([r["evaluation"][name]["mean"] for r in results]) for name in SETS]
+            returns = {name: [r["evaluation"][name]["mean"] for r in results] for name in SETS}
+            cells = [interval(returns[name]) for name in SETS]
+            cells += [interval([a - b for a, b in zip(returns[first], returns[second], strict=True)])
+                      for first, second in gaps.values()]
             cpu = f"{np.mean([r['training_cpu_seconds'] for r in results]):.0f}" if results else "-"
             lines.append(f"| `levels={levels!r}` | " + " | ".join(cells) + f" | {len(results)} | {cpu} |")
-        for label in ("random", "heuristic"):
-            lines.append(f"| {label} (test levels) | - | {refs[label]['mean']:.2f} ± {refs[label]['std']:.2f} | "
-                         f"- | - | - |")
-        beat = [r for r in everything if r["evaluation"]["test levels"]["mean"] > refs["random"]["mean"]]
-        lines += ["", f"Runs whose return on the test levels beats random's: {len(beat)} of {len(everything)}."]
+            own = refs["random"][f"train levels of levels={levels!r}"]["mean"]
+            above["train"] += [value > own for value in returns["train levels"]]
+            above["test"] += [value > refs["random"]["test levels"]["mean"] for value in returns["test levels"]]
+        names = list(refs["random"])
+        lines += ["", "| reference | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
+        lines += [f"| {label} | " + " | ".join(f"{refs[label][name]['mean']:.2f} ± {refs[label][name]['std']:.2f}"
+                                                for name in names) + " |" for label in ("random", "heuristic")]
+        lines += ["", f"Runs above random on their own train levels: {sum(above['train'])} of {len(above['train'])}; "
+                  f"on the test levels: {sum(above['test'])} of {len(above['test'])}."]
         lines += ["", "Commands (each writes docs/generalisation/TASK/CONDITION/seedS/result.json):", "", "```"]
         lines += commands + [f"python -m marl_render.baselines.generalisation references --task {task}", "```", ""]
     text = "\n".join(lines)
