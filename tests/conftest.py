@@ -1,5 +1,6 @@
 """Fixtures shared by several test modules, and the `gpu` marker's skip."""
 import functools
+import sys
 
 import pytest
 import torch
@@ -21,6 +22,20 @@ def pytest_collection_modifyitems(config, items):
     reason = gpu_unavailable() if gpu_items else None
     for item in gpu_items if reason else ():
         item.add_marker(pytest.mark.skip(reason=reason))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def registered_tasks_restored():
+    """A test module that registers a user's task (tests/selfplay_user_task.py registers beacon_duel
+    when imported) leaves none behind: other modules count the registered tasks."""
+    from marl_render.envs import registry  # the library only once a test module runs
+
+    before = dict(registry._REGISTRY)
+    yield
+    if registry._REGISTRY != before:
+        registry._REGISTRY.clear()
+        registry._REGISTRY.update(before)
+    sys.modules.pop("selfplay_user_task", None)
 
 
 @pytest.fixture(scope="module")
