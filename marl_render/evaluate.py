@@ -202,12 +202,29 @@ def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: 
                "random_return": random, "heuristic_return": heuristic,
                "normalised_score": normalised(mean, random, heuristic),
                "bots_sampled": _bot_counts(result["bots"])}
-        if gap:
+        if gap and not trains_focal_side(spec, scenario):
+            # The reference trainer trains one team against random opponents: a side it never trained
+            # has no training condition to compare with, so no gap either.
+            row["training_condition_return"] = row["generalisation_gap"] = None
+            row["focal_side_trained"] = False
+        elif gap:
             trained = training_condition(spec, scenario, **same)
             row["training_condition_return"] = float(trained["focal"].mean())
             row["generalisation_gap"] = row["training_condition_return"] - mean
         rows.append(row)
     return rows
+
+
+def trains_focal_side(spec, scenario) -> bool:
+    """Whether policy `spec` was trained in the focal slots of `scenario`: True for random, the
+    heuristic and any policy that is not a saved run; for a run folder, whether its result.json's
+    trained_agents hold every focal slot (self-play trains every team)."""
+    path = os.path.join(spec, "result.json") if isinstance(spec, str) else None
+    if path is None or not os.path.isfile(path):
+        return True
+    with open(path) as f:
+        trained = json.load(f).get("trained_agents")
+    return trained is None or set(scenario.focal) <= set(trained)
 
 
 def scenario_names(which: str) -> list:
@@ -226,7 +243,7 @@ def write(rows: list, prefix: str) -> None:
     with open(prefix + ".json", "w") as f:
         strict_json.dump(rows, f, indent=1)
     with open(prefix + ".csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(f, fieldnames=list(dict.fromkeys(key for row in rows for key in row)))
         writer.writeheader()
         for row in rows:
             writer.writerow({**row, "bots_sampled": json.dumps(row["bots_sampled"])})
@@ -437,8 +454,9 @@ def heldout_page(rows_by_policy: dict, command: str, note: str) -> str:
              "the normalised score (0 = random focal players, 1 = heuristic focal players on the same scenario "
              "and seed), the return in the training condition (the same focal slots, partners played by the "
              "policy itself, opponents random: how the reference trainer trains) and the generalisation gap "
-             "(training condition minus held-out). Scenarios and bots: `python -m marl_render.evaluate --list`.",
-             ""]
+             "(training condition minus held-out). A trained actor whose focal side the trainer never trained (it "
+             "trains one team against random opponents) has neither: \"side not trained\". Scenarios and bots: "
+             "`python -m marl_render.evaluate --list`.", ""]
     for policy, rows in rows_by_policy.items():
         lines += [f"## {policy}", "", "| scenario | tags | focal return | background return | score | "
                   "training condition | gap | bots sampled |", "|---|---|---:|---:|---:|---:|---:|---|"]
@@ -446,11 +464,37 @@ def heldout_page(rows_by_policy: dict, command: str, note: str) -> str:
             bots = ", ".join(f"{k} {v}" for k, v in r["bots_sampled"].items())
             lines.append(f"| {r['scenario']} | {r['tags']} | {_fmt(r['focal_return_mean'])} ± "
                          f"{_fmt(r['focal_return_std'])} | {_fmt(r['background_return_mean'])} | "
-                         f"{_fmt(r['normalised_score'])} | {_fmt(r.get('training_condition_return', math.nan))} | "
-                         f"{_fmt(r.get('generalisation_gap', math.nan))} | {bots} |")
+                         f"{_fmt(r['normalised_score'])} | " + (
+                             "side not trained | side not trained" if r.get("focal_side_trained") is False else
+                             f"{_fmt(r.get('training_condition_return', math.nan))} | "
+                             f"{_fmt(r.get('generalisation_gap', math.nan))}") + f" | {bots} |")
         lines += mean_gap_lines(rows)
         lines.append("")
     return "\n".join(lines)
+
+
+def rewrite_heldout_page(docs: str) -> str:
+    """docs/heldout.md again from its own JSON files (docs/heldout/*.json) and its head (command and
+    note), without replaying: for a change of the page's layout, or rows repaired in the JSON."""
+    page = os.path.join(docs, "heldout.md")
+    with open(page) as f:
+        lines = f.read().split("\n")
+    command, note = lines[4].strip(), lines[6]
+    rows_by_policy = {}
+    for line in lines:
+        if line.startswith("## "):
+            label = line[3:]
+            with open(os.path.join(docs, "heldout", heldout_file_name(label) + ".json")) as f:
+                rows_by_policy[label] = json.load(f)
+    text = heldout_page(rows_by_policy, command, note)
+    with open(page, "w") as f:
+        f.write(text)
+    return text
+
+
+def heldout_file_name(label: str) -> str:
+    """The name (without .json / .csv) of a policy's files in docs/heldout/."""
+    return label.replace("MAPPO-vs-random ", "mappo_").replace("self-play ", "selfplay_").replace("/", "_")
 
 
 def normalised_gaps(rows: list) -> list:
@@ -470,11 +514,13 @@ def mean_gap_lines(rows: list) -> list:
     gaps = normalised_gaps(rows)
     if not gaps:
         return []
-    left_out = sum("generalisation_gap" in r for r in rows) - len(gaps)
+    untrained = sum(r.get("focal_side_trained") is False for r in rows)
+    left_out = sum("generalisation_gap" in r for r in rows) - len(gaps) - untrained
+    notes = ([f"{left_out} scenario(s) without a scale, where heuristic and random tie or a return is undefined, "
+              "left out"] if left_out else []) + ([f"{untrained} on a side never trained, without a gap"]
+                                                  if untrained else [])
     return ["", f"Mean generalisation gap over {len(gaps)} scenarios, each normalised by its heuristic - random: "
-            f"{np.mean(gaps):.2f}" + (f" ({left_out} scenario(s) without a scale, where heuristic and random tie or "
-                                      "a return is undefined, left out)."
-                                      if left_out else ".")]
+            f"{np.mean(gaps):.2f}" + (f" ({'; '.join(notes)})." if notes else ".")]
 
 
 def crossplay_page(results: list, command: str, note: str) -> str:
@@ -622,8 +668,7 @@ def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int
         note += " " + " ".join(unplayable)
     os.makedirs(os.path.join(docs, "heldout"), exist_ok=True)
     for label, rows in rows_by_policy.items():
-        write(rows, os.path.join(docs, "heldout", label.replace("MAPPO-vs-random ", "mappo_")
-                                 .replace("self-play ", "selfplay_").replace("/", "_")))
+        write(rows, os.path.join(docs, "heldout", heldout_file_name(label)))
     with open(os.path.join(docs, "heldout.md"), "w") as f:
         f.write(heldout_page(rows_by_policy, command, note))
 

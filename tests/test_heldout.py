@@ -295,3 +295,41 @@ def test_jax_env_of_a_held_out_scenario():
         assert env.step(jnp.zeros((2, 1), dtype=jnp.int32))[1].shape == (2, 1)
     finally:
         env.close()
+
+
+def test_a_side_the_trainer_never_trained_has_no_training_condition_and_no_gap(tmp_path):
+    """A MAPPO-vs-random run trains one team: on a scenario whose focal slots are the other team's
+    there is no training condition to compare with, and the page says so instead of a number."""
+    run = tmp_path / "tag_run"
+    run.mkdir()
+    (run / "result.json").write_text(json.dumps({"env": "tag", "trained_agents": ["predator_0", "predator_1",
+                                                                                   "predator_2"]}))
+    prey = evaluation.heldout_scenario("tag/prey_vs_interceptors")
+    assert prey.focal == ("prey_0",)
+    assert not evaluation.trains_focal_side(str(run), prey)
+    assert evaluation.trains_focal_side(str(run), evaluation.heldout_scenario("tag/predators_vs_wanderers"))
+    assert evaluation.trains_focal_side("random", prey) and evaluation.trains_focal_side(str(tmp_path), prey)
+    rows = [{"scenario": "tag/prey_vs_interceptors", "tags": "visitor", "focal_return_mean": -1.0,
+             "focal_return_std": 0.5, "background_return_mean": 1.0, "normalised_score": 0.2,
+             "training_condition_return": None, "generalisation_gap": None, "focal_side_trained": False,
+             "random_return": -2.0, "heuristic_return": 0.0, "bots_sampled": {"noisy0.5": 3}},
+            {"scenario": "tag/predators_vs_wanderers", "tags": "visitor", "focal_return_mean": 3.0,
+             "focal_return_std": 1.0, "background_return_mean": -3.0, "normalised_score": 0.5,
+             "training_condition_return": 4.0, "generalisation_gap": 1.0, "random_return": 1.0,
+             "heuristic_return": 5.0, "bots_sampled": {"evader": 3}}]
+    page = evaluation.heldout_page({"MAPPO-vs-random run": rows}, "cmd", "note")
+    assert "| tag/prey_vs_interceptors | visitor | -1.00 ± 0.50 | 1.00 | 0.20 | side not trained | side not " \
+           "trained | noisy0.5 3 |" in page
+    assert "Mean generalisation gap over 1 scenarios, each normalised by its heuristic - random: 0.25 (1 on a side " \
+           "never trained, without a gap)." in page
+
+
+def test_the_held_out_page_is_its_json_files(tmp_path):
+    """docs/heldout.md rebuilt from docs/heldout/*.json (no replay) is the committed page, byte for byte:
+    the page's numbers are those of its published JSON files."""
+    docs = Path(__file__).resolve().parents[1] / "docs"
+    (tmp_path / "heldout").mkdir()
+    for path in (docs / "heldout").glob("*.json"):
+        (tmp_path / "heldout" / path.name).write_bytes(path.read_bytes())
+    (tmp_path / "heldout.md").write_bytes((docs / "heldout.md").read_bytes())
+    assert evaluation.rewrite_heldout_page(str(tmp_path)) == (docs / "heldout.md").read_text()
