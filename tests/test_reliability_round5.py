@@ -4,6 +4,7 @@ trainer surfaces. Cheap: one- or two-world envs at 8 px, or no env at all."""
 from __future__ import annotations
 
 import copy
+import json
 import math
 import os
 
@@ -13,6 +14,7 @@ import torch
 
 from marl_render import bots, heldout
 from marl_render import generalise as generalisation
+from marl_render.baselines import report
 from marl_render.baselines import run as trainer
 from marl_render.bots import make_bot, register_bot, wander
 from marl_render.elo import elo_ratings
@@ -226,3 +228,17 @@ def test_trainer_refuses_every_seed_out_of_range_before_training(argv, capsys):
 def test_each_seeds_command_drops_the_seeds_option_in_its_equals_form():
     command = trainer.seed_command(["--env", "forage", "--seeds=3", "--out=o"], 3, "o/seed3", None)
     assert command == ["--env", "forage", "--seed", "3", "--out", "o/seed3"]  # kept --seeds=3: refused on a rerun
+
+
+# ---------------------------------------------------------------------- python -m marl_render.baselines.report
+def test_report_refuses_a_field_of_the_wrong_type_in_one_line_and_writes_nothing(tmp_path, capsys):
+    run = tmp_path / "results" / "forage" / "seed0"
+    run.mkdir(parents=True)
+    result = json.loads(open(os.path.join(RUN, "result.json")).read())
+    result["hyperparameters"] = None  # a traceback, after marl_eval.json was rewritten, before
+    (run / "result.json").write_text(json.dumps(result))
+    with pytest.raises(SystemExit) as stop:
+        report.main(["--results", str(tmp_path / "results"), "--out", str(tmp_path / "b.md"), "--readme", ""])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "holds a field of the wrong type" in err and "Traceback" not in err
+    assert not (tmp_path / "results" / "marl_eval.json").exists() and not (tmp_path / "b.md").exists()
