@@ -242,3 +242,9 @@ def test_report_refuses_a_field_of_the_wrong_type_in_one_line_and_writes_nothing
     err = capsys.readouterr().err
     assert stop.value.code == 2 and "holds a field of the wrong type" in err and "Traceback" not in err
     assert not (tmp_path / "results" / "marl_eval.json").exists() and not (tmp_path / "b.md").exists()
+
+
+def test_trainer_refuses_an_empty_tensorboard_folder(capsys):
+    with pytest.raises(SystemExit) as stop:  # SummaryWriter("") logs to its own runs/DATE_HOST instead
+        trainer.parse_args(["--env", "forage", "--updates", "1", "--tensorboard", ""])
+    assert stop.value.code == 2 and "--tensorboard must be a folder" in capsys.readouterr().err

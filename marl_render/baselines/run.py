@@ -262,8 +262,8 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
         if seed is not None and not 0 <= seed < 2 ** 63:
             parser.error(f"--seed{'s' if args.seeds is not None else ''} must be an int in [0, 2**63), got {seed}")
     args.seed = 0 if args.seed is None else args.seed
-    if args.tensorboard is not None:
-        problem = writable_folder(args.tensorboard)
+    if args.tensorboard is not None:  # "" would send SummaryWriter to its own runs/DATE_HOST folder
+        problem = writable_folder(args.tensorboard) if args.tensorboard else "it is empty"
         if problem:
             parser.error(f"--tensorboard must be a folder this process can write to, got {args.tensorboard!r}: "
                          f"{problem}")
