@@ -248,3 +248,19 @@ def test_trainer_refuses_an_empty_tensorboard_folder(capsys):
     with pytest.raises(SystemExit) as stop:  # SummaryWriter("") logs to its own runs/DATE_HOST instead
         trainer.parse_args(["--env", "forage", "--updates", "1", "--tensorboard", ""])
     assert stop.value.code == 2 and "--tensorboard must be a folder" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- the env's counters
+@pytest.mark.parametrize("heldout_name", [None, "forage/one_among_noisy"])
+def test_step_count_and_alive_are_the_callers_copies(heldout_name):
+    # The core handed out its own tensors: writing into them changed get_state() (MultiProcessEnv copied).
+    kwargs = {"heldout": heldout_name} if heldout_name else {}
+    with make_env("forage", num_worlds=2, resolution=8, **kwargs) as env:
+        env.reset()
+        env.step(env.heuristic_actions())
+        before = env.get_state()
+        env.step_count.add_(5)
+        env.alive.zero_()
+        after = env.get_state()
+        assert torch.equal(before["step_count"], after["step_count"]) and torch.equal(before["alive"], after["alive"])
+        assert env.step_count.tolist() == [1, 1] and bool(env.alive.all())
