@@ -303,12 +303,12 @@ class BatchedEnv:
 
     @property
     def alive(self) -> torch.Tensor:
-        """bool [W, A] (a copy): which agents are taking part in each world's episode."""
+        """Which agents take part in each world's episode, bool [W, A] (a copy)."""
         return self._alive.clone()
 
     @property
     def step_count(self) -> torch.Tensor:
-        """int64 [W] (a copy): the steps of each world's episode so far."""
+        """The steps of each world's episode so far, int64 [W] (a copy)."""
         return self._step_count.clone()
 
     @property

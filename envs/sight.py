@@ -58,7 +58,18 @@ def first_hit(origin: Tensor, direction: Tensor, *, half_extent, boxes=None, cir
               skip: Tensor | None = None) -> Tensor:
     """[W, R]: the distance (m) from each origin [W, R, 2] along its unit direction [W, R, 2] to the
     first wall, box or present circle it meets; 0 from inside a box or circle, or from outside the
-    arena. skip [W, R, K] bool: circles a ray ignores (the body it starts from)."""
+    arena. skip [W, R, K] bool: circles a ray ignores (the body it starts from). ValueError for an
+    origin that is not finite or a direction that is not a unit vector (one check, one sync)."""
+    length = torch.linalg.vector_norm(direction, dim=-1)
+    if not bool(torch.isfinite(origin).all() & ((length - 1).abs() <= 1e-3).all()):
+        raise ValueError("origin must be finite and direction a unit vector on every ray (a zero or NaN direction "
+                         "has no first hit)")
+    return _first_hit(origin, direction, half_extent=half_extent, boxes=boxes, circles=circles, skip=skip)
+
+
+def _first_hit(origin: Tensor, direction: Tensor, *, half_extent, boxes=None, circles: Circles | None = None,
+               skip: Tensor | None = None) -> Tensor:
+    """first_hit without its check on origin and direction (lidar's are checked, or unit by construction)."""
     _check_half_extent(half_extent)
     _check_circles(circles)
     distance = _wall_distance(origin, direction, half_extent)
@@ -133,7 +144,7 @@ def lidar(eye: Tensor, yaw: Tensor, *, rays: int, reach: float, half_extent, box
     origin = eye[:, :, None].expand(W, A, rays, 2).reshape(W, A * rays, 2)
     if skip is not None:
         skip = skip[:, :, None].expand(W, A, rays, skip.shape[-1]).reshape(W, A * rays, -1)
-    distance = first_hit(origin, direction, half_extent=half_extent, boxes=boxes, circles=circles, skip=skip)
+    distance = _first_hit(origin, direction, half_extent=half_extent, boxes=boxes, circles=circles, skip=skip)
     return (distance / reach).clamp_max(1.0).reshape(W, A, rays)
 
 

@@ -264,3 +264,18 @@ def test_step_count_and_alive_are_the_callers_copies(heldout_name):
         after = env.get_state()
         assert torch.equal(before["step_count"], after["step_count"]) and torch.equal(before["alive"], after["alive"])
         assert env.step_count.tolist() == [1, 1] and bool(env.alive.all())
+
+
+@pytest.mark.parametrize("origin, direction", [
+    (torch.full((1, 1, 2), math.nan), torch.tensor([[[1.0, 0.0]]])),  # NaN before
+    (torch.zeros(1, 1, 2), torch.zeros(1, 1, 2)),  # inf before
+    (torch.zeros(1, 1, 2), torch.tensor([[[2.0, 0.0]]])),  # half the distance before
+])
+def test_first_hit_refuses_a_bad_origin_or_a_direction_that_is_not_a_unit_vector(origin, direction):
+    assert first_hit_distance(torch.zeros(1, 1, 2), torch.tensor([[[1.0, 0.0]]])) == 2.0
+    with pytest.raises(ValueError, match="origin must be finite and direction a unit vector"):
+        first_hit_distance(origin, direction)
+
+
+def first_hit_distance(origin, direction) -> float:
+    return float(sight.first_hit(origin, direction, half_extent=(2.0, 2.0)))
