@@ -273,8 +273,8 @@ class BatchedEnv:
         self._ids = torch.cat((torch.eye(self.num_agents), torch.nn.functional.one_hot(team_index, len(self.groups))),
                               -1).to(self.device, torch.float32)  # [A, A + teams]: see "agent_id"
         W, A = self.num_worlds, self.num_agents
-        self.alive = torch.ones(W, A, dtype=torch.bool, device=self.device)
-        self.step_count = torch.zeros(W, dtype=torch.int64, device=self.device)
+        self._alive = torch.ones(W, A, dtype=torch.bool, device=self.device)
+        self._step_count = torch.zeros(W, dtype=torch.int64, device=self.device)
         # [W] int64 (CPU): the id each world's look is drawn from (appearance on): its level id with
         # levels on, else drawn from the env's generator at every reset of the world.
         self._appearance_ids = torch.zeros(W, dtype=torch.int64) if self.appearance is not None else None
@@ -300,6 +300,16 @@ class BatchedEnv:
                 self.views.close()
                 raise
         self._closed = False
+
+    @property
+    def alive(self) -> torch.Tensor:
+        """Which agents take part in each world's episode, bool [W, A] (a copy)."""
+        return self._alive.clone()
+
+    @property
+    def step_count(self) -> torch.Tensor:
+        """The steps of each world's episode so far, int64 [W] (a copy)."""
+        return self._step_count.clone()
 
     @property
     def appearance_ids(self) -> torch.Tensor | None:
@@ -344,8 +354,8 @@ class BatchedEnv:
         with limited_threads(self.torch_threads), self._all_or_nothing():
             self._reseed(seed)
             sim, step_count, alive, looks, levels = self._respawned(
-                torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), self.sim, self.step_count,
-                self.alive, self._appearance_ids, self._level_ids)
+                torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), self.sim, self._step_count,
+                self._alive, self._appearance_ids, self._level_ids)
             obs = self._observe(sim, alive, full=True)
             self._commit(sim, alive, step_count, looks, levels)
             self._needs_reset = False
@@ -390,7 +400,7 @@ class BatchedEnv:
     def _reset_some(self, mask: torch.Tensor, seed: int | None, chosen: torch.Tensor | None) -> dict:
         with limited_threads(self.torch_threads), self._all_or_nothing():
             self._reseed(seed)
-            sim, step_count, alive, looks, levels = self._respawned(mask, self.sim, self.step_count, self.alive,
+            sim, step_count, alive, looks, levels = self._respawned(mask, self.sim, self._step_count, self._alive,
                                                                     self._appearance_ids, self._level_ids, chosen)
             obs = self._observe(sim, alive, full=True)
             self._commit(sim, alive, step_count, looks, levels)
@@ -424,12 +434,12 @@ class BatchedEnv:
             restart = self.episode_over()
         else:
             restart = torch.zeros(W, dtype=torch.bool, device=self.device)
-        alive_before = self.alive & ~restart[:, None]
+        alive_before = self._alive & ~restart[:, None]
         sim, reward, terminated, task_info = self._checked_step(
             self.scenario.step(self.sim, actions, alive_before, self.generator))
         reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         alive = alive_before & ~terminated
-        step_count = self.step_count + 1
+        step_count = self._step_count + 1
         restarted, looks, levels = bool(restart.any()), self._appearance_ids, self._level_ids
         if restarted:  # alive again, step_count 0: not terminated, not truncated
             sim, step_count, alive, looks, levels = self._respawned(restart, sim, step_count, alive, looks, levels)
@@ -461,7 +471,7 @@ class BatchedEnv:
     def episode_over(self) -> torch.Tensor:
         """bool [W]: worlds whose episode has ended (every agent terminated or truncated). The
         front ends ask this rather than work it out."""
-        return (~self.alive).all(dim=1) | (self.step_count >= self.max_steps)
+        return (~self._alive).all(dim=1) | (self._step_count >= self.max_steps)
 
     def random_actions(self, generator: torch.Generator | None = None) -> torch.Tensor:
         """Uniformly random valid actions for every agent of every world (the action space's
@@ -471,7 +481,7 @@ class BatchedEnv:
             return torch.rand(W, A, self.action_dim, generator=generator) * 2 - 1
         if self.enforce_action_mask:  # among the allowed actions only (envs/masking.py)
             with self._lock, torch.no_grad(), limited_threads(self.torch_threads):  # a committed state's mask
-                return masking.sample_allowed(self._action_mask(self.sim, self.alive), generator)
+                return masking.sample_allowed(self._action_mask(self.sim, self._alive), generator)
         return torch.randint(self.num_actions, (W, A), generator=generator)
 
     @torch.no_grad()
@@ -535,7 +545,7 @@ class BatchedEnv:
         if not self.state_dim:
             raise NotImplementedError(f"{type(self.scenario).__name__} has no state observation")
         with limited_threads(self.torch_threads):
-            return self._state_obs(self.sim, self.alive)
+            return self._state_obs(self.sim, self._alive)
 
     @_env_call
     def heuristic_actions(self) -> torch.Tensor:
@@ -544,7 +554,7 @@ class BatchedEnv:
         self._check_open()
         self._check_started()
         with limited_threads(self.torch_threads):
-            actions = self.scenario.heuristic(self.sim, self.alive)
+            actions = self.scenario.heuristic(self.sim, self._alive)
             try:
                 return self.check_actions(actions)
             except (TypeError, ValueError) as error:
@@ -643,7 +653,7 @@ class BatchedEnv:
     # ================================================================== internals
     def _counters(self) -> dict:
         """The core's part of the state (get_state / set_state); "appearance_ids" with appearance on."""
-        counters = {"step_count": self.step_count, "alive": self.alive}
+        counters = {"step_count": self._step_count, "alive": self._alive}
         if self.appearance is not None:
             counters["appearance_ids"] = self._appearance_ids
         if self.levels is not None:
@@ -668,10 +678,10 @@ class BatchedEnv:
     def _check_allowed(self, actions: torch.Tensor) -> None:
         """enforce_action_mask: a ValueError naming the forbidden actions of the agents this step acts
         for (those of departed agents and of worlds a next_step autoreset restarts are ignored)."""
-        acting = self.alive
+        acting = self._alive
         if self.autoreset == "next_step":
             acting = acting & ~self.episode_over()[:, None]
-        mask = self._action_mask(self.sim, self.alive)
+        mask = self._action_mask(self.sim, self._alive)
         refused = masking.forbidden(mask, actions, acting)
         if bool(refused.any()):
             raise masking.refusal(refused, mask, actions, self.agent_names, self.action_meanings)
@@ -799,7 +809,7 @@ class BatchedEnv:
         into, so holding them keeps them; the lock is held throughout, so no other call comes between."""
         with self._lock:
             rng, seed, needs_reset = self.generator.get_state(), self.seed, self._needs_reset
-            committed = (self.sim, self.alive, self.step_count, self._appearance_ids, self._level_ids)
+            committed = (self.sim, self._alive, self._step_count, self._appearance_ids, self._level_ids)
             try:
                 yield
             except BaseException:
@@ -822,11 +832,11 @@ class BatchedEnv:
     def _held(self) -> dict:
         """{name: tensor} of the state the env has committed (what a failed call must leave as it was)."""
         return {**{f"state.{name}": value for name, value in explicit_state.fields(self.sim).items()},
-                "alive": self.alive, "step_count": self.step_count}
+                "alive": self._alive, "step_count": self._step_count}
 
     def _commit(self, sim, alive: torch.Tensor, step_count: torch.Tensor, looks: torch.Tensor | None,
                 levels: torch.Tensor | None) -> None:
-        self.sim, self.alive, self.step_count, self._appearance_ids = sim, alive, step_count, looks
+        self.sim, self._alive, self._step_count, self._appearance_ids = sim, alive, step_count, looks
         self._level_ids = levels
 
     def _reseed(self, seed: int | None) -> None:

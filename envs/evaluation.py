@@ -31,6 +31,8 @@ import torch
 from marl_render import strict_json
 from marl_render.task_imports import add_import_option, load_user_tasks
 
+from . import options as check
+from .levels import levels_option
 from .registry import env_class, list_envs, make_env
 
 
@@ -56,6 +58,8 @@ def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution
     """Mean, std, min and max episode return of `policy` over `episodes` episodes (one per world), and
     each episode's return (``per_episode``, in world order). A sealed set's seed (``SEALED_SEEDS``) is
     refused unless `final` is True, and `final` is refused with any other seed."""
+    if check.seed("seed", seed) is None:  # an int in [0, 2**63), as make_env's, before the generator takes seed + 1
+        raise TypeError("seed must be an int in [0, 2**63), got None")
     if (seed in SEALED_SEEDS) != bool(final):
         raise ValueError(f"seed {seed} is the sealed {SEALED_SEEDS[seed]!r} evaluation set: it is scored only with "
                          f"final=True (python -m marl_render.baselines --eval-set final --final), got final={final!r}"
@@ -159,23 +163,32 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed of the envs and the random policy")
     parser.add_argument("--difficulty", choices=("easy", "medium", "hard", "all"), default=None,
                         help="a difficulty preset (all: {task: {preset: returns}}); none: the defaults")
-    parser.add_argument("--levels", default=None, help="levels= of the envs (train, test, published or a count n)")
+    parser.add_argument("--levels", type=levels_option, default=None,
+                        help="levels= of the envs (train, test, published or a count n)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if not 0 <= args.seed < 2 ** 63:
+        parser.error(f"--seed must be an int in [0, 2**63), got {args.seed}")
     names = list_envs() if args.env == ["all"] else args.env
     for name in names:
-        env_class(name)  # an unknown name fails now, listing the known ones
-    extra = {} if args.levels is None else {"levels": int(args.levels) if args.levels.isdigit() else args.levels}
+        try:
+            env_class(name)  # an unknown name fails now, listing the known ones
+        except ValueError as error:
+            parser.error(f"--env: {error}")
+    extra = {} if args.levels is None else {"levels": args.levels}
     results = {}
-    for name in names:
-        print(f"evaluating {name} ...", file=sys.stderr, flush=True)
-        if args.difficulty == "all":
-            results[name] = {preset: reference_returns(name, args.episodes, args.seed, difficulty=preset, **extra)
-                             for preset in ("easy", "medium", "hard")}
-            continue
-        results[name] = reference_returns(name, args.episodes, args.seed, difficulty=args.difficulty, **extra)
+    try:  # options a task refuses (a count of worlds beyond memory, levels it lacks): one line, no traceback
+        for name in names:
+            print(f"evaluating {name} ...", file=sys.stderr, flush=True)
+            if args.difficulty == "all":
+                results[name] = {preset: reference_returns(name, args.episodes, args.seed, difficulty=preset, **extra)
+                                 for preset in ("easy", "medium", "hard")}
+                continue
+            results[name] = reference_returns(name, args.episodes, args.seed, difficulty=args.difficulty, **extra)
+    except (ValueError, TypeError) as error:
+        parser.error(str(error))
     if args.json:
         print(strict_json.dumps(results))
     elif args.difficulty == "all":

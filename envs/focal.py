@@ -316,6 +316,7 @@ class FocalEnv:
         """After the core reset the worlds of mask [W] (re-seeded with `seed`, if given): the bots'
         generators re-seeded alike, new bots there; the focal observations."""
         if seed is not None:
+            seed = int(seed)  # the core took it (an int or numpy integer in [0, 2**63)): a numpy one would overflow
             self.bot_generator.manual_seed(seed + 1)
             for bot, offset in zip(self.bots, self._seed_offsets, strict=True):
                 if offset is not None:

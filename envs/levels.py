@@ -263,7 +263,7 @@ class PrioritisedLevelReplay:
     def update(self, level_ids, scores) -> None:
         """Record the score of each level in level_ids [n] (the latest episode's score replaces the old)."""
         level_ids = torch.as_tensor(level_ids).reshape(-1)
-        scores = torch.as_tensor(scores, dtype=torch.float64).reshape(-1)
+        scores = torch.as_tensor(scores, dtype=torch.float64).detach().reshape(-1)  # a value loss's graph stays out
         if level_ids.is_floating_point() or level_ids.dtype == torch.bool:
             raise TypeError(f"update needs integer level_ids, got dtype {level_ids.dtype}")
         level_ids = level_ids.to(torch.int64)
@@ -274,7 +274,11 @@ class PrioritisedLevelReplay:
         known = (slot < self.ids.numel()) & (self.ids[slot.clamp_max(self.ids.numel() - 1)] == level_ids)
         if not bool(known.all()):
             raise ValueError(f"update got level ids outside this sampler's set: {level_ids[~known][:5].tolist()}")
-        self.scores[slot], self.seen[slot] = scores, True
+        # A level given twice keeps its last score (the latest episode); torch leaves duplicate writes unordered.
+        last = torch.full((self.ids.numel(),), -1, dtype=torch.int64).scatter_reduce(
+            0, slot, torch.arange(slot.numel()), "amax")
+        written = last >= 0
+        self.scores[written], self.seen[written] = scores[last[written]], True
 
     def weights(self) -> torch.Tensor:
         """[n] sampling probabilities of the levels (unscored levels first, while any are left)."""

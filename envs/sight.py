@@ -43,7 +43,14 @@ class Circles(NamedTuple):
 def horizontal_fov(fov_y: float, aspect: float = 1.0, pitch: float = 0.0) -> float:
     """The horizontal field of view (rad) of a camera with vertical field of view `fov_y`, a view
     `aspect` = width / height pixels wide, pitched by `pitch` (rad): exact for points at the
-    camera's height (a pitched camera sees a little less far to the sides at its own height)."""
+    camera's height (a pitched camera sees a little less far to the sides at its own height).
+    ValueError for fov_y outside (0, pi), aspect not a finite number > 0 or pitch not finite."""
+    checks = (("fov_y", fov_y, lambda v: 0 < v < math.pi, "a number in (0, pi) (radians)"),
+              ("aspect", aspect, lambda v: 0 < v < math.inf, "a finite number > 0"),
+              ("pitch", pitch, math.isfinite, "a finite number (radians)"))
+    for name, value, good, want in checks:
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not good(value):
+            raise ValueError(f"{name} must be {want}, got {value!r}")
     return 2 * math.atan(aspect * math.tan(fov_y / 2) * math.cos(pitch))
 
 
@@ -51,7 +58,19 @@ def first_hit(origin: Tensor, direction: Tensor, *, half_extent, boxes=None, cir
               skip: Tensor | None = None) -> Tensor:
     """[W, R]: the distance (m) from each origin [W, R, 2] along its unit direction [W, R, 2] to the
     first wall, box or present circle it meets; 0 from inside a box or circle, or from outside the
-    arena. skip [W, R, K] bool: circles a ray ignores (the body it starts from)."""
+    arena. skip [W, R, K] bool: circles a ray ignores (the body it starts from). ValueError for an
+    origin that is not finite or a direction that is not a unit vector (one check, one sync)."""
+    length = torch.linalg.vector_norm(direction, dim=-1)
+    if not bool(torch.isfinite(origin).all() & ((length - 1).abs() <= 1e-3).all()):
+        raise ValueError("origin must be finite and direction a unit vector on every ray (a zero or NaN direction "
+                         "has no first hit)")
+    return _first_hit(origin, direction, half_extent=half_extent, boxes=boxes, circles=circles, skip=skip)
+
+
+def _first_hit(origin: Tensor, direction: Tensor, *, half_extent, boxes=None, circles: Circles | None = None,
+               skip: Tensor | None = None) -> Tensor:
+    """first_hit without its check on origin and direction (lidar's are checked, or unit by construction)."""
+    _check_half_extent(half_extent)
     _check_circles(circles)
     distance = _wall_distance(origin, direction, half_extent)
     if boxes is not None and boxes.center.shape[1]:
@@ -71,7 +90,13 @@ def line_of_sight(eye: Tensor, yaw: Tensor, targets: Tensor, *, fov: float, reac
     no wall, box or circle crossing the segment between them, except one that contains the target.
     A target at the eye itself is seen whatever the yaw (it has no bearing)."""
     _check_reach(reach, finite=False)
+    if isinstance(fov, bool) or not isinstance(fov, numbers.Real) or not fov > 0:
+        raise ValueError(f"fov must be a number > 0 (radians; 2 pi or more sees all round), got {fov!r}")
+    _check_half_extent(half_extent)
     _check_circles(circles)
+    if not bool(torch.isfinite(eye).all() & torch.isfinite(yaw).all() & torch.isfinite(targets).all()):
+        raise ValueError("eye, yaw and targets must be finite: a NaN or inf position or heading sees nothing and is "
+                         "seen by no one")
     W, A, T = eye.shape[0], eye.shape[1], targets.shape[1]
     delta = targets[:, None] - eye[:, :, None]  # [W, A, T, 2]
     distance = torch.linalg.vector_norm(delta, dim=-1)
@@ -107,14 +132,19 @@ def lidar(eye: Tensor, yaw: Tensor, *, rays: int, reach: float, half_extent, box
     non-finite eye or yaw, `rays` < 1 and `reach` not a finite number > 0 are ValueErrors."""
     _check_rays(rays)
     _check_reach(reach, finite=True)
-    if not bool(torch.isfinite(eye).all()) or not bool(torch.isfinite(yaw).all()):
-        raise ValueError("eye and yaw must be finite: a NaN or inf position or heading has no readings")
+    finite = torch.isfinite(eye).all() & torch.isfinite(yaw).all()
+    if circles is not None:
+        finite = finite & (torch.isfinite(circles.center).all(-1) | ~circles.present).all()  # absent ones: unread
+    if not bool(finite):  # one sync for all of them
+        raise ValueError("eye and yaw must be finite: a NaN or inf position or heading has no readings"
+                         if not bool(torch.isfinite(eye).all() & torch.isfinite(yaw).all()) else
+                         "circles.center must be finite where present: a NaN or inf centre is missed by every ray")
     W, A = yaw.shape
     direction = lidar_directions(yaw, rays).reshape(W, A * rays, 2)
     origin = eye[:, :, None].expand(W, A, rays, 2).reshape(W, A * rays, 2)
     if skip is not None:
         skip = skip[:, :, None].expand(W, A, rays, skip.shape[-1]).reshape(W, A * rays, -1)
-    distance = first_hit(origin, direction, half_extent=half_extent, boxes=boxes, circles=circles, skip=skip)
+    distance = _first_hit(origin, direction, half_extent=half_extent, boxes=boxes, circles=circles, skip=skip)
     return (distance / reach).clamp_max(1.0).reshape(W, A, rays)
 
 
@@ -128,6 +158,17 @@ def _check_reach(reach, *, finite: bool) -> None:
     if isinstance(reach, bool) or not isinstance(reach, numbers.Real) or not reach > 0 or (
             finite and not math.isfinite(reach)):
         raise ValueError(f"reach must be a {'finite ' if finite else ''}number > 0 (metres), got {reach!r}")
+
+
+def _check_half_extent(half_extent) -> None:
+    """The arena's half sizes (m): one number, or (x, y), each finite and > 0 (on the CPU: no sync)."""
+    try:
+        values = torch.as_tensor(half_extent, dtype=torch.float64, device="cpu").reshape(-1)
+    except (TypeError, ValueError, RuntimeError):
+        values = None
+    if values is None or values.numel() not in (1, 2) or not bool((torch.isfinite(values) & (values > 0)).all()):
+        raise ValueError(f"half_extent must be the arena's half size (m): a number or (x, y), finite and > 0, got "
+                         f"{half_extent!r}")
 
 
 def _check_circles(circles: Circles | None) -> None:

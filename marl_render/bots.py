@@ -21,6 +21,7 @@ import math
 import torch
 
 from marl_render.envs import list_envs
+from marl_render.envs import options as check
 from marl_render.envs.masking import sample_allowed
 from marl_render.validation import describe
 
@@ -239,6 +240,10 @@ def register_bot(task: str, name: str, script=None, *, factory=None, description
         raise TypeError(f"name must be a non-empty str, got {describe(name)}")
     if population not in ("train", "test"):
         raise ValueError(f"population must be 'train' or 'test', got {population!r}")
+    if not isinstance(description, str):
+        raise TypeError(f"description of bot {name!r} must be a str (one line), got {describe(description)}")
+    if not isinstance(overwrite, bool):  # a truthy "no" would replace a registered bot
+        raise TypeError(f"overwrite must be a bool, got {describe(overwrite)}")
     if script is not None and factory is not None:
         raise ValueError(f"bot {name!r}: give script or factory, not both")
     for label, value in (("script", script), ("factory", factory)):
@@ -289,6 +294,9 @@ def make_bot(task: str, name: str, seed: int = 0) -> Policy:
     """A fresh bot of `task` by name (see bot_names); `seed` seeds the randomised variants."""
     if name not in bot_names(task):
         raise ValueError(f"bot must be one of {task}'s bots {bot_names(task)}, got {name!r}")
+    if check.seed("seed", seed) is None:  # a generator seed as the envs take it, [0, 2**63)
+        raise TypeError("seed must be an int in [0, 2**63), got None")
+    seed = int(seed)
     if name == "heuristic":
         return heuristic_policy()
     if name in FACTORIES.get(task, {}):

@@ -30,13 +30,13 @@ def elo_ratings(wins, draws=None, *, anchor: int = 0, smoothing: float = 0.1, it
     (symmetric or not: i's draws against j are added to both sides), with player `anchor` at 0.
     The diagonal (a player against itself) is ignored. ValueError / TypeError for counts that are
     not finite and >= 0, and for outcomes that leave a rating undefined (see the module docstring)."""
-    wins = np.asarray(wins, dtype=np.float64)
+    wins = _counts("wins", wins)
     square = wins.ndim == 2 and wins.shape[0] == wins.shape[1] and wins.shape[0] >= 2
     if not square or not np.isfinite(wins).all() or (wins < 0).any():
         raise ValueError(f"wins must be a square matrix of at least 2 players with finite counts >= 0, got shape "
                          f"{list(wins.shape)}" + ("" if not square else " holding NaN, inf or negative counts"))
     n = wins.shape[0]
-    draws = np.zeros_like(wins) if draws is None else np.asarray(draws, dtype=np.float64)
+    draws = np.zeros_like(wins) if draws is None else _counts("draws", draws)
     if draws.shape != wins.shape or not np.isfinite(draws).all() or (draws < 0).any():
         raise ValueError(f"draws must have the shape of wins {list(wins.shape)} with finite counts >= 0, got "
                          f"shape {list(draws.shape)}" + ("" if draws.shape != wins.shape else
@@ -53,12 +53,18 @@ def elo_ratings(wins, draws=None, *, anchor: int = 0, smoothing: float = 0.1, it
         raise ValueError(f"iterations must be an int >= 1, got {iterations!r}")
     if isinstance(tolerance, bool) or not isinstance(tolerance, numbers.Real) or not tolerance > 0:
         raise ValueError(f"tolerance must be a number > 0, got {tolerance!r}")
-    score = wins + 0.5 * (draws + draws.T)  # i's wins against j, a draw half a win
-    np.fill_diagonal(score, 0.0)
-    games = score + score.T
-    _check_defined(score, games, smoothing)
-    score = score + smoothing * (games > 0)
-    games = score + score.T
+    with np.errstate(over="ignore"):  # sums past float64's range are refused below, by name
+        score = wins + 0.5 * (draws + draws.T)  # i's wins against j, a draw half a win
+        np.fill_diagonal(score, 0.0)
+        games = score + score.T
+        _check_defined(score, games, smoothing)
+        score = score + smoothing * (games > 0)
+        games = score + score.T
+        totals = games.sum(1)
+    if not np.isfinite(totals).all():  # sums past float64's range: the iteration would divide inf by inf
+        raise ValueError(f"wins, draws and smoothing must give finite game counts (each player's total below "
+                         f"{np.finfo(np.float64).max:.3g}), got sums that overflow to inf: scale the counts down "
+                         f"(the ratings depend on their ratios)")
     gamma = np.ones(n)
     total = score.sum(1)
     for _ in range(iterations):
@@ -70,6 +76,17 @@ def elo_ratings(wins, draws=None, *, anchor: int = 0, smoothing: float = 0.1, it
             break
     ratings = SCALE * np.log10(gamma.clip(min=1e-300))
     return ratings - ratings[anchor]
+
+
+def _counts(name: str, value) -> np.ndarray:
+    """`value` (an array, nested lists or a tensor, which may require grad) as float64; TypeError
+    naming `name` for values that are not real numbers (complex counts lose their imaginary part)."""
+    if hasattr(value, "detach"):  # a torch tensor: numpy() refuses one that requires grad
+        value = value.detach().cpu().numpy()
+    array = np.asarray(value)
+    if array.dtype.kind not in "biuf":
+        raise TypeError(f"{name} must hold real counts (ints or floats), got dtype {array.dtype}")
+    return array.astype(np.float64)
 
 
 def _check_defined(score: np.ndarray, games: np.ndarray, smoothing: float) -> None:

@@ -49,6 +49,7 @@ from marl_render.baselines import stats
 from marl_render.bots import POPULATIONS
 from marl_render.envs import env_class
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
+from marl_render.evaluate import check_seed, out_problem
 from marl_render.evaluate import evaluate as evaluate_heldout
 from marl_render.heldout import heldout_scenario, list_heldout
 from marl_render.policies import load_policy, required_env_kwargs
@@ -105,6 +106,12 @@ def generalise(runs, *, episodes: int = EPISODES, seed: int = SEED, max_steps: i
         raise ValueError("runs must name at least one run folder of python -m marl_render.baselines, got none")
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 2:
         raise ValueError(f"episodes must be an int >= 2 (an interval over episodes), got {episodes!r}")
+    check_seed(seed)
+    folders = [os.path.realpath(run) for run in runs]  # "run" and "run/" are one run, not two seeds
+    repeated = sorted({str(run) for run, folder in zip(runs, folders, strict=True) if folders.count(folder) > 1})
+    if repeated:
+        raise ValueError(f"runs must name each run folder once (each is one seed of the summary), got {repeated} "
+                         f"naming the same folder")
     settings = {str(run): run_settings(str(run)) for run in runs}
     length = {} if max_steps is None else {"max_steps": max_steps}
     references: dict = {}  # (task, env keywords, levels) -> random's and the heuristic's returns
@@ -261,6 +268,8 @@ def main(argv=None) -> int:
                      f"got {args.torch_threads}")
     if args.out is not None and (not os.path.basename(args.out) or os.path.isdir(args.out)):
         parser.error(f"--out must be a file prefix (OUT.json and OUT.md are written), got {args.out!r}")
+    if args.out is not None and out_problem(args.out):  # before the work, not after it
+        parser.error(f"--out {args.out!r}: {out_problem(args.out)}")
     for run in args.runs:
         if not os.path.isfile(os.path.join(run, "result.json")) or not os.path.isfile(os.path.join(run, "actor.pt")):
             parser.error(f"RUN must be a run folder of python -m marl_render.baselines (result.json and actor.pt), "

@@ -141,6 +141,22 @@ def register_heldout(scenario: HeldOutScenario, *, overwrite: bool = False) -> N
         raise TypeError(f"scenario must be a HeldOutScenario, got {type(scenario).__name__}")
     if not isinstance(scenario.name, str) or not scenario.name:
         raise ValueError(f"scenario.name must be a non-empty str, got {scenario.name!r}")
+    if scenario.name == "all" or scenario.name in list_envs():  # --scenario TASK and --scenario all mean the lists
+        raise ValueError(f"scenario.name must not be 'all' or a task's name ({scenario.name!r} stands for a list of "
+                         f"scenarios on the command lines): call it e.g. {scenario.task}/{scenario.name}")
+    if not isinstance(overwrite, bool):  # a truthy "no" would replace a registered scenario
+        raise TypeError(f"overwrite must be a bool, got {describe(overwrite)}")
+    if not isinstance(scenario.description, str):
+        raise TypeError(f"scenario.description must be a str (one line), got {describe(scenario.description)}")
+    if not isinstance(scenario.params, dict) or "num_agents" in scenario.params:
+        raise ValueError(f"scenario {scenario.name!r}: params must be a dict of the task's keywords other than "
+                         f"num_agents (scenario.num_agents sets it), got {describe(scenario.params)}")
+    roles = scenario.bots_by_role
+    if not isinstance(roles, dict) or not all(
+            isinstance(names, (list, tuple)) and names and all(isinstance(n, str) for n in names)
+            for names in roles.values()):
+        raise ValueError(f"scenario {scenario.name!r}: bots_by_role must be a dict {{team: (bot names, ...)}} with "
+                         f"at least one name per team, got {describe(roles)}")
     if scenario.name in HELDOUT and not overwrite:
         raise ValueError(f"a held-out scenario named {scenario.name!r} is already registered; pass overwrite=True "
                          f"to replace it")
@@ -160,6 +176,13 @@ def register_heldout(scenario: HeldOutScenario, *, overwrite: bool = False) -> N
     if set(scenario.bots_by_role) - set(teams):
         raise ValueError(f"scenario {scenario.name!r}: bots_by_role's roles must be teams among {list(teams)}, got "
                          f"{list(scenario.bots_by_role)}")
+    # The registry keeps its own copy: the caller's lists and dicts may change later without changing it.
+    scenario = dataclasses.replace(scenario, focal=tuple(scenario.focal), params=dict(scenario.params),
+                                   bots_by_role={team: tuple(names) for team, names in scenario.bots_by_role.items()})
+    try:  # the focal env itself: every slot focal or played by a bot, at least one of each, the bots made
+        make_env(scenario.task, heldout=scenario, num_worlds=1, resolution=8).close()
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"scenario {scenario.name!r} does not make a focal-only env: {error}") from None
     if scenario.name in HELDOUT:
         _SCENARIOS.remove(HELDOUT[scenario.name])
     _SCENARIOS.append(scenario)

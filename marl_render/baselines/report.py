@@ -580,6 +580,9 @@ def main(argv=None) -> int:
         return write_report(args)
     except (ValueError, OSError) as error:  # a missing folder, a broken run: one line, no traceback
         parser.error(str(error))
+    except (TypeError, KeyError, AttributeError) as error:  # a field of the wrong type in some run's result.json
+        parser.error(f"a result.json under --results {args.results!r} holds a field of the wrong type "
+                     f"({type(error).__name__}: {error}); marl_eval.json and {args.out} were left as they were")
 
 
 def write_report(args: argparse.Namespace) -> int:
@@ -594,10 +597,12 @@ def write_report(args: argparse.Namespace) -> int:
         if START not in readme_text or END not in readme_text:
             raise ValueError(f"{args.readme} has no {START} ... {END} markers to put the table between")
     constants = load_constant_actions(results_root)
-    layout = marl_eval.write(runs, results_root / "marl_eval.json")
+    layout = marl_eval.layout(runs)  # both texts first: a run that breaks them leaves the two files as they were
     notes = results_root / "notes.md"
-    out.write_text(document(runs, results_root, out.parent, notes.read_text() if notes.is_file() else "",
-                            marl_eval.problems(layout), constants))
+    text = document(runs, results_root, out.parent, notes.read_text() if notes.is_file() else "",
+                    marl_eval.problems(layout), constants)
+    marl_eval.write(runs, results_root / "marl_eval.json")
+    out.write_text(text)
     if args.readme:
         update_readme(Path(args.readme), runs, constants)
     count = sum(len(results) for by_obs in runs.values() for results in by_obs.values())

@@ -258,9 +258,12 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
         repeated = sorted({seed for seed in args.seeds if args.seeds.count(seed) > 1})
         if repeated:
             parser.error(f"--seeds must name each seed once, got {repeated} more than once")
+    for seed in [args.seed] if args.seeds is None else args.seeds:  # before the first seed's training, not after it
+        if seed is not None and not 0 <= seed < 2 ** 63:
+            parser.error(f"--seed{'s' if args.seeds is not None else ''} must be an int in [0, 2**63), got {seed}")
     args.seed = 0 if args.seed is None else args.seed
-    if args.tensorboard is not None:
-        problem = writable_folder(args.tensorboard)
+    if args.tensorboard is not None:  # "" would send SummaryWriter to its own runs/DATE_HOST folder
+        problem = writable_folder(args.tensorboard) if args.tensorboard else "it is empty"
         if problem:
             parser.error(f"--tensorboard must be a folder this process can write to, got {args.tensorboard!r}: "
                          f"{problem}")
@@ -363,7 +366,7 @@ def seed_command(argv: list, seed: int, out: str, tensorboard: str | None) -> li
         if token in ("--seeds", "--out", "--tensorboard"):
             dropping = token
             continue
-        if token.startswith(("--out=", "--tensorboard=")):
+        if token.startswith(("--out=", "--tensorboard=", "--seeds=")):
             continue
         kept.append(token)
     return kept + ["--seed", str(seed), "--out", out] + (["--tensorboard", tensorboard] if tensorboard else [])
