@@ -83,7 +83,7 @@ made it: in a child forked from that process, ``reset``, ``reset_worlds``, ``ste
 reads the inherited state).
 
 The state is explicit (envs/state.py): an env's simulation lives in one frozen dataclass of
-tensors, ``env.sim``; ``get_state()`` copies it out with the step counters, the alive mask and
+tensors (``env.sim`` hands out a copy of it); ``get_state()`` copies it out with the step counters, the alive mask and
 the RNG state, and ``set_state(state)`` restores all of it exactly.
 """
 from __future__ import annotations
@@ -263,7 +263,7 @@ class BatchedEnv:
         if options.physics_substeps is not None:
             self.scenario.physics = check.physics_substeps(options.physics_substeps, self.scenario)
         self._describe(self.scenario)
-        self.sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
+        self._sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
         self._check_scenario()
         self.obs_keys = tuple(k for k, on in (("pixels", True), ("depth", self.depth), ("state", self.state_obs),
                                               ("lidar", self.lidar_rays > 0), ("agent_id", self.agent_ids),
@@ -300,6 +300,13 @@ class BatchedEnv:
                 self.views.close()
                 raise
         self._closed = False
+
+    @property
+    def sim(self):
+        """The simulation state, a frozen dataclass of [W, ...] tensors (a copy: writing into it changes
+        nothing; bots and scripted policies read it once per call, a copy of a few small tensors)."""
+        return dataclasses.replace(self._sim, **{name: value.clone() if isinstance(value, torch.Tensor) else value
+                                                 for name, value in explicit_state.fields(self._sim).items()})
 
     @property
     def alive(self) -> torch.Tensor:
@@ -354,7 +361,7 @@ class BatchedEnv:
         with limited_threads(self.torch_threads), self._all_or_nothing():
             self._reseed(seed)
             sim, step_count, alive, looks, levels = self._respawned(
-                torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), self.sim, self._step_count,
+                torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), self._sim, self._step_count,
                 self._alive, self._appearance_ids, self._level_ids)
             obs = self._observe(sim, alive, full=True)
             self._commit(sim, alive, step_count, looks, levels)
@@ -400,7 +407,7 @@ class BatchedEnv:
     def _reset_some(self, mask: torch.Tensor, seed: int | None, chosen: torch.Tensor | None) -> dict:
         with limited_threads(self.torch_threads), self._all_or_nothing():
             self._reseed(seed)
-            sim, step_count, alive, looks, levels = self._respawned(mask, self.sim, self._step_count, self._alive,
+            sim, step_count, alive, looks, levels = self._respawned(mask, self._sim, self._step_count, self._alive,
                                                                     self._appearance_ids, self._level_ids, chosen)
             obs = self._observe(sim, alive, full=True)
             self._commit(sim, alive, step_count, looks, levels)
@@ -436,7 +443,7 @@ class BatchedEnv:
             restart = torch.zeros(W, dtype=torch.bool, device=self.device)
         alive_before = self._alive & ~restart[:, None]
         sim, reward, terminated, task_info = self._checked_step(
-            self.scenario.step(self.sim, actions, alive_before, self.generator))
+            self.scenario.step(self._sim, actions, alive_before, self.generator))
         reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         alive = alive_before & ~terminated
         step_count = self._step_count + 1
@@ -481,7 +488,7 @@ class BatchedEnv:
             return torch.rand(W, A, self.action_dim, generator=generator) * 2 - 1
         if self.enforce_action_mask:  # among the allowed actions only (envs/masking.py)
             with self._lock, torch.no_grad(), limited_threads(self.torch_threads):  # a committed state's mask
-                return masking.sample_allowed(self._action_mask(self.sim, self._alive), generator)
+                return masking.sample_allowed(self._action_mask(self._sim, self._alive), generator)
         return torch.randint(self.num_actions, (W, A), generator=generator)
 
     @torch.no_grad()
@@ -534,7 +541,7 @@ class BatchedEnv:
         self._check_process()
         self._check_started()
         with limited_threads(self.torch_threads):
-            return self.views.overview(self.sim, resolution)
+            return self.views.overview(self._sim, resolution)
 
     @_env_call
     def state_observation(self) -> torch.Tensor:
@@ -545,7 +552,7 @@ class BatchedEnv:
         if not self.state_dim:
             raise NotImplementedError(f"{type(self.scenario).__name__} has no state observation")
         with limited_threads(self.torch_threads):
-            return self._state_obs(self.sim, self._alive)
+            return self._state_obs(self._sim, self._alive)
 
     @_env_call
     def heuristic_actions(self) -> torch.Tensor:
@@ -554,7 +561,7 @@ class BatchedEnv:
         self._check_open()
         self._check_started()
         with limited_threads(self.torch_threads):
-            actions = self.scenario.heuristic(self.sim, self._alive)
+            actions = self.scenario.heuristic(self._sim, self._alive)
             try:
                 return self.check_actions(actions)
             except (TypeError, ValueError) as error:
@@ -569,7 +576,8 @@ class BatchedEnv:
         the steps that follow are bit-identical."""
         self._check_open()
         self._check_started()
-        state = {name: value.clone() for name, value in {**explicit_state.fields(self.sim), **self._counters()}.items()}
+        fields = {**explicit_state.fields(self._sim), **self._counters()}
+        state = {name: value.clone() for name, value in fields.items()}
         state["rng"] = self.generator.get_state()
         return state
 
@@ -584,7 +592,7 @@ class BatchedEnv:
         inside the arena's walls, indices within their range) and its ``check_state`` rules; else
         TypeError / ValueError naming the key, and nothing changes."""
         self._check_open()
-        template = {**explicit_state.fields(self.sim), **self._counters(), "rng": self.generator.get_state()}
+        template = {**explicit_state.fields(self._sim), **self._counters(), "rng": self.generator.get_state()}
         state = explicit_state.checked(state, template)
         steps = state["step_count"]
         most = self.max_steps if self.autoreset else MAX_COUNT  # without autoreset done worlds keep stepping
@@ -607,7 +615,7 @@ class BatchedEnv:
         except RuntimeError as exc:
             raise ValueError(f"state['rng'] must be a torch.Generator state (from get_state()), got an invalid one: "
                              f"{exc}") from exc
-        sim = type(self.sim)(**state)
+        sim = type(self._sim)(**state)
         with limited_threads(self.torch_threads), self._all_or_nothing():
             if looks is not None:
                 self.views.set_appearance(looks)
@@ -681,7 +689,7 @@ class BatchedEnv:
         acting = self._alive
         if self.autoreset == "next_step":
             acting = acting & ~self.episode_over()[:, None]
-        mask = self._action_mask(self.sim, self._alive)
+        mask = self._action_mask(self._sim, self._alive)
         refused = masking.forbidden(mask, actions, acting)
         if bool(refused.any()):
             raise masking.refusal(refused, mask, actions, self.agent_names, self.action_meanings)
@@ -703,9 +711,9 @@ class BatchedEnv:
             raise ValueError(f"state_obs=True needs a task with a state observation, and {name} has none "
                              f"(state_dim 0, no observation hook)")
         self._check_info_keys()
-        if not (dataclasses.is_dataclass(self.sim) and not isinstance(self.sim, type)):
+        if not (dataclasses.is_dataclass(self._sim) and not isinstance(self._sim, type)):
             raise RuntimeError(f"{name}.initial_state must return a dataclass of tensors (envs/state.py), "
-                               f"got {describe(self.sim)}")
+                               f"got {describe(self._sim)}")
         # Every field has the worlds first. A field whose length is W by chance (a task's constant
         # vector) would be split between worlds by partial resets, so the task's layout is probed
         # with another world count too (1, or 2 for W = 1): its fields must follow it.
@@ -715,7 +723,7 @@ class BatchedEnv:
                                                                     self.device)).initial_state())
         except Exception:  # a task that cannot be built for that count: the check below is all there is
             probe = None
-        for field, value in explicit_state.fields(self.sim).items():
+        for field, value in explicit_state.fields(self._sim).items():
             probed = value if probe is None else probe.get(field)
             expected = W if probe is None else probe_worlds
             if not (isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == W
@@ -730,7 +738,7 @@ class BatchedEnv:
                                  f"{value.device}")
         self._bounds = self._checked_bounds(s.state_bounds())
         self._fresh_masks = type(s).action_mask is Scenario.action_mask  # see _observe
-        s.check_declarations(self.sim)
+        s.check_declarations(self._sim)
 
     def _check_info_keys(self):
         """info_keys: {str: torch.dtype}, none of them a name the driver's own info entries use."""
@@ -748,7 +756,7 @@ class BatchedEnv:
         """The scenario's state_bounds(), checked once: fields of the state, (low, high) numbers or
         one number per index of the field's last axis."""
         where = f"{type(self.scenario).__name__}.state_bounds"
-        fields = explicit_state.fields(self.sim)
+        fields = explicit_state.fields(self._sim)
         if not isinstance(bounds, dict):
             raise TypeError(f"{where} must return a dict {{field: (low, high)}}, got {describe(bounds)}")
         for key, pair in bounds.items():
@@ -809,7 +817,7 @@ class BatchedEnv:
         into, so holding them keeps them; the lock is held throughout, so no other call comes between."""
         with self._lock:
             rng, seed, needs_reset = self.generator.get_state(), self.seed, self._needs_reset
-            committed = (self.sim, self._alive, self._step_count, self._appearance_ids, self._level_ids)
+            committed = (self._sim, self._alive, self._step_count, self._appearance_ids, self._level_ids)
             try:
                 yield
             except BaseException:
@@ -831,12 +839,12 @@ class BatchedEnv:
 
     def _held(self) -> dict:
         """{name: tensor} of the state the env has committed (what a failed call must leave as it was)."""
-        return {**{f"state.{name}": value for name, value in explicit_state.fields(self.sim).items()},
+        return {**{f"state.{name}": value for name, value in explicit_state.fields(self._sim).items()},
                 "alive": self._alive, "step_count": self._step_count}
 
     def _commit(self, sim, alive: torch.Tensor, step_count: torch.Tensor, looks: torch.Tensor | None,
                 levels: torch.Tensor | None) -> None:
-        self.sim, self._alive, self._step_count, self._appearance_ids = sim, alive, step_count, looks
+        self._sim, self._alive, self._step_count, self._appearance_ids = sim, alive, step_count, looks
         self._level_ids = levels
 
     def _reseed(self, seed: int | None) -> None:
@@ -911,11 +919,11 @@ class BatchedEnv:
     def _check_state(self, where: str, state):
         """A hook's new state, checked field by field; cut from autograd where a field requires grad (a
         task's nn.Parameter, say): nothing the env keeps requires grad."""
-        if type(state) is not type(self.sim):
-            raise TypeError(f"{where} must return a {type(self.sim).__name__} (the class of initial_state()), "
+        if type(state) is not type(self._sim):
+            raise TypeError(f"{where} must return a {type(self._sim).__name__} (the class of initial_state()), "
                             f"got {describe(state)}")
         graphed = {}
-        for name, want in explicit_state.fields(self.sim).items():
+        for name, want in explicit_state.fields(self._sim).items():
             value = getattr(state, name)
             _check_tensor(f"{where}'s state.{name}", value, tuple(want.shape), want.dtype, want.device)
             if value.requires_grad:

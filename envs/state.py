@@ -1,7 +1,7 @@
 """Explicit env state: everything a later step depends on, as named tensors.
 
-An environment keeps its simulation in one frozen dataclass of ``[W, ...]`` tensors, ``env.sim``
-(for spread: body positions, velocities, yaws and landmarks). Reset and step replace it with a
+An environment keeps its simulation in one frozen dataclass of ``[W, ...]`` tensors (``env.sim``
+hands out a copy; for spread: body positions, velocities, yaws and landmarks). Reset and step replace it with a
 new one and never write into it, as gymnax does with its state. With the core's step counters,
 alive mask and random generator it is the whole state of the env:
 

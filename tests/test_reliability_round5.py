@@ -279,3 +279,23 @@ def test_first_hit_refuses_a_bad_origin_or_a_direction_that_is_not_a_unit_vector
 
 def first_hit_distance(origin, direction) -> float:
     return float(sight.first_hit(origin, direction, half_extent=(2.0, 2.0)))
+
+
+@pytest.mark.parametrize("heldout_name", [None, "spread/two_with_nearest"])
+def test_writing_into_env_sim_changes_nothing(heldout_name):
+    """env.sim is the caller's copy (as alive, step_count and every output): writing into it changes
+    neither the env's state nor its next step, on the core and on a focal env alike."""
+    options = {} if heldout_name is None else {"heldout": heldout_name}
+    with make_env("spread", num_worlds=2, resolution=8, **options) as env, \
+            make_env("spread", num_worlds=2, resolution=8, **options) as twin:
+        env.reset(seed=3)
+        twin.reset(seed=3)
+        sim = env.sim
+        sim.pos.add_(0.5)
+        sim.vel.fill_(9.0)
+        assert all(torch.equal(a, b) for a, b in zip(env.get_state().values(), twin.get_state().values(),
+                                                      strict=True) if isinstance(a, torch.Tensor))
+        actions = torch.zeros(env.num_worlds, env.num_agents, dtype=torch.int64)
+        stepped, reference = env.step(actions), twin.step(actions)
+        assert torch.equal(stepped[1], reference[1]) and torch.equal(stepped[0]["pixels"], reference[0]["pixels"])
+        assert not torch.equal(env.sim.pos, sim.pos)
