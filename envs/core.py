@@ -303,8 +303,8 @@ class BatchedEnv:
 
     @property
     def sim(self):
-        """The simulation state, a frozen dataclass of [W, ...] tensors (a copy: writing into it changes
-        nothing; bots and scripted policies read it once per call, a copy of a few small tensors)."""
+        """The simulation state, a frozen dataclass of [W, ...] tensors (a copy, so writing into it
+        changes nothing; bots and scripted policies read it once per call, a few small tensors)."""
         return dataclasses.replace(self._sim, **{name: value.clone() if isinstance(value, torch.Tensor) else value
                                                  for name, value in explicit_state.fields(self._sim).items()})
 
