@@ -1,4 +1,5 @@
 """Fixtures shared by several test modules, and the `gpu` marker's skip."""
+import copy
 import functools
 import sys
 
@@ -36,6 +37,21 @@ def registered_tasks_restored():
         registry._REGISTRY.clear()
         registry._REGISTRY.update(before)
     sys.modules.pop("selfplay_user_task", None)
+
+
+@pytest.fixture
+def registries():
+    """The bot and held-out scenario registries as they were, restored after the test (they are
+    module-global: register_bot and register_heldout write into them)."""
+    from marl_render import bots, heldout  # the library only once a test asks for it
+
+    saved = [(table, copy.copy(table)) for table in (bots.POPULATIONS, bots.SCRIPTS, bots.FACTORIES, heldout.HELDOUT)]
+    scenarios = list(heldout._SCENARIOS)
+    yield
+    for table, before in saved:
+        table.clear()
+        table.update(before)
+    heldout._SCENARIOS[:] = scenarios
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import math
 import re
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,7 +14,7 @@ import torch
 from marl_render import evaluate as heldout_evaluation
 from marl_render import generalise as generalisation
 from marl_render.baselines.networks import Actor
-from marl_render.envs import evaluation, registry
+from marl_render.envs import evaluation
 from marl_render.policies import CallablePolicy, RandomPolicy, as_policy, heuristic_policy, load_policy
 
 
@@ -178,18 +177,7 @@ def test_interactive_play_is_linked_from_the_readme_and_the_docs_index(capsys):
         assert re.search(rf"{option}\b", shown), option
 
 
-@pytest.fixture
-def forget_user_task():
-    """The run's module:Class task registers itself (and beacon_duel) on import: none of it is left
-    behind for other tests in this process (which count the registered tasks)."""
-    yield
-    for name in ("beacon_duel", "selfplay_user_task:BeaconDuel"):
-        registry._REGISTRY.pop(name, None)
-    sys.modules.pop("selfplay_user_task", None)
-
-
-def test_generalise_takes_a_run_of_a_module_class_task_and_names_what_it_cannot_do(tmp_path, capsys, monkeypatch,
-                                                                                  forget_user_task):
+def test_generalise_takes_a_run_of_a_module_class_task_and_names_what_it_cannot_do(tmp_path, capsys, monkeypatch):
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent))
     folder = tmp_path / "duel"
     folder.mkdir()

@@ -26,18 +26,6 @@ from marl_render.heldout import HELDOUT, HeldOutScenario, register_heldout
 RUN = os.path.join(os.path.dirname(__file__), "..", "docs", "baselines", "forage", "seed0")
 
 
-@pytest.fixture
-def registries():
-    """The bot and scenario registries as they were, restored after the test (they are module-global)."""
-    saved = [(table, copy.copy(table)) for table in (bots.POPULATIONS, bots.SCRIPTS, bots.FACTORIES, heldout.HELDOUT)]
-    scenarios = list(heldout._SCENARIOS)
-    yield
-    for table, before in saved:
-        table.clear()
-        table.update(before)
-    heldout._SCENARIOS[:] = scenarios
-
-
 # ---------------------------------------------------------------------- generalise
 def test_generalise_refuses_the_same_run_twice_before_any_work():
     # "run" and "run/" were two entries of the summary: one seed counted twice.

@@ -3,7 +3,6 @@ the evaluation and its cross-play table and heatmap, the reference returns' CLI 
 module:Class."""
 from __future__ import annotations
 
-import copy
 import json
 import sys
 import textwrap
@@ -41,18 +40,6 @@ MODULE = textwrap.dedent('''
     register_heldout(HeldOutScenario("beacon_duel/red_vs_stayers", "beacon_duel", "a focal red scout against a "
                                      "blue one that stays or rushes", 2, ("red_0",), {"blue": ("stayer", "rusher")}))
 ''')
-
-
-@pytest.fixture
-def registries():
-    """The bot and scenario registries as they were, restored after the test (they are module-global)."""
-    saved = [(table, copy.copy(table)) for table in (bots.POPULATIONS, bots.SCRIPTS, bots.FACTORIES, heldout.HELDOUT)]
-    scenarios = list(heldout._SCENARIOS)
-    yield
-    for table, before in saved:
-        table.clear()
-        table.update(before)
-    heldout._SCENARIOS[:] = scenarios
 
 
 @pytest.fixture
