@@ -107,6 +107,13 @@ class Scenario(abc.ABC):
     shadow_bounds = None  # the box shadows=True covers; None: fitted to the static geometry
     opponents: tuple = ()  # teams that play against the others (random in the reference evaluation)
     step_hook: str = "step"  # the hook that holds the task's rules (what the driver's messages name)
+    # Who plays besides the learners, and how the task is documented and trained (envs/roster.py):
+    # data that the populations layer, the evaluation CLI, the trainer and the docs generator read.
+    bots: dict = {}  # bot name -> roster.Bot (the heuristic itself is always in the "train" population)
+    heldout: tuple = ()  # roster.HeldOut scenarios, named "<task>/<name>", played by "test" bots only
+    sides: tuple = ()  # (team A, team B) of a competitive task: cross-play puts A's policies against B's
+    card: str = ""  # the docs card's prose (markdown); "": the class docstring's first paragraph
+    training: dict = {}  # trainer defaults: Hyperparameters overrides, and "budget": {"pixels": N, "state": M}
 
     def __init__(self, params, layout: Layout):
         self.params = params
