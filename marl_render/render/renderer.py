@@ -26,8 +26,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import backend, interop, layout, memory, readback, shaders, skinning
-from .meshes import MeshData, to_panda_geom
+from ..assets import skinning
+from ..assets.meshes import MeshData, to_panda_geom
+from ..util.threads import one_thread
+from ..util.validation import describe, positive_int, torch_device, unpicklable
+from . import backend, interop, memory, readback, row_layouts, shaders
 from .packing import FramePacker
 from .panda_buffers import TextureMemory, buffer_texture, clip_distances, int_input, panda_texture, vec3_input
 from .provoking import shared_corner_mesh
@@ -35,10 +38,8 @@ from .readback import max_array_texture_layers
 from .scene import ROLES, Scene
 from .shadows import ShadowPass, atlas_layout, light_projection
 from .sky import SkyImages
-from .threads import one_thread
 from .tiling import TileLayout, column_layout, layer_layout
 from .triangle_corners import to_panda_geom_with_corners
-from .validation import describe, positive_int, torch_device, unpicklable
 
 
 @dataclass
@@ -302,7 +303,7 @@ class BatchRenderer:
             "tile_size": LVecBase2f(self.layout.tile_width, self.layout.tile_height)}
         if "appearance" in self.effects:
             self.appearance_texture = self._targets.appearance_texture = buffer_texture(
-                "appearance", self.scene.num_worlds * layout.APPEARANCE.texels)
+                "appearance", self.scene.num_worlds * row_layouts.APPEARANCE.texels)
             self._shared_inputs["appearance"] = self.appearance_texture
             self._sky = SkyImages(self.layout, self.scene.agents_per_world, gray=self.color == "gray",
                                   layered=self.layered)
