@@ -124,7 +124,7 @@ def atlas_layout(num_worlds: int, resolution: int, max_size: int) -> TileLayout:
 class ShadowPass:
     """The shadow atlas of a BatchRenderer: its buffer, light matrices and caster nodes.
 
-    groups: the renderer's draw groups by name (renderer.DrawGroup: node, count, static, instance
+    groups: the renderer's draw groups by name (draw_groups.DrawGroup: node, count, static, instance
     texture); the casters draw the same nodes and instance data. Which instances cast is the
     packer's answer (FramePacker.light_pairs), as for the main pass."""
 
