@@ -2,10 +2,10 @@
 
 One folder per layer (docs/architecture.md): util < assets < render < envs < populations and the
 front ends (wrappers) < baselines and bench. Modules that moved keep their old import paths
-(_aliases.py)."""
-from . import _aliases
+(aliases.py)."""
+from . import aliases
 
-_aliases.install()  # before anything else: an old path imported from here on is the moved module
+aliases.install()  # before anything else: an old path imported from here on is the moved module
 
 from .assets.meshes import MeshData, box, capsule, cone, cylinder, load_model, plane, sphere  # noqa: E402
 from .assets.skinning import SkinnedMesh, load_skinned_model, skinned_character, skinned_limb  # noqa: E402
@@ -27,8 +27,8 @@ __all__ = [
 
 
 def __getattr__(name: str):
-    """`marl_render.<old module name>` read as an attribute: the moved module (_aliases.MOVED)."""
-    module = _aliases.moved_attribute(__name__, name)
+    """`marl_render.<old module name>` read as an attribute: the moved module (aliases.MOVED)."""
+    module = aliases.moved_attribute(__name__, name)
     if module is None:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     return module

@@ -1,4 +1,4 @@
-"""The old import paths of moved modules (marl_render/_aliases.py): each is the moved module itself,
+"""The old import paths of moved modules (marl_render/aliases.py): each is the moved module itself,
 so imports, attribute reads, monkeypatches, pickles and `python -m` through the old name reach it."""
 import importlib
 import pickle
@@ -8,13 +8,13 @@ import sys
 import pytest
 
 import marl_render as mr
-from marl_render import _aliases
+from marl_render import aliases
 from marl_render.render import packing, row_layouts, scene
 
 
-@pytest.mark.parametrize("old", sorted(_aliases.MOVED))
+@pytest.mark.parametrize("old", sorted(aliases.MOVED))
 def test_an_old_path_is_the_moved_module_itself(old):
-    new = _aliases.MOVED[old]
+    new = aliases.MOVED[old]
     module = importlib.import_module(old)
     assert module is importlib.import_module(new) and sys.modules[old] is sys.modules[new]
     assert module.__name__ == new and module.__spec__.name == new  # the import left the module's own spec
@@ -72,7 +72,7 @@ def test_python_m_of_an_old_path_runs_the_moved_module_as_main(monkeypatch, caps
 def test_one_line_moves_a_package_with_its_submodules(monkeypatch):
     """A moved package (one line in MOVED) takes its submodules along: the old dotted name of a
     submodule is the module at the new place, never a second copy."""
-    monkeypatch.setitem(_aliases.MOVED, "marl_render.old_render_folder", "marl_render.render")
+    monkeypatch.setitem(aliases.MOVED, "marl_render.old_render_folder", "marl_render.render")
     import marl_render.old_render_folder.row_layouts as submodule
 
     assert submodule is row_layouts

@@ -1,19 +1,19 @@
 """One layer per folder (docs/architecture.md): a module imports its own layer and the layers below,
 never one above. Read from the source with ast, every import (lazy ones inside functions too);
-an old path of a moved module (marl_render/_aliases.py) counts as the module it names."""
+an old path of a moved module (marl_render/aliases.py) counts as the module it names."""
 import ast
 from pathlib import Path
 
 import pytest
 
-from marl_render import _aliases
+from marl_render import aliases
 
 ROOT = Path(__file__).resolve().parents[1]
 
 # The layers, lowest first: (rank, name, the dotted prefixes of its modules). A module's layer is
 # that of its longest matching prefix; layers of one rank may import each other.
 LAYERS = (
-    (0, "util", ("marl_render.util", "marl_render._aliases")),
+    (0, "util", ("marl_render.util", "marl_render.aliases")),
     (1, "assets", ("marl_render.assets",)),
     (2, "render", ("marl_render.render", "marl_render")),  # the package root re-exports the renderer's names
     (3, "envs", ("marl_render.envs",)),
@@ -77,11 +77,11 @@ def imported_modules(module: str) -> set[str]:
                 base = f"{anchor}.{base}" if base else anchor
             # `from package import module` imports the module; `from module import name`, the module
             names = [f"{base}.{alias.name}" for alias in node.names
-                     if _aliases.resolve(f"{base}.{alias.name}") in MODULES] or [base]
+                     if aliases.resolve(f"{base}.{alias.name}") in MODULES] or [base]
         else:
             continue
         for name in names:
-            real = _aliases.resolve(name)
+            real = aliases.resolve(name)
             while real not in MODULES and "." in real:  # `import marl_render.envs.spread.Spread`-like paths
                 real = real.rpartition(".")[0]
             if real in MODULES:
