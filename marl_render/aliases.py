@@ -53,7 +53,7 @@ MOVED = {
 
 def resolve(name: str) -> str:
     """The module's path now: `name` itself unless it, or a package above it, moved."""
-    head, _, tail = name, "", ""
+    head, tail = name, ""
     while head:
         if head in MOVED:
             return MOVED[head] + tail
