@@ -40,6 +40,7 @@ _REGISTRY: dict = {
     "commons": "marl_render.envs.commons:Commons",
     "capture_flag": "marl_render.envs.capture_flag:CaptureFlag",
     "clean_up": "marl_render.envs.clean_up:CleanUp",
+    "coop_mining": "marl_render.envs.coop_mining:CoopMining",
 }
 
 
