@@ -167,7 +167,7 @@ def test_the_heuristic_earns_far_more_than_random_play_and_than_iron_alone():
         env.reset(seed=4)
         g, total = torch.Generator().manual_seed(0), 0.0
         for _ in range(80):
-            act = {"heuristic": env.heuristic_actions, "random": lambda: env.random_actions(g),
+            act = {"heuristic": env.heuristic_actions, "random": lambda g=g: env.random_actions(g),
                    "iron": lambda: coop_mining.iron_miner(env)}[policy]()
             total += float(env.step(act)[1].sum())
         returns[policy] = total
@@ -211,3 +211,17 @@ def test_the_roster_declares_test_bots_for_three_tagged_scenarios():
         assert all(task.bots[b].population == "test" for names in held.bots_by_role.values() for b in names)
         tags.add("resident" if 2 * len(held.focal) > held.num_agents else "visitor")
     assert tags == {"resident", "visitor"}
+
+
+def test_appearance_changes_the_look_not_the_layout_and_gold_stays_yellow():
+    with make(num_worlds=2, resolution=32, seed=5) as plain, \
+            make(num_worlds=2, resolution=32, seed=5, appearance="heldout") as looked:
+        plain.reset(), looked.reset()
+        assert torch.equal(plain.sim.pos, looked.sim.pos) and torch.equal(plain.sim.ores, looked.sim.ores)
+        views = []
+        for env in (plain, looked):
+            place(env, miners=2)
+            views.append(env.step(mine(env))[0]["pixels"][:, 1])
+        assert not torch.equal(views[0], views[1])
+        r, g, b = views[1][:, 25:28, 15:18].to(torch.int32).unbind(-1)  # inside the rock despite camera jitter
+        assert ((r > b + 60) & (g > b + 60)).all()  # the gold rock, hue-shifted a little, still yellow
