@@ -180,12 +180,12 @@ def test_dirt_is_seen_in_the_river_and_gone_from_the_view_once_cleaned():
 
 
 def test_the_heuristic_eats_far_more_than_random_play():
-    env = make(num_worlds=8, max_steps=80)
+    env = make(num_worlds=4, max_steps=60)
     returns = {}
     for policy in ("heuristic", "random"):
         env.reset(seed=4)
         g, total = torch.Generator().manual_seed(0), 0.0
-        for _ in range(80):
+        for _ in range(60):
             act = env.heuristic_actions() if policy == "heuristic" else env.random_actions(g)
             total += float(env.step(act)[1].sum())
         returns[policy] = total

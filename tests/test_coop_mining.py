@@ -161,12 +161,12 @@ def test_gold_is_seen_yellow_and_turns_pale_while_a_strike_is_pending():
 
 
 def test_the_heuristic_earns_far_more_than_random_play_and_than_iron_alone():
-    env = make(num_worlds=8, max_steps=80)
+    env = make(num_worlds=4, max_steps=60)
     returns = {}
     for policy in ("heuristic", "random", "iron"):
         env.reset(seed=4)
         g, total = torch.Generator().manual_seed(0), 0.0
-        for _ in range(80):
+        for _ in range(60):
             act = {"heuristic": env.heuristic_actions, "random": lambda g=g: env.random_actions(g),
                    "iron": lambda: coop_mining.iron_miner(env)}[policy]()
             total += float(env.step(act)[1].sum())
