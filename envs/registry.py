@@ -39,6 +39,8 @@ _REGISTRY: dict = {
     "speaker_listener": "marl_render.envs.speaker_listener:SpeakerListener",
     "commons": "marl_render.envs.commons:Commons",
     "capture_flag": "marl_render.envs.capture_flag:CaptureFlag",
+    "clean_up": "marl_render.envs.clean_up:CleanUp",
+    "coop_mining": "marl_render.envs.coop_mining:CoopMining",
 }
 
 

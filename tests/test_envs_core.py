@@ -571,6 +571,8 @@ DECLARED_TERMS = {
     'rooms': {'walls', 'body_collisions', 'drag', 'obstacles'},
     "commons": {"walls", "body_collisions", "drag"},
     "capture_flag": {"walls", "body_collisions", "drag"},
+    "clean_up": {"walls", "body_collisions", "drag"},
+    "coop_mining": {"walls", "body_collisions", "drag"},
 }
 
 
