@@ -119,7 +119,8 @@ def test_spread_num_agents_range():
 def test_observation_and_step_shapes(name, continuous):
     env = make(name, continuous=continuous, state_obs=True, depth=True, resolution=(24, 32))
     A = env.num_agents
-    expected_keys = ("pixels", "depth", "state") + (() if continuous else ("action_mask",))
+    # a task's own vectors (matrix's "inventory") come after the driver's and before the action mask
+    expected_keys = ("pixels", "depth", "state") + tuple(env.vector_obs) + (() if continuous else ("action_mask",))
     assert env.obs_keys == expected_keys
     assert len(env.agent_names) == A and sum(map(len, env.groups.values())) == A
     assert env.resolution == (24, 32)
@@ -130,6 +131,8 @@ def test_observation_and_step_shapes(name, continuous):
         assert o["depth"].shape == (W, A, 24, 32) and o["depth"].dtype == torch.float32
         assert bool(torch.isfinite(o["depth"]).all()) and float(o["depth"].min()) > 0
         assert o["state"].shape == (W, A, env.state_dim) and o["state"].dtype == torch.float32
+        for key, entry in env.vector_obs.items():
+            assert o[key].shape == (W, A, entry.width) and o[key].dtype == torch.float32
         if not continuous:
             assert o["action_mask"].shape == (W, A, env.num_actions) and o["action_mask"].dtype == torch.bool
     _, reward, terminated, truncated, info = env.step(random_actions(env))
@@ -171,9 +174,9 @@ def test_every_agent_sees_its_own_view(name):
 @pytest.mark.parametrize("name", ENVS)
 def test_minimal_obs_keys(name):
     env = make(name)
-    assert env.obs_keys == ("pixels", "action_mask")
+    assert env.obs_keys == ("pixels", *env.vector_obs, "action_mask")
     obs = env.reset()
-    assert set(obs) == {"pixels", "action_mask"}
+    assert set(obs) == {"pixels", "action_mask", *env.vector_obs}
     mask = obs["action_mask"]
     assert mask.dtype == torch.bool and mask.shape == (W, env.num_agents, env.num_actions)
     assert bool(mask[..., 0].all())  # action 0 (noop, or the first force level) is valid at the start
