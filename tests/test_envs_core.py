@@ -26,6 +26,7 @@ def make(name, **kw):
     kw.setdefault("num_worlds", W)
     kw.setdefault("resolution", RES)
     kw.setdefault("seed", 0)
+    kw.setdefault("episode_end", False)  # fixed ends: these contracts count steps (random: test_episodes.py)
     return make_env(name, **kw)
 
 
@@ -192,7 +193,8 @@ def test_pixels_are_not_constant_and_owned_by_caller(name):
     first = env.reset()["pixels"]
     assert int(first.max()) - int(first.min()) > 50
     kept = first.clone()
-    push = torch.full((W, env.num_agents), env.num_actions - 1)  # cartpole: full force; spread: backward
+    # cartpole: full force; the arena tasks: backward (their own actions, such as matrix's interact, come after it)
+    push = torch.full((W, env.num_agents), env.num_actions - 1 if env.physics is None else 4)
     for _ in range(20):
         later = env.step(push)[0]["pixels"]
     assert torch.equal(first, kept), "a later render overwrote earlier observations"
@@ -574,6 +576,7 @@ DECLARED_TERMS = {
     'rooms': {'walls', 'body_collisions', 'drag', 'obstacles'},
     "commons": {"walls", "body_collisions", "drag"},
     "capture_flag": {"walls", "body_collisions", "drag"},
+    "matrix": {"walls", "body_collisions", "drag"},
 }
 
 

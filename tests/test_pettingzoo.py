@@ -29,6 +29,7 @@ pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 def make(name, **kw):
     kw.setdefault("resolution", RES)
+    kw.setdefault("episode_end", False)  # fixed ends: these contracts count steps (random: test_episodes.py)
     return make_parallel_env(name, **kw)
 
 
@@ -288,7 +289,9 @@ STEP_STATISTICS = {  # the info keys each task declares, written out (not read f
     "speaker_listener": {"reached", "distance", "lamp_correct"},
     "commons": {"collected", "apples_left", "tags", "depleted_at"},
     "capture_flag": {"captures_red", "captures_blue", "tags", "flag_carried"},
+    "matrix": {"collected", "interactions"},
 }
+SOCIAL = {"efficiency", "equality", "sustainability", "peace"}  # mixed-motive tasks' outcomes (envs/episodes.py)
 
 
 @pytest.mark.parametrize("name", ENVS)
@@ -304,7 +307,8 @@ def test_infos_carry_the_envs_step_statistics(name):
         _, _, _, _, infos = env.step(actions)
         _, _, _, _, info = twin.step(torch.ones(1, twin.num_agents, dtype=torch.long))
         want = {k: v[0].item() for k, v in info.items() if k != "done_worlds"}
-        assert set(want) == {"step_count"} | STEP_STATISTICS[name]
+        social = SOCIAL if env.core.scenario.mixed_motive else set()
+        assert set(want) == {"step_count"} | STEP_STATISTICS[name] | social
         assert infos == {agent: want for agent in actions}
         assert all(type(v) is type(want[k]) for i in infos.values() for k, v in i.items())
     env.close()
