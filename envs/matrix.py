@@ -265,7 +265,7 @@ class Matrix(ArenaScenario):
     def props(self):
         colors = torch.tensor(KIND_COLORS[:self.num_kinds])[self.kind.cpu()]
         return [Prop("resources", mr.sphere(segments=10, rings=5),
-                     count=self.num_resources, height=RESOURCE_RADIUS, position="resources", moves=False,
+                     count=self.num_resources, height=RESOURCE_RADIUS, position="resources",
                      active=lambda state: state.regrow == 0, scale=(2 * RESOURCE_RADIUS,) * 3, color=colors)]
 
     def bodies(self, state, active):

@@ -183,7 +183,7 @@ def test_minimal_obs_keys(name):
     assert bool(mask[..., 0].all())  # action 0 (noop, or the first force level) is valid at the start
     env.close()
     env = make(name, continuous=True)
-    assert set(env.reset()) == {"pixels"}
+    assert set(env.reset()) == {"pixels", *env.vector_obs}
     env.close()
 
 

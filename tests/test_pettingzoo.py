@@ -74,6 +74,9 @@ def test_aec_env_passes_api_test_with_default_arguments(name):
     assert all(re.fullmatch("[a-z]+_[0-9]+", agent) for agent in env.possible_agents)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
+        if env.unwrapped.core.vector_obs:  # a Dict observation (matrix: pixels and inventory): api_test's advice
+            warnings.filterwarnings("ignore", message="Observation is not a NumPy array")  # for Box / Discrete ones
+            warnings.filterwarnings("ignore", message="Observation space for each agent probably should be")
         api_test(env)
     env.close()
 
@@ -651,7 +654,7 @@ def test_supersuit_vector_recipe_runs_through_catches_and_time_limits(name):
     and the next step raised "the episode is over")."""
     ss = pytest.importorskip("supersuit")
     kwargs = dict(num_prey=2) if name == "tag" else {}
-    env = make_parallel_env(name, resolution=16, max_steps=40, black_death=True, seed=0, **kwargs)
+    env = make_parallel_env(name, resolution=16, max_steps=40, black_death=True, seed=0, episode_end=False, **kwargs)
     venv = ss.concat_vec_envs_v1(ss.pettingzoo_env_to_vec_env_v1(env), 2, num_cpus=0, base_class="gymnasium")
     A = len(env.possible_agents)
     venv.reset(seed=0)
@@ -666,6 +669,9 @@ def test_supersuit_vector_recipe_runs_through_catches_and_time_limits(name):
             first.core.set_state(state)
         obs, rewards, terminations, truncations, infos = venv.step(
             np.array([venv.action_space.sample() for _ in range(venv.num_envs)]))
+        if first.core.vector_obs:  # a Dict: the pixels and the task's vectors (matrix's inventory)
+            assert obs["inventory"].shape == (2 * A, first.core.vector_obs["inventory"].width)
+            obs = obs["pixels"]
         assert obs.shape == (2 * A, 16, 16, first.core.pixel_channels) and rewards.shape == (2 * A,)
         done = terminations | truncations
         assert done[:A].all() == done[:A].any() and done[A:].all() == done[A:].any()  # a world ends as a whole
