@@ -23,6 +23,8 @@ Data contract (W worlds, A agents, H x Wpx pixels)::
                                                   capped at 1 (envs/sight.py)
       "agent_id"     float32 [W, A, A + teams]   agent_ids=True: the agent's one-hot index, then its
                                                   team's (one policy playing several roles)
+      <task's key>   float32 [W, A, width]       the task's own vectors (Scenario.vector_obs), always:
+                                                  matrix's "inventory"
       "action_mask"  bool    [W, A, num_actions] discrete envs (all True where no action
                                                   can be invalid); advice unless
                                                   enforce_action_mask=True (envs/masking.py)
