@@ -133,3 +133,14 @@ def test_social_metrics_follow_the_episode_and_reset_with_it():
         assert env.get_state()["social_returns"].abs().sum() == 0  # reset with the new episode
     with make_env("commons", num_worlds=1, resolution=8, social_metrics=False) as env:
         assert "efficiency" not in env.spec.info
+
+
+def test_the_multiprocess_env_reports_the_workers_episode_ends():
+    """p = 1: every episode ends at min_steps = 2, well before max_steps = 10; the parent asks its workers."""
+    with make_env("spread", num_worlds=2, num_processes=2, resolution=8, seed=0, max_steps=10,
+                  episode_end=EpisodeEnd(2, 1, 1.0)) as env:
+        env.reset()
+        env.step(env.random_actions())
+        assert env.episode_over().tolist() == [False, False]
+        _, _, _, truncated, _ = env.step(env.random_actions())
+        assert env.episode_over().tolist() == [True, True] and bool(truncated.all())
