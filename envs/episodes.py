@@ -216,3 +216,27 @@ class EpisodeBook:
             if bool(bad.any()):
                 raise ValueError(f"state[{key!r}] must be finite (sums) and >= 0 (counts), got {describe(value)}")
         return ends, tallies
+
+
+class EpisodeOutcomes:
+    """Each world's social outcomes at the end of its episode, collected step by step (the evaluation
+    CLI's rows: marl_render.evaluate.play): keeps the info values of the step a world's episode ended.
+
+        outcomes = EpisodeOutcomes(env)
+        ... obs, reward, terminated, truncated, info = env.step(actions); outcomes.add(info, running)
+        row.update(outcomes.fields())  # {"efficiency_mean": ..., ...}; {} for a task without them
+    """
+
+    def __init__(self, env):
+        self.keys = tuple(key for key in SOCIAL_KEYS if key in env.spec.info)
+        self.values = {key: torch.full((env.num_worlds,), math.nan, dtype=torch.float64) for key in self.keys}
+
+    def add(self, info: dict, running: torch.Tensor) -> None:
+        """Keep the values of the worlds whose episode ended at this step (done_worlds among `running`)."""
+        ended = (info["done_worlds"] & running).cpu()
+        for key in self.keys:
+            self.values[key] = torch.where(ended, info[key].cpu().to(torch.float64), self.values[key])
+
+    def fields(self) -> dict:
+        """{"<outcome>_mean": mean over the episodes that ended}; {} for a task without social outcomes."""
+        return {f"{key}_mean": float(values[~values.isnan()].mean()) for key, values in self.values.items()}

@@ -1,10 +1,10 @@
-"""The evaluation CLI's rows carry the social outcomes of mixed-motive tasks (marl_render/social_outcomes.py)."""
+"""The evaluation CLI's rows carry the social outcomes of mixed-motive tasks (envs/episodes.py)."""
 from __future__ import annotations
 
 import torch
 
+from marl_render.envs.episodes import EpisodeOutcomes
 from marl_render.evaluate import evaluate
-from marl_render.social_outcomes import EpisodeOutcomes
 
 
 class _Spec:
