@@ -63,7 +63,7 @@ class EpisodeEnd:
     @classmethod
     def for_length(cls, max_steps: int) -> EpisodeEnd:
         """The default random end of a task of `max_steps`: at least half of it, then probability 0.25
-        every twentieth of it (mean 0.65 max_steps; max_steps itself in 0.75**10 = 6% of episodes)."""
+        every twentieth of it (mean 0.64 max_steps; max_steps itself in 0.75**10 = 6% of episodes)."""
         return cls(max(1, max_steps // 2), max(1, max_steps // 20), 0.25)
 
     def describe(self, max_steps: int) -> str:
