@@ -14,16 +14,17 @@ docs/authoring.md builds one step by step. Importing this package registers the 
 """
 from .arena import ArenaScenario, ArenaState, Prop, Static
 from .core import OBS_KEYS, BatchedEnv
+from .episodes import EpisodeEnd
 from .focal import FocalEnv, Population
 from .multiprocess import MultiProcessEnv
 from .options import EnvOptions
 from .registry import env_class, list_envs, make_env, register_env
-from .scenario import Layout, NoParams, Scenario, Step, numbered
+from .scenario import Layout, NoParams, Scenario, Step, VectorObs, numbered
 from .spec import ActionSpec, ArraySpec, EnvSpec
 
 __all__ = ["ActionSpec", "ArenaScenario", "ArenaState", "ArraySpec", "BatchedEnv", "EnvOptions", "EnvSpec", "FocalEnv",
            "Layout", "MultiProcessEnv", "NoParams", "OBS_KEYS", "Population", "Prop", "Scenario", "Static", "Step",
-           "env_class", "list_envs", "make_env", "numbered", "register_env"]
+           "env_class", "list_envs", "make_env", "numbered", "register_env", "EpisodeEnd", "VectorObs"]
 
 # The front ends (marl_render/wrappers/) are exported lazily, so that importing
 # marl_render.envs never imports pettingzoo or torchrl: public name -> "module:attribute".

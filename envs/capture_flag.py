@@ -122,6 +122,7 @@ class CaptureFlag(ArenaScenario):
                  "flag_carried": torch.int64}
     arena_half_extent = ARENA
     opponents = ("blue",)  # the reference evaluation: red plays the policy, blue random
+    mixed_motive = True  # social outcomes in info, Melting Pot's random episode ends (envs/episodes.py)
     sides = ("red", "blue")  # cross-play: red policies (rows) against blue policies (columns)
     bots = {"noisy0.2": Bot.noisy(0.2, population="train"),
             "all_attack": Bot("fetches the enemy flag, never defends", script=all_attack),
@@ -163,6 +164,10 @@ class CaptureFlag(ArenaScenario):
         x = (slot // 2).float() * (5.0 / max(cols - 1, 1)) - (2.5 if cols > 1 else 0.0)
         self.home = torch.stack((x, self.side * torch.tensor(HOME_ROWS, device=d)[slot % 2]), -1)  # [N, 2]
         self.attacker = slot < (T + 1) // 2  # [N] the heuristic's roles
+
+    def tagged_out(self, state):
+        """Nobody: a tagged agent is sent home at once and plays on from there (its peace is full)."""
+        return torch.zeros_like(state.active[:, :self.num_agents])
 
     def initial_state(self):
         W, N = self.num_worlds, self.num_agents

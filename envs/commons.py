@@ -136,6 +136,7 @@ class Commons(ArenaScenario):
                  "depleted_at": torch.int64}
     arena_half_extent = (ARENA, ARENA)
     shown = "shown"
+    mixed_motive = True  # social outcomes in info, Melting Pot's random episode ends (envs/episodes.py)
     bots = {"noisy0.1": Bot.noisy(0.1, population="train"),
             "greedy": Bot("harvests the nearest apple, ripe or not", script=greedy),
             "tagger": Bot("greedy, and zaps every fourth step", script=tagger),
@@ -195,6 +196,9 @@ class Commons(ArenaScenario):
 
     def bodies(self, state, active):
         return super().bodies(state, active & (state.timeout == 0))  # tagged agents neither move nor collide
+
+    def tagged_out(self, state):
+        return state.timeout > 0
 
     def rules(self, before, moved, actions, alive, generator):
         W, N, g = self.num_worlds, self.num_agents, generator

@@ -23,6 +23,8 @@ Data contract (W worlds, A agents, H x Wpx pixels)::
                                                   capped at 1 (envs/sight.py)
       "agent_id"     float32 [W, A, A + teams]   agent_ids=True: the agent's one-hot index, then its
                                                   team's (one policy playing several roles)
+      <task's key>   float32 [W, A, width]       the task's own vectors (Scenario.vector_obs), always:
+                                                  matrix's "inventory"
       "action_mask"  bool    [W, A, num_actions] discrete envs (all True where no action
                                                   can be invalid); advice unless
                                                   enforce_action_mask=True (envs/masking.py)
@@ -102,6 +104,7 @@ from marl_render.shadows import atlas_layout
 from marl_render.threads import limited_threads, thread_count
 from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, unpicklable
 
+from . import episodes as episode_book
 from . import levels as level_sets
 from . import masking
 from . import options as check
@@ -109,7 +112,7 @@ from . import spec as env_spec
 from . import state as explicit_state
 from .options import EnvOptions
 from .rendering import EnvRenderer, check_memory
-from .scenario import MAX_COUNT, Layout, Scenario
+from .scenario import MAX_COUNT, Layout, Scenario, VectorObs
 
 OBS_KEYS = ("pixels", "depth", "state", "lidar", "agent_id", "action_mask")
 DRIVER_INFO = ("step_count", "done_worlds", "autoreset_worlds", "final_obs", "level",
@@ -267,6 +270,7 @@ class BatchedEnv:
         self._check_scenario()
         self.obs_keys = tuple(k for k, on in (("pixels", True), ("depth", self.depth), ("state", self.state_obs),
                                               ("lidar", self.lidar_rays > 0), ("agent_id", self.agent_ids),
+                                              *((key, True) for key in self.vector_obs),
                                               ("action_mask", not self.continuous))
                               if on)
         team_index = torch.tensor([t for t, names in enumerate(self.groups.values()) for _ in names])
@@ -282,6 +286,8 @@ class BatchedEnv:
         self._level_ids = torch.zeros(W, dtype=torch.int64) if self.levels is not None else None
         if self.levels is not None:  # the driver's info entry, after the task's were checked
             self.info_keys["level"] = torch.int64
+        self.episodes = self._episode_book(scenario, options, params)
+        self.info_keys.update(self.episodes.info_keys)
         self.spec = env_spec.build(self)
         self._needs_reset = True
         with limited_threads(self.torch_threads):
@@ -341,6 +347,12 @@ class BatchedEnv:
         self.agent_names = s.agent_names
         self.num_actions, self.action_meanings, self.action_dim = s.num_actions, s.action_meanings, s.action_dim
         self.state_dim, self.physics, self.physics_terms = s.state_dim, s.physics, s.physics_terms
+        self.vector_obs = dict(s.vector_obs)  # key -> VectorObs: the task's own per-agent vectors (obs keys)
+        for key, entry in self.vector_obs.items():
+            if not (isinstance(key, str) and key not in OBS_KEYS and isinstance(entry, VectorObs)
+                    and isinstance(entry.width, int) and entry.width >= 1 and entry.low < entry.high):
+                raise ValueError(f"{type(s).__name__}.vector_obs must map new obs keys (not {list(OBS_KEYS)}) to "
+                                 f"VectorObs(width >= 1, low < high), got {key!r}: {describe(entry)}")
         # The cameras' and the scene's settings, read by tools that draw the same scene (bench floor).
         for name in ("agent_range", "background", "fov_y", "near", "overview_resolution", "overview_fov_y",
                      "arena_half_extent"):
@@ -447,11 +459,12 @@ class BatchedEnv:
         reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         alive = alive_before & ~terminated
         step_count = self._step_count + 1
+        task_info = {**task_info, **self.episodes.record(reward, alive_before, self._tagged_out(sim), step_count)}
         restarted, looks, levels = bool(restart.any()), self._appearance_ids, self._level_ids
         if restarted:  # alive again, step_count 0: not terminated, not truncated
             sim, step_count, alive, looks, levels = self._respawned(restart, sim, step_count, alive, looks, levels)
         terminated = ~alive
-        truncated = (step_count >= self.max_steps)[:, None] & alive
+        truncated = (step_count >= self.episodes.limit(self.max_steps))[:, None] & alive
         done_worlds = (terminated | truncated).all(dim=1)
         # The task's info values may be its state's own tensors: the caller gets copies.
         info = {"step_count": step_count.clone(), "done_worlds": done_worlds,
@@ -478,7 +491,7 @@ class BatchedEnv:
     def episode_over(self) -> torch.Tensor:
         """bool [W]: worlds whose episode has ended (every agent terminated or truncated). The
         front ends ask this rather than work it out."""
-        return (~self._alive).all(dim=1) | (self._step_count >= self.max_steps)
+        return (~self._alive).all(dim=1) | (self._step_count >= self.episodes.limit(self.max_steps))
 
     def random_actions(self, generator: torch.Generator | None = None) -> torch.Tensor:
         """Uniformly random valid actions for every agent of every world (the action space's
@@ -604,6 +617,7 @@ class BatchedEnv:
         step_count, alive = state.pop("step_count"), state.pop("alive")
         looks = state.pop("appearance_ids", None)  # with appearance on: any int64 is an id
         levels = state.pop("level_ids", None)
+        book = self.episodes.checked(state)  # its keys out of `state`, checked
         if levels is not None:
             levels = level_sets.check_level_ids("state['level_ids']", levels, self.num_worlds)
             if looks is not None and not torch.equal(looks, levels):
@@ -621,6 +635,7 @@ class BatchedEnv:
                 self.views.set_appearance(looks)
             self.views.sync(sim, full=True)  # per-episode instance data (landmarks, ...) changed too
             self._commit(sim, alive, step_count, looks, levels)
+            self.episodes.restore(book)
             self.generator.set_state(rng)
             self._needs_reset = False
 
@@ -666,7 +681,7 @@ class BatchedEnv:
             counters["appearance_ids"] = self._appearance_ids
         if self.levels is not None:
             counters["level_ids"] = self._level_ids
-        return counters
+        return {**counters, **self.episodes.counters()}
 
     def _action_mask(self, sim, alive: torch.Tensor) -> torch.Tensor:
         """The scenario's action mask [W, A, num_actions] of state `sim`, checked (the hook's own tensor:
@@ -785,7 +800,7 @@ class BatchedEnv:
         renderer may hold the uncommitted state's instances by then: its next sync sends all; and the
         uncommitted worlds' looks: the committed ones are put back."""
         self._refuse_reentry()
-        rng, seed = self.generator.get_state(), self.seed
+        rng, seed, book = self.generator.get_state(), self.seed, self.episodes.snapshot()
         held = self._held()
         versions = [_version(tensor) for tensor in held.values()]
         self._running_hooks = True
@@ -794,6 +809,7 @@ class BatchedEnv:
         except BaseException as error:
             self.generator.set_state(rng)
             self.seed = seed
+            self.episodes.restore(book)
             self.views.invalidate()
             if self.appearance is not None and not self._needs_reset:  # before the first reset: none to keep
                 self.views.set_appearance(self._appearance_ids)
@@ -817,12 +833,14 @@ class BatchedEnv:
         into, so holding them keeps them; the lock is held throughout, so no other call comes between."""
         with self._lock:
             rng, seed, needs_reset = self.generator.get_state(), self.seed, self._needs_reset
+            book = self.episodes.snapshot()
             committed = (self._sim, self._alive, self._step_count, self._appearance_ids, self._level_ids)
             try:
                 yield
             except BaseException:
                 self.generator.set_state(rng)
                 self.seed, self._needs_reset = seed, needs_reset
+                self.episodes.restore(book)
                 self._commit(*committed)
                 self.views.invalidate()  # it may hold the undone state's instances: its next sync sends all
                 if self.appearance is not None and not needs_reset:
@@ -876,6 +894,7 @@ class BatchedEnv:
                 -2 ** 63, 2 ** 63 - 1, (self.num_worlds,), generator=self.generator)
             looks = torch.where(mask.cpu(), fresh_ids, looks)
             self.views.set_appearance(looks, mask.cpu())
+        self.episodes.start(mask, self.generator, levels)  # last: the draws above are those of a fixed end
         return (explicit_state.select_worlds(mask, fresh, sim),
                 torch.where(mask, torch.zeros_like(step_count), step_count), alive | mask[:, None], looks, levels)
 
@@ -948,6 +967,8 @@ class BatchedEnv:
             obs["lidar"] = self._lidar_obs(sim)
         if self.agent_ids:
             obs["agent_id"] = self._ids.expand(self.num_worlds, -1, -1).clone()
+        if self.vector_obs:
+            obs.update(self._vector_obs(sim, alive))
         if not self.continuous:
             mask = self._action_mask(sim, alive)
             # The default hook makes a new tensor every call; a task's own may return a constant or a
@@ -959,6 +980,37 @@ class BatchedEnv:
 
     def _state_obs(self, sim, alive: torch.Tensor) -> torch.Tensor:
         return self._owned("observation", self.scenario.observation(sim, alive), self.state_dim)
+
+    def _vector_obs(self, sim, alive: torch.Tensor) -> dict:
+        """The task's vector observations (Scenario.vector_obs), checked, as float32 copies."""
+        given = self.scenario.vector_observations(sim, alive)
+        if not (isinstance(given, dict) and set(given) == set(self.vector_obs)):
+            got = sorted(given) if isinstance(given, dict) else describe(given)
+            raise ValueError(f"{type(self.scenario).__name__}.vector_observations must return a dict with the keys of "
+                             f"vector_obs {sorted(self.vector_obs)}, got {got}")
+        return {key: self._owned("vector_observations", given[key], entry.width)
+                for key, entry in self.vector_obs.items()}
+
+    def _tagged_out(self, sim) -> torch.Tensor | None:
+        """Scenario.tagged_out of `sim`, checked (only where the social metrics are on)."""
+        if not self.episodes.social:
+            return None
+        tagged = self.scenario.tagged_out(sim)
+        _check_tensor(f"{type(self.scenario).__name__}.tagged_out", tagged, (self.num_worlds, self.num_agents), "bool",
+                      self.device)
+        return tagged
+
+    def _episode_book(self, scenario, options, params) -> episode_book.EpisodeBook:
+        """The random ends and social tallies of the options (envs/episodes.py)."""
+        end = episode_book.episode_end(options.episode_end, scenario, self.max_steps)
+        social = options.social_metrics
+        social = bool(scenario.mixed_motive) if social is None else check.flag("social_metrics", social)
+        clash = sorted(set(self.info_keys) & set(episode_book.SOCIAL_KEYS)) if social else []
+        if clash:
+            raise ValueError(f"{scenario.__name__}.info_keys names {clash}, which the social metrics' info entries use "
+                             f"(envs/episodes.py); rename them, or pass social_metrics=False")
+        return episode_book.EpisodeBook(end, social, self.num_worlds, self.num_agents, self.max_steps, self.device,
+                                        scenario.name, params)
 
     def _lidar_obs(self, sim) -> torch.Tensor:
         return self._owned("lidar", self.scenario.lidar(sim, self.lidar_rays, self.lidar_range), self.lidar_rays)

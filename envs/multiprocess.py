@@ -96,7 +96,7 @@ def output_layout(spec, num_agents: int, autoreset, has_levels: bool) -> dict:
     layout = {f"obs/{key}": value for key, value in obs.items()}
     layout.update({"reward": ((A,), torch.float32), "terminated": ((A,), torch.bool),
                    "truncated": ((A,), torch.bool), "state/alive": ((A,), torch.bool),
-                   "state/step_count": ((), torch.int64),
+                   "state/step_count": ((), torch.int64), "state/episode_over": ((), torch.bool),
                    "info/step_count": ((), torch.int64), "info/done_worlds": ((), torch.bool)})
     layout.update({f"info/{key}": ((), dtype) for key, dtype in spec.info.items() if key != "level"})
     if autoreset:
@@ -256,7 +256,7 @@ class MultiProcessEnv:
 
     def episode_over(self) -> torch.Tensor:
         """bool [W]: worlds whose episode has ended (every agent terminated or truncated)."""
-        return (~self.alive).all(dim=1) | (self.step_count >= self.max_steps)
+        return self._outputs["state/episode_over"].clone()  # the workers' (random episode ends: envs/episodes.py)
 
     def random_actions(self, generator: torch.Generator | None = None) -> torch.Tensor:
         """Uniformly random valid actions (BatchedEnv.random_actions)."""
@@ -635,5 +635,6 @@ class _Worker:
     def _write_state(self) -> None:
         self.outputs["state/alive"].copy_(self.env.alive)
         self.outputs["state/step_count"].copy_(self.env.step_count)
+        self.outputs["state/episode_over"].copy_(self.env.episode_over())
         if "state/level_ids" in self.outputs:
             self.outputs["state/level_ids"].copy_(self.env._level_ids)

@@ -71,6 +71,11 @@ class EnvOptions:
     # Levels (envs/levels.py): None (off: resets draw from the env's generator), a train set (an int n,
     # a range or a list of ids), "train", "test", "published", or a level sampler.
     levels: object = None
+    # Episode ends (envs/episodes.py): None (the task's default: Melting Pot's random end for mixed-motive
+    # tasks, else fixed at max_steps), False (fixed), True, an envs.EpisodeEnd or (min_steps, interval, p).
+    episode_end: object = None
+    # The social outcome info entries (envs/episodes.py): None (on for mixed-motive tasks), True or False.
+    social_metrics: object = None
 
 
 OPTION_NAMES = frozenset(field.name for field in dataclasses.fields(EnvOptions))

@@ -41,6 +41,7 @@ _REGISTRY: dict = {
     "capture_flag": "marl_render.envs.capture_flag:CaptureFlag",
     "clean_up": "marl_render.envs.clean_up:CleanUp",
     "coop_mining": "marl_render.envs.coop_mining:CoopMining",
+    "matrix": "marl_render.envs.matrix:Matrix",
 }
 
 

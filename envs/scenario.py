@@ -35,7 +35,7 @@ from typing import NamedTuple
 
 import torch
 
-from . import scenery
+from . import episodes, scenery
 from . import state as explicit_state
 from .levels import Draws, GeneratorDraws
 
@@ -64,6 +64,15 @@ class Step(NamedTuple):
     reward: torch.Tensor  # [W, A] float
     terminated: torch.Tensor  # [W, A] bool: agents whose episode ends with this step
     info: dict  # {name: [W] tensor} for each of the scenario's info_keys
+
+
+class VectorObs(NamedTuple):
+    """A per-agent vector observation a task declares (Scenario.vector_obs): float32 [W, A, width],
+    with inclusive bounds (may be infinite)."""
+
+    width: int
+    low: float = -math.inf
+    high: float = math.inf
 
 
 def numbered(prefix: str, count: int) -> list:
@@ -114,6 +123,11 @@ class Scenario(abc.ABC):
     sides: tuple = ()  # (team A, team B) of a competitive task: cross-play puts A's policies against B's
     card: str = ""  # the docs card's prose (markdown); "": the class docstring's first paragraph
     training: dict = {}  # trainer defaults: Hyperparameters overrides, and "budget": {"pixels": N, "state": M}
+    # A mixed-motive game (social dilemmas: commons, matrix, ...): its episodes report social outcomes
+    # (envs/episodes.py; tagged_out says who is out of play) and end at random (episode_end).
+    mixed_motive: bool = False
+    episode_end: tuple | None = None  # (min_steps, interval, probability) of its random end; None: from max_steps
+    schelling: tuple = ()  # (cooperator bot, defector bot) a Schelling diagram plays (baselines/schelling.py)
 
     def __init__(self, params, layout: Layout):
         self.params = params
@@ -123,6 +137,9 @@ class Scenario(abc.ABC):
         self.action_meanings: tuple | None = None
         self.action_dim: int | None = None
         self.state_dim: int = 0
+        # Small per-agent vectors every env gives beside the pixels (obs keys, float32 [W, A, width]),
+        # declared in setup as {key: VectorObs(width, low, high)} and given by vector_observations.
+        self.vector_obs: dict = {}
         self.physics = None
         self.setup()
 
@@ -174,6 +191,11 @@ class Scenario(abc.ABC):
         raise NotImplementedError(f"{type(self).__name__} has no spawn_level(draws), so no levels")
 
     @classmethod
+    def episode_end_description(cls) -> str:
+        """Which end the task's episodes have by default, for its card: "fixed: ..." or "random ..."."""
+        return episodes.describe_end(cls)
+
+    @classmethod
     def has_levels(cls) -> bool:
         """Whether the task draws its resets from a Draws (spawn_level), as levels= needs: the most
         derived of spawn / spawn_level is spawn_level (a subclass that overrides spawn(generator)
@@ -193,6 +215,15 @@ class Scenario(abc.ABC):
     def observation(self, state, alive: torch.Tensor) -> torch.Tensor:
         """[W, A, state_dim] float: the low-dimensional observation (obs key "state")."""
         raise NotImplementedError(f"{type(self).__name__} has no state observation")
+
+    def vector_observations(self, state, alive: torch.Tensor) -> dict:
+        """{key: [W, A, width] float} for each key of vector_obs (declared in setup); default none."""
+        return {}
+
+    def tagged_out(self, state) -> torch.Tensor:
+        """[W, A] bool: agents out of play (tagged, zapped) in `state`, for the social outcome "peace"
+        of mixed-motive tasks (envs/episodes.py); default: nobody."""
+        return torch.zeros(self.num_worlds, self.num_agents, dtype=torch.bool, device=self.device)
 
     def action_mask(self, state, alive: torch.Tensor) -> torch.Tensor:
         """[W, A, num_actions] bool; default: every action valid."""

@@ -83,6 +83,8 @@ def build(env) -> EnvSpec:
         observations["lidar"] = ArraySpec((env.lidar_rays,), torch.float32, 0.0, 1.0)
     if env.agent_ids:  # the agent's one-hot index among A, then its team's
         observations["agent_id"] = ArraySpec((env.num_agents + len(env.groups),), torch.float32, 0.0, 1.0)
+    for key, entry in env.vector_obs.items():  # the task's own vectors (Scenario.vector_obs)
+        observations[key] = ArraySpec((entry.width,), torch.float32, float(entry.low), float(entry.high))
     if not env.continuous:
         observations["action_mask"] = ArraySpec((env.num_actions,), torch.bool, 0, 1)
     if env.continuous:

@@ -49,6 +49,7 @@ from marl_render import strict_json
 from marl_render.bots import POPULATIONS, bot_names, make_bot
 from marl_render.elo import elo_ratings
 from marl_render.envs import Population, env_class, list_envs, make_env
+from marl_render.envs.episodes import EpisodeOutcomes
 from marl_render.envs.levels import levels_option
 from marl_render.extras import command_needs_extra
 from marl_render.heldout import HELDOUT, heldout_scenario, list_heldout
@@ -98,16 +99,18 @@ def play(env, policy: Policy) -> dict:
     focal = torch.zeros(W, dtype=torch.float64)
     background = torch.zeros(W, dtype=torch.float64)
     running = torch.ones(W, dtype=torch.bool)
+    outcomes = EpisodeOutcomes(env)  # mixed-motive tasks: efficiency, equality, sustainability, peace
     for _ in range(env.max_steps):
         seen = {key: value.flatten(0, 1) for key, value in obs.items() if key in policy.needs}
         actions = policy.act(env.core, seen, worlds, slots).reshape(W, F, *env.spec.action.shape)
         obs, reward, terminated, truncated, info = env.step(actions)
         focal += reward.sum(1).to(torch.float64) / F * running
         background += info["background_reward"].to(torch.float64) * running
+        outcomes.add(info, running)
         running &= ~info["done_worlds"]
         if not bool(running.any()):
             break
-    return {"focal": focal, "background": background, "bots": env.sampled_bots()}
+    return {"focal": focal, "background": background, "bots": env.sampled_bots(), "social": outcomes.fields()}
 
 
 def _env(task: str, episodes: int, seed: int, resolution: int, policy: Policy, max_steps=None, **kwargs):
@@ -199,7 +202,7 @@ def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: 
                "background_return_std": _summary(result["background"])[1],
                "random_return": random, "heuristic_return": heuristic,
                "normalised_score": normalised(mean, random, heuristic),
-               "bots_sampled": _bot_counts(result["bots"])}
+               "bots_sampled": _bot_counts(result["bots"]), **result["social"]}
         if gap and not trains_focal_side(spec, scenario):
             # The reference trainer trains one team against random opponents: a side it never trained
             # has no training condition to compare with, so no gap either.

@@ -21,6 +21,7 @@ def make(name, **kw):
     kw.setdefault("resolution", RES)
     kw.setdefault("seed", 0)
     kw.setdefault("state_obs", True)
+    kw.setdefault("episode_end", False)  # fixed ends: these contracts count steps (random: test_episodes.py)
     return make_env(name, **kw)
 
 

@@ -26,6 +26,7 @@ def make(name, **kw):
     kw.setdefault("num_worlds", W)
     kw.setdefault("resolution", RES)
     kw.setdefault("seed", 0)
+    kw.setdefault("episode_end", False)  # fixed ends: these contracts count steps (random: test_episodes.py)
     return make_env(name, **kw)
 
 
@@ -119,7 +120,8 @@ def test_spread_num_agents_range():
 def test_observation_and_step_shapes(name, continuous):
     env = make(name, continuous=continuous, state_obs=True, depth=True, resolution=(24, 32))
     A = env.num_agents
-    expected_keys = ("pixels", "depth", "state") + (() if continuous else ("action_mask",))
+    # a task's own vectors (matrix's "inventory") come after the driver's and before the action mask
+    expected_keys = ("pixels", "depth", "state") + tuple(env.vector_obs) + (() if continuous else ("action_mask",))
     assert env.obs_keys == expected_keys
     assert len(env.agent_names) == A and sum(map(len, env.groups.values())) == A
     assert env.resolution == (24, 32)
@@ -130,6 +132,8 @@ def test_observation_and_step_shapes(name, continuous):
         assert o["depth"].shape == (W, A, 24, 32) and o["depth"].dtype == torch.float32
         assert bool(torch.isfinite(o["depth"]).all()) and float(o["depth"].min()) > 0
         assert o["state"].shape == (W, A, env.state_dim) and o["state"].dtype == torch.float32
+        for key, entry in env.vector_obs.items():
+            assert o[key].shape == (W, A, entry.width) and o[key].dtype == torch.float32
         if not continuous:
             assert o["action_mask"].shape == (W, A, env.num_actions) and o["action_mask"].dtype == torch.bool
     _, reward, terminated, truncated, info = env.step(random_actions(env))
@@ -171,15 +175,15 @@ def test_every_agent_sees_its_own_view(name):
 @pytest.mark.parametrize("name", ENVS)
 def test_minimal_obs_keys(name):
     env = make(name)
-    assert env.obs_keys == ("pixels", "action_mask")
+    assert env.obs_keys == ("pixels", *env.vector_obs, "action_mask")
     obs = env.reset()
-    assert set(obs) == {"pixels", "action_mask"}
+    assert set(obs) == {"pixels", "action_mask", *env.vector_obs}
     mask = obs["action_mask"]
     assert mask.dtype == torch.bool and mask.shape == (W, env.num_agents, env.num_actions)
     assert bool(mask[..., 0].all())  # action 0 (noop, or the first force level) is valid at the start
     env.close()
     env = make(name, continuous=True)
-    assert set(env.reset()) == {"pixels"}
+    assert set(env.reset()) == {"pixels", *env.vector_obs}
     env.close()
 
 
@@ -189,7 +193,8 @@ def test_pixels_are_not_constant_and_owned_by_caller(name):
     first = env.reset()["pixels"]
     assert int(first.max()) - int(first.min()) > 50
     kept = first.clone()
-    push = torch.full((W, env.num_agents), env.num_actions - 1)  # cartpole: full force; spread: backward
+    # cartpole: full force; the arena tasks: backward (their own actions, such as matrix's interact, come after it)
+    push = torch.full((W, env.num_agents), env.num_actions - 1 if env.physics is None else 4)
     for _ in range(20):
         later = env.step(push)[0]["pixels"]
     assert torch.equal(first, kept), "a later render overwrote earlier observations"
@@ -573,6 +578,7 @@ DECLARED_TERMS = {
     "capture_flag": {"walls", "body_collisions", "drag"},
     "clean_up": {"walls", "body_collisions", "drag"},
     "coop_mining": {"walls", "body_collisions", "drag"},
+    "matrix": {"walls", "body_collisions", "drag"},
 }
 
 

@@ -79,9 +79,11 @@ def test_every_scenario_through_pettingzoo_torchrl_and_the_vector_env(name):
     try:
         obs, _ = vector.reset(seed=1)
         F = len(scenario.focal)
-        assert vector.num_envs == 2 * F and obs.shape == (2 * F, 8, 8, 3)
+        pixels = obs["pixels"] if isinstance(obs, dict) else obs  # a Dict with a task's vectors (matrix's inventory)
+        assert vector.num_envs == 2 * F and pixels.shape == (2 * F, 8, 8, 3)
         obs, reward, terminated, truncated, _ = vector.step(vector.action_space.sample())
-        assert obs.shape == (2 * F, 8, 8, 3) and reward.shape == (2 * F,)
+        pixels = obs["pixels"] if isinstance(obs, dict) else obs
+        assert pixels.shape == (2 * F, 8, 8, 3) and reward.shape == (2 * F,)
     finally:
         vector.close()
 

@@ -29,6 +29,7 @@ pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 def make(name, **kw):
     kw.setdefault("resolution", RES)
+    kw.setdefault("episode_end", False)  # fixed ends: these contracts count steps (random: test_episodes.py)
     return make_parallel_env(name, **kw)
 
 
@@ -73,6 +74,9 @@ def test_aec_env_passes_api_test_with_default_arguments(name):
     assert all(re.fullmatch("[a-z]+_[0-9]+", agent) for agent in env.possible_agents)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
+        if env.unwrapped.core.vector_obs:  # a Dict observation (matrix: pixels and inventory): api_test's advice
+            warnings.filterwarnings("ignore", message="Observation is not a NumPy array")  # for Box / Discrete ones
+            warnings.filterwarnings("ignore", message="Observation space for each agent probably should be")
         api_test(env)
     env.close()
 
@@ -290,7 +294,9 @@ STEP_STATISTICS = {  # the info keys each task declares, written out (not read f
     "capture_flag": {"captures_red", "captures_blue", "tags", "flag_carried"},
     "clean_up": {"eaten", "cleaned", "dirt_fraction", "apples_left", "tags"},
     "coop_mining": {"iron", "gold", "gold_lost", "ores_left"},
+    "matrix": {"collected", "interactions"},
 }
+SOCIAL = {"efficiency", "equality", "sustainability", "peace"}  # mixed-motive tasks' outcomes (envs/episodes.py)
 
 
 @pytest.mark.parametrize("name", ENVS)
@@ -306,7 +312,8 @@ def test_infos_carry_the_envs_step_statistics(name):
         _, _, _, _, infos = env.step(actions)
         _, _, _, _, info = twin.step(torch.ones(1, twin.num_agents, dtype=torch.long))
         want = {k: v[0].item() for k, v in info.items() if k != "done_worlds"}
-        assert set(want) == {"step_count"} | STEP_STATISTICS[name]
+        social = SOCIAL if env.core.scenario.mixed_motive else set()
+        assert set(want) == {"step_count"} | STEP_STATISTICS[name] | social
         assert infos == {agent: want for agent in actions}
         assert all(type(v) is type(want[k]) for i in infos.values() for k, v in i.items())
     env.close()
@@ -649,7 +656,7 @@ def test_supersuit_vector_recipe_runs_through_catches_and_time_limits(name):
     and the next step raised "the episode is over")."""
     ss = pytest.importorskip("supersuit")
     kwargs = dict(num_prey=2) if name == "tag" else {}
-    env = make_parallel_env(name, resolution=16, max_steps=40, black_death=True, seed=0, **kwargs)
+    env = make_parallel_env(name, resolution=16, max_steps=40, black_death=True, seed=0, episode_end=False, **kwargs)
     venv = ss.concat_vec_envs_v1(ss.pettingzoo_env_to_vec_env_v1(env), 2, num_cpus=0, base_class="gymnasium")
     A = len(env.possible_agents)
     venv.reset(seed=0)
@@ -664,6 +671,9 @@ def test_supersuit_vector_recipe_runs_through_catches_and_time_limits(name):
             first.core.set_state(state)
         obs, rewards, terminations, truncations, infos = venv.step(
             np.array([venv.action_space.sample() for _ in range(venv.num_envs)]))
+        if first.core.vector_obs:  # a Dict: the pixels and the task's vectors (matrix's inventory)
+            assert obs["inventory"].shape == (2 * A, first.core.vector_obs["inventory"].width)
+            obs = obs["pixels"]
         assert obs.shape == (2 * A, 16, 16, first.core.pixel_channels) and rewards.shape == (2 * A,)
         done = terminations | truncations
         assert done[:A].all() == done[:A].any() and done[A:].all() == done[A:].any()  # a world ends as a whole

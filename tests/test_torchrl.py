@@ -40,6 +40,7 @@ pytestmark = pytest.mark.usefixtures("single_torch_thread")
 def make(name, **kw):
     kw.setdefault("num_worlds", W)
     kw.setdefault("resolution", RES)
+    kw.setdefault("episode_end", False)  # fixed ends: these contracts count steps (random: test_episodes.py)
     return make_torchrl_env(name, **kw)
 
 

@@ -104,7 +104,8 @@ class MarlRenderTaskClass(TaskClass):
         return {group: list(names) for group, names in _core_env(env).group_map.items()}
 
     def observation_spec(self, env) -> Composite:
-        return _per_group(env.full_observation_spec_unbatched, self.group_map(env), MODEL_INPUTS)
+        inputs = MODEL_INPUTS + tuple(_core_env(env).core.vector_obs)  # and the task's own vectors (matrix's inventory)
+        return _per_group(env.full_observation_spec_unbatched, self.group_map(env), inputs)
 
     def action_mask_spec(self, env) -> Composite | None:
         spec = _per_group(env.full_observation_spec_unbatched, self.group_map(env), ("action_mask",))
