@@ -15,9 +15,10 @@ time against pixels the per-pixel cost (rasterisation, fragment shading, clears,
 "fragment work"); at the base setting vertex = slope x triangles, fragment = slope x pixels,
 and the rest is what depends on neither (packing, draw calls, state changes between groups,
 the sky copy). A full env step of the base setting (random actions, physics included) is timed
-in the same rounds, to say what share of a step the render is. Subdivided triangles are smaller
-than the originals, so the per-triangle slope is that of small triangles (a lower bound for
-large ones, whose rasterisation the pixel slope counts).
+in the same rounds, to say what share of a step the render is. Times are CPU time of the
+process (all threads), which a loaded machine disturbs far less than wall time (both kept).
+Subdivided triangles are smaller than the originals, so the per-triangle slope is that of small
+triangles (a lower bound for large ones, whose rasterisation the pixel slope counts).
 """
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ import time
 import numpy as np
 import torch
 
+from ..impostors import is_sphere
 from ..meshes import MeshData
 from .common import (
     env_spec_argument,
@@ -51,6 +53,8 @@ def add_arguments(parser):
                         help="subdivision levels of every mesh (4**k triangles, same coverage)")
     parser.add_argument("--coverage", nargs="+", type=float, default=[0.5, 1.0, 1.5],
                         help="resolution factors at the base triangles (must include 1)")
+    parser.add_argument("--impostors", choices=["off", "auto"], default="off",
+                        help="spheres as meshes (off: the split before impostors) or as impostors (the env default)")
     parser.add_argument("--rounds", type=positive_int_argument, default=5)
     parser.add_argument("--block-seconds", type=positive_seconds_argument, default=0.3)
     parser.add_argument("--out", default=None, help="also write DIR/profile.json and DIR/profile.md")
@@ -74,8 +78,9 @@ def subdivided(mesh: MeshData, levels: int) -> MeshData:
 
 
 @contextlib.contextmanager
-def meshes_subdivided(levels: int):
-    """Envs built inside get every procedural or loaded mesh of their agents' scene subdivided."""
+def meshes_subdivided(levels: int, keep_spheres: bool = False):
+    """Envs built inside get every procedural or loaded mesh of their agents' scene subdivided
+    (but spheres, with keep_spheres: drawn as impostors, they are quads whatever their mesh)."""
     from marl_render.envs.rendering import EnvRenderer
 
     original = EnvRenderer._scene
@@ -83,7 +88,7 @@ def meshes_subdivided(levels: int):
     def scene(self, overview, resolution, effects):
         built = original(self, overview, resolution, effects)
         for group in list(built.static.values()) + list(built.groups.values()):
-            if isinstance(group.mesh, MeshData):
+            if isinstance(group.mesh, MeshData) and not (keep_spheres and is_sphere(group.mesh)):
                 group.mesh = subdivided(group.mesh, levels)
         return built
 
@@ -94,10 +99,15 @@ def meshes_subdivided(levels: int):
         EnvRenderer._scene = original
 
 
-def submitted_triangles(scene) -> int:
-    """Triangles handed to the GL per frame before culling: every view draws its world's instances."""
-    per_view = sum(len(g.mesh.triangles) * g.count for g in scene.static.values() if isinstance(g.mesh, MeshData))
-    per_view += sum(len(g.mesh.triangles) * g.capacity for g in scene.groups.values() if isinstance(g.mesh, MeshData))
+def submitted_triangles(renderer) -> int:
+    """Triangles handed to the GL per frame before culling: every view draws its world's instances
+    (an impostor instance is 2)."""
+    scene = renderer.scene
+
+    def triangles(group) -> int:
+        return 2 if group.name in renderer.impostor_groups else len(group.mesh.triangles)
+    per_view = sum(triangles(g) * g.count for g in scene.static.values() if isinstance(g.mesh, MeshData))
+    per_view += sum(triangles(g) * g.capacity for g in scene.groups.values() if isinstance(g.mesh, MeshData))
     return per_view * scene.num_views
 
 
@@ -110,11 +120,13 @@ def cpu_model() -> str:
                 "unknown")
 
 
-def _block(function, count: int) -> float:
-    start = time.perf_counter()
+def _block(function, count: int) -> tuple[float, float]:
+    """(wall, CPU) seconds per call; CPU time counts every thread of the process (llvmpipe's
+    rasteriser threads too) and is far less disturbed by other processes than wall time."""
+    start, cpu = time.perf_counter(), time.process_time()
     for _ in range(count):
         function()
-    return (time.perf_counter() - start) / count
+    return (time.perf_counter() - start) / count, (time.process_time() - cpu) / count
 
 
 def _slope(xs, ys) -> float:
@@ -122,18 +134,18 @@ def _slope(xs, ys) -> float:
 
 
 def profile(name: str, agents: int | None, worlds: int, resolution: int, levels, factors, rounds: int,
-            block_seconds: float) -> dict:
+            block_seconds: float, impostors: str = "off") -> dict:
     from marl_render.envs import make_env
 
     variants = [(k, resolution) for k in levels]
     variants += [(0, max(8, round(resolution * f))) for f in factors if f != 1.0]
-    kwargs = dict(num_worlds=worlds, seed=0, autoreset="next_step")
+    kwargs = dict(num_worlds=worlds, seed=0, autoreset="next_step", impostors=impostors == "auto")
     if agents is not None:
         kwargs["num_agents"] = agents
     envs, stepper = {}, None
     try:
         for level, res in variants:
-            with meshes_subdivided(level):
+            with meshes_subdivided(level, keep_spheres=impostors == "auto"):
                 env = envs[level, res] = make_env(name, resolution=res, **kwargs)
             env.reset(seed=0)
             generator = torch.Generator().manual_seed(0)
@@ -146,13 +158,13 @@ def profile(name: str, agents: int | None, worlds: int, resolution: int, levels,
         def step():
             stepper.step(stepper.random_actions(generator))
 
-        timings = {key: {"render": [], "draw": [], "read": []} for key in variants}
+        timings = {key: {"render": [], "render_cpu": [], "draw": [], "read": []} for key in variants}
         step_times = []
         counts = {}
         for key, env in envs.items():
             env.renderer.render()
-            counts[key] = max(2, min(200, round(block_seconds / _block(env.renderer.render, 2))))
-        step_count = max(2, min(200, round(block_seconds / _block(step, 2))))
+            counts[key] = max(2, min(200, round(block_seconds / _block(env.renderer.render, 2)[0])))
+        step_count = max(2, min(200, round(block_seconds / _block(step, 2)[0])))
         for _ in range(rounds):
             for key, env in envs.items():
                 draws, reads = [], []
@@ -161,16 +173,17 @@ def profile(name: str, agents: int | None, worlds: int, resolution: int, levels,
                     renderer.render()
                     draws.append(renderer.last_timings["draw"])
                     reads.append(renderer.last_timings["read"])
-                timings[key]["render"].append(_block(render, counts[key]))
+                wall, cpu = _block(render, counts[key])
+                timings[key]["render"].append(wall)
+                timings[key]["render_cpu"].append(cpu)
                 timings[key]["draw"].append(statistics.median(draws))
                 timings[key]["read"].append(statistics.median(reads))
-            step_times.append(_block(step, step_count))
+            step_times.append(_block(step, step_count)[1])
         rows = []
         for (level, res), env in envs.items():
-            scene = env.renderer.scene
             medians = {stage: 1e3 * statistics.median(values) for stage, values in timings[level, res].items()}
-            rows.append({"subdivide": level, "resolution": res, "triangles": submitted_triangles(scene),
-                         "pixels": scene.num_views * res * res,
+            rows.append({"subdivide": level, "resolution": res, "triangles": submitted_triangles(env.renderer),
+                         "pixels": env.renderer.scene.num_views * res * res,
                          **{f"{stage}_ms": value for stage, value in medians.items()}})
         num_agents = envs[variants[0]].num_agents
     finally:
@@ -181,16 +194,17 @@ def profile(name: str, agents: int | None, worlds: int, resolution: int, levels,
     base = next(r for r in rows if r["subdivide"] == 0 and r["resolution"] == resolution)
     by_triangles = [r for r in rows if r["resolution"] == resolution]
     by_pixels = [r for r in rows if r["subdivide"] == 0]
-    per_triangle = _slope([r["triangles"] for r in by_triangles], [r["render_ms"] for r in by_triangles])
-    per_pixel = _slope([r["pixels"] for r in by_pixels], [r["render_ms"] for r in by_pixels])
+    per_triangle = _slope([r["triangles"] for r in by_triangles], [r["render_cpu_ms"] for r in by_triangles])
+    per_pixel = _slope([r["pixels"] for r in by_pixels], [r["render_cpu_ms"] for r in by_pixels])
     vertex = per_triangle * base["triangles"]
     fragment = per_pixel * base["pixels"]
     return {"env": name, "agents": num_agents, "worlds": worlds, "resolution": resolution,
-            "step_ms": 1e3 * statistics.median(step_times), "render_ms": base["render_ms"],
+            "step_cpu_ms": 1e3 * statistics.median(step_times), "render_ms": base["render_ms"],
+            "render_cpu_ms": base["render_cpu_ms"],
             "draw_ms": base["draw_ms"], "read_ms": base["read_ms"], "triangles": base["triangles"],
             "pixels": base["pixels"], "ns_per_triangle": 1e6 * per_triangle, "ns_per_pixel": 1e6 * per_pixel,
-            "vertex_ms": vertex, "fragment_ms": fragment, "rest_ms": base["render_ms"] - vertex - fragment,
-            "vertex_share": vertex / base["render_ms"], "fragment_share": fragment / base["render_ms"],
+            "vertex_ms": vertex, "fragment_ms": fragment, "rest_ms": base["render_cpu_ms"] - vertex - fragment,
+            "vertex_share": vertex / base["render_cpu_ms"], "fragment_share": fragment / base["render_cpu_ms"],
             "variants": rows}
 
 
@@ -205,10 +219,11 @@ def run(args) -> dict:
         for resolution in args.resolution:
             progress(f"profile {name} at {resolution} px, {args.worlds} worlds")
             results.append(profile(name, int(agents) if agents else None, args.worlds, resolution, args.subdivide,
-                                   args.coverage, args.rounds, args.block_seconds))
+                                   args.coverage, args.rounds, args.block_seconds, args.impostors))
     result = {"machine": {**machine(), "cpu_model": cpu_model(), "cpus": os.cpu_count()},
               "load_average_before": load_before[0], "load_average_after": os.getloadavg()[0],
-              "seconds": time.perf_counter() - started, "rounds": args.rounds, "worlds": args.worlds,
+              "seconds": time.perf_counter() - started, "impostors": args.impostors, "rounds": args.rounds,
+              "worlds": args.worlds,
               "results": results}
     if args.out:
         write_report(args.out, "profile", result, markdown=markdown(result))
@@ -219,12 +234,13 @@ def markdown(result: dict) -> list[str]:
     m = result["machine"]
     lines = [f"CPU: {m['cpu_model']}, {m['cpus']} CPUs, {m['gl_renderer']}; load average "
              f"{result['load_average_before']:.1f} before, {result['load_average_after']:.1f} after; "
-             f"{result['worlds']} worlds, {result['rounds']} rounds, medians.", "",
-             "| env | A | px | step ms | render ms | vertex ms (share) | fragment ms (share) | rest ms "
+             f"{result['worlds']} worlds, {result['rounds']} rounds, medians; impostors {result['impostors']}.", "",
+             "| env | A | px | step CPU ms | render CPU ms | vertex ms (share) | fragment ms (share) | rest ms "
              "| triangles/frame | ns/triangle | ns/pixel |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in result["results"]:
-        lines.append(f"| {r['env']} | {r['agents']} | {r['resolution']} | {r['step_ms']:.2f} | {r['render_ms']:.2f} "
+        lines.append(f"| {r['env']} | {r['agents']} | {r['resolution']} | {r['step_cpu_ms']:.2f} "
+                     f"| {r['render_cpu_ms']:.2f} "
                      f"| {r['vertex_ms']:.2f} ({r['vertex_share']:.0%}) "
                      f"| {r['fragment_ms']:.2f} ({r['fragment_share']:.0%}) "
                      f"| {r['rest_ms']:.2f} | {r['triangles']:,} "
