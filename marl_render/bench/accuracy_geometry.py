@@ -12,6 +12,11 @@ that differ by more than 8 levels in some channel, and the depth error (metres, 
 are finite: mean and 99.9th percentile), and the share of pixels where one sees something and
 the other the sky. The render time of the mesh and impostor copies (BatchRenderer.render on the
 same state, alternating, medians) comes from the same run.
+--policies RUN_FOLDER...: published actors (python -m marl_render.baselines run folders) play their
+task's env drawn with meshes, greedily, for `--steps` steps of `--worlds` worlds; on every step the
+same actor (a second copy, its own frame stack) also decides from the impostor frame of the same
+state. Reported: the share of (step, world, agent) decisions that agree, on the steps where the
+actor decides (action_repeat).
 """
 from __future__ import annotations
 
@@ -36,6 +41,7 @@ def add_arguments(parser):
     parser.add_argument("--resolution", nargs="+", type=positive_int_argument, default=[64, 88])
     parser.add_argument("--worlds", type=positive_int_argument, default=8)
     parser.add_argument("--steps", type=positive_int_argument, default=30)
+    parser.add_argument("--policies", nargs="*", default=[], help="run folders of published actors (agreement)")
     parser.add_argument("--out", default=None, help="also write DIR/accuracy_geometry.json and .md")
 
 
@@ -108,6 +114,32 @@ def measure(name: str, resolution: int, worlds: int, steps: int) -> dict:
             "mesh_vs_fine": _pair_errors(frames["mesh"], frames["fine"])}
 
 
+def policy_agreement(run_folder: str, worlds: int, steps: int) -> dict:
+    """Share of the actor's greedy decisions that are the same from impostor frames as from mesh frames."""
+    from marl_render.envs import make_env
+    from marl_render.policies import joint_actions, load_policy
+
+    on_meshes, on_impostors = load_policy(run_folder), load_policy(run_folder)
+    kwargs = dict(on_meshes.env_kwargs, num_worlds=worlds, seed=0, autoreset="next_step")
+    envs = (make_env(on_meshes.task, impostors=False, **kwargs), make_env(on_meshes.task, **kwargs))
+    agree = decided = 0
+    try:
+        observations = [env.reset(seed=0) for env in envs]
+        for _ in range(steps):
+            decides = envs[0].step_count % on_meshes.action_repeat == 0
+            actions = joint_actions(on_meshes, envs[0], observations[0])
+            other = joint_actions(on_impostors, envs[1], observations[1])
+            agree += int((actions == other)[decides].sum())
+            decided += int(decides.sum()) * envs[0].num_agents
+            on_impostors.held.copy_(on_meshes.held)  # both hold the actions the env played
+            observations = [env.step(actions)[0] for env in envs]
+    finally:
+        for env in envs:
+            env.close()
+    return {"run": run_folder, "task": on_meshes.task, "worlds": worlds, "steps": steps, "decisions": decided,
+            "agreement": agree / max(decided, 1)}
+
+
 def run(args) -> dict:
     load_before = os.getloadavg()[0]
     results = []
@@ -116,7 +148,8 @@ def run(args) -> dict:
             progress(f"accuracy of impostors: {name} at {resolution} px")
             results.append(measure(name, resolution, args.worlds, args.steps))
     result = {"machine": {**machine(), "cpu_model": cpu_model(), "cpus": os.cpu_count()},
-              "load_average_before": load_before, "load_average_after": os.getloadavg()[0], "results": results}
+              "load_average_before": load_before, "load_average_after": os.getloadavg()[0], "results": results,
+              "policies": [policy_agreement(folder, args.worlds, args.steps) for folder in args.policies]}
     if args.out:
         write_report(args.out, "accuracy_geometry", result, markdown=markdown(result))
     return result
@@ -138,4 +171,8 @@ def markdown(result: dict) -> list[str]:
             lines.append(f"| {r['env']} | {r['resolution']} | {drawn} | {against} | {e['mae']:.3f} "
                          f"| {e['pixels_over_8']:.4%} | {e['depth_mae_m']:.5f} | {e['depth_p999_m']:.4f} "
                          f"| {e['silhouette_pixels']:.4%} | {timing} |")
+    if result.get("policies"):
+        lines += ["", "| actor | task | decisions | same greedy action from impostor frames |", "|---|---|---:|---:|"]
+        lines += [f"| {p['run']} | {p['task']} | {p['decisions']:,} | {p['agreement']:.2%} |"
+                  for p in result["policies"]]
     return lines
