@@ -37,7 +37,7 @@ TASKS = ("commons", "forage", "push")  # the built-in tasks with sphere groups
 
 
 def add_arguments(parser):
-    parser.add_argument("--env", nargs="+", default=list(TASKS))
+    parser.add_argument("--env", nargs="*", default=list(TASKS), help="tasks (none: only --policies)")
     parser.add_argument("--resolution", nargs="+", type=positive_int_argument, default=[64, 88])
     parser.add_argument("--worlds", type=positive_int_argument, default=8)
     parser.add_argument("--steps", type=positive_int_argument, default=30)
