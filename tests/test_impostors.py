@@ -157,3 +157,26 @@ def test_envs_draw_spheres_as_impostors_by_default():
         meshes.close()
     with pytest.raises(ValueError, match="impostors must be one of"):
         make_env("commons", num_worlds=1, resolution=16, impostors="sometimes")
+
+
+def test_log_depth_impostor_depth_is_the_analytic_sphere():
+    chosen, frame, scene = _render(True, effects=("lighting", "depth", "segmentation", "log_depth"))
+    assert chosen == {"balls"}
+    expected = _analytic_depth(scene)
+    sphere = frame.segmentation[0, 0].numpy() == scene.groups["balls"].segment_base
+    assert (sphere != np.isfinite(expected)).sum() <= 2
+    np.testing.assert_allclose(frame.depth[0, 0].numpy()[sphere], expected[sphere], atol=2e-4)
+
+
+def test_a_sphere_with_a_floor_role_under_appearance_is_refused():
+    scene = mr.Scene(num_worlds=1, agents_per_world=1, resolution=8, effects=("lighting", "appearance"))
+    scene.add_static("dome", "sphere", position=[0, 0, 0], role="floor")
+    with pytest.raises(ValueError, match="'dome': floor and wall roles"):
+        mr.BatchRenderer(scene, impostors=True)
+
+
+def test_envs_refuse_impostors_true_with_shadows_and_fall_back_with_auto():
+    with pytest.raises(ValueError, match="impostors=True cannot draw the sphere group 'apples': the 'shadows'"):
+        make_env("commons", num_worlds=1, resolution=16, shadows=True, impostors=True)
+    with make_env("commons", num_worlds=1, resolution=16, shadows=True) as env:
+        assert env.renderer.impostor_groups == frozenset()
