@@ -100,6 +100,7 @@ import numpy as np
 import torch
 
 import marl_render as mr
+from marl_render.render.impostors import check_mode as check_impostors
 from marl_render.shadows import atlas_layout
 from marl_render.threads import limited_threads, thread_count
 from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, unpicklable
@@ -261,6 +262,7 @@ class BatchedEnv:
         supersample = positive_int("supersample", options.supersample)
         compile_physics = check.flag("compile_physics", options.compile_physics)
         exact_tiles = check.flag("exact_tiles", options.exact_tiles)
+        impostors = check_impostors(options.impostors)
 
         self.scenario = scenario(params, Layout(self.num_worlds, self.num_agents, self.continuous, self.device))
         if options.physics_substeps is not None:
@@ -295,7 +297,7 @@ class BatchedEnv:
                                      shadows=self.shadows, grayscale=self.grayscale, context=self.context,
                                      device=self.device, multisamples=multisamples, supersample=supersample,
                                      appearance=self.appearance, readback=self.readback,
-                                     exact_tiles=exact_tiles)
+                                     exact_tiles=exact_tiles, impostors=impostors)
         self.renderer = self.views.renderer
         # Last: compiling takes seconds, so every other option has been checked by now.
         if compile_physics:

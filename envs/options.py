@@ -53,6 +53,9 @@ class EnvOptions:
     # The agents' views bit-identical in any world slot and at any batch size (BatchRenderer(
     # exact_tiles=True): docs/levels.md; costs render time).
     exact_tiles: bool = False
+    # Spheres drawn as ray-cast impostors where the effects allow (marl_render/render/impostors.py): "auto",
+    # True (raise where they cannot be drawn) or False (meshes); what it changes: docs/accuracy.md.
+    impostors: object = "auto"
     physics_substeps: int | None = None
     # torch.compile the task's physics kernel (cartpole): envs/compiled.py.
     compile_physics: bool = False

@@ -71,6 +71,22 @@ def test_spread_floor_draws_every_agent_view_of_the_env(cull):
 
 
 @pytest.mark.parametrize("cull", [False, True])
+def test_floor_draws_commons_apples_as_impostors_like_the_env(cull):
+    """The env draws its apples as impostors (the default): so does the floor, with its own code."""
+    env, pixels = stepped_env("commons", num_worlds=2, resolution=32)
+    try:
+        assert env.renderer.impostor_groups == {"apples"}
+        with from_env(env, cull=cull) as floor:
+            assert [draw.impostor for draw in floor._draws].count(True) == 1
+            assert_same_picture(pixels, floor.render())
+        with from_env(env, cull=cull, impostors=False) as meshes:  # the 80-triangle meshes: another picture
+            assert not any(draw.impostor for draw in meshes._draws)
+            assert not torch.equal(meshes.render(), pixels)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("cull", [False, True])
 def test_floor_hides_the_viewer_body_and_inactive_instances(cull):
     scene = mr.Scene(1, 2, resolution=16, effects=())
     scene.add_group("boxes", "box", capacity=2)

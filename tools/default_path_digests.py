@@ -16,7 +16,7 @@ import torch
 
 from marl_render.envs import env_class, list_envs, make_env
 
-BUILT_IN = ("capture_flag", "cartpole", "clean_up", "commons", "coop_mining", "forage", "push", "rooms",
+BUILT_IN = ("capture_flag", "cartpole", "clean_up", "commons", "coop_mining", "forage", "matrix", "push", "rooms",
             "speaker_listener", "spread", "tag")
 
 

@@ -21,6 +21,8 @@ SUBCOMMANDS = {
     "scale": ("marl_render.bench.scale", "scaling with views and resolution"),
     "soak": ("marl_render.bench.soak", "long run: memory over time, non-finite values"),
     "parallel": ("marl_render.bench.parallel", "one process against TorchRL ParallelEnv / collectors with 2 workers"),
+    "profile": ("marl_render.bench.profile", "the GL stage split into vertex and fragment work per task"),
+    "accuracy-geometry": ("marl_render.bench.accuracy_geometry", "impostors' pixel and depth error against meshes"),
     "peers": ("marl_render.bench.peers", "against Melting Pot, MPE and PyBatchRender in their own venvs (ratios)"),
 }
 

@@ -18,6 +18,9 @@ convention), which renders twice on a step where a world ends.
 `--readback` picks how frames reach the env's device (the renderer's readback: "auto",
 "gpu", "host", and "pbo" = through the GL pack buffer to the host); with several, they
 take turns step by step as the front ends do, and each row gets `ratio_to_first_readback`.
+`--impostors off auto` draws spheres as meshes / as impostors (the default, marl_render/render/impostors.py);
+with both, they take turns step by step too, and each row gets `ratio_to_first_impostors`: the
+before/after of impostors from one run.
 Every row splits the agents' render per step into `render_ms` {pack, cull, draw, read,
 copy} (BatchRenderer.last_timings).
 """
@@ -56,16 +59,18 @@ def add_arguments(parser):
     parser.add_argument("--readback", nargs="+", choices=READBACKS, default=["auto"],
                         help="how frames reach the device (several take turns in one run; pbo: through the GL "
                              "pack buffer to the host)")
+    parser.add_argument("--impostors", nargs="+", choices=["off", "auto"], default=["auto"],
+                        help="spheres as meshes (off) or impostors (auto, the default); both take turns in one run")
 
 
 class Stepper:
     """One front end of one environment, stepped with pre-drawn numpy actions [num_envs, ...]."""
 
-    def __init__(self, api: str, name: str, kwargs: dict, readback: str = "auto"):
+    def __init__(self, api: str, name: str, kwargs: dict, readback: str = "auto", impostors: str = "auto"):
         import marl_render.envs as envs  # the front ends are imported on use (sb3 and jax are optional extras)
 
-        self.api, self.readback = api, readback
-        kwargs = {**kwargs, "readback": readback}
+        self.api, self.readback, self.impostors = api, readback, impostors
+        kwargs = {**kwargs, "readback": readback, "impostors": "auto" if impostors == "auto" else False}
         if api == "core":
             self.env = envs.make_env(name, autoreset="next_step", **kwargs)
             self.core = self.env
@@ -122,7 +127,8 @@ def draw_actions(core, count: int, seed: int = 0) -> list:
 
 
 def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, continuous=False,
-            apis=("core",), device: str = "cpu", heldout: str | None = None, readbacks=("auto",)) -> list:
+            apis=("core",), device: str = "cpu", heldout: str | None = None, readbacks=("auto",),
+            impostors=("auto",)) -> list:
     kwargs = {"num_worlds": worlds, "resolution": resolution, "continuous": continuous, "seed": 0, "device": device}
     if heldout is not None:
         kwargs["heldout"] = heldout
@@ -130,11 +136,11 @@ def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, co
     synchronize = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
     if agents is not None:
         kwargs["num_agents"] = agents
-    variants = [(api, readback) for readback in readbacks for api in apis]
+    variants = [(api, readback, drawn) for drawn in impostors for readback in readbacks for api in apis]
     steppers = []
     try:
-        for api, readback in variants:
-            steppers.append(Stepper(api, name, kwargs, readback))
+        for api, readback, drawn in variants:
+            steppers.append(Stepper(api, name, kwargs, readback, drawn))
         core = steppers[0].core
         warmup = 3
         actions = draw_actions(core, warmup + steps)
@@ -148,7 +154,7 @@ def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, co
         for k, a in enumerate(actions[warmup:]):
             turn = k % len(steppers)  # who goes first rotates, so that no front end always follows another
             for stepper in steppers[turn:] + steppers[:turn]:
-                variant = (stepper.api, stepper.readback)
+                variant = (stepper.api, stepper.readback, stepper.impostors)
                 synchronize()
                 start = time.perf_counter()
                 stepper.step(a)
@@ -158,10 +164,11 @@ def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, co
                     render_seconds[variant][stage] = render_seconds[variant].get(stage, 0.0) + spent
         rows = []
         for stepper in steppers:
-            variant = (stepper.api, stepper.readback)
+            variant = (stepper.api, stepper.readback, stepper.impostors)
             per_step = seconds[variant] / steps
             row = {"env": name if heldout is None else f"{name} heldout={heldout}", "api": stepper.api,
-                   "readback": stepper.readback, "worlds": worlds, "agents": core.num_agents,
+                   "readback": stepper.readback, "impostors": stepper.impostors, "worlds": worlds,
+                   "agents": core.num_agents,
                    "resolution": resolution, "device": str(core.device), "ms_per_step": per_step * 1e3,
                    "env_steps_per_s": worlds / per_step,
                    "agent_frames_per_s": worlds * core.num_agents / per_step,
@@ -169,9 +176,13 @@ def measure(name: str, worlds: int, resolution: int, steps: int, agents=None, co
                    "render_ms": {stage: spent / steps * 1e3 for stage, spent in render_seconds[variant].items()},
                    "front_end_share": 1 - stepper.core_seconds / seconds[variant]}
             if "core" in apis:
-                row["ratio_to_core"] = seconds[("core", stepper.readback)] / seconds[variant]
+                row["ratio_to_core"] = seconds[("core", stepper.readback, stepper.impostors)] / seconds[variant]
             if len(readbacks) > 1:
-                row["ratio_to_first_readback"] = seconds[(stepper.api, readbacks[0])] / seconds[variant]
+                first = seconds[(stepper.api, readbacks[0], stepper.impostors)]
+                row["ratio_to_first_readback"] = first / seconds[variant]
+            if len(impostors) > 1:
+                first = seconds[(stepper.api, stepper.readback, impostors[0])]
+                row["ratio_to_first_impostors"] = first / seconds[variant]
             rows.append(row)
         return rows
     finally:
@@ -199,5 +210,5 @@ def run(args) -> dict:
         progress(f"env {name}: {worlds} worlds of {each} agents at {resolution}px, {args.steps} steps "
                  f"through {', '.join(apis)}")
         rows += measure(name, worlds, resolution, args.steps, agents, args.continuous, apis, args.device, args.heldout,
-                        readbacks)
+                        readbacks, tuple(dict.fromkeys(args.impostors)))
     return {"benchmark": "env", "machine": machine(), "results": rows}

@@ -27,6 +27,11 @@ What it does per frame, each choice measured on Mesa llvmpipe (2 cores):
   vertex shader; cull=True: a torch frustum test per (view, instance) leaves them and
   everything out of view out of the draw (pays in the arena scenes, where most vertex
   work is out of sight).
+- impostors=True: spheres (every vertex of the mesh 0.5 from its centre) are drawn as the
+  renderer draws them by default, one quad per instance whose fragments cast the pixel's ray
+  at the sphere and write its depth (its own minimal code below, not the renderer's: uniform
+  scale, the radius 0.5 x scale.x); from_env turns it on where the env's renderer draws
+  impostors, so the floor draws the same minimal geometry.
 Only the `lighting` effect and `MeshData` meshes are supported (skinned meshes only in
 static groups, which stay in their bind pose).
 """
@@ -141,6 +146,98 @@ void main() {
 """
 
 
+_IMPOSTOR_VERTEX = """
+#version 430
+layout(location = 0) in vec3 corner;  // (+-1, +-1, 0)
+layout(std430, binding = 0) readonly buffer Instances { vec4 instance_data[]; };
+layout(std430, binding = 1) readonly buffer Views { mat4 view_projection[]; };
+layout(std430, binding = 2) readonly buffer Rows { ivec2 row_of[]; };
+layout(std430, binding = 4) readonly buffer Eyes { vec4 eye_of[]; };  // camera position per view
+#ifdef CULLED
+layout(std430, binding = 3) readonly buffer Pairs { int visible_pairs[]; };
+uniform int first_pair;
+#endif
+uniform int per_view;
+uniform int agents;
+uniform int first_view;
+uniform int tiles;
+
+out vec3 on_quad;            // world point of the quad
+flat out vec4 sphere;        // centre, radius
+flat out vec3 base_color;
+flat out int view_index;
+
+void main() {
+#ifdef CULLED
+    int pair = visible_pairs[first_pair + gl_InstanceID];
+    int view = pair / per_view;
+    int slot = pair - view * per_view;
+    int tile = view - first_view;
+#else
+    int tile = gl_InstanceID / per_view;
+    int slot = gl_InstanceID - tile * per_view;
+    int view = first_view + tile;
+#endif
+    int world = view / agents;
+    ivec2 rows = row_of[slot];
+    int row = 4 * (rows.x + world * rows.y);
+    vec4 position = instance_data[row];
+    float radius = 0.5 * instance_data[row + 2].x;
+    vec3 eye = eye_of[view].xyz;
+    vec3 out_of = eye - position.xyz;
+    float d = length(out_of);
+    vec3 toward = out_of / d;
+    vec3 side = normalize(cross(abs(toward.z) < 0.9 ? vec3(0, 0, 1) : vec3(1, 0, 0), toward));
+    vec3 up = cross(toward, side);
+    // The square around the silhouette circle, in the silhouette's plane.
+    float half_side = radius * sqrt(max(d * d - radius * radius, 0.0)) / d;
+    on_quad = position.xyz + toward * (radius * radius / d) + half_side * (corner.x * side + corner.y * up);
+    sphere = vec4(position.xyz, radius);
+    base_color = instance_data[row + 3].rgb;
+    view_index = view;
+    vec4 clip = view_projection[view] * vec4(on_quad, 1.0);
+    bool hidden = position.w == 0.0 || d <= radius || int(instance_data[row + 2].w) == view - world * agents;
+    gl_ClipDistance[0] = hidden ? -1.0 : clip.w + clip.y;
+    gl_ClipDistance[1] = hidden ? -1.0 : clip.w - clip.y;
+    gl_Position = vec4(clip.x, (float(2 * tile + 1 - tiles) * clip.w - clip.y) / float(tiles), clip.z, clip.w);
+}
+"""
+
+_IMPOSTOR_FRAGMENT = """
+#version 430
+layout(std430, binding = 1) readonly buffer Views { mat4 view_projection[]; };
+layout(std430, binding = 4) readonly buffer Eyes { vec4 eye_of[]; };
+uniform vec3 light_to;
+uniform vec3 light_color;
+uniform vec3 ambient;
+in vec3 on_quad;
+flat in vec4 sphere;
+flat in vec3 base_color;
+flat in int view_index;
+out vec4 pixel;
+
+void main() {
+    vec3 eye = eye_of[view_index].xyz;
+    vec3 ray = normalize(on_quad - eye);
+    vec3 to_centre = sphere.xyz - eye;
+    float along = dot(to_centre, ray);
+    vec3 miss = to_centre - along * ray;
+    float inside = sphere.w * sphere.w - dot(miss, miss);
+    if (inside < 0.0) discard;
+    vec3 hit = eye + (along - sqrt(inside)) * ray;
+    vec4 clip = view_projection[view_index] * vec4(hit, 1.0);
+    gl_FragDepth = 0.5 * clip.z / clip.w + 0.5;
+    vec3 n = (hit - sphere.xyz) / sphere.w;
+    pixel = vec4(clamp(base_color * (ambient + light_color * max(dot(n, light_to), 0.0)), 0.0, 1.0), 1.0);
+}
+"""
+
+
+def _round(mesh: MeshData) -> bool:
+    """Every vertex 0.5 from the origin: a unit-diameter sphere (what an impostor draws exactly)."""
+    return mesh.name == "sphere" and bool(np.abs(np.linalg.norm(mesh.positions, axis=1) - 0.5).max() < 1e-5)
+
+
 def shared_corners(mesh: MeshData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(positions [N, 3], normals [N, 3], triangles [T, 3]) of a flat-shaded mesh with its
     corners welded: each triangle's normal sits on its last (provoking) vertex.
@@ -189,6 +286,7 @@ class _MeshDraw:
     row_index: torch.Tensor  # [W, per_view] rows of the instance array (culling reads them)
     radius: float  # of the mesh's bounding sphere at unit scale
     pairs: object = None  # moderngl.Buffer of visible view * per_view + slot (culling)
+    impostor: bool = False  # one quad per instance, the sphere ray-cast (impostors=True)
     ranges: list | None = None  # (first pair, count) per framebuffer (culling)
 
 
@@ -207,7 +305,8 @@ class FloorGL:
     instances per view, most out of sight), and costs a few torch ops where it does not.
     """
 
-    def __init__(self, scene: Scene, *, tiles_per_framebuffer: int = TILES_PER_FRAMEBUFFER, cull: bool = False):
+    def __init__(self, scene: Scene, *, tiles_per_framebuffer: int = TILES_PER_FRAMEBUFFER, cull: bool = False,
+                 impostors: bool = False):
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {type(scene).__name__}")
         if set(scene.effects) - {"lighting"}:
@@ -219,7 +318,7 @@ class FloorGL:
         if skinned:
             raise ValueError(f"FloorGL has no skinning; groups {skinned} have skinned meshes (use BatchRenderer, "
                              "or mesh.rigid() for their bind pose)")
-        self.scene, self.cull = scene, bool(cull)
+        self.scene, self.cull, self.impostors = scene, bool(cull), bool(impostors)
         self.ctx = moderngl.create_context(standalone=True, backend="egl", require=430)
         W, A = scene.num_worlds, scene.agents_per_world
         H, Wpx = scene.resolution
@@ -266,6 +365,8 @@ class FloorGL:
 
         self._instance_buffer = ctx.buffer(reserve=self._instances.numel() * 4, dynamic=True)
         self._view_buffer = ctx.buffer(reserve=self._views.numel() * 4, dynamic=True)
+        self._eyes = torch.zeros(W * A, 4)  # each view's camera position (impostors)
+        self._eye_buffer = ctx.buffer(reserve=self._eyes.numel() * 4, dynamic=True)
         lighting = scene.lighting
         to_light = -np.asarray(lighting.direction, dtype=np.float64)
         uniforms = {"agents": A, "tiles": self.tiles, "light_to": tuple(to_light / np.linalg.norm(to_light)),
@@ -275,25 +376,31 @@ class FloorGL:
         world = torch.arange(W)[:, None]
         self._draws = []
         for mesh, table in mesh_rows.values():
+            impostor = self.impostors and _round(mesh)
             smooth = not mesh.flat
-            if smooth:
+            if impostor:
+                positions = np.float32([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]])
+                normals, triangles = np.zeros_like(positions), np.uint32([[0, 1, 2], [0, 2, 3]])
+            elif smooth:
                 positions, normals, triangles = mesh.positions, mesh.normals, mesh.triangles.astype(np.uint32)
             else:
                 positions, normals, triangles = shared_corners(mesh)
             defines = ("#define SMOOTH\n" if smooth else "") + ("#define CULLED\n" if self.cull else "")
-            program = ctx.program(vertex_shader=_VERTEX.replace("#version 430\n", "#version 430\n" + defines),
-                                  fragment_shader=_FRAGMENT.replace("#version 430\n", "#version 430\n" + defines))
+            vertex, fragment = (_IMPOSTOR_VERTEX, _IMPOSTOR_FRAGMENT) if impostor else (_VERTEX, _FRAGMENT)
+            program = ctx.program(vertex_shader=vertex.replace("#version 430\n", "#version 430\n" + defines),
+                                  fragment_shader=fragment.replace("#version 430\n", "#version 430\n" + defines))
             for name, value in uniforms.items():
                 if name in program:
                     program[name].value = value
             program["per_view"].value = len(table)
             vertices = ctx.buffer(np.concatenate((positions, normals), 1).astype(np.float32))
             indices = ctx.buffer(triangles.astype(np.uint32))
-            vao = ctx.vertex_array(program, [(vertices, "3f 3f", "corner", "normal")], index_buffer=indices,
-                                   index_element_size=4)
+            layout = [(vertices, "3f 12x", "corner")] if impostor else [(vertices, "3f 3f", "corner", "normal")]
+            vao = ctx.vertex_array(program, layout, index_buffer=indices, index_element_size=4)
             table = torch.tensor(table, dtype=torch.int64)
             draw = _MeshDraw(vao, ctx.buffer(table.to(torch.int32).numpy()), len(table),
-                             table[:, 0] + world * table[:, 1], float(np.linalg.norm(mesh.positions, axis=1).max()))
+                             table[:, 0] + world * table[:, 1], float(np.linalg.norm(mesh.positions, axis=1).max()),
+                             impostor=impostor)
             if self.cull:
                 draw.pairs = ctx.buffer(reserve=max(4, 4 * scene.num_views * len(table)), dynamic=True)
             self._draws.append(draw)
@@ -365,6 +472,9 @@ class FloorGL:
             self._view_buffer.write(self._views.numpy())
             self._instance_buffer.bind_to_storage_buffer(0)
             self._view_buffer.bind_to_storage_buffer(1)
+            if self.impostors:
+                self._eye_buffer.write(self._eyes.numpy())
+                self._eye_buffer.bind_to_storage_buffer(4)
             if pairs is not None:
                 for draw, visible in zip(self._draws, pairs, strict=True):
                     if len(visible):
@@ -379,6 +489,10 @@ class FloorGL:
                 framebuffer.clear(red, green, blue, 1.0, depth=1.0)
                 for draw in self._draws:
                     draw.rows.bind_to_storage_buffer(2)
+                    if draw.impostor:  # the quad faces the camera whatever its winding
+                        ctx.disable(ctx.CULL_FACE)
+                    else:
+                        ctx.enable(ctx.CULL_FACE)
                     program = draw.vao.program
                     program["first_view"].value = start
                     if pairs is None:
@@ -406,6 +520,7 @@ class FloorGL:
             rotation = _compose(body_rotation, tilt.expand_as(body_rotation))
         else:
             position, rotation = self.camera_position, self.camera_rotation
+        self._eyes[:, :3] = position.reshape(-1, 3)
         camera_to_world = _matrix(rotation.reshape(-1, 4))  # [V, 3, 3]
         linear = self._projection_3 @ camera_to_world.transpose(1, 2)  # [V, 4, 3]
         shift = self._projection_t - (linear @ position.reshape(-1, 3, 1))[..., 0]  # [V, 4]
@@ -464,8 +579,10 @@ def _matrix(q):
 
 
 def from_env(env, **options) -> FloorGL:
-    """A FloorGL of an env's scene holding the env's current bodies and cameras (options: FloorGL's)."""
+    """A FloorGL of an env's scene holding the env's current bodies and cameras (options: FloorGL's;
+    impostors where the env's renderer draws any)."""
     renderer = env.renderer
+    options.setdefault("impostors", bool(renderer.impostor_groups))
     floor = FloorGL(renderer.scene, **options)
     for name in renderer.scene.groups:
         state = renderer.instance_state(name)

@@ -76,6 +76,8 @@ def add_arguments(parser):
     parser.add_argument("--lp-num-threads", type=positive_int_argument, default=None,
                         help="LP_NUM_THREADS (llvmpipe's rasteriser threads) of every worker; default: each "
                              "system's own (marl-render: 2 per core; llvmpipe's: 1 per core)")
+    parser.add_argument("--with-meshes", action="store_true",
+                        help="meltingpot: every marl-render row again with spheres as meshes (impostors=False)")
     parser.add_argument("--out", default=None, help="also write DIR/peers.json and DIR/peers.md")
 
 
@@ -256,6 +258,10 @@ def compare_meltingpot(args, log_dir: str) -> dict:
              ("marl_render_parallel", sys.executable, "marl_render_parallel", commons)]
     specs += [(f"marl_render_core_{w}", sys.executable, "marl_render_core",
                lambda infos, w=w: commons(infos, worlds=w)) for w in args.worlds]
+    if args.with_meshes:  # the same with spheres drawn as meshes (impostors=False): before and after in one run
+        specs += [(f"{label}_meshes", python, system,
+                   lambda infos, config=config: {**config(infos), "impostors": False})
+                  for label, python, system, config in specs[1:]]
     systems = run_group(specs, args, reset=True, log_dir=log_dir)
     peer = systems["meltingpot"]["summary"]
     return {"systems": systems, "ratios": {f"{label}/meltingpot": ratios(system["summary"], peer)

@@ -133,12 +133,12 @@ class MarlRenderParallel:
     """One world of a marl-render task through the PettingZoo parallel API (make_parallel_env)."""
 
     def __init__(self, env: str, agents: int | None = None, resolution: int = 64, max_steps: int | None = None,
-                 seed: int = 0):
+                 seed: int = 0, impostors: object = "auto"):
         import numpy as np
 
         from marl_render.wrappers.pettingzoo import make_parallel_env
 
-        kwargs = {"resolution": resolution, "seed": seed}
+        kwargs = {"resolution": resolution, "seed": seed, "impostors": impostors}
         if agents is not None:
             kwargs["num_agents"] = agents
         if max_steps is not None:
@@ -166,14 +166,15 @@ class MarlRenderCore:
     ACTION_BATCHES = 64  # pre-drawn random action batches, used in turn
 
     def __init__(self, env: str, worlds: int, agents: int | None = None, resolution: int = 64,
-                 max_steps: int | None = None, seed: int = 0, compile_physics: bool = False):
+                 max_steps: int | None = None, seed: int = 0, compile_physics: bool = False,
+                 impostors: object = "auto"):
         import torch
 
         import marl_render.envs as envs
         from marl_render.bench.env import draw_actions
 
         kwargs = {"num_worlds": worlds, "resolution": resolution, "seed": seed, "autoreset": "next_step",
-                  "compile_physics": compile_physics}
+                  "compile_physics": compile_physics, "impostors": impostors}
         if agents is not None:
             kwargs["num_agents"] = agents
         if max_steps is not None:

@@ -33,6 +33,7 @@ from ..assets.meshes import MeshData, to_panda_geom
 from ..util.threads import one_thread
 from ..util.validation import describe, positive_int, torch_device, unpicklable
 from . import backend, interop, memory, readback, row_layouts, shaders
+from . import impostors as sphere_impostors
 from .draw_groups import DrawGroup, PandaTargets, per_pass, set_draw
 from .frame_reads import FrameReads
 from .framebuffers import RenderPass, make_pass
@@ -68,7 +69,7 @@ class BatchRenderer(FrameReads):
     def __init__(self, scene: Scene, *, channels_first: bool = False, max_framebuffer_size: int | None = None,
                  egl_device_index: int | None = None, readback: str = "auto", supersample: int = 1,
                  multisamples: int = 0, color: str = "rgb", context: backend.GLContext | None = None,
-                 device="cpu", exact_tiles: bool = False, layered: bool = False):
+                 device="cpu", exact_tiles: bool = False, layered: bool = False, impostors=False):
         """device: the torch device the frames are born on ("cpu", or a CUDA device).
         readback: how they get there. "host" reads each framebuffer straight into a host
         tensor (then copied to a CUDA `device`); "gpu" reads them into a GL pixel-pack
@@ -94,7 +95,10 @@ class BatchRenderer(FrameReads):
         layered=True (PROTOTYPE) draws every view into its own layer of an array texture instead
         of a tile of a column (gl_Layer from the vertex shader): every view is rasterised at the
         same window coordinates, so its pixels do not depend on its slot either; not with
-        exact_tiles or multisamples."""
+        exact_tiles or multisamples.
+        impostors: "auto" draws sphere groups as ray-cast impostors (one quad an instance, exact
+        depth and normals; impostors.py) where the effects and options allow, True asks for them
+        and raises where they cannot be drawn, False (default) draws every mesh."""
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a marl_render.Scene, got {describe(scene)}")
         if not isinstance(exact_tiles, (bool, np.bool_)):
@@ -129,6 +133,9 @@ class BatchRenderer(FrameReads):
             raise ValueError("multisamples cannot be combined with the appearance effect (MSAA resolves its own "
                              "buffer over the sky copied into each framebuffer, sky.py); use supersample instead")
         self.multisamples = multisamples
+        # Checked before any GL object: the names of the groups drawn as impostors.
+        self.impostor_groups = sphere_impostors.choose(scene, impostors, multisamples=multisamples,
+                                                       exact_tiles=self.exact_tiles, layered=self.layered)
         height, width = scene.resolution
         self.scene = scene
         self.readback = readback
@@ -268,7 +275,10 @@ class BatchRenderer(FrameReads):
             # Static geometry has no joints to pose: a skinned mesh is drawn in its bind pose.
             joints = mesh.num_joints if isinstance(mesh, skinning.SkinnedMesh) and not static else 0
             procedural = isinstance(mesh, MeshData) and not joints
-            if joints:
+            impostor = group.name in self.impostor_groups
+            if impostor:
+                node = sphere_impostors.quad_node()
+            elif joints:
                 # Skin columns beside the vertex; its depth plane comes from the geometry
                 # shader, which sees the skinned corners (a triangle's corners follow joints
                 # of their own, which the corner attributes of triangle_corners.py would not).
@@ -305,7 +315,9 @@ class BatchRenderer(FrameReads):
                 corners=procedural, gray=self.color == "gray", shadow_pcf=self.scene.shadows.pcf, joints=joints,
                 influences=mesh.influences if joints else 4, role=0 if static else ROLES[group.role],
                 exact=self.exact_tiles, layered=self.layered)
-            node.set_shader(shaders.compiled(variant(surface=surface)))
+            node.set_shader(sphere_impostors.compiled(sphere_impostors.defines(
+                self.effects, static=static, gray=self.color == "gray")) if impostor
+                else shaders.compiled(variant(surface=surface)))
             if textured and "texture" in self.effects:
                 node.set_texture(panda_texture(group.texture, group.name), 1)
             packing = self.packer.groups[group.name]
