@@ -29,11 +29,11 @@ import time
 import torch
 
 from marl_render import strict_json
-from marl_render.task_imports import add_import_option, load_user_tasks
 
 from . import options as check
 from .levels import levels_option
 from .registry import env_class, list_envs, make_env
+from .task_imports import add_import_option, load_user_tasks
 
 
 def random_policy(env, obs, generator: torch.Generator) -> torch.Tensor:

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import torch
 
-from .networks import Actor
+from marl_render.populations.networks import Actor
+
 from .ppo import FrameStack
 
 

@@ -82,13 +82,14 @@ from marl_render import strict_json
 from marl_render.envs import list_envs, make_env
 from marl_render.envs.evaluation import SEALED_SEEDS, evaluate, heuristic_policy, random_policy
 from marl_render.envs.levels import levels_option
+from marl_render.envs.task_imports import add_import_option, load_user_tasks
 from marl_render.extras import command_needs_extra
-from marl_render.task_imports import add_import_option, load_user_tasks
+from marl_render.populations import stats
+from marl_render.populations.networks import ENCODERS, INITS, PRECISIONS
 from marl_render.threads import MAX_THREADS
 
-from . import reproducible, stats
+from . import reproducible
 from .curve import plot_curve
-from .networks import ENCODERS, INITS, PRECISIONS
 from .selfplay import PLAY_LATEST, SNAPSHOT_EVERY, SWAP_EVERY, WINDOW, SelfPlay, setting_problem, team_index
 from .settings import EVALUATION_SETS, FIELDS, step_budget, task_hyperparameters
 from .training import train

@@ -46,15 +46,16 @@ import numpy as np
 import torch
 
 from marl_render import strict_json
-from marl_render.bots import POPULATIONS, bot_names, make_bot
-from marl_render.elo import elo_ratings
 from marl_render.envs import Population, env_class, list_envs, make_env
 from marl_render.envs.levels import levels_option
+from marl_render.envs.task_imports import add_import_option, load_user_tasks
 from marl_render.extras import command_needs_extra
-from marl_render.heldout import HELDOUT, heldout_scenario, list_heldout
-from marl_render.policies import Policy, RandomPolicy, as_policy, heuristic_policy, load_policy, required_env_kwargs
-from marl_render.task_imports import add_import_option, load_user_tasks
 from marl_render.threads import MAX_THREADS
+
+from .bots import POPULATIONS, bot_names, make_bot
+from .elo import elo_ratings
+from .heldout import HELDOUT, heldout_scenario, list_heldout
+from .policies import Policy, RandomPolicy, as_policy, heuristic_policy, load_policy, required_env_kwargs
 
 DOCS_EPISODES, CROSSPLAY_EPISODES, DOCS_SEED, DOCS_RESOLUTION = 32, 16, 0, 16
 

@@ -28,10 +28,11 @@ import pickle
 
 import torch
 
-from marl_render.baselines.networks import Actor
 from marl_render.envs import env_class, list_envs
 from marl_render.envs.masking import sample_allowed
 from marl_render.validation import describe
+
+from .networks import Actor
 
 # Keys of a loaded run's env_kwargs that say where it trained, not what its actor needs: an
 # evaluation chooses its own levels and looks (cross-play and held-out scenarios play the defaults).

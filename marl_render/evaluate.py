@@ -1,0 +1,4 @@
+"""Old path of marl_render/populations/evaluate.py (issue 40): that very module (marl_render/populations/moved.py)."""
+from marl_render.populations.moved import become
+
+become(__name__, __spec__)
