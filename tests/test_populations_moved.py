@@ -8,7 +8,7 @@ import sys
 import pytest
 
 import marl_render
-from marl_render.populations import heldout, moved
+from marl_render.populations import elo, heldout, moved
 
 
 @pytest.mark.parametrize("old", sorted(moved.MOVED))
@@ -32,12 +32,25 @@ def test_a_monkeypatch_through_the_old_path_reaches_the_code_of_the_new_one(monk
     assert heldout.list_heldout() == ["patched"]
 
 
-def test_a_pickle_that_names_the_old_module_loads_as_the_moved_class():
-    scenario = heldout.heldout_scenario("tag/prey_vs_interceptors")
-    written = pickle.dumps(scenario, protocol=0)  # protocol 0 names the class as text
-    assert b"marl_render.populations.heldout\nHeldOutScenario" in written
-    old = written.replace(b"marl_render.populations.heldout\n", b"marl_render.heldout\n")
-    assert pickle.loads(old) == scenario and type(pickle.loads(old)) is heldout.HeldOutScenario
+def test_a_pickle_that_names_the_old_module_loads_as_the_moved_object():
+    written = pickle.dumps(elo.elo_ratings, protocol=0)  # protocol 0 names a function by module and name, as text
+    assert b"marl_render.populations.elo\nelo_ratings" in written
+    assert pickle.loads(written.replace(b"marl_render.populations.elo\n", b"marl_render.elo\n")) is elo.elo_ratings
+    scenario = heldout.heldout_scenario("tag/prey_vs_interceptors")  # its class is the envs layer's (envs/bots.py)
+    before_the_move = pickle.dumps(scenario, protocol=0).replace(b"marl_render.envs.bots\n", b"marl_render.heldout\n")
+    assert b"marl_render.heldout\nHeldOutScenario" in before_the_move and pickle.loads(before_the_move) == scenario
+
+
+def test_make_env_of_a_held_out_scenario_imports_no_layer_above_the_envs():
+    """make_env(heldout=...) once imported marl_render.heldout, its bots and policies, and through them
+    the whole trainer package (marl_render.baselines): the envs layer now resolves it alone."""
+    code = ("import sys\nfrom marl_render.envs import make_env\n"
+            "make_env('spread', heldout='spread/two_with_wanderer', num_worlds=1, resolution=8).close()\n"
+            "print(sorted(m for m in sys.modules if m.startswith(('marl_render.populations', 'marl_render.baselines',"
+            " 'marl_render.bots', 'marl_render.heldout', 'marl_render.policies'))))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
 
 
 def test_python_m_of_the_old_path_runs_the_moved_command():

@@ -166,9 +166,12 @@ def normalised(value: float, random: float, heuristic: float) -> float:
     return (value - random) / (heuristic - random) if heuristic != random else math.nan
 
 
-def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: int = 16, max_steps: int | None = None,
-             references: dict | None = None, gap: bool = False, levels=None, appearance=None) -> list:
-    """One row per scenario (see the module docstring); `references` caches the random and heuristic
+def evaluate_heldout(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: int = 16,
+                     max_steps: int | None = None, references: dict | None = None, gap: bool = False, levels=None,
+                     appearance=None) -> list:
+    """One row per held-out scenario that policy `spec` plays on its focal slots (see the module
+    docstring; ``evaluate`` is its old name, ``marl_render.envs.evaluation.evaluate`` another
+    evaluation: a task's episode returns without bots); `references` caches the random and heuristic
     returns per scenario between calls; `gap` adds the training condition's return; `max_steps`
     shortens the episodes (None: the task's length, the published protocol); `levels` and
     `appearance` are make_env's (None: the scenario's default resets and looks)."""
@@ -212,6 +215,9 @@ def evaluate(spec, scenarios, *, episodes: int = 32, seed: int = 0, resolution: 
             row["generalisation_gap"] = row["training_condition_return"] - mean
         rows.append(row)
     return rows
+
+
+evaluate = evaluate_heldout  # the old name (docs, scripts); marl_render.envs.evaluation.evaluate is another
 
 
 def trains_focal_side(spec, scenario) -> bool:
@@ -644,7 +650,7 @@ def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int
     scenarios = [name for task in tasks for name in list_heldout(task)]
     references: dict = {}
     print(f"held-out tables: {len(scenarios)} scenarios ...", file=sys.stderr, flush=True)
-    rows_by_policy = {label: evaluate(label, scenarios, episodes=episodes, seed=seed, resolution=resolution,
+    rows_by_policy = {label: evaluate_heldout(label, scenarios, episodes=episodes, seed=seed, resolution=resolution,
                                       references=references, gap=True) for label in ("random", "heuristic")}
     unplayable = []
     for task, folders in runs.items():
@@ -660,7 +666,7 @@ def publish_heldout(docs: str, tasks: list, runs: dict, episodes: int, seed: int
                 unplayable.append(f"{os.path.relpath(folder)} (trained with {trained_with} agents) does not play "
                                   f"{task}'s scenarios defined for {', '.join(map(str, sizes))} agents.")
             if fitting:
-                rows_by_policy[f"{run_label(folder).split(' seed')[0]} {os.path.relpath(folder)}"] = evaluate(
+                rows_by_policy[f"{run_label(folder).split(' seed')[0]} {os.path.relpath(folder)}"] = evaluate_heldout(
                     folder, fitting, episodes=episodes, seed=seed, resolution=resolution,
                     references=references, gap=True)
     if unplayable:
@@ -763,8 +769,9 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace) -> in
         parser.error("--policy is required (or --list, or --docs)")
     try:
         scenarios = scenario_names(args.scenario)
-        rows = evaluate(args.policy, scenarios, episodes=args.episodes, seed=args.seed, resolution=args.resolution,
-                        max_steps=args.max_steps, gap=args.gap, levels=args.levels, appearance=args.appearance)
+        rows = evaluate_heldout(args.policy, scenarios, episodes=args.episodes, seed=args.seed,
+                                resolution=args.resolution, max_steps=args.max_steps, gap=args.gap, levels=args.levels,
+                                appearance=args.appearance)
     except (ValueError, FileNotFoundError) as error:
         parser.error(str(error))
     if args.out:

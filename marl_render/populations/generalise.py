@@ -51,8 +51,7 @@ from marl_render.envs.task_imports import add_import_option, load_user_tasks, re
 
 from . import stats
 from .bots import POPULATIONS
-from .evaluate import check_seed, out_problem
-from .evaluate import evaluate as evaluate_heldout
+from .evaluate import check_seed, evaluate_heldout, out_problem
 from .heldout import heldout_scenario, list_heldout
 from .policies import load_policy, required_env_kwargs
 
