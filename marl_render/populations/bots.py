@@ -3,11 +3,12 @@
 In the spirit of Melting Pot's puppets: each bot is the task's heuristic or a parameterised variant
 of it (an interceptor predator that aims ahead, a permuted-code speaker, greedy and tagging
 harvesters, ...). A task declares its bots in its own file, as data on its class (``bots``:
-name -> ``envs.roster.Bot``, with a "train" or "test" population); this module turns them into
-policies. Every bot reads the simulation state and plays any slot; which slots a held-out scenario
-gives it is declared on the task too (``heldout``, read by marl_render/heldout.py).
+name -> ``envs.roster.Bot``, with a "train" or "test" population); envs/bots.py turns them into
+policies (this module's names too), and this one adds a user's with ``register_bot``. Every bot
+reads the simulation state and plays any slot; which slots a held-out scenario gives it is declared
+on the task too (``heldout``, marl_render/populations/heldout.py).
 
-    make_bot("tag", "interceptor")          # a Policy (marl_render/policies.py)
+    make_bot("tag", "interceptor")          # a Policy (envs/policy.py)
     POPULATIONS["tag"]["train"]             # names of the bots users may train with
     POPULATIONS["tag"]["test"]              # names held out for evaluation: none is in "train"
 

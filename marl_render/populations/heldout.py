@@ -1,6 +1,8 @@
 """Held-out scenarios in Melting Pot's sense: a task, its parameters, which slots are focal, and the
-background bots by role, all drawn from the task's test population (marl_render/bots.py). Each task
-declares its own on its class (``heldout``: envs.roster.HeldOut, named "<task>/<name>" here).
+background bots by role, all drawn from the task's test population (populations/bots.py). Each task
+declares its own on its class (``heldout``: envs.roster.HeldOut, named "<task>/<name>" here); the
+envs layer resolves them (envs/bots.py: make_env(heldout=...) needs nothing above it), this module
+lists them and registers a user's with ``register_heldout``.
 
     list_heldout()                       # every scenario's name, e.g. "tag/prey_vs_interceptors"
     HELDOUT["tag/prey_vs_interceptors"]  # its HeldOutScenario
