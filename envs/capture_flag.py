@@ -50,9 +50,9 @@ import torch
 
 from marl_render.validation import COUNT_LIMIT, positive_int, reward_weight
 
-from . import scenery
+from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop, Static, numbered
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 from .scenario import MAX_COUNT
 
 ARENA = (3.0, 4.0)  # half extents (m)
@@ -144,6 +144,17 @@ class CaptureFlag(ArenaScenario):
         HeldOut("duel_red_with_lazy_teammate", "one focal red player with a teammate that idles half the time, "
                 "against attackers", 4, ("red_0",), {"red": ("lazy0.5",), "blue": ("all_attack",)}),
     )
+    card = Card(reward="shared per team, zero-sum: +capture_reward (1) to every agent of a team per capture it "
+                       "scores, -capture_reward per capture of the other team; optional shaping by the progress "
+                       "towards the next capture",
+                episode_end="with captures_to_win > 0, every agent terminates once a team has that many captures; "
+                            "truncated at max_steps",
+                continuous=egomotion.CONTINUOUS_MEANINGS,
+                info={"captures_red": "captures red scored in this step",
+                      "captures_blue": "captures blue scored in this step",
+                      "tags": "agents tagged in this step (commons: out for a while; capture_flag: sent home)",
+                      "flag_carried": "flags carried after the step (0 to 2)"})
+    training = {"budget": {"pixels": 951_296, "state": 966_656}}  # env steps of the published runs
 
     def setup(self):
         N = self.num_agents

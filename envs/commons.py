@@ -51,9 +51,9 @@ import torch
 import marl_render as mr
 from marl_render.validation import COUNT_LIMIT, positive_int
 
-from . import scenery
+from . import egomotion, scenery
 from .arena import NOOP, ArenaScenario, ArenaState, Prop, numbered
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 from .scenario import MAX_COUNT
 
 ARENA = 2.0  # half extent (m)
@@ -149,6 +149,15 @@ class Commons(ArenaScenario):
         HeldOut("resident_with_lazy", "three focal harvesters with two that idle half the time", 5,
                 tuple(numbered("agent", 3)), {"agents": ("lazy0.5",)}),
     )
+    card = Card(reward="per agent: +1 per apple it collects; apples regrow only next to present ones; zapping tags "
+                       "another agent out for tag_timeout (25) steps",
+                episode_end="never terminates; truncated at max_steps",
+                continuous=egomotion.CONTINUOUS_MEANINGS + ("zap (> 0.5: tag the nearest agent in view within 1.5 m)",),
+                info={"collected": "items (forage) or apples (commons) collected in this step",
+                      "apples_left": "apples present after the step",
+                      "tags": "agents tagged in this step (commons: out for a while; capture_flag: sent home)",
+                      "depleted_at": "step of the episode at which the last apple went; -1 while some remain"})
+    training = {"budget": {"pixels": 92_160, "state": 403_456}}  # env steps of the published runs
 
     def setup(self):
         N, self.apples = self.num_agents, apple_layout().to(self.device)

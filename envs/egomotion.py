@@ -22,6 +22,7 @@ DRAG = -math.log(0.75) / DT  # 25% of the velocity lost per step, as in MPE
 # discrete action -> (thrust, turn)
 DISCRETE_ACTIONS = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.0, -1.0), (-1.0, 0.0))
 ACTION_MEANINGS = ("noop", "forward", "turn_left", "turn_right", "backward")
+CONTINUOUS_MEANINGS = ("thrust along the body's heading (+ forward)", "turn rate (+ left)")  # continuous=True's dims
 
 
 def drive(yaw: torch.Tensor, command: torch.Tensor, alive: torch.Tensor, thrust, dt: float):

@@ -17,7 +17,9 @@ say how well a team does against random opponents.
 ``evaluate(name, policy)`` takes any policy: a function ``policy(env, obs, generator) -> actions``
 of every agent (random_policy, heuristic_policy, the trainer's greedy policy) or an object with
 ``act`` (``marl_render.policies.load_policy``'s saved run, ``heuristic_policy()``, a bot), both
-through ``marl_render.policies.as_policy``, so learners are measured the same way.
+through ``as_policy`` (envs/policy.py, the one policy protocol), so learners are measured the same
+way. (``marl_render.evaluate.evaluate_heldout`` is another evaluation: a focal policy on held-out
+scenarios with bots.)
 """
 from __future__ import annotations
 
@@ -29,11 +31,12 @@ import time
 import torch
 
 from marl_render import strict_json
-from marl_render.task_imports import add_import_option, load_user_tasks
 
 from . import options as check
 from .levels import levels_option
+from .policy import as_policy, heuristic_policy, joint_actions
 from .registry import env_class, list_envs, make_env
+from .task_imports import add_import_option, load_user_tasks
 
 
 def random_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
@@ -42,10 +45,6 @@ def random_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
         return env.random_actions(generator)
     mask = obs["action_mask"].reshape(-1, env.num_actions).to(torch.float32)
     return torch.multinomial(mask, 1, generator=generator).reshape(env.num_worlds, env.num_agents)
-
-
-def heuristic_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
-    return env.heuristic_actions()
 
 
 # Env seeds of sealed evaluation sets (marl_render/baselines/settings.py, final_set.py): committed before
@@ -65,9 +64,6 @@ def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution
                          f"final=True (python -m marl_render.baselines --eval-set final --final), got final={final!r}"
                          if seed in SEALED_SEEDS else
                          f"final=True applies to a sealed set's seed {sorted(SEALED_SEEDS)}, got seed {seed}")
-    # Imported here: marl_render.policies imports the baselines' networks, whose package imports this module.
-    from marl_render.policies import as_policy, joint_actions
-
     generator = torch.Generator().manual_seed(seed + 1)
     player = as_policy(policy, generator)  # before the env is built: a policy of no kind fails at once
     env = make_env(name, num_worlds=episodes, resolution=resolution, seed=seed, **kwargs)

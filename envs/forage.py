@@ -41,10 +41,10 @@ import torch
 import marl_render as mr
 from marl_render.validation import COUNT_LIMIT, FLOAT32_MAX, positive_int, reward_weight
 
-from . import scenery
+from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered, wander
 from .levels import Draws, GeneratorDraws
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.3  # items spawn in |x|, |y| <= SPAWN
@@ -105,6 +105,11 @@ class Forage(ArenaScenario):
         HeldOut("two_with_lazy", "two focal foragers with one that idles half the time", 3,
                 tuple(numbered("agent", 2)), {"agents": ("lazy0.5",)}),
     )
+    card = Card(reward="per agent: +item_reward (1) per item it collects",
+                episode_end="never terminates; truncated at max_steps", continuous=egomotion.CONTINUOUS_MEANINGS,
+                info={"collected": "items (forage) or apples (commons) collected in this step",
+                      "team_score": "the team's total reward of the episode so far (sum over agents and steps)"})
+    training = {"budget": {"pixels": 179_200, "state": 1_013_760}}  # env steps of the published runs
 
     def setup(self):
         N = self.num_agents

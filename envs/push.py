@@ -52,9 +52,9 @@ import torch
 import marl_render as mr
 from marl_render.validation import reward_weight
 
-from . import scenery
+from . import egomotion, scenery
 from .arena import ArenaScenario, Prop, Static, numbered
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 
 ARENA = (1.5, 2.0)  # half extents (m)
 GOAL_HALF_WIDTH = 0.5
@@ -148,6 +148,12 @@ class Push(ArenaScenario):
         HeldOut("with_lazy_teammate", "one focal red player with an idle-half-the-time teammate, against ball chasers",
                 4, ("red_0",), {"red": ("lazy0.5",), "blue": ("ball_chaser",)}),
     )
+    card = Card(reward="+goal_reward (1) to every agent of the scoring team, -goal_reward to the other team; "
+                       "optional zero-sum shaping by the ball's progress",
+                episode_end="a goal terminates every agent (one goal per episode); truncated at max_steps",
+                continuous=egomotion.CONTINUOUS_MEANINGS,
+                info={"goal": "+1: red scored in this step, -1: blue scored, 0: no goal"})
+    training = {"budget": {"pixels": 763_904, "state": 939_008}}  # env steps of the published runs
 
     def setup(self):
         N = self.num_agents

@@ -22,6 +22,7 @@ from gymnasium.envs.registration import registry as gymnasium_ids
 
 from marl_render.validation import describe
 
+from . import bots  # the tasks' declared bots and held-out scenarios (it reads env_class back: imported as a module)
 from .core import BatchedEnv
 from .focal import FocalEnv
 from .multiprocess import MultiProcessEnv
@@ -144,7 +145,8 @@ def make_env(name, *, heldout=None, background=None, num_processes=None, **kwarg
     that many worker processes, each with its own GL context, writing into one set of shared
     output tensors: a MultiProcessEnv (envs/multiprocess.py, docs/distributed.md).
 
-    With `heldout` (a name of ``marl_render.heldout.list_heldout()`` or a HeldOutScenario) or
+    With `heldout` (a name of ``marl_render.heldout.list_heldout()``: a task's own scenario or a
+    registered one, envs/bots.py; or a HeldOutScenario) or
     `background` (a Population of bots by role), a focal-only env (envs/focal.py) over that core:
     only the focal agents are exposed, bots play the others."""
     scenario = env_class(name)
@@ -152,10 +154,7 @@ def make_env(name, *, heldout=None, background=None, num_processes=None, **kwarg
         raise ValueError("pass heldout (a held-out scenario, which brings its own bots) or background (a Population), "
                          "not both")
     if heldout is not None:
-        # Imported here: marl_render.heldout imports the bots, which import this package.
-        from marl_render.heldout import heldout_scenario
-
-        held = heldout_scenario(heldout)
+        held = bots.heldout_scenario(heldout)
         if held.task != scenario.name and env_class(held.task) is not scenario:
             raise ValueError(f"heldout {held.name!r} is a scenario of {held.task!r}, not of {scenario.name!r}")
         fixed = held.env_kwargs()

@@ -61,9 +61,9 @@ import torch
 import marl_render as mr
 from marl_render.validation import boolean, finite_float, reward_weight
 
-from . import planar, scenery
+from . import egomotion, planar, scenery
 from .arena import ArenaScenario, ArenaState, Prop, Static, numbered, wander
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 
 ARENA = 3.0  # half extent (m)
 GRID = 3  # rooms per side
@@ -173,6 +173,17 @@ class Rooms(ArenaScenario):
         HeldOut("with_noisy", "a focal explorer with a partner that acts at random half the time", 2, ("agent_0",),
                 {"agents": ("noisy0.5",)}),
     )
+    card = Card(reward="shared: +found_reward (1) when any agent first reaches the goal; with return_home another "
+                       "+found_reward when an agent that reached it is first back in the home room; -step_penalty (0) "
+                       "per step; optional +explore_reward per room first entered",
+                episode_end="the goal found (with return_home: a finder back home) terminates every agent; truncated "
+                            "at max_steps",
+                continuous=egomotion.CONTINUOUS_MEANINGS,
+                info={"found": "1 once an agent has reached the goal in this episode",
+                      "returned": "1 once an agent that reached the goal is back in the home room (return_home; else "
+                                  "always 0)",
+                      "rooms_visited": "distinct rooms any agent has been in this episode (the home room included)"})
+    training = {"budget": {"pixels": 880_640, "state": 794_624}}  # env steps of the published runs
 
     def setup(self):
         N = self.num_agents

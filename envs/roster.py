@@ -1,6 +1,6 @@
-"""What a task declares besides its rules: its scripted bots, held-out scenarios, sides, card text
-and training defaults, as data on the ``Scenario`` class (Melting Pot keeps rosters as data; VMAS
-keeps the heuristic in the task file). Nothing here runs a policy: the populations layer
+"""What a task declares besides its rules: its scripted bots, held-out scenarios, sides, card
+(``Card``, or a str of prose) and training defaults, as data on the ``Scenario`` class (Melting
+Pot keeps rosters as data; VMAS keeps the heuristic in the task file). Nothing here runs a policy: the populations layer
 (``marl_render.populations.bots``, ``marl_render.populations.heldout``) turns these declarations
 into bots and scenarios, so that adding a task touches one file.
 
@@ -44,6 +44,27 @@ class Bot:
     def lazy(cls, p: float, population: str = "test") -> Bot:
         return cls(f"the heuristic, playing noop with probability {p:g}", population=population,
                    variant=("lazy", p))
+
+
+@dataclasses.dataclass(frozen=True)
+class Card:
+    """What a task's docs card (examples/make_env_docs.py) says that its code cannot: `text`, a
+    paragraph under the card's title; `reward` and `episode_end`, one line each (the suite's table
+    in docs/envs.md and the card's facts); `continuous`, the meaning of each continuous action
+    dimension; `info`, the meaning of each of the task's ``info_keys``. ``Scenario.card`` may also be
+    a plain str: ``Card(text=that str)``."""
+
+    text: str = ""
+    reward: str = ""
+    episode_end: str = ""
+    continuous: tuple = ()
+    info: dict = dataclasses.field(default_factory=dict)
+
+
+def card_of(scenario_class) -> Card:
+    """The task's ``card`` as a Card (a str is its text)."""
+    card = scenario_class.card
+    return Card(text=card) if isinstance(card, str) else card
 
 
 @dataclasses.dataclass(frozen=True)

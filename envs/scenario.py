@@ -121,7 +121,7 @@ class Scenario(abc.ABC):
     bots: dict = {}  # bot name -> roster.Bot (the heuristic itself is always in the "train" population)
     heldout: tuple = ()  # roster.HeldOut scenarios, named "<task>/<name>", played by "test" bots only
     sides: tuple = ()  # (team A, team B) of a competitive task: cross-play puts A's policies against B's
-    card: str = ""  # the docs card's prose (markdown); "": the class docstring's first paragraph
+    card = ""  # the docs card's words: a roster.Card (prose, reward, episode end, meanings) or a str of prose
     training: dict = {}  # trainer defaults: Hyperparameters overrides, and "budget": {"pixels": N, "state": M}
     # A mixed-motive game (social dilemmas: commons, matrix, ...): its episodes report social outcomes
     # (envs/episodes.py; tagged_out says who is out of play) and end at random (episode_end).

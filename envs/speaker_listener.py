@@ -37,7 +37,7 @@ from marl_render.validation import positive_int
 
 from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 
 ARENA = 1.5
 SPEAKER_POS = (0.0, -1.2)
@@ -106,6 +106,15 @@ class SpeakerListener(ArenaScenario):
         HeldOut("deaf_listener", "a focal speaker with a listener that ignores the lamp", 2, ("speaker_0",),
                 {"listener": ("first_target_listener",)}),
     )
+    card = Card(reward="shared: -0.1 x the listener's distance to the goal per step, +1 when it reaches the goal",
+                episode_end="the listener reaching the goal terminates both agents; truncated at max_steps",
+                continuous=egomotion.CONTINUOUS_MEANINGS + tuple(
+                    f"lamp value of target {k}: the lamp shows the colour of the largest when it is above 0.5 (the "
+                    f"speaker's only)" for k in range(3)),
+                info={"reached": "1 on the step the listener reaches the goal",
+                      "distance": "the listener's distance to the goal (m)",
+                      "lamp_correct": "1 while the lamp shows the goal's colour"})
+    training = {"budget": {"pixels": 167_936, "state": 1_039_360}}  # env steps of the published runs
 
     def setup(self):
         K = self.num_targets = self.params.num_targets

@@ -31,9 +31,9 @@ import torch
 
 from marl_render.validation import positive_int, reward_weight
 
-from . import scenery
+from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered, wander
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.2  # agents and landmarks spawn in |x|, |y| <= SPAWN
@@ -97,6 +97,12 @@ class Spread(ArenaScenario):
         HeldOut("two_with_wanderer", "two focal agents with one partner that wanders", 3, tuple(numbered("agent", 2)),
                 {"agents": ("wanderer",)}),
     )
+    card = Card(reward="shared by all agents: -(sum over landmarks of the distance to the closest agent) - "
+                       "collision_penalty x (agent pairs touching)",
+                episode_end="never terminates; truncated at max_steps", continuous=egomotion.CONTINUOUS_MEANINGS,
+                info={"collisions": "agent pairs touching (gap < 0.02 m) after the step",
+                      "coverage": "sum over landmarks of the distance to the closest agent (m)"})
+    training = {"budget": {"pixels": 573_440, "state": 1_047_552}}  # env steps of the published runs
 
     def setup(self):
         N = self.num_agents

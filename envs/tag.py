@@ -58,9 +58,9 @@ import torch
 
 from marl_render.validation import positive_int, reward_weight
 
-from . import planar, scenery
+from . import egomotion, planar, scenery
 from .arena import NOOP, ArenaScenario, ArenaState, Prop, numbered, wander
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 
 ARENA = 1.5  # half extent (m)
 OBSTACLE_HALF = 0.2  # half side of the square obstacles (m)
@@ -170,6 +170,13 @@ class Tag(ArenaScenario):
                 tuple(numbered("predator", 2)),
                 {"predator": ("interceptor",), "prey": ("wandering_prey", "corner_prey")}),
     )
+    card = Card(reward="predators: +catch_reward (10) each per prey caught by any predator; a caught prey: "
+                       "-catch_reward; optional distance shaping",
+                episode_end="a caught prey terminates (leaves the episode); every agent terminates when all prey are "
+                            "caught; truncated at max_steps",
+                continuous=egomotion.CONTINUOUS_MEANINGS,
+                info={"caught": "prey caught in this step", "prey_left": "live prey after the step"})
+    training = {"budget": {"pixels": 542_720, "state": 702_464}}  # env steps of the published runs
 
     @classmethod
     def num_agents_for(cls, params, num_agents):

@@ -20,10 +20,10 @@ random and heuristic returns come from docs/difficulty_returns.json (written by 
 command the card names).
 
 ``card(name, seed, picture_dir)`` makes the same card for any registered task, a user's too.
-Only the one-line summaries of reward and episode end, the meaning of the continuous action
-dimensions and of the info keys are written here by hand (the code has no names for them); a
-built-in env or info key without one stops the script with an error naming this file (a
-user's task gets blank cells).
+What the code has no names for (the one-line summaries of reward and episode end, the meaning of
+the continuous action dimensions and of the info keys, a paragraph under the title) is the task's
+own ``card`` (envs/roster.py's Card, on the task class); a built-in env without one stops the
+script with an error naming the task's file (a user's task gets blank cells).
 
 tests/test_examples.py runs this script and fails when a page differs from its output.
 """
@@ -43,6 +43,7 @@ from PIL import Image, ImageDraw, ImageFont
 
 from marl_render.baselines import report
 from marl_render.envs import env_class, list_envs, make_env, make_parallel_env, make_torchrl_env
+from marl_render.envs.roster import card_of
 from record_video import frame_image  # examples/record_video.py: labelled views beside the overview
 
 WORLDS = 2  # worlds of the envs built here; shapes print it as "W"
@@ -55,76 +56,19 @@ DIFFICULTIES = ("easy", "medium", "hard")
 DIFFICULTY_COMMAND = ("python -m marl_render.envs.evaluation --env all --difficulty all --json "
                       "> docs/difficulty_returns.json")
 
-SUMMARY = {  # env -> (reward, episode end), read from envs/NAME.py
-    "cartpole": ("dm_control's balance reward in [0, 1] per step: upright x centred x small control "
-                 "x small velocity",
-                 "never terminates; truncated at max_steps"),
-    "spread": ("shared by all agents: -(sum over landmarks of the distance to the closest agent) "
-               "- collision_penalty x (agent pairs touching)",
-               "never terminates; truncated at max_steps"),
-    "tag": ("predators: +catch_reward (10) each per prey caught by any predator; a caught prey: "
-            "-catch_reward; optional distance shaping",
-            "a caught prey terminates (leaves the episode); every agent terminates when all prey are "
-            "caught; truncated at max_steps"),
-    "forage": ("per agent: +item_reward (1) per item it collects",
-               "never terminates; truncated at max_steps"),
-    "push": ("+goal_reward (1) to every agent of the scoring team, -goal_reward to the other team; "
-             "optional zero-sum shaping by the ball's progress",
-             "a goal terminates every agent (one goal per episode); truncated at max_steps"),
-    "speaker_listener": ("shared: -0.1 x the listener's distance to the goal per step, +1 when it reaches the goal",
-                         "the listener reaching the goal terminates both agents; truncated at max_steps"),
-    "rooms": ("shared: +found_reward (1) when any agent first reaches the goal; with return_home another "
-              "+found_reward when an agent that reached it is first back in the home room; -step_penalty (0) per step; "
-              "optional +explore_reward per room first entered",
-              "the goal found (with return_home: a finder back home) terminates every agent; truncated at max_steps"),
-    "commons": ("per agent: +1 per apple it collects; apples regrow only next to present ones; zapping "
-                "tags another agent out for tag_timeout (25) steps",
-                "never terminates; truncated at max_steps"),
-    "capture_flag": ("shared per team, zero-sum: +capture_reward (1) to every agent of a team per capture it "
-                     "scores, -capture_reward per capture of the other team; optional shaping by the progress towards "
-                     "the next capture",
-                     "with captures_to_win > 0, every agent terminates once a team has that many captures; "
-                     "truncated at max_steps"),
-}
-EGOCENTRIC_DIMS = ("thrust along the body's heading (+ forward)", "turn rate (+ left)")
-CONTINUOUS_DIMS = {  # env -> meaning of each continuous action dimension, all in [-1, 1]
-    "cartpole": ("motor control: force on the cart, x 10 N (gear 10)",),
-    "spread": EGOCENTRIC_DIMS, "tag": EGOCENTRIC_DIMS, "forage": EGOCENTRIC_DIMS, "push": EGOCENTRIC_DIMS,
-    "rooms": EGOCENTRIC_DIMS,
-    "speaker_listener": EGOCENTRIC_DIMS + tuple(f"lamp value of target {k}: the lamp shows the colour of the largest "
-                                                f"when it is above 0.5 (the speaker's only)" for k in range(3)),
-    "commons": EGOCENTRIC_DIMS + ("zap (> 0.5: tag the nearest agent in view within 1.5 m)",),
-    "capture_flag": EGOCENTRIC_DIMS,
-}
-INFO = {  # step info key -> meaning
+DRIVER_INFO = {  # step info keys of every task -> meaning (a task's own: its card's info)
     "step_count": "steps of the episode just stepped",
     "done_worlds": "every agent of the world terminated or truncated",
-    "collisions": "agent pairs touching (gap < 0.02 m) after the step",
-    "coverage": "sum over landmarks of the distance to the closest agent (m)",
-    "caught": "prey caught in this step",
-    "prey_left": "live prey after the step",
-    "collected": "items (forage) or apples (commons) collected in this step",
-    "apples_left": "apples present after the step",
-    "tags": "agents tagged in this step (commons: out for a while; capture_flag: sent home)",
-    "depleted_at": "step of the episode at which the last apple went; -1 while some remain",
-    "team_score": "the team's total reward of the episode so far (sum over agents and steps)",
-    "goal": "+1: red scored in this step, -1: blue scored, 0: no goal",
-    "found": "1 once an agent has reached the goal in this episode",
-    "returned": "1 once an agent that reached the goal is back in the home room (return_home; else always 0)",
-    "rooms_visited": "distinct rooms any agent has been in this episode (the home room included)",
-    "reached": "1 on the step the listener reaches the goal",
-    "distance": "the listener's distance to the goal (m)",
-    "lamp_correct": "1 while the lamp shows the goal's colour",
-    "captures_red": "captures red scored in this step",
-    "captures_blue": "captures blue scored in this step",
-    "flag_carried": "flags carried after the step (0 to 2)",
 }
 CONDITION = {"pixels": "always", "depth": "`depth=True`", "state": "`state_obs=True`",
              "action_mask": "discrete actions (the default)"}
 
 
 def missing(what: str, name: str) -> KeyError:
-    return KeyError(f"no {what} for {name!r}: add one to {what} in examples/make_env_docs.py")
+    """The error of a built-in task whose card lacks `what` (envs/roster.py's Card, on the class)."""
+    cls = env_class(name)
+    return KeyError(f"no {what} for {name!r}: add it to the card of {cls.__name__} ({cls.__module__}: "
+                    f"card = Card(...), envs/roster.py)")
 
 
 def shape(tensor_shape) -> str:
@@ -172,11 +116,12 @@ def observations(name: str):
         obs_rows = [(f"`{key}`", shape(value.shape), dtype(value.dtype), value_range(value),
                      CONDITION.get(key, "always")) for key, value in obs.items()]
         info = env.step(env.random_actions(torch.Generator().manual_seed(0)))[-1]
+    meanings = {**DRIVER_INFO, **card_of(env_class(name)).info}
     info_rows = []
     for key, value in info.items():
-        if key not in INFO and builtin(name):
-            raise missing("INFO", key)
-        info_rows.append((f"`{key}`", shape(value.shape), dtype(value.dtype), INFO.get(key, "")))
+        if key not in meanings and builtin(name):
+            raise missing(f"info meaning of {key!r}", name)
+        info_rows.append((f"`{key}`", shape(value.shape), dtype(value.dtype), meanings.get(key, "")))
     return obs_rows, info_rows
 
 
@@ -199,9 +144,9 @@ def actions(env, name: str) -> list:
              f"[0, {env.num_actions}).", ""]
     lines += table(("action", "meaning"), [(i, f"`{m}`") for i, m in enumerate(env.action_meanings)])
     with make_env(name, num_worlds=WORLDS, continuous=True) as continuous:
-        dims = CONTINUOUS_DIMS.get(name, ("",) * continuous.action_dim if not builtin(name) else None)
-        if dims is None or len(dims) != continuous.action_dim:
-            raise missing("CONTINUOUS_DIMS", name)
+        dims = card_of(env_class(name)).continuous or (("",) * continuous.action_dim if not builtin(name) else ())
+        if len(dims) != continuous.action_dim:
+            raise missing(f"meaning of each of the {continuous.action_dim} continuous action dimensions", name)
         dims_shape = shape((WORLDS, env.num_agents, continuous.action_dim))
         lines += ["", f"Continuous (`continuous=True`): `float32 {dims_shape}`, each in [-1, 1].", ""]
         lines += table(("dimension", "meaning"), list(enumerate(dims)))
@@ -359,9 +304,10 @@ def card(name: str, seed: int | None, picture_dir: str | None, animate: bool = T
     picture NAME.png and (`animate`) the animation NAME.gif there."""
     cls = env_class(name)
     seed = PICTURE_SEEDS.get(name, 0) if seed is None else seed
-    if name not in SUMMARY and builtin(name):
-        raise missing("SUMMARY", name)
-    reward, episode = SUMMARY.get(name, ("see the rules below",) * 2)
+    words = card_of(cls)
+    if builtin(name) and not (words.reward and words.episode_end):
+        raise missing("reward and episode_end", name)
+    reward, episode = words.reward or "see the rules below", words.episode_end or "see the rules below"
     title, rules = docstring_parts(cls)
     obs_rows, info_rows = observations(name)
     with make_env(name, num_worlds=WORLDS) as env:
@@ -369,7 +315,7 @@ def card(name: str, seed: int | None, picture_dir: str | None, animate: bool = T
         H, W = env.resolution
         oh, ow = cls.overview_resolution
         lines = [f"# {name}", "", "<!-- Generated by examples/make_env_docs.py from the task's class. -->", "",
-                 title, ""]
+                 title, ""] + ([words.text, ""] if words.text else [])
         if picture_dir is not None:
             picture(env, seed, os.path.join(picture_dir, f"{name}.png"))
         lines += [f"![{name}: every agent's view of one world, and the overview]({name}.png)", "",
@@ -529,10 +475,12 @@ def page(seed: int | None, picture_dir: str | None) -> str:
              "`max_steps`.", ""]
     rows = []
     for name in names:
-        if name not in SUMMARY:
-            raise missing("SUMMARY", name)
         cls = env_class(name)
-        rows.append((f"[`{name}`](envs/{name}.md)", cls.default_num_agents, cls.default_max_steps, *SUMMARY[name]))
+        words = card_of(cls)
+        if not (words.reward and words.episode_end):
+            raise missing("reward and episode_end", name)
+        rows.append((f"[`{name}`](envs/{name}.md)", cls.default_num_agents, cls.default_max_steps, words.reward,
+                     words.episode_end))
     lines += table(("env", "agents", "max_steps", "reward", "episode end"), rows) + [""]
     lines += ["Each task has a card generated from its class (`python examples/make_env_docs.py`): its parameters, "
               "a picture and an animation of the heuristic, its returns and speed, observations, actions, step info, "

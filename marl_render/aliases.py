@@ -48,6 +48,18 @@ MOVED = {
     "marl_render.sky": "marl_render.render.sky",
     "marl_render.tiling": "marl_render.render.tiling",
     "marl_render.triangle_corners": "marl_render.render.triangle_corners",
+    # populations: policies, bots, held-out scenarios, their evaluation and pages, Elo, play
+    "marl_render.policies": "marl_render.populations.policies",
+    "marl_render.bots": "marl_render.populations.bots",
+    "marl_render.heldout": "marl_render.populations.heldout",
+    "marl_render.evaluate": "marl_render.populations.evaluate",
+    "marl_render.elo": "marl_render.populations.elo",
+    "marl_render.play": "marl_render.populations.play",
+    "marl_render.generalise": "marl_render.populations.generalise",
+    "marl_render.baselines.networks": "marl_render.populations.networks",
+    "marl_render.baselines.stats": "marl_render.populations.stats",
+    # envs: the --import option of every command line (envs/evaluation.py reads it)
+    "marl_render.task_imports": "marl_render.envs.task_imports",
 }
 
 

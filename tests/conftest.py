@@ -43,13 +43,13 @@ def registries():
     """The bot and held-out scenario registries as they were, restored after the test (they are
     module-global: register_bot and register_heldout write into them; the tasks' own bots and
     scenarios are on their classes)."""
-    from marl_render import bots, heldout  # the library only once a test asks for it
+    from marl_render.envs import bots  # the library only once a test asks for it
 
-    registered_bots, registered_scenarios = dict(bots._REGISTERED), list(heldout._REGISTERED)
+    registered_bots, registered_scenarios = dict(bots.REGISTERED_BOTS), list(bots.REGISTERED_SCENARIOS)
     yield
-    bots._REGISTERED.clear()
-    bots._REGISTERED.update(registered_bots)
-    heldout._REGISTERED[:] = registered_scenarios
+    bots.REGISTERED_BOTS.clear()
+    bots.REGISTERED_BOTS.update(registered_bots)
+    bots.REGISTERED_SCENARIOS[:] = registered_scenarios
 
 
 @pytest.fixture(scope="module")

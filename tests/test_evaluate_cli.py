@@ -15,6 +15,7 @@ from marl_render import evaluate as evaluation
 from marl_render.baselines.networks import Actor
 from marl_render.envs import env_class, make_env
 from marl_render.policies import load_policy
+from marl_render.populations import pages, scores
 
 
 def saved_run(folder: Path, task: str | None, actions: int = 5, **extra) -> str:
@@ -37,7 +38,7 @@ def nothing_played(monkeypatch):
     """Any episode played fails the test: the errors below must come before the work."""
     def play(env, policy):
         raise AssertionError("an episode was played before the error")
-    monkeypatch.setattr(evaluation, "play", play)
+    monkeypatch.setattr(scores, "play", play)  # what cross-play and the held-out scores call
 
 
 def refused(argv, capsys) -> str:
@@ -171,6 +172,6 @@ def test_a_closed_pipe_ends_the_listing_quietly(monkeypatch, capsys):
 
 
 def test_scores_that_round_to_zero_print_without_a_minus_sign():
-    assert [evaluation._fmt(v) for v in (-0.001, -0.0, 0.004, -0.006, None, float("nan"))] == [
+    assert [pages._fmt(v) for v in (-0.001, -0.0, 0.004, -0.006, None, float("nan"))] == [
         "0.00", "0.00", "0.00", "-0.01", "n/a", "n/a"]
-    assert evaluation._fmt(-0.4, 0) == "0" and evaluation._fmt(-0.6, 0) == "-1"
+    assert pages._fmt(-0.4, 0) == "0" and pages._fmt(-0.6, 0) == "-1"

@@ -19,25 +19,10 @@ LAYERS = (
     (1, "assets", ("marl_render.assets",)),
     (2, "render", ("marl_render.render", "marl_render")),  # the package root re-exports the renderer's names
     (3, "envs", ("marl_render.envs",)),
-    (4, "populations", ("marl_render.populations",
-                        # still at the top level until they move into populations/ (issue 40)
-                        "marl_render.bots", "marl_render.elo", "marl_render.evaluate", "marl_render.generalise",
-                        "marl_render.heldout", "marl_render.play", "marl_render.policies",
-                        "marl_render.task_imports")),
+    (4, "populations", ("marl_render.populations",)),
     (4, "front ends", ("marl_render.wrappers",)),
     (5, "tools", ("marl_render.baselines", "marl_render.bench")),
 )
-
-# Known imports from a lower layer to a higher one, each being removed (issue 40: the populations
-# move). "importer -> imported" as real module names; this list is to end empty.
-KNOWN_UPWARD = {
-    "marl_render.envs.registry -> marl_render.heldout",
-    "marl_render.envs.evaluation -> marl_render.policies",
-    "marl_render.envs.evaluation -> marl_render.task_imports",
-    "marl_render.policies -> marl_render.baselines.networks",
-    "marl_render.generalise -> marl_render.baselines.stats",
-}
-
 
 def package_modules() -> dict[str, Path]:
     """Dotted name -> file of every module of the package (envs/ is marl_render.envs)."""
@@ -102,13 +87,8 @@ def upward_imports() -> list[str]:
 
 
 def test_no_module_imports_a_higher_layer():
-    unexpected = sorted(set(upward_imports()) - KNOWN_UPWARD)
-    assert unexpected == [], "a lower layer imports a higher one (docs/architecture.md: where each change goes)"
-
-
-def test_the_known_upward_imports_are_still_there():
-    """An entry of KNOWN_UPWARD that was fixed leaves the list with its fix."""
-    assert sorted(KNOWN_UPWARD - set(upward_imports())) == []
+    upward = sorted(upward_imports())
+    assert upward == [], "a lower layer imports a higher one (docs/architecture.md: where each change goes)"
 
 
 def test_every_module_is_in_a_layer():

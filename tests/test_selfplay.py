@@ -17,6 +17,7 @@ from marl_render.baselines.networks import Actor
 from marl_render.baselines.selfplay import SelfPlay, SnapshotPool, team_index
 from marl_render.envs import list_envs, registry
 from marl_render.policies import load_policy
+from marl_render.populations import pages, scores
 
 TESTS = pathlib.Path(__file__).resolve().parent
 # 4 updates of 4 worlds x 4 decisions (16 env steps each) of 6-step episodes, 12 px: a snapshot every 2
@@ -254,7 +255,7 @@ def test_the_held_out_page_plays_mappo_runs_and_self_play_final_actors_but_not_s
     make_run(selfplay / "snapshots" / "000", {"snapshot": {"id": 0, "env_steps": 0}})
     small = tmp_path / "baselines" / "tag" / "seed1"  # trained with 3 agents: tag's scenarios have 4
     make_run(small, {"seeds": {"train": 1}})
-    monkeypatch.setattr(evaluation, "load_policy", lambda folder: types.SimpleNamespace(
+    monkeypatch.setattr(scores, "load_policy", lambda folder: types.SimpleNamespace(
         num_agents=3 if folder == str(small) else 4))
     played = []
 
@@ -263,12 +264,12 @@ def test_the_held_out_page_plays_mappo_runs_and_self_play_final_actors_but_not_s
         return [{"scenario": name, "tags": "visitor", "focal_return_mean": 1.0, "focal_return_std": 0.0,
                  "background_return_mean": 0.0, "normalised_score": 0.5, "bots_sampled": {"interceptor": 1},
                  "training_condition_return": 2.0, "generalisation_gap": 1.0} for name in scenarios]
-    monkeypatch.setattr(evaluation, "evaluate", fake_evaluate)
-    monkeypatch.setattr(evaluation, "crossplay", lambda task, roster, **kwargs: {
+    monkeypatch.setattr(scores, "evaluate_heldout", fake_evaluate)
+    monkeypatch.setattr(scores, "crossplay", lambda task, roster, **kwargs: {
         "task": task, "sides": ["predator", "prey"], "episodes": 1, "policies": list(roster),
         "elo": [0.0] * len(roster), "win_rate": [[0.5] * len(roster)] * len(roster),
         "returns_a": [[0.0] * len(roster)] * len(roster), "returns_b": [[0.0] * len(roster)] * len(roster)})
-    monkeypatch.setattr(evaluation, "heatmap", lambda result, path: None)
+    monkeypatch.setattr(pages, "heatmap", lambda result, path: None)
     docs = tmp_path / "docs"
     evaluation.publish(docs=str(docs), tasks=["tag"], baselines=str(tmp_path / "baselines"),
                        selfplay=str(tmp_path / "selfplay"))
@@ -282,7 +283,7 @@ def test_the_held_out_page_plays_mappo_runs_and_self_play_final_actors_but_not_s
     assert len(list((docs / "heldout").glob("selfplay_*.json"))) == 1
     assert (docs / "crossplay.md").is_file()
     (docs / "crossplay.md").unlink()
-    monkeypatch.setattr(evaluation, "crossplay", None)  # --heldout-only plays no cross-play
+    monkeypatch.setattr(scores, "crossplay", None)  # --heldout-only plays no cross-play
     evaluation.publish(docs=str(docs), tasks=["tag"], baselines=str(tmp_path / "baselines"),
                        selfplay=str(tmp_path / "selfplay"), heldout_only=True)
     assert not (docs / "crossplay.md").exists() and played[4:] == played[:4]
@@ -320,7 +321,7 @@ def test_cross_play_takes_the_pairs_it_played_before_from_the_earlier_result(due
         ("random", "random"), ("random", "heuristic"), ("heuristic", "random"), ("heuristic", "heuristic")]
     played = []
     real_play = evaluation.play
-    monkeypatch.setattr(evaluation, "play", lambda env, policy: played.append(policy.name) or real_play(env, policy))
+    monkeypatch.setattr(scores, "play", lambda env, policy: played.append(policy.name) or real_play(env, policy))
     roster = {**pair, "snapshot": str(duel_runs / "imported" / "snapshots" / "001")}
     second = evaluation.crossplay("beacon_duel", roster, episodes=2, resolution=12, previous=first)
     assert len(played) == 5  # the 9 pairs less the 4 known ones, which keep their outcomes

@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 
 from marl_render.envs.evaluation import best_constant_action, evaluate, opponent_mask
-from marl_render.policies import load_policy
+from marl_render.populations.policies import load_policy
 
 from .policy import GreedyPolicy
 from .published import ROOT, RUNS

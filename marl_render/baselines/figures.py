@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import stats
+from marl_render.populations import stats
 
 LEVELS = (("random", "grey", "--"), ("heuristic", "orange", "-."))
 SEED_COLORS = ("tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")

@@ -44,8 +44,9 @@ import torch
 
 from marl_render import strict_json
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
+from marl_render.populations import stats
 
-from . import published, stats
+from . import published
 from .settings import task_hyperparameters
 from .training import train
 

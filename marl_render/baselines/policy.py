@@ -1,4 +1,7 @@
-"""The learned policy as ``marl_render.envs.evaluation.evaluate`` takes it: greedy actions.
+"""The learned policy during training, as ``marl_render.envs.evaluation.evaluate`` takes it: greedy
+actions. A function policy ``policy(env, obs, generator)``, which ``as_policy`` adapts to the one
+policy protocol (envs/policy.py); a saved run is ``load_policy``'s ``ActorPolicy``
+(marl_render/populations/policies.py).
 
 ``evaluate`` calls ``policy(env, obs, generator)`` once per step from a fresh reset; the policy
 decides every ``action_repeat`` steps on its stack of decision frames, as in training, and
@@ -8,7 +11,8 @@ from __future__ import annotations
 
 import torch
 
-from .networks import Actor
+from marl_render.populations.networks import Actor
+
 from .ppo import FrameStack
 
 

@@ -40,9 +40,9 @@ from torch import nn
 
 from marl_render.envs import make_env
 from marl_render.envs.evaluation import opponent_mask, random_policy
+from marl_render.populations.networks import Actor, CentralCritic, merge_moments
 
 from .advantage import generalized_advantage
-from .networks import Actor, CentralCritic, merge_moments
 from .selfplay import SelfPlay, SnapshotPool, team_index
 from .settings import Hyperparameters
 

@@ -30,8 +30,9 @@ import numpy as np
 
 from marl_render.envs import list_envs
 from marl_render.envs.evaluation import SEALED_SEEDS
+from marl_render.populations import stats
 
-from . import figures, marl_eval, stats
+from . import figures, marl_eval
 from .ablate import ABLATION, CONSTANT_ACTIONS
 from .published import BUDGET_FLAG, EVALUATION_SET_FLAG, OBSERVATIONS, ROOT, folder, learner_argv
 from .settings import EVALUATION_SETS, Hyperparameters

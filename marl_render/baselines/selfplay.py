@@ -22,7 +22,7 @@ import math
 
 import torch
 
-from .networks import Actor
+from marl_render.populations.networks import Actor
 
 # Defaults, for a budget of 0.5-1 million env steps summed over 32 worlds (the competitive tasks' budgets):
 # a snapshot every ~49 updates of 32 x 32 decisions gives 11-19 snapshots per run, of which the last 10 (the

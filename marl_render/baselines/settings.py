@@ -7,7 +7,9 @@ the pole moves by less than a pixel). Command-line options override both.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 
+from marl_render.envs import env_class, list_envs
 from marl_render.envs.evaluation import SEALED_SEEDS
 
 SEALED_SEEDS_BY_NAME = {name: seed for seed, name in SEALED_SEEDS.items()}
@@ -45,33 +47,43 @@ class Hyperparameters:
     aux_state: float = 0.0
 
 
-TASK_DEFAULTS: dict = {
-    # 48 pixels: at 32 the 9 cm pole is thinner than a pixel and is not drawn at all. Action repeat 8:
-    # the state-feedback heuristic still scores 982 holding each action 8 steps, and a decision then
-    # costs half the CNN work per env step. 10 x 8 passes: 4 x 4 left the same learner on the state
-    # at ~650 (it learns to drift and let the pole fall); 10 x 8 reaches 994 from the state.
-    "cartpole": dict(worlds=64, resolution=48, frames=2, action_repeat=8, rollout=32, epochs=10, minibatches=8,
-                     entropy=0.003),
-}
+class _TaskTraining(Mapping):
+    """A read-only table over the registered tasks, read from each task's class: ``Scenario.training``
+    (envs/roster.py) holds a task's Hyperparameters overrides and its step budget ("budget")."""
+
+    def __init__(self, part: str):
+        self.part = part  # "defaults": the overrides; "budget": {"pixels": N, "state": M}
+
+    def __getitem__(self, task):
+        if not isinstance(task, str) or task not in list_envs():
+            raise KeyError(task)
+        found = self._read(env_class(task).training)
+        if not found:
+            raise KeyError(task)
+        return found
+
+    def _read(self, training: dict) -> dict:
+        if self.part == "budget":
+            return dict(training.get("budget", {}))
+        return {key: value for key, value in training.items() if key != "budget"}
+
+    def __iter__(self):
+        return iter([task for task in list_envs() if self._read(env_class(task).training)])
+
+    def __len__(self):
+        return len(list(iter(self)))
+
+
+TASK_DEFAULTS = _TaskTraining("defaults")  # task -> what it changes of Hyperparameters() (its class's training)
 
 FIELDS = tuple(field.name for field in dataclasses.fields(Hyperparameters))
 
 # The step budget of a run when --env-steps and --updates are left out (env steps summed over worlds), per
-# task and observation: what each reference run of docs/baselines.md trains for. Each is the env steps of
-# the task's published run (the last ones budgeted on the wall-clock), so that a rerun on any machine
-# trains as far. Half of them was tried with the faster learner (docs/baselines/notes.md, "Learning at
-# half the budget"): too little for every task rerun so far.
-STEP_BUDGETS: dict = {
-    "capture_flag": {"pixels": 951_296, "state": 966_656},
-    "cartpole": {"pixels": 5_226_496, "state": 2_490_368},
-    "commons": {"pixels": 92_160, "state": 403_456},
-    "forage": {"pixels": 179_200, "state": 1_013_760},
-    "push": {"pixels": 763_904, "state": 939_008},
-    "rooms": {"pixels": 880_640, "state": 794_624},
-    "speaker_listener": {"pixels": 167_936, "state": 1_039_360},
-    "spread": {"pixels": 573_440, "state": 1_047_552},
-    "tag": {"pixels": 542_720, "state": 702_464},
-}
+# task and observation (its class's training["budget"]): what each reference run of docs/baselines.md trains
+# for. Each is the env steps of the task's published run (the last ones budgeted on the wall-clock), so that
+# a rerun on any machine trains as far. Half of them was tried with the faster learner
+# (docs/baselines/notes.md, "Learning at half the budget"): too little for every task rerun so far.
+STEP_BUDGETS = _TaskTraining("budget")
 DEFAULT_STEP_BUDGET = 500_000  # a task without an entry above (e.g. one a user registered)
 
 # Named sets of evaluation episodes: env seed (one episode per world of that env) and episode count.

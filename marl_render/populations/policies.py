@@ -17,8 +17,10 @@ one batched call per distinct bot, never a loop over worlds.
   (frame stacks, held actions) is kept per (world, slot) and cleared there.
 
 ``needs`` names the observation keys it reads ("pixels", "state", "action_mask"); "sim" means it
-reads the driver's simulation state instead. Task-specific bots (heuristic variants, the training
-and test populations) are in marl_render/bots.py; a self-play snapshot is an ``ActorPolicy``.
+reads the driver's simulation state instead. The protocol and its adapters (``Policy``,
+``as_policy``, ``RandomPolicy``, ``heuristic_policy``, ...) are the envs layer's (envs/policy.py),
+importable from here as before; this module loads trained runs (``load_policy``, ``ActorPolicy``:
+a self-play snapshot is one too). Task-specific bots are declared by the tasks (envs/roster.py).
 """
 from __future__ import annotations
 
@@ -28,10 +30,23 @@ import pickle
 
 import torch
 
-from marl_render.baselines.networks import Actor
 from marl_render.envs import env_class, list_envs
-from marl_render.envs.masking import sample_allowed
+from marl_render.envs.policy import (
+    CallablePolicy,
+    Policy,
+    RandomPolicy,
+    ScriptedPolicy,
+    as_policy,
+    heuristic_policy,
+    joint_actions,
+)
 from marl_render.validation import describe
+
+from .networks import Actor
+
+# The protocol and its adapters are the envs layer's (envs/policy.py): this module's names too, as they were.
+__all__ = ["ActorPolicy", "CallablePolicy", "Policy", "RandomPolicy", "ScriptedPolicy", "TRAINING_CONDITION",
+           "as_policy", "heuristic_policy", "joint_actions", "load_policy", "required_env_kwargs"]
 
 # Keys of a loaded run's env_kwargs that say where it trained, not what its actor needs: an
 # evaluation chooses its own levels and looks (cross-play and held-out scenarios play the defaults).
@@ -42,111 +57,6 @@ def required_env_kwargs(policy) -> dict:
     """The make_env keywords `policy`'s actor needs (resolution, grayscale, state_obs), without the
     levels and looks it trained on."""
     return {k: v for k, v in getattr(policy, "env_kwargs", {}).items() if k not in TRAINING_CONDITION}
-
-
-class Policy:
-    """The interface: ``act(env, obs, worlds, slots)`` and ``reset(env, worlds)``; see the module docstring."""
-
-    name: str = "policy"
-    needs: frozenset = frozenset()
-    env_kwargs: dict = {}  # make_env keywords this policy requires of the env it plays (resolution, ...)
-
-    def reset(self, env, worlds: torch.Tensor) -> None:
-        """Worlds (bool [W]) that start a new episode: forget what was kept for them. Stateless: nothing."""
-
-    def act(self, env, obs: dict, worlds: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
-        """Actions of the (world, slot) pairs `worlds`, `slots` (int64 [P]): [P] (or [P, action_dim]),
-        from `obs`, the observations of exactly those pairs ([P, ...] for the keys in ``needs``)."""
-        raise NotImplementedError
-
-    def __repr__(self):
-        return f"{type(self).__name__}({self.name!r})"
-
-
-class CallablePolicy(Policy):
-    """A policy given as a function ``policy(env, obs, generator) -> actions`` of every agent of every
-    world ([W, A] or [W, A, action_dim]): the protocol of ``marl_render.envs.evaluation`` (its
-    ``random_policy`` and ``heuristic_policy``, the trainer's ``GreedyPolicy``) as a Policy. The
-    function is handed the observations of every agent, its own pairs' in their places (zeros
-    elsewhere, every action allowed), and `generator`; of its actions, its pairs' are taken."""
-
-    needs = frozenset({"pixels", "depth", "state", "lidar", "agent_id", "action_mask"})
-
-    def __init__(self, function, generator: torch.Generator | None = None, name: str | None = None):
-        self.function = function
-        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
-        self.name = name or getattr(function, "__name__", type(function).__name__)
-
-    def act(self, env, obs, worlds, slots):
-        """The function's actions of the pairs `worlds`, `slots` (it sees every agent, theirs in place)."""
-        full = {}
-        for key, value in obs.items():
-            # Every action allowed where the function sees no pair of its own: a random draw there stays valid.
-            fill = value.new_ones if key == "action_mask" else value.new_zeros
-            full[key] = fill((env.num_worlds, env.num_agents, *value.shape[1:]))
-            full[key][worlds, slots] = value
-        return self.function(env, full, self.generator)[worlds, slots]
-
-
-def as_policy(policy, generator: torch.Generator | None = None) -> Policy:
-    """Whatever plays an env, as a Policy: an object with ``act`` (a Policy: ``load_policy``'s
-    actor, ``heuristic_policy()``, ``RandomPolicy``, a bot) as it is, a function ``policy(env, obs,
-    generator)`` (``marl_render.envs.evaluation.random_policy`` and ``heuristic_policy``, the
-    trainer's greedy policy) as a CallablePolicy drawing from `generator`. Every evaluation
-    (``marl_render.envs.evaluation.evaluate``, ``marl_render.evaluate.evaluate``, cross-play,
-    ``marl_render.generalise``) takes its policies through this one adapter."""
-    if callable(getattr(policy, "act", None)):
-        return policy
-    if callable(policy) and not isinstance(policy, (str, type)):
-        return CallablePolicy(policy, generator)
-    raise TypeError(f"policy must be an object with act(env, obs, worlds, slots) (a Policy, e.g. load_policy's) or a "
-                    f"function policy(env, obs, generator) -> actions, got {describe(policy)}")
-
-
-def joint_actions(policy: Policy, env, obs: dict) -> torch.Tensor:
-    """`policy`'s actions for every agent of every world of the driver `env` ([W, A] or [W, A,
-    action_dim]) from its observations `obs` ([W, A, ...] each): one ``act`` call for all pairs."""
-    W, A = env.num_worlds, env.num_agents
-    worlds, slots = torch.arange(W).repeat_interleave(A), torch.arange(A).repeat(W)
-    seen = {key: value.flatten(0, 1) for key, value in obs.items() if key in policy.needs}
-    return policy.act(env, seen, worlds, slots).reshape(W, A, *env.spec.action.shape)
-
-
-class RandomPolicy(Policy):
-    """Uniformly random valid actions (among those the action mask allows), from its own generator."""
-
-    needs = frozenset({"action_mask"})
-
-    def __init__(self, seed: int = 0, name: str = "random"):
-        self.name, self.generator = name, torch.Generator().manual_seed(seed)
-
-    def act(self, env, obs, worlds, slots):
-        """A uniformly random valid action per pair (uniform in [-1, 1] per dimension for continuous actions)."""
-        if env.continuous:
-            return torch.rand(len(worlds), env.action_dim, generator=self.generator) * 2 - 1
-        if not len(worlds):
-            return torch.zeros(0, dtype=torch.int64)
-        return sample_allowed(obs["action_mask"][:, None], self.generator)[:, 0]
-
-
-class ScriptedPolicy(Policy):
-    """A bot that reads the simulation state: ``script(env)`` returns actions for every agent of every
-    world ([W, A] or [W, A, action_dim]), of which the pairs played are taken."""
-
-    needs = frozenset({"sim"})
-
-    def __init__(self, name: str, script, description: str = ""):
-        self.name, self.script, self.description = name, script, description
-
-    def act(self, env, obs, worlds, slots):
-        """The script's actions for every agent of every world, taken at the pairs `worlds`, `slots`."""
-        return self.script(env)[worlds, slots]
-
-
-def heuristic_policy() -> ScriptedPolicy:
-    """The task's own scripted heuristic (``Scenario.heuristic``), the 1 of the normalised score."""
-    return ScriptedPolicy("heuristic", lambda env: env.scenario.heuristic(env.sim, env.alive),
-                          "the task's scripted heuristic")
 
 
 class ActorPolicy(Policy):

@@ -1,6 +1,8 @@
 """Held-out scenarios in Melting Pot's sense: a task, its parameters, which slots are focal, and the
-background bots by role, all drawn from the task's test population (marl_render/bots.py). Each task
-declares its own on its class (``heldout``: envs.roster.HeldOut, named "<task>/<name>" here).
+background bots by role, all drawn from the task's test population (populations/bots.py). Each task
+declares its own on its class (``heldout``: envs.roster.HeldOut, named "<task>/<name>" here); the
+envs layer resolves them (envs/bots.py: make_env(heldout=...) needs nothing above it), this module
+lists them and registers a user's with ``register_heldout``.
 
     list_heldout()                       # every scenario's name, e.g. "tag/prey_vs_interceptors"
     HELDOUT["tag/prey_vs_interceptors"]  # its HeldOutScenario
@@ -14,89 +16,22 @@ are registered (``marl_render.bots.register_bot``; docs/authoring.md).
 from __future__ import annotations
 
 import dataclasses
-import functools
-from collections.abc import Mapping
 
-from marl_render.envs.focal import Population
-from marl_render.envs.registry import env_class, list_envs, make_env
+from marl_render.envs.bots import (
+    HELDOUT,
+    POPULATIONS,
+    REGISTERED_SCENARIOS,
+    HeldOutScenario,
+    declared,
+    heldout_scenario,
+    scenarios,
+)
+from marl_render.envs.registry import list_envs, make_env
 from marl_render.validation import describe
 
-from .bots import POPULATIONS, make_bot
-
-
-@dataclasses.dataclass(frozen=True)
-class HeldOutScenario:
-    """A task with focal slots and test bots on the others (named so as not to be taken for the
-    task class ``Scenario``). `focal`: agent names; `bots_by_role`: team -> test bot names;
-    `params`: the task's keywords (make_env's); `num_agents`: the slot count it is defined for."""
-
-    name: str
-    task: str
-    description: str
-    num_agents: int
-    focal: tuple
-    bots_by_role: dict
-    params: dict = dataclasses.field(default_factory=dict)
-
-    @property
-    def tags(self) -> tuple:
-        """("resident",) when the focal agents hold most of the slots, else ("visitor",)."""
-        return ("resident",) if 2 * len(self.focal) > self.num_agents else ("visitor",)
-
-    def population(self, seed: int = 0) -> Population:
-        """A fresh population of this scenario's bots (seeded: the randomised variants' generators)."""
-        return Population({team: [make_bot(self.task, name, seed + 1000 * i + j) for j, name in enumerate(names)]
-                           for i, (team, names) in enumerate(self.bots_by_role.items())}, focal=self.focal)
-
-    def env_kwargs(self) -> dict:
-        """make_env keywords of the scenario's task: its slot count and parameters."""
-        return {"num_agents": self.num_agents, **self.params}
-
-
-_REGISTERED: list = []  # register_heldout's scenarios, in registration order
-
-
-def declared(task: str) -> list:
-    """The HeldOutScenarios that task `task`'s class declares (``heldout``: envs.roster.HeldOut),
-    named "<task>/<name>"."""
-    return _declared(task, env_class(task))
-
-
-@functools.cache
-def _declared(task: str, scenario_class: type) -> list:
-    # One object per scenario and class (a task registered again under its name is read afresh).
-    return [HeldOutScenario(f"{task}/{held.name}", task, held.description, held.num_agents, tuple(held.focal),
-                            {team: tuple(names) for team, names in held.bots_by_role.items()}, dict(held.params))
-            for held in scenario_class.heldout]
-
-
-def _scenarios() -> list:
-    """Every held-out scenario: the tasks' own (in list_envs order), then register_heldout's (one
-    registered under a task's scenario's name replaces it)."""
-    registered = {scenario.name for scenario in _REGISTERED}
-    own = [scenario for task in list_envs() for scenario in declared(task)
-           if scenario.name not in registered]
-    return [*own, *_REGISTERED]
-
-
-class HeldOutTable(Mapping):
-    """The read-only table ``HELDOUT[name]`` -> HeldOutScenario, in list_heldout order. Each task
-    keeps its scenarios on its own class (envs/roster.py); only register_heldout's are stored here."""
-
-    def __getitem__(self, name):
-        for scenario in _scenarios():
-            if scenario.name == name:
-                return scenario
-        raise KeyError(name)
-
-    def __iter__(self):
-        return iter([scenario.name for scenario in _scenarios()])
-
-    def __len__(self):
-        return len(_scenarios())
-
-
-HELDOUT = HeldOutTable()
+# The run-time half lives with the tasks' declarations (envs/bots.py), so that make_env(heldout=...)
+# needs no layer above the envs; these names are this module's too, as they always were.
+__all__ = ["HELDOUT", "HeldOutScenario", "declared", "heldout_scenario", "list_heldout", "register_heldout"]
 
 
 def register_heldout(scenario: HeldOutScenario, *, overwrite: bool = False) -> None:
@@ -151,25 +86,13 @@ def register_heldout(scenario: HeldOutScenario, *, overwrite: bool = False) -> N
         make_env(scenario.task, heldout=scenario, num_worlds=1, resolution=8).close()
     except (ValueError, TypeError) as error:
         raise ValueError(f"scenario {scenario.name!r} does not make a focal-only env: {error}") from None
-    _REGISTERED[:] = [*[s for s in _REGISTERED if s.name != scenario.name], scenario]
+    REGISTERED_SCENARIOS[:] = [*[s for s in REGISTERED_SCENARIOS if s.name != scenario.name], scenario]
 
 
 def list_heldout(task: str | None = None) -> list:
     """Names of the held-out scenarios (of `task` only, if given), in registry order."""
     if task is not None and task not in POPULATIONS:
         raise ValueError(f"task must be one of the multi-agent tasks {sorted(POPULATIONS)}, got {task!r}")
-    return [s.name for s in _scenarios() if task is None or s.task == task]
+    return [s.name for s in scenarios() if task is None or s.task == task]
 
 
-def heldout_scenario(name) -> HeldOutScenario:
-    """The HeldOutScenario registered as `name` (see list_heldout); a HeldOutScenario is returned as
-    it is. ValueError listing the registered names for any other value."""
-    if isinstance(name, HeldOutScenario):
-        return name
-    if not isinstance(name, str):
-        raise TypeError(f"heldout must be a str (one of the held-out scenarios {list(HELDOUT)}) or a HeldOutScenario, "
-                        f"got {describe(name)}")
-    if name not in HELDOUT:
-        raise ValueError(f"heldout must be one of the held-out scenarios {list(HELDOUT)} (or a HeldOutScenario), "
-                         f"got {name!r}")
-    return HELDOUT[name]

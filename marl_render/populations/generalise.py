@@ -45,15 +45,15 @@ import sys
 import numpy as np
 import torch
 
-from marl_render.baselines import stats
-from marl_render.bots import POPULATIONS
 from marl_render.envs import env_class
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
-from marl_render.evaluate import check_seed, out_problem
-from marl_render.evaluate import evaluate as evaluate_heldout
-from marl_render.heldout import heldout_scenario, list_heldout
-from marl_render.policies import load_policy, required_env_kwargs
-from marl_render.task_imports import add_import_option, load_user_tasks, register_task_option
+from marl_render.envs.task_imports import add_import_option, load_user_tasks, register_task_option
+
+from . import stats
+from .bots import POPULATIONS
+from .evaluate import check_seed, evaluate_heldout, out_problem
+from .heldout import heldout_scenario, list_heldout
+from .policies import load_policy, required_env_kwargs
 
 SETS = {  # evaluation set -> its make_env keywords (None: the run's own)
     "training levels": {"levels": None, "appearance": None},
