@@ -17,8 +17,9 @@ from marl_render.baselines.networks import Actor
 from marl_render.bots import POPULATIONS, bot_names, make_bot
 from marl_render.elo import elo_ratings, win_probability
 from marl_render.envs import FocalEnv, Population, list_envs, make_env
-from marl_render.heldout import HELDOUT, list_heldout
+from marl_render.heldout import HELDOUT, heldout_scenario, list_heldout
 from marl_render.policies import RandomPolicy, load_policy
+from marl_render.populations import pages, scores
 from marl_render.wrappers.gymnasium import make_vec_env
 from marl_render.wrappers.pettingzoo import make_aec_env, make_parallel_env
 from marl_render.wrappers.rllib import make_rllib_env
@@ -306,11 +307,11 @@ def test_a_side_the_trainer_never_trained_has_no_training_condition_and_no_gap(t
     run.mkdir()
     (run / "result.json").write_text(json.dumps({"env": "tag", "trained_agents": ["predator_0", "predator_1",
                                                                                    "predator_2"]}))
-    prey = evaluation.heldout_scenario("tag/prey_vs_interceptors")
+    prey = heldout_scenario("tag/prey_vs_interceptors")
     assert prey.focal == ("prey_0",)
-    assert not evaluation.trains_focal_side(str(run), prey)
-    assert evaluation.trains_focal_side(str(run), evaluation.heldout_scenario("tag/predators_vs_wanderers"))
-    assert evaluation.trains_focal_side("random", prey) and evaluation.trains_focal_side(str(tmp_path), prey)
+    assert not scores.trains_focal_side(str(run), prey)
+    assert scores.trains_focal_side(str(run), heldout_scenario("tag/predators_vs_wanderers"))
+    assert scores.trains_focal_side("random", prey) and scores.trains_focal_side(str(tmp_path), prey)
     rows = [{"scenario": "tag/prey_vs_interceptors", "tags": "visitor", "focal_return_mean": -1.0,
              "focal_return_std": 0.5, "background_return_mean": 1.0, "normalised_score": 0.2,
              "training_condition_return": None, "generalisation_gap": None, "focal_side_trained": False,
@@ -319,7 +320,7 @@ def test_a_side_the_trainer_never_trained_has_no_training_condition_and_no_gap(t
              "focal_return_std": 1.0, "background_return_mean": -3.0, "normalised_score": 0.5,
              "training_condition_return": 4.0, "generalisation_gap": 1.0, "random_return": 1.0,
              "heuristic_return": 5.0, "bots_sampled": {"evader": 3}}]
-    page = evaluation.heldout_page({"MAPPO-vs-random run": rows}, "cmd", "note")
+    page = pages.heldout_page({"MAPPO-vs-random run": rows}, "cmd", "note")
     assert "| tag/prey_vs_interceptors | visitor | -1.00 ± 0.50 | 1.00 | 0.20 | side not trained | side not " \
            "trained | noisy0.5 3 |" in page
     assert "Mean generalisation gap over 1 scenarios, each normalised by its heuristic - random: 0.25 (1 on a side " \
@@ -334,4 +335,4 @@ def test_the_held_out_page_is_its_json_files(tmp_path):
     for path in (docs / "heldout").glob("*.json"):
         (tmp_path / "heldout" / path.name).write_bytes(path.read_bytes())
     (tmp_path / "heldout.md").write_bytes((docs / "heldout.md").read_bytes())
-    assert evaluation.rewrite_heldout_page(str(tmp_path)) == (docs / "heldout.md").read_text()
+    assert pages.rewrite_heldout_page(str(tmp_path)) == (docs / "heldout.md").read_text()
