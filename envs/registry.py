@@ -39,6 +39,7 @@ _REGISTRY: dict = {
     "speaker_listener": "marl_render.envs.speaker_listener:SpeakerListener",
     "commons": "marl_render.envs.commons:Commons",
     "capture_flag": "marl_render.envs.capture_flag:CaptureFlag",
+    "cooking": "marl_render.envs.cooking:Cooking",
 }
 
 

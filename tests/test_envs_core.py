@@ -189,7 +189,10 @@ def test_pixels_are_not_constant_and_owned_by_caller(name):
     first = env.reset()["pixels"]
     assert int(first.max()) - int(first.min()) > 50
     kept = first.clone()
-    push = torch.full((W, env.num_agents), env.num_actions - 1)  # cartpole: full force; spread: backward
+    # cartpole: full force; the arena tasks: backward (a task's own last action, cooking's interact, may do nothing)
+    meanings = env.action_meanings
+    push = meanings.index("backward") if "backward" in meanings else env.num_actions - 1
+    push = torch.full((W, env.num_agents), push)
     for _ in range(20):
         later = env.step(push)[0]["pixels"]
     assert torch.equal(first, kept), "a later render overwrote earlier observations"
@@ -571,6 +574,8 @@ DECLARED_TERMS = {
     'rooms': {'walls', 'body_collisions', 'drag', 'obstacles'},
     "commons": {"walls", "body_collisions", "drag"},
     "capture_flag": {"walls", "body_collisions", "drag"},
+    "cooking": {"walls", "body_collisions", "drag", "obstacles"},
+    "territory": {"walls", "body_collisions", "drag", "obstacles"},
 }
 
 

@@ -288,6 +288,7 @@ STEP_STATISTICS = {  # the info keys each task declares, written out (not read f
     "speaker_listener": {"reached", "distance", "lamp_correct"},
     "commons": {"collected", "apples_left", "tags", "depleted_at"},
     "capture_flag": {"captures_red", "captures_blue", "tags", "flag_carried"},
+    "cooking": {"delivered", "wrong", "served"}, "territory": {"painted", "claimed", "zaps", "removed"},
 }
 
 
