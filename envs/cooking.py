@@ -438,13 +438,18 @@ class Cooking(ArenaScenario):
         spoiled = filling & (state.pot > want).any(-1)  # a wrong mix: filled up with onions, to clear it
         lack = torch.where(spoiled[..., None], torch.stack((3 - pot_sum, 0 * pot_sum), -1), lack)
         need = lack.sum(1) - torch.stack(((h == ONION).sum(-1), (h == TOMATO).sum(-1)), -1)  # [W, 2]
-        dishes = (cooking.sum(-1) - (h == DISH).sum(-1)) * plate  # [W]; none for a cook that never plates
-        need, dishes = need.clamp_min(0), dishes.clamp_min(0)
-        # The empty-handed share the tasks out in agent order: dishes, then onions, then tomatoes.
+        # Dishes: first those the cooking pots need, then (after the ingredients) those of the filling ones.
+        holders = (h == DISH).sum(-1)
+        urgent = (cooking.sum(-1) - holders).clamp_min(0) * plate  # [W]; none for a cook that never plates
+        later = ((cooking | filling & (pot_sum > 0)).sum(-1) - holders - urgent).clamp_min(0) * plate
+        need = need.clamp_min(0)
+        # The empty-handed share the tasks out in agent order.
         empty = (h == EMPTY) & alive
         rank = empty.cumsum(-1) - 1
-        bounds = torch.stack((dishes, dishes + need[:, 0], dishes + need[:, 0] + need[:, 1]), -1)[:, None]  # [W, 1, 3]
-        task = (rank[..., None] >= bounds).sum(-1)  # 0 dish, 1 onion, 2 tomato, 3 nothing
+        bounds = torch.stack((urgent, urgent + need[:, 0], urgent + need[:, 0] + need[:, 1],
+                              urgent + need[:, 0] + need[:, 1] + later), -1)[:, None]  # [W, 1, 4]
+        task = (rank[..., None] >= bounds).sum(-1)  # 0 dish, 1 onion, 2 tomato, 3 dish, 4 nothing
+        task = torch.where(task == 3, 0, torch.where(task == 4, 3, task))
         if not fetch:
             task = torch.where((task == 1) | (task == 2), 3, task)
         # The cells each agent heads for (to face them).
