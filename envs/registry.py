@@ -40,6 +40,7 @@ _REGISTRY: dict = {
     "commons": "marl_render.envs.commons:Commons",
     "capture_flag": "marl_render.envs.capture_flag:CaptureFlag",
     "cooking": "marl_render.envs.cooking:Cooking",
+    "territory": "marl_render.envs.territory:Territory",
 }
 
 

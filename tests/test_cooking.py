@@ -5,9 +5,9 @@ from collections import deque
 import pytest
 import torch
 
+from marl_render.envs import cooking as ck
 from marl_render.envs import make_env
 from marl_render.threads import limited_threads
-from marl_render.envs import cooking as ck
 
 W, RES = 2, 16
 UP, DOWN, LEFT, RIGHT = 0.0, math.pi, math.pi / 2, -math.pi / 2  # yaw facing +y, -y, -x, +x
@@ -157,8 +157,8 @@ def test_recipe_view_one_shows_the_recipe_to_agent_0_only():
     assert private_state[..., recipe].tolist() == [[[1, 0, 0, 0], [0] * 4], [[0, 0, 0, 1], [0] * 4]]
 
 
-def reachable(cells) -> set:
-    """The floor cells reachable from the first floor cell (4-neighbour steps)."""
+def reachable(cells) -> tuple:
+    """(the floor cells reachable from the first floor cell by 4-neighbour steps, all floor cells)."""
     floor = {i for i, c in enumerate(cells) if c == ck.FLOOR}
     start = min(floor)
     seen, todo = {start}, deque([start])
