@@ -16,10 +16,12 @@ paid for what they hold, and may zap each other out of the episode; seen through
   within 30 degrees of the zapper's heading, in its line of sight (not through walls). An agent hit
   twice in the episode (by one zapper twice, or by two in one step) is removed: its episode ends
   (terminated), it is no longer drawn nor collides, and its cells stay painted but pay nobody. An
-  agent hit once carries a dark mark over its head.
+  agent hit once carries a dark mark over its head. A zap fires only when the zapper's cooldown is
+  over: ``zap_cooldown`` (default 5) steps after its last zap (the action mask says so).
 * Reward, per agent in play: ``claim_reward`` (default 0.01) per cell it holds after the step.
 * Episode: ends for an agent when it is removed; truncated after ``max_steps`` = 300.
-* State obs (319 + 4 (N - 1)): own position, velocity, cos/sin yaw (6), own hits / 2 (1); per cell
+* State obs (320 + 4 (N - 1)): own position, velocity, cos/sin yaw (6), own hits / 2 (1), own zap
+  cooldown / ``zap_cooldown`` (1); per cell
   (144 x 2) whether it is the agent's and whether another's; the walls (12 flags of closed slots,
   12 door offsets); the other agents' relative positions times their in-play flag (2 each), the
   flags (1 each) and their hits / 2 (1 each). World frame.
@@ -33,7 +35,7 @@ import math
 
 import torch
 
-from marl_render.validation import finite_float, positive_float, reward_weight
+from marl_render.validation import COUNT_LIMIT, finite_float, positive_float, positive_int, reward_weight
 
 from . import scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered
@@ -79,6 +81,7 @@ def zapper(env) -> torch.Tensor:
                       torch.cdist(pos, pos), math.inf)
     chase = s.steer_to(state, pos.gather(1, gap.argmin(-1)[..., None].expand(-1, -1, 2)))
     _, can_zap = s.zap_target(state)
+    can_zap = can_zap & (state.cooldown == 0)
     ahead = s.painted_cell(state)
     mine = (ahead >= 0) & (state.owner.gather(1, ahead.clamp_min(0)) == s.index)
     action = torch.where(can_zap, ZAP, torch.where((ahead >= 0) & ~mine, PAINT, chase))
@@ -95,6 +98,7 @@ class TerritoryParams:
     claim_reward: float = 0.01  # per held cell and step
     open_wall: float = 0.2  # probability that a wall slot has no wall (as in rooms)
     zap_range: float = 2.0  # m
+    zap_cooldown: int = 5  # steps after a zap before the agent can zap again
 
     def __post_init__(self):
         reward_weight("claim_reward", self.claim_reward)
@@ -103,6 +107,7 @@ class TerritoryParams:
         if positive_float("zap_range", self.zap_range) > 2 * ARENA * math.sqrt(2):
             raise ValueError(f"zap_range must be in (0, {2 * ARENA * math.sqrt(2):.2f}] m (the arena's diagonal), "
                              f"got {self.zap_range}")
+        positive_int("zap_cooldown", self.zap_cooldown, maximum=COUNT_LIMIT)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,6 +116,7 @@ class TerritoryState(ArenaState):
     wall_open: torch.Tensor  # [W, 12] bool: the slot has no wall
     owner: torch.Tensor  # [W, C] int64: the agent holding each cell, -1 none
     hits: torch.Tensor  # [W, A] int64: times each agent was zapped this episode (2: removed)
+    cooldown: torch.Tensor  # [W, A] int64: steps before each agent's zap fires again (0: ready)
     shown: torch.Tensor  # [W, A] bool: agents in play (drawn)
 
 
@@ -139,7 +145,7 @@ class Territory(ArenaScenario):
 
     def setup(self):
         N, d = self.num_agents, self.device
-        self.setup_arena({"agents": numbered("agent", N)}, state_dim=319 + 4 * (N - 1), radius=AGENT_RADIUS,
+        self.setup_arena({"agents": numbered("agent", N)}, state_dim=320 + 4 * (N - 1), radius=AGENT_RADIUS,
                          max_speed=2.0, extra_actions=("paint", "zap"))
         self.tables = {k: torch.tensor(v, device=d) for k, v in TABLES.items()}
         self.centres = cell_centres().to(d)
@@ -153,7 +159,8 @@ class Territory(ArenaScenario):
     def _fresh(self, pos, yaw, door, wall_open):
         W, N = self.num_worlds, self.num_agents
         return self.at_rest(pos, yaw, door=door, wall_open=wall_open, owner=torch.full((W, C), -1, dtype=torch.int64),
-                            hits=torch.zeros(W, N, dtype=torch.int64), shown=torch.ones(W, N, dtype=torch.bool))
+                            hits=torch.zeros(W, N, dtype=torch.int64), cooldown=torch.zeros(W, N, dtype=torch.int64),
+                            shown=torch.ones(W, N, dtype=torch.bool))
 
     def initial_state(self):
         W, N = self.num_worlds, self.num_agents
@@ -162,7 +169,7 @@ class Territory(ArenaScenario):
 
     def state_bounds(self):
         return {**super().state_bounds(), "door": (-DOOR_RANGE, DOOR_RANGE), "owner": (-1, self.num_agents - 1),
-                "hits": (0, 2)}
+                "hits": (0, 2), "cooldown": (0, self.params.zap_cooldown)}
 
     def check_state(self, state):
         if not torch.equal(state["shown"], state["hits"] < 2):
@@ -209,7 +216,9 @@ class Territory(ArenaScenario):
         owner = torch.where(painter < N, painter, before.owner)
         # Zap: each zapper in play hits its target; two hits in an episode remove an agent.
         target, hit = self.zap_target(before)
-        hit = hit & zap & playing
+        fired = zap & playing & (before.cooldown == 0)
+        hit = hit & fired
+        cooldown = torch.where(fired, self.params.zap_cooldown, (before.cooldown - 1).clamp_min(0))
         landed = torch.zeros(W, N + 1, dtype=torch.int64, device=self.device).scatter_add(
             1, torch.where(hit, target, N), torch.ones_like(target))[:, :N]
         hits = (before.hits + landed).clamp_max(2)
@@ -217,7 +226,7 @@ class Territory(ArenaScenario):
         shown = before.shown & ~removed_now
         held = self.holdings(owner)
         reward = self.params.claim_reward * held.to(torch.float32) * shown
-        state = dataclasses.replace(moved, owner=owner, hits=hits, shown=shown,
+        state = dataclasses.replace(moved, owner=owner, hits=hits, cooldown=cooldown, shown=shown,
                                     vel=moved.vel * shown[..., None], active=moved.active & shown)
         info = {"painted": (owner != before.owner).sum(-1), "claimed": (owner >= 0).sum(-1),
                 "zaps": landed.sum(-1), "removed": (~shown).sum(-1)}
@@ -235,6 +244,7 @@ class Territory(ArenaScenario):
 
     def action_mask(self, state, alive):
         mask = (alive & state.shown)[:, :, None].expand(-1, -1, self.num_actions).clone()
+        mask[..., ZAP] &= state.cooldown == 0
         mask[..., 0] = True  # noop is always valid
         return mask
 
@@ -259,8 +269,9 @@ class Territory(ArenaScenario):
         in_play = state.shown[:, self.others].to(f)  # [W, N, N-1]
         others = (self.others_obs(state) * in_play[..., None]).reshape(W, N, -1)
         hits = state.hits.to(f) / 2
-        return torch.cat((self.own_obs(state), hits[..., None], mine.to(f), theirs.to(f), walls, others, in_play,
-                          hits[:, self.others]), -1)
+        cooldown = state.cooldown.to(f)[..., None] / self.params.zap_cooldown
+        return torch.cat((self.own_obs(state), hits[..., None], cooldown, mine.to(f), theirs.to(f), walls, others,
+                          in_play, hits[:, self.others]), -1)
 
     # ------------------------------------------------------------------ scripted players
     def heuristic(self, state, alive):
@@ -288,6 +299,7 @@ class Territory(ArenaScenario):
         target = torch.where(torch.isinf(score.amin(-1))[..., None], pos, self.centres[score.argmin(-1)])
         move = self.steer_to(state, target)
         target_agent, can_zap = self.zap_target(state)
+        can_zap = can_zap & (state.cooldown == 0)
         if zaps == "never":
             zap = torch.zeros_like(can_zap)
         elif zaps == "room":
