@@ -43,7 +43,8 @@ nitpicky = True
 nitpick_ignore_regex = [
     ("py:class", r"(torch|numpy|jax|jaxlib|argparse|abc|gymnasium|spaces|pettingzoo|torchrl|tensordict"
                  r"|stable_baselines3)(\..*)?"),
-    ("py:class", r"marl_render\.(backend\.(GLInfo|Settings)|scene\.(StaticGroup|InstanceGroup)"
+    ("py:class", r"marl_render\.(render\.backend\.(GLInfo|Settings)|render\.scene\.(StaticGroup|InstanceGroup)"
+                 r"|render\.frame_reads\.FrameReads"  # BatchRenderer's base class: its reads
                  r"|envs\.planar\.(Obstacles|BodyState)|envs\.levels\.Draws|baselines\.(ppo\.MAPPO|policy\.GreedyPolicy))"),
     ("py:class", r"Actor"),  # marl_render.baselines.networks.Actor, held by ActorPolicy
 ]

@@ -42,6 +42,7 @@ AGENT_HEIGHT = 0.5
 EYE_HEIGHT = 0.4  # the mounted camera's height above the floor (m)
 CAMERA_PITCH = -0.2  # rad, looking slightly down
 NOSE_HEIGHT = 0.3  # a small dark "nose" box shows others which way a body faces
+NOOP = 0  # egomotion.ACTION_MEANINGS[0]: the action a "lazy" bot plays
 NOSE_SIZE = (0.08, 0.12, 0.08)
 NOSE_COLOR = (0.1, 0.1, 0.12)
 
@@ -493,6 +494,15 @@ class ArenaScenario(Scenario):
         action = torch.where(error.abs() < 0.3, 1, action)  # forward
         return torch.where(near, 0, action).to(torch.int64)
 
+
+def wander(env) -> Tensor:
+    """A bot script (envs/roster.py) of every arena task: each agent drives round a circle of its own
+    phase (half the arena's extent), covering the arena without looking at anything."""
+    s = env.scenario
+    hx, hy = s.arena_half_extent
+    phase = torch.arange(env.num_agents) * (2 * math.pi / env.num_agents) + env.step_count[:, None].cpu() * 0.03
+    target = torch.stack((0.5 * hx * torch.cos(phase), 0.5 * hy * torch.sin(phase)), -1).to(env.device)
+    return s.steer_to(env.sim, target)
 
 def _check_source(state, source, shape: tuple, dtype, what: str) -> None:
     """A Prop's (or shown's) source: a field of `state` (or a function of it) giving `shape` of `dtype`

@@ -52,6 +52,7 @@ from marl_render.validation import COUNT_LIMIT, positive_int, reward_weight
 
 from . import scenery
 from .arena import ArenaScenario, ArenaState, Prop, Static, numbered
+from .roster import Bot, HeldOut
 from .scenario import MAX_COUNT
 
 ARENA = (3.0, 4.0)  # half extents (m)
@@ -87,6 +88,23 @@ class CaptureFlagState(ArenaState):
     captures: torch.Tensor  # [W, 2] int64: red's / blue's captures in this episode
 
 
+# Bot scripts (envs/roster.py): env -> actions of every agent of every world, [W, A].
+def all_attack(env) -> torch.Tensor:
+    """Every agent fetches the enemy flag and carries it home (or goes home while a teammate has it)."""
+    s, state = env.scenario, env.sim
+    enemy = 1 - s.team
+    carried = (state.carrier[:, enemy] >= 0)[..., None]
+    target = torch.where(carried, s.base[s.team].expand(env.num_worlds, -1, -1), s.flag_position(state)[:, enemy])
+    return s.steer_to(state, target)
+
+
+def all_defend(env) -> torch.Tensor:
+    """Every agent guards the point 1 m in front of its own flag."""
+    s, state = env.scenario, env.sim
+    guard = s.base[s.team] - s.side[:, None] * torch.tensor([0.0, 1.0], device=env.device)
+    return s.steer_to(state, guard.expand(env.num_worlds, -1, -1))
+
+
 class CaptureFlag(ArenaScenario):
     """Red and blue capture each other's flag; see the module docstring."""
 
@@ -104,6 +122,27 @@ class CaptureFlag(ArenaScenario):
                  "flag_carried": torch.int64}
     arena_half_extent = ARENA
     opponents = ("blue",)  # the reference evaluation: red plays the policy, blue random
+    sides = ("red", "blue")  # cross-play: red policies (rows) against blue policies (columns)
+    bots = {"noisy0.2": Bot.noisy(0.2, population="train"),
+            "all_attack": Bot("fetches the enemy flag, never defends", script=all_attack),
+            "all_defend": Bot("guards its own flag, never attacks", script=all_defend),
+            "lazy0.5": Bot.lazy(0.5)}
+    heldout = (
+        HeldOut("red_vs_attackers", "focal red team against a team that only attacks or only defends", 16,
+                tuple(numbered("red", 8)), {"blue": ("all_attack", "all_defend")}),
+        HeldOut("blue_vs_defenders", "focal blue team against a team that only defends or idles half the time", 16,
+                tuple(numbered("blue", 8)), {"red": ("all_defend", "lazy0.5")}),
+        HeldOut("resident_red", "focal red team and half of blue, with four blue attackers", 16,
+                (*numbered("red", 8), *numbered("blue", 4)), {"blue": ("all_attack",)}),
+        # The same opponents at the reference trainer's 2 v 2 (docs/baselines): its runs' agent one-hot fixes
+        # their team size, so without these capture_flag's trained actors would play no scenario.
+        HeldOut("duel_red_vs_attackers", "a focal red pair against a pair that only attacks or only defends", 4,
+                tuple(numbered("red", 2)), {"blue": ("all_attack", "all_defend")}),
+        HeldOut("duel_blue_vs_defenders", "a focal blue pair against a pair that only defends or idles half the time",
+                4, tuple(numbered("blue", 2)), {"red": ("all_defend", "lazy0.5")}),
+        HeldOut("duel_red_with_lazy_teammate", "one focal red player with a teammate that idles half the time, "
+                "against attackers", 4, ("red_0",), {"red": ("lazy0.5",), "blue": ("all_attack",)}),
+    )
 
     def setup(self):
         N = self.num_agents

@@ -52,7 +52,8 @@ import marl_render as mr
 from marl_render.validation import COUNT_LIMIT, positive_int
 
 from . import scenery
-from .arena import ArenaScenario, ArenaState, Prop, numbered
+from .arena import NOOP, ArenaScenario, ArenaState, Prop, numbered
+from .roster import Bot, HeldOut
 from .scenario import MAX_COUNT
 
 ARENA = 2.0  # half extent (m)
@@ -100,6 +101,23 @@ class CommonsState(ArenaState):
     depleted_at: torch.Tensor  # [W] int64: step the last apple went, -1 while some remain
 
 
+# Bot scripts (envs/roster.py): env -> actions of every agent of every world, [W, A].
+def greedy(env) -> torch.Tensor:
+    """Each harvester drives to the nearest present apple, ripe or not (it strips patches bare)."""
+    s, state = env.scenario, env.sim
+    W, N = env.num_worlds, env.num_agents
+    dist = torch.cdist(state.pos[:, :N], s.apples.expand(W, -1, -1))
+    dist = torch.where(state.present[:, None, :], dist, math.inf)
+    target = torch.where(torch.isinf(dist.amin(-1))[..., None], state.pos[:, :N], s.apples[dist.argmin(-1)])
+    return torch.where(state.timeout > 0, NOOP, s.steer_to(state, target))
+
+
+def tagger(env) -> torch.Tensor:
+    """A greedy harvester that zaps (action 5) every fourth step."""
+    zap = (env.step_count[:, None] % 4 == 0) & (env.sim.timeout == 0)
+    return torch.where(zap, 5, greedy(env))
+
+
 class Commons(ArenaScenario):
     """Harvest regrowing apples, tag rivals; see the module docstring."""
 
@@ -118,6 +136,18 @@ class Commons(ArenaScenario):
                  "depleted_at": torch.int64}
     arena_half_extent = (ARENA, ARENA)
     shown = "shown"
+    bots = {"noisy0.1": Bot.noisy(0.1, population="train"),
+            "greedy": Bot("harvests the nearest apple, ripe or not", script=greedy),
+            "tagger": Bot("greedy, and zaps every fourth step", script=tagger),
+            "lazy0.5": Bot.lazy(0.5)}
+    heldout = (
+        HeldOut("resident_with_greedy", "four focal harvesters with one greedy or tagging visitor", 5,
+                tuple(numbered("agent", 4)), {"agents": ("greedy", "tagger")}),
+        HeldOut("visitor_among_taggers", "one focal harvester among four greedy harvesters that zap", 5, ("agent_0",),
+                {"agents": ("tagger", "greedy")}),
+        HeldOut("resident_with_lazy", "three focal harvesters with two that idle half the time", 5,
+                tuple(numbered("agent", 3)), {"agents": ("lazy0.5",)}),
+    )
 
     def setup(self):
         N, self.apples = self.num_agents, apple_layout().to(self.device)

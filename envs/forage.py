@@ -42,8 +42,9 @@ import marl_render as mr
 from marl_render.validation import COUNT_LIMIT, FLOAT32_MAX, positive_int, reward_weight
 
 from . import scenery
-from .arena import ArenaScenario, ArenaState, Prop, numbered
+from .arena import ArenaScenario, ArenaState, Prop, numbered, wander
 from .levels import Draws, GeneratorDraws
+from .roster import Bot, HeldOut
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.3  # items spawn in |x|, |y| <= SPAWN
@@ -93,6 +94,17 @@ class Forage(ArenaScenario):
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
     info_keys = {"collected": torch.int64, "team_score": torch.float32}
     arena_half_extent = (ARENA, ARENA)
+    bots = {"noisy0.2": Bot.noisy(0.2, population="train"),
+            "wanderer": Bot("drives round a circle, ignoring items", script=wander),
+            "lazy0.5": Bot.lazy(0.5), "noisy0.5": Bot.noisy(0.5)}
+    heldout = (
+        HeldOut("two_with_wanderer", "two focal foragers with one that wanders", 3, tuple(numbered("agent", 2)),
+                {"agents": ("wanderer",)}),
+        HeldOut("one_among_noisy", "one focal forager among two that act at random half the time", 3, ("agent_0",),
+                {"agents": ("noisy0.5", "lazy0.5")}),
+        HeldOut("two_with_lazy", "two focal foragers with one that idles half the time", 3,
+                tuple(numbered("agent", 2)), {"agents": ("lazy0.5",)}),
+    )
 
     def setup(self):
         N = self.num_agents

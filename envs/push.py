@@ -54,6 +54,7 @@ from marl_render.validation import reward_weight
 
 from . import scenery
 from .arena import ArenaScenario, Prop, Static, numbered
+from .roster import Bot, HeldOut
 
 ARENA = (1.5, 2.0)  # half extents (m)
 GOAL_HALF_WIDTH = 0.5
@@ -104,6 +105,21 @@ class PushParams:
         reward_weight("shaping", self.shaping, allow_zero=True)
 
 
+# Bot scripts (envs/roster.py): env -> actions of every agent of every world, [W, A].
+def ball_chaser(env) -> torch.Tensor:
+    """Every agent drives straight at the ball."""
+    state = env.sim
+    return env.scenario.steer_to(state, state.pos[:, -1:].expand(-1, env.num_agents, 2))
+
+
+def goalkeeper(env) -> torch.Tensor:
+    """Every agent stands on its own goal line, level with the ball."""
+    s, state = env.scenario, env.sim
+    own_goal_y = -s.side * 0.85 * s.arena_half_extent[1]  # [N]
+    ball_x = state.pos[:, -1:, 0].expand(-1, env.num_agents)
+    return s.steer_to(state, torch.stack((ball_x, own_goal_y.expand_as(ball_x)), -1))
+
+
 class Push(ArenaScenario):
     """Two teams push a ball into the other team's goal; see the module docstring."""
 
@@ -119,6 +135,19 @@ class Push(ArenaScenario):
     info_keys = {"goal": torch.int64}
     arena_half_extent = ARENA
     opponents = ("blue",)
+    sides = ("red", "blue")  # cross-play: red policies (rows) against blue policies (columns)
+    bots = {"noisy0.2": Bot.noisy(0.2, population="train"),
+            "ball_chaser": Bot("drives straight at the ball", script=ball_chaser),
+            "goalkeeper": Bot("stands on its goal line, level with the ball", script=goalkeeper),
+            "lazy0.5": Bot.lazy(0.5)}
+    heldout = (
+        HeldOut("red_vs_chasers", "focal red team against ball chasers or goalkeepers", 4, tuple(numbered("red", 2)),
+                {"blue": ("ball_chaser", "goalkeeper")}),
+        HeldOut("blue_vs_chasers", "focal blue team against ball chasers or goalkeepers", 4,
+                tuple(numbered("blue", 2)), {"red": ("ball_chaser", "goalkeeper")}),
+        HeldOut("with_lazy_teammate", "one focal red player with an idle-half-the-time teammate, against ball chasers",
+                4, ("red_0",), {"red": ("lazy0.5",), "blue": ("ball_chaser",)}),
+    )
 
     def setup(self):
         N = self.num_agents

@@ -62,7 +62,8 @@ import marl_render as mr
 from marl_render.validation import boolean, finite_float, reward_weight
 
 from . import planar, scenery
-from .arena import ArenaScenario, ArenaState, Prop, Static, numbered
+from .arena import ArenaScenario, ArenaState, Prop, Static, numbered, wander
+from .roster import Bot, HeldOut
 
 ARENA = 3.0  # half extent (m)
 GRID = 3  # rooms per side
@@ -161,6 +162,17 @@ class Rooms(ArenaScenario):
     info_keys = {"found": torch.int64, "returned": torch.int64, "rooms_visited": torch.int64}
     arena_half_extent = (ARENA, ARENA)
     overview_resolution = (160, 160)
+    bots = {"noisy0.2": Bot.noisy(0.2, population="train"),
+            "wanderer": Bot("drives round a circle, ignoring doors and the goal", script=wander),
+            "lazy0.5": Bot.lazy(0.5), "noisy0.5": Bot.noisy(0.5)}
+    heldout = (
+        HeldOut("with_wanderer", "a focal explorer with a partner that wanders", 2, ("agent_0",),
+                {"agents": ("wanderer",)}),
+        HeldOut("with_lazy", "a focal explorer with a partner that idles half the time", 2, ("agent_0",),
+                {"agents": ("lazy0.5",)}),
+        HeldOut("with_noisy", "a focal explorer with a partner that acts at random half the time", 2, ("agent_0",),
+                {"agents": ("noisy0.5",)}),
+    )
 
     def setup(self):
         N = self.num_agents

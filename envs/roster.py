@@ -1,8 +1,8 @@
 """What a task declares besides its rules: its scripted bots, held-out scenarios, sides, card text
 and training defaults, as data on the ``Scenario`` class (Melting Pot keeps rosters as data; VMAS
 keeps the heuristic in the task file). Nothing here runs a policy: the populations layer
-(``marl_render.bots``, ``marl_render.heldout``) turns these declarations into bots and scenarios,
-so that adding a task touches one file.
+(``marl_render.populations.bots``, ``marl_render.populations.heldout``) turns these declarations
+into bots and scenarios, so that adding a task touches one file.
 
     class Tag(ArenaScenario):
         sides = ("predator", "prey")
@@ -25,12 +25,15 @@ class Bot:
     """A scripted bot of a task. `script(env) -> actions` of every agent of every world ([W, A] or
     [W, A, action_dim]) reads the driver's state (``env.sim``, ``env.alive``, ``env.step_count``,
     ``env.scenario``); or, with no script, `variant` = (kind, p): the task's heuristic, playing a
-    random allowed action ("noisy") or noop ("lazy") with probability p per slot and step."""
+    random allowed action ("noisy") or noop ("lazy") with probability p per slot and step; or
+    `factory(seed) -> Policy` (an object with ``act``, ``needs`` and ``reset``): a bot with its own
+    state or generator."""
 
     description: str
     script: Callable | None = None
     population: str = "test"
     variant: tuple | None = None
+    factory: Callable | None = None
 
     @classmethod
     def noisy(cls, p: float, population: str = "test") -> Bot:

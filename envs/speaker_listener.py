@@ -37,6 +37,7 @@ from marl_render.validation import positive_int
 
 from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop
+from .roster import Bot, HeldOut
 
 ARENA = 1.5
 SPEAKER_POS = (0.0, -1.2)
@@ -62,6 +63,23 @@ class SpeakerListenerState(ArenaState):
     lamp: torch.Tensor  # [W] int64: -1 off, else the target index whose colour the lamp shows
 
 
+# Bot scripts (envs/roster.py): env -> actions of every agent of every world, [W, A].
+def permuted_speaker(env) -> torch.Tensor:
+    """The speaker shows the colour after the goal's (a permuted code); the listener as the heuristic."""
+    s, state = env.scenario, env.sim
+    actions = s.heuristic(state, env.alive).clone()
+    actions[:, 0] = 5 + (state.goal + 1) % s.num_targets
+    return actions
+
+
+def first_target_listener(env) -> torch.Tensor:
+    """The listener drives to the first target whatever the lamp shows; the speaker as the heuristic."""
+    s, state = env.scenario, env.sim
+    actions = s.heuristic(state, env.alive).clone()
+    actions[:, 1] = s.steer_to(state, state.targets[:, :1].expand(-1, 2, 2))[:, 1]
+    return actions
+
+
 class SpeakerListener(ArenaScenario):
     """Speaker and listener; see the module docstring."""
 
@@ -76,6 +94,18 @@ class SpeakerListener(ArenaScenario):
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
     info_keys = {"reached": torch.int64, "distance": torch.float32, "lamp_correct": torch.int64}
     arena_half_extent = (ARENA, ARENA)
+    bots = {"noisy0.1": Bot.noisy(0.1, population="train"),
+            "permuted_speaker": Bot("the speaker shows the next colour (a permuted code)", script=permuted_speaker),
+            "first_target_listener": Bot("the listener ignores the lamp", script=first_target_listener),
+            "noisy0.5": Bot.noisy(0.5)}
+    heldout = (
+        HeldOut("permuted_speaker", "a focal listener with a speaker whose lamp code is permuted (convention "
+                "following)", 2, ("listener_0",), {"speaker": ("permuted_speaker",)}),
+        HeldOut("noisy_speaker", "a focal listener with a speaker that shows a random colour half the time", 2,
+                ("listener_0",), {"speaker": ("noisy0.5",)}),
+        HeldOut("deaf_listener", "a focal speaker with a listener that ignores the lamp", 2, ("speaker_0",),
+                {"listener": ("first_target_listener",)}),
+    )
 
     def setup(self):
         K = self.num_targets = self.params.num_targets

@@ -32,7 +32,8 @@ import torch
 from marl_render.validation import positive_int, reward_weight
 
 from . import scenery
-from .arena import ArenaScenario, ArenaState, Prop, numbered
+from .arena import ArenaScenario, ArenaState, Prop, numbered, wander
+from .roster import Bot, HeldOut
 
 ARENA = 1.5  # half extent (m)
 SPAWN = 1.2  # agents and landmarks spawn in |x|, |y| <= SPAWN
@@ -60,6 +61,15 @@ class SpreadState(ArenaState):
     landmarks: torch.Tensor  # [W, L, 2] landmark centres (m)
 
 
+# Bot scripts (envs/roster.py): env -> actions of every agent of every world, [W, A].
+def nearest_landmark(env) -> torch.Tensor:
+    """Each agent drives to its nearest landmark, whoever else takes it."""
+    s, state = env.scenario, env.sim
+    dist = torch.cdist(state.pos[:, :env.num_agents], state.landmarks)
+    target = state.landmarks.gather(1, dist.argmin(-1)[..., None].expand(-1, -1, 2))
+    return s.steer_to(state, target)
+
+
 class Spread(ArenaScenario):
     """Cooperative navigation; see the module docstring."""
 
@@ -75,6 +85,18 @@ class Spread(ArenaScenario):
     physics_terms = frozenset({"walls", "body_collisions", "drag"})
     info_keys = {"collisions": torch.int64, "coverage": torch.float32}
     arena_half_extent = (ARENA, ARENA)
+    bots = {"noisy0.2": Bot.noisy(0.2, population="train"),
+            "nearest_landmark": Bot("drives to its nearest landmark, whoever else takes it", script=nearest_landmark),
+            "wanderer": Bot("drives round a circle, ignoring landmarks", script=wander),
+            "lazy0.5": Bot.lazy(0.5)}
+    heldout = (
+        HeldOut("two_with_nearest", "two focal agents with one partner that takes its nearest landmark or idles half "
+                "the time", 3, tuple(numbered("agent", 2)), {"agents": ("nearest_landmark", "lazy0.5")}),
+        HeldOut("one_among_nearest", "one focal agent among two partners that take their nearest landmark", 3,
+                ("agent_0",), {"agents": ("nearest_landmark",)}),
+        HeldOut("two_with_wanderer", "two focal agents with one partner that wanders", 3, tuple(numbered("agent", 2)),
+                {"agents": ("wanderer",)}),
+    )
 
     def setup(self):
         N = self.num_agents

@@ -59,7 +59,8 @@ import torch
 from marl_render.validation import positive_int, reward_weight
 
 from . import planar, scenery
-from .arena import ArenaScenario, ArenaState, Prop, numbered
+from .arena import NOOP, ArenaScenario, ArenaState, Prop, numbered, wander
+from .roster import Bot, HeldOut
 
 ARENA = 1.5  # half extent (m)
 OBSTACLE_HALF = 0.2  # half side of the square obstacles (m)
@@ -98,6 +99,44 @@ class TagState(ArenaState):
     shown: torch.Tensor  # [W, A] bool: agents drawn in the current frame (those caught in it still are)
 
 
+# Bot scripts (envs/roster.py): env -> actions of every agent of every world, [W, A].
+def interceptor(env) -> torch.Tensor:
+    """Predators aim where the nearest live prey will be in half a second; prey as the heuristic."""
+    s, state, alive = env.scenario, env.sim, env.alive
+    N = env.num_agents
+    pos, vel = state.pos[:, :N], state.vel[:, :N]
+    dist = torch.where(s.is_prey & alive[:, None, :], torch.cdist(pos, pos), math.inf)
+    prey = dist.argmin(-1)[..., None].expand(-1, -1, 2)
+    ahead = pos.gather(1, prey) + 0.5 * vel.gather(1, prey)
+    chase = s.steer_to(state, ahead)
+    return torch.where(s.is_predator, chase, s.heuristic(state, alive))
+
+
+def lazy_predator(env) -> torch.Tensor:
+    """Predators chase only prey within 1 m, else wait; prey as the heuristic."""
+    s, state, alive = env.scenario, env.sim, env.alive
+    N = env.num_agents
+    pos = state.pos[:, :N]
+    near = (torch.where(s.is_prey & alive[:, None, :], torch.cdist(pos, pos), math.inf).amin(-1) < 1.0)
+    actions = s.heuristic(state, alive)
+    return torch.where(s.is_predator & ~near, NOOP, actions)
+
+
+def wandering_prey(env) -> torch.Tensor:
+    """Prey wander round the arena, ignoring predators; predators as the heuristic."""
+    s = env.scenario
+    return torch.where(s.is_prey, wander(env), s.heuristic(env.sim, env.alive))
+
+
+def corner_prey(env) -> torch.Tensor:
+    """Prey hide in the corner nearest to where they are; predators as the heuristic."""
+    s, state = env.scenario, env.sim
+    hx, hy = s.arena_half_extent
+    pos = state.pos[:, :env.num_agents]
+    corner = torch.stack((torch.sign(pos[..., 0]) * 0.85 * hx, torch.sign(pos[..., 1]) * 0.85 * hy), -1)
+    return torch.where(s.is_prey, s.steer_to(state, corner), s.heuristic(state, env.alive))
+
+
 class Tag(ArenaScenario):
     """Predators and prey; see the module docstring."""
 
@@ -115,6 +154,22 @@ class Tag(ArenaScenario):
     arena_half_extent = (ARENA, ARENA)
     opponents = ("prey",)
     shown = "shown"  # caught prey are drawn in the frame of their catch, then no more
+    sides = ("predator", "prey")  # cross-play: predator policies (rows) against prey policies (columns)
+    bots = {"noisy0.2": Bot.noisy(0.2, population="train"),
+            "interceptor": Bot("predators aim half a second ahead of the prey", script=interceptor),
+            "lazy_predator": Bot("predators chase only prey within 1 m", script=lazy_predator),
+            "wandering_prey": Bot("prey wander round the arena, ignoring predators", script=wandering_prey),
+            "corner_prey": Bot("prey hide in their nearest corner", script=corner_prey)}
+    heldout = (
+        HeldOut("prey_vs_interceptors", "one focal prey against predators that aim ahead or wait", 4, ("prey_0",),
+                {"predator": ("interceptor", "lazy_predator")}),
+        HeldOut("predators_vs_wanderers", "focal predators hunt prey that wander or hide in corners", 4,
+                tuple(numbered("predator", 3)), {"prey": ("wandering_prey", "corner_prey")}),
+        HeldOut("pair_with_interceptor",
+                "two focal predators with an interceptor teammate, against a wandering or hiding prey", 4,
+                tuple(numbered("predator", 2)),
+                {"predator": ("interceptor",), "prey": ("wandering_prey", "corner_prey")}),
+    )
 
     @classmethod
     def num_agents_for(cls, params, num_agents):

@@ -1,33 +1,36 @@
-"""Scripted bots of every multi-agent task, and each task's training and test populations.
+"""The bots of every multi-agent task as policies, and each task's training and test populations.
 
 In the spirit of Melting Pot's puppets: each bot is the task's heuristic or a parameterised variant
 of it (an interceptor predator that aims ahead, a permuted-code speaker, greedy and tagging
-harvesters, ...). Every bot reads the simulation state and plays any slot; which slots a held-out
-scenario gives it is in marl_render/heldout.py.
+harvesters, ...). A task declares its bots in its own file, as data on its class (``bots``:
+name -> ``envs.roster.Bot``, with a "train" or "test" population); this module turns them into
+policies. Every bot reads the simulation state and plays any slot; which slots a held-out scenario
+gives it is declared on the task too (``heldout``, read by marl_render/heldout.py).
 
     make_bot("tag", "interceptor")          # a Policy (marl_render/policies.py)
     POPULATIONS["tag"]["train"]             # names of the bots users may train with
     POPULATIONS["tag"]["test"]              # names held out for evaluation: none is in "train"
 
 Each task's two populations share no bot: held-out scenarios use test bots only. A user's task
-(or a built-in one) gets bots with ``register_bot`` (docs/authoring.md): every command line that
-takes bot names (``python -m marl_render.evaluate``, its cross-play roster) then knows them,
-through ``--import MODULE`` of the module that registers them.
+declares its bots on its class, or gets them with ``register_bot`` (docs/authoring.md): every
+command line that takes bot names (``python -m marl_render.evaluate``, its cross-play roster) then
+knows them, through ``--import MODULE`` of the module that registers them.
 """
 from __future__ import annotations
 
-import math
+from collections.abc import Mapping
 
 import torch
 
-from marl_render.envs import list_envs
+from marl_render.envs import env_class, list_envs
 from marl_render.envs import options as check
+from marl_render.envs.arena import NOOP, wander  # noqa: F401  (wander: the shared script, importable from here)
 from marl_render.envs.masking import sample_allowed
+from marl_render.envs.roster import POPULATIONS as POPULATION_NAMES
+from marl_render.envs.roster import Bot
 from marl_render.validation import describe
 
 from .policies import Policy, ScriptedPolicy, heuristic_policy
-
-NOOP = 0  # the egocentric tasks' action 0 (envs/egomotion.py)
 
 
 class Perturbed(Policy):
@@ -66,166 +69,61 @@ class Perturbed(Policy):
         return torch.where(forbidden, sample_allowed(mask[:, None], self.generator)[:, 0], drawn)
 
 
-# ---------------------------------------------------------------- scripts: env -> actions [W, A]
-def wander(env) -> torch.Tensor:
-    """Each agent drives round a circle of its own phase (half the arena's extent): covers the
-    arena without looking at anything."""
-    s = env.scenario
-    hx, hy = s.arena_half_extent
-    phase = torch.arange(env.num_agents) * (2 * math.pi / env.num_agents) + env.step_count[:, None].cpu() * 0.03
-    target = torch.stack((0.5 * hx * torch.cos(phase), 0.5 * hy * torch.sin(phase)), -1).to(env.device)
-    return s.steer_to(env.sim, target)
-
-
-def tag_interceptor(env) -> torch.Tensor:
-    """Predators aim where the nearest live prey will be in half a second; prey as the heuristic."""
-    s, state, alive = env.scenario, env.sim, env.alive
-    N = env.num_agents
-    pos, vel = state.pos[:, :N], state.vel[:, :N]
-    dist = torch.where(s.is_prey & alive[:, None, :], torch.cdist(pos, pos), math.inf)
-    prey = dist.argmin(-1)[..., None].expand(-1, -1, 2)
-    ahead = pos.gather(1, prey) + 0.5 * vel.gather(1, prey)
-    chase = s.steer_to(state, ahead)
-    return torch.where(s.is_predator, chase, s.heuristic(state, alive))
-
-
-def tag_lazy_predator(env) -> torch.Tensor:
-    """Predators chase only prey within 1 m, else wait; prey as the heuristic."""
-    s, state, alive = env.scenario, env.sim, env.alive
-    N = env.num_agents
-    pos = state.pos[:, :N]
-    near = (torch.where(s.is_prey & alive[:, None, :], torch.cdist(pos, pos), math.inf).amin(-1) < 1.0)
-    actions = s.heuristic(state, alive)
-    return torch.where(s.is_predator & ~near, NOOP, actions)
-
-
-def tag_wandering_prey(env) -> torch.Tensor:
-    """Prey wander round the arena, ignoring predators; predators as the heuristic."""
-    s = env.scenario
-    return torch.where(s.is_prey, wander(env), s.heuristic(env.sim, env.alive))
-
-
-def tag_corner_prey(env) -> torch.Tensor:
-    """Prey hide in the corner nearest to where they are; predators as the heuristic."""
-    s, state = env.scenario, env.sim
-    hx, hy = s.arena_half_extent
-    pos = state.pos[:, :env.num_agents]
-    corner = torch.stack((torch.sign(pos[..., 0]) * 0.85 * hx, torch.sign(pos[..., 1]) * 0.85 * hy), -1)
-    return torch.where(s.is_prey, s.steer_to(state, corner), s.heuristic(state, env.alive))
-
-
-def spread_nearest(env) -> torch.Tensor:
-    """Each agent drives to its nearest landmark, whoever else takes it."""
-    s, state = env.scenario, env.sim
-    dist = torch.cdist(state.pos[:, :env.num_agents], state.landmarks)
-    target = state.landmarks.gather(1, dist.argmin(-1)[..., None].expand(-1, -1, 2))
-    return s.steer_to(state, target)
-
-
-def speaker_permuted(env) -> torch.Tensor:
-    """The speaker shows the colour after the goal's (a permuted code); the listener as the heuristic."""
-    s, state = env.scenario, env.sim
-    actions = s.heuristic(state, env.alive).clone()
-    actions[:, 0] = 5 + (state.goal + 1) % s.num_targets
-    return actions
-
-
-def listener_first_target(env) -> torch.Tensor:
-    """The listener drives to the first target whatever the lamp shows; the speaker as the heuristic."""
-    s, state = env.scenario, env.sim
-    actions = s.heuristic(state, env.alive).clone()
-    actions[:, 1] = s.steer_to(state, state.targets[:, :1].expand(-1, 2, 2))[:, 1]
-    return actions
-
-
-def commons_greedy(env) -> torch.Tensor:
-    """Each harvester drives to the nearest present apple, ripe or not (it strips patches bare)."""
-    s, state = env.scenario, env.sim
-    W, N = env.num_worlds, env.num_agents
-    dist = torch.cdist(state.pos[:, :N], s.apples.expand(W, -1, -1))
-    dist = torch.where(state.present[:, None, :], dist, math.inf)
-    target = torch.where(torch.isinf(dist.amin(-1))[..., None], state.pos[:, :N], s.apples[dist.argmin(-1)])
-    return torch.where(state.timeout > 0, NOOP, s.steer_to(state, target))
-
-
-def commons_tagger(env) -> torch.Tensor:
-    """A greedy harvester that zaps (action 5) every fourth step."""
-    zap = (env.step_count[:, None] % 4 == 0) & (env.sim.timeout == 0)
-    return torch.where(zap, 5, commons_greedy(env))
-
-
-def push_ball_chaser(env) -> torch.Tensor:
-    """Every agent drives straight at the ball."""
-    state = env.sim
-    return env.scenario.steer_to(state, state.pos[:, -1:].expand(-1, env.num_agents, 2))
-
-
-def push_goalkeeper(env) -> torch.Tensor:
-    """Every agent stands on its own goal line, level with the ball."""
-    s, state = env.scenario, env.sim
-    own_goal_y = -s.side * 0.85 * s.arena_half_extent[1]  # [N]
-    ball_x = state.pos[:, -1:, 0].expand(-1, env.num_agents)
-    return s.steer_to(state, torch.stack((ball_x, own_goal_y.expand_as(ball_x)), -1))
-
-
-def flag_all_attack(env) -> torch.Tensor:
-    """Every agent fetches the enemy flag and carries it home (or goes home while a teammate has it)."""
-    s, state = env.scenario, env.sim
-    enemy = 1 - s.team
-    carried = (state.carrier[:, enemy] >= 0)[..., None]
-    target = torch.where(carried, s.base[s.team].expand(env.num_worlds, -1, -1), s.flag_position(state)[:, enemy])
-    return s.steer_to(state, target)
-
-
-def flag_all_defend(env) -> torch.Tensor:
-    """Every agent guards the point 1 m in front of its own flag."""
-    s, state = env.scenario, env.sim
-    guard = s.base[s.team] - s.side[:, None] * torch.tensor([0.0, 1.0], device=env.device)
-    return s.steer_to(state, guard.expand(env.num_worlds, -1, -1))
-
-
-SCRIPTS: dict = {  # task -> bot name -> (script, one line)
-    "tag": {"interceptor": (tag_interceptor, "predators aim half a second ahead of the prey"),
-            "lazy_predator": (tag_lazy_predator, "predators chase only prey within 1 m"),
-            "wandering_prey": (tag_wandering_prey, "prey wander round the arena, ignoring predators"),
-            "corner_prey": (tag_corner_prey, "prey hide in their nearest corner")},
-    "spread": {"nearest_landmark": (spread_nearest, "drives to its nearest landmark, whoever else takes it"),
-               "wanderer": (wander, "drives round a circle, ignoring landmarks")},
-    "speaker_listener": {"permuted_speaker": (speaker_permuted, "the speaker shows the next colour (a permuted code)"),
-                         "first_target_listener": (listener_first_target, "the listener ignores the lamp")},
-    "commons": {"greedy": (commons_greedy, "harvests the nearest apple, ripe or not"),
-                "tagger": (commons_tagger, "greedy, and zaps every fourth step")},
-    "push": {"ball_chaser": (push_ball_chaser, "drives straight at the ball"),
-             "goalkeeper": (push_goalkeeper, "stands on its goal line, level with the ball")},
-    "capture_flag": {"all_attack": (flag_all_attack, "fetches the enemy flag, never defends"),
-                     "all_defend": (flag_all_defend, "guards its own flag, never attacks")},
-    "forage": {"wanderer": (wander, "drives round a circle, ignoring items")},
-    "rooms": {"wanderer": (wander, "drives round a circle, ignoring doors and the goal")},
-}
 PERTURBED = {"noisy0.1": ("noisy", 0.1), "noisy0.2": ("noisy", 0.2), "noisy0.5": ("noisy", 0.5),
-             "lazy0.5": ("lazy", 0.5)}  # heuristic variants: name -> (kind, probability)
+             "lazy0.5": ("lazy", 0.5)}  # heuristic variants register_bot takes by name: name -> (kind, probability)
 
-POPULATIONS: dict = {  # task -> {"train": bots users may train with, "test": bots of held-out scenarios}
-    "tag": {"train": ("heuristic", "noisy0.2"), "test": ("interceptor", "lazy_predator", "wandering_prey",
-                                                          "corner_prey")},
-    "spread": {"train": ("heuristic", "noisy0.2"), "test": ("nearest_landmark", "wanderer", "lazy0.5")},
-    "speaker_listener": {"train": ("heuristic", "noisy0.1"), "test": ("permuted_speaker", "first_target_listener",
-                                                                       "noisy0.5")},
-    "commons": {"train": ("heuristic", "noisy0.1"), "test": ("greedy", "tagger", "lazy0.5")},
-    "push": {"train": ("heuristic", "noisy0.2"), "test": ("ball_chaser", "goalkeeper", "lazy0.5")},
-    "capture_flag": {"train": ("heuristic", "noisy0.2"), "test": ("all_attack", "all_defend", "lazy0.5")},
-    "forage": {"train": ("heuristic", "noisy0.2"), "test": ("wanderer", "lazy0.5", "noisy0.5")},
-    "rooms": {"train": ("heuristic", "noisy0.2"), "test": ("wanderer", "lazy0.5", "noisy0.5")},
-}
+_REGISTERED: dict = {}  # task -> {bot name: roster.Bot}: register_bot's, over the task class's own ``bots``
 
 
-FACTORIES: dict = {}  # task -> bot name -> (factory(seed) -> Policy, one line): register_bot's factory bots
+def roster(task: str) -> dict:
+    """{bot name: roster.Bot} of `task`: the task class's ``bots`` (envs/roster.py), then those
+    ``register_bot`` added (a registered name replaces the class's bot and moves to the end).
+    The heuristic is not listed: it is every task's, in its train population."""
+    registered = _REGISTERED.get(task, {})
+    return {**{name: bot for name, bot in env_class(task).bots.items() if name not in registered}, **registered}
+
+
+def populations(task: str) -> dict:
+    """{"train": bot names users may train with (the heuristic first), "test": bot names of the
+    held-out scenarios} of `task`; the two share no bot."""
+    bots = roster(task)
+    return {population: (*(("heuristic",) if population == "train" else ()),
+                         *[name for name, bot in bots.items() if bot.population == population])
+            for population in POPULATION_NAMES}
+
+
+def has_bots(task) -> bool:
+    """Whether `task` (any value) is a registered task with bots of its own or registered ones."""
+    if not isinstance(task, str) or task not in list_envs():
+        return False
+    return bool(roster(task))
+
+
+class Populations(Mapping):
+    """The read-only table ``POPULATIONS[task]`` = populations(task), over the registered tasks that
+    have bots (their classes' ``bots`` or ``register_bot``'s), in ``list_envs`` order. Each task
+    keeps its bots in its own class (envs/roster.py); nothing is stored here."""
+
+    def __getitem__(self, task):
+        if not has_bots(task):
+            raise KeyError(task)
+        return populations(task)
+
+    def __iter__(self):
+        return iter([task for task in list_envs() if has_bots(task)])
+
+    def __len__(self):
+        return len(list(iter(self)))
+
+
+POPULATIONS = Populations()
 
 
 def register_bot(task: str, name: str, script=None, *, factory=None, description: str = "",
                  population: str = "test", overwrite: bool = False) -> None:
     """Make bot `name` of registered task `task` known to make_bot, bot_names, held-out scenarios
-    (``register_heldout``) and every command line that takes bot names.
+    (``register_heldout``) and every command line that takes bot names. A task of your own can
+    declare its bots on its class instead (``bots = {name: roster.Bot(...)}``, docs/authoring.md).
 
     Give one of: `script`, a function ``script(env) -> actions`` of every agent of every world
     ([W, A] or [W, A, action_dim]) that reads ``env.sim`` (a scripted bot, as the built-in ones);
@@ -255,39 +153,35 @@ def register_bot(task: str, name: str, script=None, *, factory=None, description
     if name == "heuristic":
         raise ValueError("bot 'heuristic' is the task's own Scenario.heuristic, in every task's train population: "
                          "choose another name")
-    populations = POPULATIONS.get(task, {"train": ("heuristic",), "test": ()})
+    current = populations(task)
     other = "train" if population == "test" else "test"
-    if name in populations[other]:
+    if name in current[other]:
         raise ValueError(f"bot {name!r} is in {task}'s {other} population: the train and test populations share "
                          f"no bot")
-    if name in populations[population] and not overwrite:
+    if name in current[population] and not overwrite:
         raise ValueError(f"bot {name!r} of {task} is already registered; pass overwrite=True to replace it")
-    # New entries, never edits of the tables' own dicts (which the built-in tasks share).
-    POPULATIONS[task] = {**populations, population: (*[n for n in populations[population] if n != name], name)}
-    SCRIPTS[task] = {k: v for k, v in SCRIPTS.get(task, {}).items() if k != name}
-    FACTORIES[task] = {k: v for k, v in FACTORIES.get(task, {}).items() if k != name}
     if script is not None:
-        SCRIPTS[task][name] = (script, description or (script.__doc__ or "").strip() or name)
-    if factory is not None:
-        FACTORIES[task][name] = (factory, description or name)
+        bot = Bot(description or (script.__doc__ or "").strip() or name, script=script, population=population)
+    elif factory is not None:
+        bot = Bot(description or name, factory=factory, population=population)
+    else:
+        kind, p = PERTURBED[name]
+        bot = (Bot.lazy if kind == "lazy" else Bot.noisy)(p, population=population)
+    # A new dict, never an edit of the old one; the name moves to the end of its population.
+    _REGISTERED[task] = {**{k: v for k, v in _REGISTERED.get(task, {}).items() if k != name}, name: bot}
 
 
 def bot_names(task: str) -> list:
     """Every bot of `task` (its populations' union)."""
-    if task not in POPULATIONS:
+    if not has_bots(task):
         raise ValueError(f"task must be one of the multi-agent tasks {sorted(POPULATIONS)}, got {task!r}")
-    return [*POPULATIONS[task]["train"], *POPULATIONS[task]["test"]]
+    current = populations(task)
+    return [*current["train"], *current["test"]]
 
 
 def describe_bot(task: str, name: str) -> str:
-    if name == "heuristic":
-        return "the task's scripted heuristic"
-    if name in FACTORIES.get(task, {}):
-        return FACTORIES[task][name][1]
-    if name in PERTURBED and name not in SCRIPTS.get(task, {}):
-        kind, p = PERTURBED[name]
-        return f"the heuristic, playing {'noop' if kind == 'lazy' else 'a random action'} with probability {p:g}"
-    return SCRIPTS[task][name][1]
+    """The bot's one line (its roster.Bot's description)."""
+    return "the task's scripted heuristic" if name == "heuristic" else roster(task)[name].description
 
 
 def make_bot(task: str, name: str, seed: int = 0) -> Policy:
@@ -299,14 +193,14 @@ def make_bot(task: str, name: str, seed: int = 0) -> Policy:
     seed = int(seed)
     if name == "heuristic":
         return heuristic_policy()
-    if name in FACTORIES.get(task, {}):
-        bot = FACTORIES[task][name][0](seed)
-        if not callable(getattr(bot, "act", None)):
+    bot = roster(task)[name]
+    if bot.factory is not None:
+        made = bot.factory(seed)
+        if not callable(getattr(made, "act", None)):
             raise TypeError(f"the factory of bot {name!r} of {task} must return a Policy (an object with act), got "
-                            f"{describe(bot)}")
-        return bot
-    if name in PERTURBED and name not in SCRIPTS.get(task, {}):
-        kind, p = PERTURBED[name]
+                            f"{describe(made)}")
+        return made
+    if bot.script is None:
+        kind, p = bot.variant
         return Perturbed(heuristic_policy(), p, kind, seed)
-    script, description = SCRIPTS[task][name]
-    return ScriptedPolicy(name, script, description)
+    return ScriptedPolicy(name, bot.script, bot.description)

@@ -56,8 +56,6 @@ from marl_render.policies import Policy, RandomPolicy, as_policy, heuristic_poli
 from marl_render.task_imports import add_import_option, load_user_tasks
 from marl_render.threads import MAX_THREADS
 
-COMPETITIVE = ("tag", "push", "capture_flag")  # the cross-play tasks: team A (rows) against team B (columns)
-SIDES = {"tag": ("predator", "prey"), "push": ("red", "blue"), "capture_flag": ("red", "blue")}
 DOCS_EPISODES, CROSSPLAY_EPISODES, DOCS_SEED, DOCS_RESOLUTION = 32, 16, 0, 16
 
 
@@ -262,8 +260,8 @@ def listing() -> str:
 # ------------------------------------------------------------------ cross-play
 def crossplay(task: str, roster: dict, *, episodes: int = 16, seed: int = 0, resolution: int = 16,
               previous: dict | None = None) -> dict:
-    """Every policy of `roster` ({label: spec}) as team A against every one as team B (SIDES[task], or
-    the first two teams of a task without an entry there): returns [i, j] of both teams (per capita),
+    """Every policy of `roster` ({label: spec}) as team A against every one as team B (the task's
+    ``sides``, or the first two teams of a task that declares none): returns [i, j] of both teams (per capita),
     win/draw counts (the team with the higher per-capita return wins the episode) and Elo ratings
     anchored at the first policy (random). Every pair plays on one env setting: the resolution and
     the env keywords the roster's trained actors need (all must agree), else `resolution`.
@@ -279,7 +277,7 @@ def crossplay(task: str, roster: dict, *, episodes: int = 16, seed: int = 0, res
     with make_env(task, num_worlds=1, **{**env_kwargs, "resolution": 8}) as probe:
         if len(probe.groups) < 2:
             raise ValueError(f"cross-play needs a task of two or more teams; {task} has {list(probe.groups)}")
-        side_a, side_b = SIDES.get(task, tuple(probe.groups)[:2])
+        side_a, side_b = env_class(task).sides or tuple(probe.groups)[:2]
         focal = probe.groups[side_a]
     specs = {label: spec_key(spec) for label, spec in roster.items()}
     same = previous is not None and all(previous.get(k) == v for k, v in (
@@ -613,7 +611,7 @@ def publish(*, docs: str = "docs", episodes: int = DOCS_EPISODES, crossplay_epis
         return
     results = []
     os.makedirs(os.path.join(docs, "crossplay"), exist_ok=True)
-    for task in COMPETITIVE:
+    for task in [task for task in POPULATIONS if env_class(task).sides]:  # the cross-play tasks
         path = os.path.join(docs, "crossplay", f"{task}.json")
         if task not in tasks:
             if crossplay_only and os.path.isfile(path):  # kept as it was

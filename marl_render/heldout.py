@@ -1,5 +1,6 @@
 """Held-out scenarios in Melting Pot's sense: a task, its parameters, which slots are focal, and the
-background bots by role, all drawn from the task's test population (marl_render/bots.py).
+background bots by role, all drawn from the task's test population (marl_render/bots.py). Each task
+declares its own on its class (``heldout``: envs.roster.HeldOut, named "<task>/<name>" here).
 
     list_heldout()                       # every scenario's name, e.g. "tag/prey_vs_interceptors"
     HELDOUT["tag/prey_vs_interceptors"]  # its HeldOutScenario
@@ -13,9 +14,11 @@ are registered (``marl_render.bots.register_bot``; docs/authoring.md).
 from __future__ import annotations
 
 import dataclasses
+import functools
+from collections.abc import Mapping
 
 from marl_render.envs.focal import Population
-from marl_render.envs.registry import list_envs, make_env
+from marl_render.envs.registry import env_class, list_envs, make_env
 from marl_render.validation import describe
 
 from .bots import POPULATIONS, make_bot
@@ -50,85 +53,50 @@ class HeldOutScenario:
         return {"num_agents": self.num_agents, **self.params}
 
 
-def _names(prefix: str, indices) -> tuple:
-    return tuple(f"{prefix}_{i}" for i in indices)
+_REGISTERED: list = []  # register_heldout's scenarios, in registration order
 
 
-_SCENARIOS = [
-    HeldOutScenario("tag/prey_vs_interceptors", "tag", "one focal prey against predators that aim ahead or wait",
-                    4, _names("prey", [0]), {"predator": ("interceptor", "lazy_predator")}),
-    HeldOutScenario("tag/predators_vs_wanderers", "tag", "focal predators hunt prey that wander or hide in corners",
-                    4, _names("predator", range(3)), {"prey": ("wandering_prey", "corner_prey")}),
-    HeldOutScenario("tag/pair_with_interceptor", "tag",
-                    "two focal predators with an interceptor teammate, against a wandering or hiding prey",
-                    4, _names("predator", range(2)), {"predator": ("interceptor",),
-                                                      "prey": ("wandering_prey", "corner_prey")}),
-    HeldOutScenario("spread/two_with_nearest", "spread",
-                    "two focal agents with one partner that takes its nearest landmark or idles half the time",
-                    3, _names("agent", range(2)), {"agents": ("nearest_landmark", "lazy0.5")}),
-    HeldOutScenario("spread/one_among_nearest", "spread",
-                    "one focal agent among two partners that take their nearest landmark",
-                    3, _names("agent", [0]), {"agents": ("nearest_landmark",)}),
-    HeldOutScenario("spread/two_with_wanderer", "spread", "two focal agents with one partner that wanders",
-                    3, _names("agent", range(2)), {"agents": ("wanderer",)}),
-    HeldOutScenario("speaker_listener/permuted_speaker", "speaker_listener",
-                    "a focal listener with a speaker whose lamp code is permuted (convention following)",
-                    2, ("listener_0",), {"speaker": ("permuted_speaker",)}),
-    HeldOutScenario("speaker_listener/noisy_speaker", "speaker_listener",
-                    "a focal listener with a speaker that shows a random colour half the time",
-                    2, ("listener_0",), {"speaker": ("noisy0.5",)}),
-    HeldOutScenario("speaker_listener/deaf_listener", "speaker_listener",
-                    "a focal speaker with a listener that ignores the lamp", 2, ("speaker_0",),
-                    {"listener": ("first_target_listener",)}),
-    HeldOutScenario("commons/resident_with_greedy", "commons",
-                    "four focal harvesters with one greedy or tagging visitor", 5, _names("agent", range(4)),
-                    {"agents": ("greedy", "tagger")}),
-    HeldOutScenario("commons/visitor_among_taggers", "commons",
-                    "one focal harvester among four greedy harvesters that zap", 5, _names("agent", [0]),
-                    {"agents": ("tagger", "greedy")}),
-    HeldOutScenario("commons/resident_with_lazy", "commons", "three focal harvesters with two that idle half the time",
-                    5, _names("agent", range(3)), {"agents": ("lazy0.5",)}),
-    HeldOutScenario("push/red_vs_chasers", "push", "focal red team against ball chasers or goalkeepers",
-                    4, _names("red", range(2)), {"blue": ("ball_chaser", "goalkeeper")}),
-    HeldOutScenario("push/blue_vs_chasers", "push", "focal blue team against ball chasers or goalkeepers",
-                    4, _names("blue", range(2)), {"red": ("ball_chaser", "goalkeeper")}),
-    HeldOutScenario("push/with_lazy_teammate", "push",
-                    "one focal red player with an idle-half-the-time teammate, against ball chasers",
-                    4, ("red_0",), {"red": ("lazy0.5",), "blue": ("ball_chaser",)}),
-    HeldOutScenario("capture_flag/red_vs_attackers", "capture_flag",
-                    "focal red team against a team that only attacks or only defends", 16, _names("red", range(8)),
-                    {"blue": ("all_attack", "all_defend")}),
-    HeldOutScenario("capture_flag/blue_vs_defenders", "capture_flag",
-                    "focal blue team against a team that only defends or idles half the time",
-                    16, _names("blue", range(8)), {"red": ("all_defend", "lazy0.5")}),
-    HeldOutScenario("capture_flag/resident_red", "capture_flag",
-                    "focal red team and half of blue, with four blue attackers", 16,
-                    _names("red", range(8)) + _names("blue", range(4)), {"blue": ("all_attack",)}),
-    # The same opponents at the reference trainer's 2 v 2 (docs/baselines): its runs' agent one-hot fixes
-    # their team size, so without these capture_flag's trained actors would play no scenario.
-    HeldOutScenario("capture_flag/duel_red_vs_attackers", "capture_flag",
-                    "a focal red pair against a pair that only attacks or only defends", 4, _names("red", range(2)),
-                    {"blue": ("all_attack", "all_defend")}),
-    HeldOutScenario("capture_flag/duel_blue_vs_defenders", "capture_flag",
-                    "a focal blue pair against a pair that only defends or idles half the time",
-                    4, _names("blue", range(2)), {"red": ("all_defend", "lazy0.5")}),
-    HeldOutScenario("capture_flag/duel_red_with_lazy_teammate", "capture_flag",
-                    "one focal red player with a teammate that idles half the time, against attackers",
-                    4, ("red_0",), {"red": ("lazy0.5",), "blue": ("all_attack",)}),
-    HeldOutScenario("forage/two_with_wanderer", "forage", "two focal foragers with one that wanders",
-                    3, _names("agent", range(2)), {"agents": ("wanderer",)}),
-    HeldOutScenario("forage/one_among_noisy", "forage", "one focal forager among two that act at random half the time",
-                    3, _names("agent", [0]), {"agents": ("noisy0.5", "lazy0.5")}),
-    HeldOutScenario("forage/two_with_lazy", "forage", "two focal foragers with one that idles half the time",
-                    3, _names("agent", range(2)), {"agents": ("lazy0.5",)}),
-    HeldOutScenario("rooms/with_wanderer", "rooms", "a focal explorer with a partner that wanders",
-                    2, ("agent_0",), {"agents": ("wanderer",)}),
-    HeldOutScenario("rooms/with_lazy", "rooms", "a focal explorer with a partner that idles half the time",
-                    2, ("agent_0",), {"agents": ("lazy0.5",)}),
-    HeldOutScenario("rooms/with_noisy", "rooms", "a focal explorer with a partner that acts at random half the time",
-                    2, ("agent_0",), {"agents": ("noisy0.5",)}),
-]
-HELDOUT: dict = {s.name: s for s in _SCENARIOS}
+def declared(task: str) -> list:
+    """The HeldOutScenarios that task `task`'s class declares (``heldout``: envs.roster.HeldOut),
+    named "<task>/<name>"."""
+    return _declared(task, env_class(task))
+
+
+@functools.cache
+def _declared(task: str, scenario_class: type) -> list:
+    # One object per scenario and class (a task registered again under its name is read afresh).
+    return [HeldOutScenario(f"{task}/{held.name}", task, held.description, held.num_agents, tuple(held.focal),
+                            {team: tuple(names) for team, names in held.bots_by_role.items()}, dict(held.params))
+            for held in scenario_class.heldout]
+
+
+def _scenarios() -> list:
+    """Every held-out scenario: the tasks' own (in list_envs order), then register_heldout's (one
+    registered under a task's scenario's name replaces it)."""
+    registered = {scenario.name for scenario in _REGISTERED}
+    own = [scenario for task in list_envs() for scenario in declared(task)
+           if scenario.name not in registered]
+    return [*own, *_REGISTERED]
+
+
+class HeldOutTable(Mapping):
+    """The read-only table ``HELDOUT[name]`` -> HeldOutScenario, in list_heldout order. Each task
+    keeps its scenarios on its own class (envs/roster.py); only register_heldout's are stored here."""
+
+    def __getitem__(self, name):
+        for scenario in _scenarios():
+            if scenario.name == name:
+                return scenario
+        raise KeyError(name)
+
+    def __iter__(self):
+        return iter([scenario.name for scenario in _scenarios()])
+
+    def __len__(self):
+        return len(_scenarios())
+
+
+HELDOUT = HeldOutTable()
 
 
 def register_heldout(scenario: HeldOutScenario, *, overwrite: bool = False) -> None:
@@ -162,7 +130,7 @@ def register_heldout(scenario: HeldOutScenario, *, overwrite: bool = False) -> N
                          f"to replace it")
     if scenario.task not in list_envs():
         raise ValueError(f"scenario.task must be a registered task among {list_envs()}, got {scenario.task!r}")
-    test = POPULATIONS.get(scenario.task, {}).get("test", ())
+    test = POPULATIONS[scenario.task]["test"] if scenario.task in POPULATIONS else ()
     strangers = sorted({n for names in scenario.bots_by_role.values() for n in names} - set(test))
     if strangers or not scenario.bots_by_role:
         raise ValueError(f"scenario {scenario.name!r}: bots_by_role must name bots of {scenario.task}'s test "
@@ -183,17 +151,14 @@ def register_heldout(scenario: HeldOutScenario, *, overwrite: bool = False) -> N
         make_env(scenario.task, heldout=scenario, num_worlds=1, resolution=8).close()
     except (ValueError, TypeError) as error:
         raise ValueError(f"scenario {scenario.name!r} does not make a focal-only env: {error}") from None
-    if scenario.name in HELDOUT:
-        _SCENARIOS.remove(HELDOUT[scenario.name])
-    _SCENARIOS.append(scenario)
-    HELDOUT[scenario.name] = scenario
+    _REGISTERED[:] = [*[s for s in _REGISTERED if s.name != scenario.name], scenario]
 
 
 def list_heldout(task: str | None = None) -> list:
     """Names of the held-out scenarios (of `task` only, if given), in registry order."""
     if task is not None and task not in POPULATIONS:
         raise ValueError(f"task must be one of the multi-agent tasks {sorted(POPULATIONS)}, got {task!r}")
-    return [s.name for s in _SCENARIOS if task is None or s.task == task]
+    return [s.name for s in _scenarios() if task is None or s.task == task]
 
 
 def heldout_scenario(name) -> HeldOutScenario:

@@ -1,5 +1,4 @@
 """Fixtures shared by several test modules, and the `gpu` marker's skip."""
-import copy
 import functools
 import sys
 
@@ -42,16 +41,15 @@ def registered_tasks_restored():
 @pytest.fixture
 def registries():
     """The bot and held-out scenario registries as they were, restored after the test (they are
-    module-global: register_bot and register_heldout write into them)."""
+    module-global: register_bot and register_heldout write into them; the tasks' own bots and
+    scenarios are on their classes)."""
     from marl_render import bots, heldout  # the library only once a test asks for it
 
-    saved = [(table, copy.copy(table)) for table in (bots.POPULATIONS, bots.SCRIPTS, bots.FACTORIES, heldout.HELDOUT)]
-    scenarios = list(heldout._SCENARIOS)
+    registered_bots, registered_scenarios = dict(bots._REGISTERED), list(heldout._REGISTERED)
     yield
-    for table, before in saved:
-        table.clear()
-        table.update(before)
-    heldout._SCENARIOS[:] = scenarios
+    bots._REGISTERED.clear()
+    bots._REGISTERED.update(registered_bots)
+    heldout._REGISTERED[:] = registered_scenarios
 
 
 @pytest.fixture(scope="module")

@@ -297,21 +297,13 @@ def test_a_hook_that_breaks_its_contract_is_named(task, words):
         env.close()
 
 
-def test_bots_and_held_out_scenarios_of_the_tutorial_task_run_as_written(tutorial, capsys):
+def test_bots_and_held_out_scenarios_of_the_tutorial_task_run_as_written(tutorial, capsys, registries):
     from marl_render import bots, heldout
 
-    saved = [(table, dict(table)) for table in (bots.POPULATIONS, bots.SCRIPTS, bots.FACTORIES, heldout.HELDOUT)]
-    scenarios = list(heldout._SCENARIOS)
-    try:
-        blocks = bots_blocks()
-        assert len(blocks) == 1
-        exec(compile(blocks[0], str(DOC), "exec"), dict(tutorial))  # noqa: S102
-        assert heldout.list_heldout("rendezvous") == ["rendezvous/meet_the_stubborn"]
-        assert bots.POPULATIONS["rendezvous"] == {"train": ("heuristic",), "test": ("stayer", "lazy0.5")}
-        printed = capsys.readouterr().out
-        assert "stayer" in printed or "lazy0.5" in printed  # bots_sampled names the bots that played
-    finally:
-        for table, before in saved:
-            table.clear()
-            table.update(before)
-        heldout._SCENARIOS[:] = scenarios
+    blocks = bots_blocks()
+    assert len(blocks) == 1
+    exec(compile(blocks[0], str(DOC), "exec"), dict(tutorial))  # noqa: S102
+    assert heldout.list_heldout("rendezvous") == ["rendezvous/meet_the_stubborn"]
+    assert bots.POPULATIONS["rendezvous"] == {"train": ("heuristic",), "test": ("stayer", "lazy0.5")}
+    printed = capsys.readouterr().out
+    assert "stayer" in printed or "lazy0.5" in printed  # bots_sampled names the bots that played

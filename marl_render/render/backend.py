@@ -37,7 +37,7 @@ import weakref
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from . import triton_guard
+from ..util import triton_guard
 
 _CONFIG = """
 load-display p3headlessgl

@@ -1,8 +1,8 @@
 """Reliability round 4 (issue 24), items 7-10: the cases that fed the renderer or a loop what it could
 not take before their fixes (integer fields out of range, NaN positions, a step half done, two
 threads at once, ``--block-seconds nan``), so that a regression could crash the process or hang it.
-tests/test_reliability_round4.py runs each test here in a child process under a timeout; to run
-them directly: ``python -m pytest tests/round4_isolated.py``."""
+tests/test_reliability_author_traps.py runs each test here in a child process under a timeout; to run
+them directly: ``python -m pytest tests/isolated_crash_cases.py``."""
 from __future__ import annotations
 
 import dataclasses
@@ -15,7 +15,7 @@ import torch
 
 from marl_render.bench import __main__ as bench_main
 from marl_render.envs import make_env
-from round4_probe import ENVS, LOOKS, RES, Probe, W, assert_same, probe
+from probe_task import ENVS, LOOKS, RES, Probe, W, assert_same, probe
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 ITEMS: dict[int, list[str]] = {}  # the issue's item -> its tests here (each item runs in a child process of its own)

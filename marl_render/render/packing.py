@@ -1,7 +1,7 @@
 """Frame packing without a GL: scene state and cameras -> the tensors one frame draws from.
 
 A FramePacker holds the renderer's state (per-instance tensors of every group, the
-cameras, the world origins) and turns it into plain tensors laid out as layout.py says:
+cameras, the world origins) and turns it into plain tensors laid out as row_layouts.py says:
 - one instance row per world and instance of each group (static groups: one row each);
 - one view row per view: view-projection, world origin (hi + lo), near / far;
 - per group, the visible (view, instance) pairs, sorted by view, and for each pass of
@@ -23,13 +23,14 @@ from typing import Protocol
 
 import torch
 
-from . import layout, skinning
+from ..assets import skinning
+from ..util.transforms import look_at_quat, normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_to_matrix
+from ..util.validation import FLOAT_DTYPES, as_tensor, check_finite, check_host, check_range, check_shape, describe
+from . import row_layouts
 from .appearance import AppearanceRows
 from .culling import frustum_planes, inside_frustum, mesh_radius, pair_list
 from .scene import ROLES, Scene, StaticGroup, check_depth_range
 from .tiling import TileLayout
-from .transforms import look_at_quat, normalize_quat, perspective, quat_from_yaw_pitch_roll, quat_to_matrix
-from .validation import FLOAT_DTYPES, as_tensor, check_finite, check_host, check_range, check_shape, describe
 
 # Worlds are re-centred when a camera strays this far from its world's origin, so that
 # float32 positions relative to the origin stay precise (see the static-group shader).
@@ -129,13 +130,13 @@ class FramePacker:
             joints = group.mesh.num_joints if isinstance(group.mesh, skinning.SkinnedMesh) else 0
             self.groups[group.name] = GroupPacking(group.capacity, False, mesh_radius(group.mesh), joints)
         # Where each field goes, as index tuples into rows viewed as [..., texels, 4], read
-        # from layout.py once (a lookup per field and frame cost ~10% of the pack stage).
-        self._instance_rows = _indices(layout.INSTANCE, leading=2)
-        self._static_rows = _indices(layout.STATIC_INSTANCE, leading=1)
-        self._view_rows = _indices(layout.VIEW, leading=1)
-        self._texels = {"instance": layout.INSTANCE.texels, "view": layout.VIEW.texels}
-        first = layout.VIEW.fields["projection"].texel
-        self._view_rows["projection"] = (slice(None), slice(first, first + layout.VIEW_PROJECTION_TEXELS))
+        # from row_layouts.py once (a lookup per field and frame cost ~10% of the pack stage).
+        self._instance_rows = _indices(row_layouts.INSTANCE, leading=2)
+        self._static_rows = _indices(row_layouts.STATIC_INSTANCE, leading=1)
+        self._view_rows = _indices(row_layouts.VIEW, leading=1)
+        self._texels = {"instance": row_layouts.INSTANCE.texels, "view": row_layouts.VIEW.texels}
+        first = row_layouts.VIEW.fields["projection"].texel
+        self._view_rows["projection"] = (slice(None), slice(first, first + row_layouts.VIEW_PROJECTION_TEXELS))
         self.planes = None  # frustum planes [W, A, 6, 4] of the current cameras
         self._dirty = set(scene.groups)  # groups whose instance data changed since the last frame
         self._mask_dirty = set(scene.groups)  # groups whose active / owner masks changed
@@ -149,7 +150,7 @@ class FramePacker:
         """Texels of the group's instance buffer."""
         packing = self.groups[group]
         rows = packing.count if packing.static else self.scene.num_worlds * packing.count
-        return rows * layout.instance_texels(static=packing.static, joints=packing.joints)
+        return rows * row_layouts.instance_texels(static=packing.static, joints=packing.joints)
 
     def pair_capacity(self, group: str) -> int:
         return self.scene.num_views * self.groups[group].count
@@ -288,7 +289,7 @@ class FramePacker:
     def pack_static(self, group: StaticGroup, target: torch.Tensor) -> None:
         """A static group's rows (once: they never change), its absolute positions as hi + lo."""
         row = self._static_rows
-        memory = target.view(group.count, layout.instance_texels(static=True), 4)
+        memory = target.view(group.count, row_layouts.instance_texels(static=True), 4)
         hi = group.position.to(torch.float32)
         memory[row["position"]] = hi
         memory[row["active"]] = 1.0
@@ -377,7 +378,7 @@ class FramePacker:
         state, row = self.state[name], self._instance_rows
         W, C = state["active"].shape
         joints = self.groups[name].joints
-        memory = target.view(W, C, self._texels["instance"] + layout.JOINT_TEXELS * joints, 4)
+        memory = target.view(W, C, self._texels["instance"] + row_layouts.JOINT_TEXELS * joints, 4)
         memory[row["position"]] = state["position"] - self.world_origin[:, None]
         memory[row["active"]] = state["active"]
         memory[row["rotation"]] = state["rotation"]
@@ -523,7 +524,7 @@ def _broadcast_arg(name, value, shape):
     return _float_arg(name, tensor, shape)
 
 
-def _indices(table: layout.RowLayout, leading: int) -> dict:
+def _indices(table: row_layouts.RowLayout, leading: int) -> dict:
     """{field: index tuple} into rows viewed as [*leading dims, texels, 4]."""
     return {name: (slice(None),) * leading + table[name] for name in table.fields}
 

@@ -1,6 +1,6 @@
 """Shader variants: the GLSL in shaders/ with one #define per declared effect.
 
-Every variant also gets the buffer layout's #defines (layout.py: ROW_* for its instance
+Every variant also gets the buffer layout's #defines (row_layouts.py: ROW_* for its instance
 rows, VIEW_* for the view rows), generated from the table the packer writes with.
 
 Code inside `#ifdef EFFECT_X` blocks is removed by the GLSL preprocessor when the scene
@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 from importlib import resources
 
-from . import layout
+from . import row_layouts
 
 GLSL_VERSION = "#version 410\n"
 
@@ -62,7 +62,7 @@ def defines_for(effects: frozenset, *, static: bool, textured: bool, flat: bool 
     each view is drawn into its own layer of an array texture (BatchRenderer(layered=True))."""
     defines = {EFFECT_DEFINES[e] for e in effects if e != "texture"}
     if "appearance" in effects:
-        defines.update(layout.appearance_defines())
+        defines.update(row_layouts.appearance_defines())
         if role and not static:
             defines.add(f"GROUP_ROLE {role}")
         if surface:
@@ -130,11 +130,11 @@ def _compile_view(defines: tuple[str, ...]):
 
 
 def _instance_defines(static: bool, joints: int, influences: int) -> set[str]:
-    """The instance layout of a group (layout.py: where the packer put each value, joints
+    """The instance layout of a group (row_layouts.py: where the packer put each value, joints
     included), and whether it is static or skinned."""
     if joints and static:
         raise ValueError("static groups cannot be skinned: their instances have no joints")
-    defines = set(layout.glsl_defines(static=static, joints=joints))
+    defines = set(row_layouts.glsl_defines(static=static, joints=joints))
     if joints:
         if not 1 <= influences <= 4:
             raise ValueError(f"influences must be in [1, 4], got {influences}")

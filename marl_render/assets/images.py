@@ -12,7 +12,7 @@ import os
 import numpy as np
 import torch
 
-from .validation import describe, regular_file
+from ..util.validation import describe, regular_file
 
 
 def load_image(path, *, name: str = "texture") -> np.ndarray:

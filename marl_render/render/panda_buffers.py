@@ -12,7 +12,7 @@ import functools
 import numpy as np
 import torch
 
-from .images import texture_pixels
+from ..assets.images import texture_pixels
 
 
 def buffer_texture(name: str, texels: int, integer: bool = False):

@@ -1,7 +1,7 @@
 """Reliability round 4 (issue 24): the env's memory, atomic steps, states that load back, and the
 traps a task author meets. Each test failed before its fix; the numbers in the section titles
 are the issue's items. Cases that compile (item 6) run in a child process with a timeout, and so
-do those of items 7-10 (tests/round4_isolated.py), which could crash or hang before their fixes."""
+do those of items 7-10 (tests/isolated_crash_cases.py), which could crash or hang before their fixes."""
 from __future__ import annotations
 
 import argparse
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-import round4_isolated
+import isolated_crash_cases
 from departing_env import Departing
 from marl_render import play
 from marl_render.bench import peers
@@ -34,7 +34,7 @@ from marl_render.envs import (
 from marl_render.envs import cartpole as cartpole_module
 from marl_render.envs import compiled as compiled_kernels
 from marl_render.envs.evaluation import evaluate, random_policy
-from round4_probe import ENVS, LOOKS, RES, Probe, ProbeState, W, assert_same, probe, scribble
+from probe_task import ENVS, LOOKS, RES, Probe, ProbeState, W, assert_same, probe, scribble
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
@@ -340,14 +340,14 @@ def probe_cartpole():
 
 
 # ---------------------------------------------------------------------- 7-10. in a child process
-ISOLATED = pathlib.Path(round4_isolated.__file__)
+ISOLATED = pathlib.Path(isolated_crash_cases.__file__)
 
 
-@pytest.mark.parametrize("item", sorted(round4_isolated.ITEMS))
+@pytest.mark.parametrize("item", sorted(isolated_crash_cases.ITEMS))
 def test_in_a_child_process(item):
-    """The tests of an item in round4_isolated.py, all their cases, in a fresh Python under a timeout
+    """The tests of an item in isolated_crash_cases.py, all their cases, in a fresh Python under a timeout
     (a bound on a hang, not on speed): a crash or a hang there fails this test, not the session."""
-    tests = [f"{ISOLATED}::{name}" for name in round4_isolated.ITEMS[item]]
+    tests = [f"{ISOLATED}::{name}" for name in isolated_crash_cases.ITEMS[item]]
     command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *tests]
     try:
         child = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=ISOLATED.parent.parent)
@@ -359,8 +359,8 @@ def test_in_a_child_process(item):
 
 
 def test_every_isolated_test_belongs_to_an_item():
-    tests = {name for name in vars(round4_isolated) if name.startswith("test_")}
-    assert sorted(tests) == sorted(name for names in round4_isolated.ITEMS.values() for name in names)
+    tests = {name for name in vars(isolated_crash_cases) if name.startswith("test_")}
+    assert sorted(tests) == sorted(name for names in isolated_crash_cases.ITEMS.values() for name in names)
 
 
 # ---------------------------------------------------------------------- 11. TorchRL group names

@@ -28,10 +28,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from . import meshes as mesh_lib
-from .images import texture_pixels
-from .shaders import EFFECTS
-from .validation import (
+from ..assets import meshes as mesh_lib
+from ..assets.images import texture_pixels
+from ..util.validation import (
     as_tensor,
     boolean,
     check_finite,
@@ -44,6 +43,7 @@ from .validation import (
     positive_int,
     resolution_hw,
 )
+from .shaders import EFFECTS
 
 # far / near beyond which the depth buffer (24 bits, perspective depth) cannot tell distances apart:
 # measured here, a box at half the far distance vanished at 1e7 and was drawn at 3e6.
@@ -382,7 +382,7 @@ def _pose_defaults(count, rotation, scale, color):
 
 
 def _unit(rotation: torch.Tensor) -> torch.Tensor:
-    from .transforms import normalize_quat
+    from ..util.transforms import normalize_quat
 
     return normalize_quat(rotation.to(torch.float64)).to(torch.float32)
 

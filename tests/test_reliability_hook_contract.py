@@ -1,5 +1,5 @@
 """The fresh adversarial pass of issue 24's surfaces (docs/reliability/round4-recheck.md): each test
-failed before its fix. The tasks are tests/round4_probe.py's Probe with one hook changed."""
+failed before its fix. The tasks are tests/probe_task.py's Probe with one hook changed."""
 from __future__ import annotations
 
 import dataclasses
@@ -12,7 +12,7 @@ from marl_render.baselines.networks import Actor
 from marl_render.envs import make_aec_env
 from marl_render.envs.planar import Obstacles
 from marl_render.policies import load_policy
-from round4_probe import Probe, W, assert_same, probe
+from probe_task import Probe, W, assert_same, probe
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
 

@@ -26,7 +26,7 @@ import warnings
 
 import torch
 
-from .validation import describe
+from ..util.validation import describe
 
 READBACKS = ("auto", "gpu", "host")  # what users choose; the renderer has two more for benchmarks
 

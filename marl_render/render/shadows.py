@@ -32,12 +32,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import backend, layout, shaders
+from ..assets.meshes import MeshData
+from ..assets.skinning import SkinnedMesh
+from . import backend, row_layouts, shaders
 from .culling import frustum_planes
-from .meshes import MeshData
 from .panda_buffers import TextureMemory, buffer_texture, clip_distances, int_input
 from .scene import Scene
-from .skinning import SkinnedMesh
 from .tiling import TileLayout, plan_layout
 
 # Casters up to this many diagonals of the bounds box towards the light still cast into it.
@@ -63,7 +63,7 @@ def light_axes(direction) -> torch.Tensor:
 
 def static_bounds(scene: Scene) -> tuple:
     """((x0, y0, z0), (x1, y1, z1)): the box around all static geometry, exact for MeshData."""
-    from .transforms import quat_rotate
+    from ..util.transforms import quat_rotate
 
     lows, highs = [], []
     for group in scene.static.values():
@@ -124,7 +124,7 @@ def atlas_layout(num_worlds: int, resolution: int, max_size: int) -> TileLayout:
 class ShadowPass:
     """The shadow atlas of a BatchRenderer: its buffer, light matrices and caster nodes.
 
-    groups: the renderer's draw groups by name (renderer.DrawGroup: node, count, static, instance
+    groups: the renderer's draw groups by name (draw_groups.DrawGroup: node, count, static, instance
     texture); the casters draw the same nodes and instance data. Which instances cast is the
     packer's answer (FramePacker.light_pairs), as for the main pass."""
 
@@ -199,7 +199,7 @@ class ShadowPass:
         self.root.set_attrib(ColorWriteAttrib.make(ColorWriteAttrib.C_off))
         self.root.set_attrib(clip_distances(4))  # each world's square of the atlas (batch.vert)
         W = self.scene.num_worlds
-        self.lights = buffer_texture("lights", W * layout.VIEW.texels)
+        self.lights = buffer_texture("lights", W * row_layouts.VIEW.texels)
         self.light_memory = TextureMemory(self.lights, np.float32)
         self.root.set_shader_input("views", self.lights)
         self.root.set_shader_input("agents", int_input(1))
@@ -266,10 +266,10 @@ class ShadowPass:
         return matrices
 
     def _pack_lights(self, world_origin: torch.Tensor) -> None:
-        row = layout.VIEW  # one "view" per world: the light's
+        row = row_layouts.VIEW  # one "view" per world: the light's
         memory = self.light_memory().view(-1, row.texels, 4)
         first = row.fields["projection"].texel
-        memory[:, first:first + layout.VIEW_PROJECTION_TEXELS] = self._world_matrices(world_origin).transpose(1, 2)
+        memory[:, first:first + row_layouts.VIEW_PROJECTION_TEXELS] = self._world_matrices(world_origin).transpose(1, 2)
         origin_hi = world_origin.to(torch.float32)
         memory[(slice(None), *row["origin_hi"])] = origin_hi
         memory[(slice(None), *row["origin_lo"])] = (world_origin - origin_hi.to(torch.float64)).to(torch.float32)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .meshes import MeshData
+from ..assets.meshes import MeshData
 
 
 def shared_corner_mesh(mesh: MeshData) -> MeshData:

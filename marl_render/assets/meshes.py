@@ -281,8 +281,8 @@ def parse_model_file(path, name: str, *, skinned: bool, timeout: float | None = 
     import sys
     import tempfile
 
+    from ..util.validation import positive_float, regular_file
     from .model_checks import check_model_file
-    from .validation import positive_float, regular_file
 
     timeout = MODEL_LOAD_TIMEOUT if timeout is None else positive_float("timeout", timeout)
     path = os.path.abspath(regular_file(name, path, kind="model"))

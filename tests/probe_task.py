@@ -1,5 +1,5 @@
 """The task that the round-4 reliability tests (issue 24) break on purpose, and their helpers: shared
-by tests/test_reliability_round4.py and tests/round4_isolated.py."""
+by tests/test_reliability_author_traps.py and tests/isolated_crash_cases.py."""
 from __future__ import annotations
 
 import collections

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .meshes import MeshData, to_panda_geom
+from ..assets.meshes import MeshData, to_panda_geom
 
 
 def with_triangle_corners(mesh: MeshData) -> dict[str, np.ndarray]:

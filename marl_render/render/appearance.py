@@ -1,7 +1,7 @@
 """Per-world looks: what the "appearance" effect draws differently in each world, and the sampler of
 train and held-out appearances.
 
-A scene that declares the "appearance" effect gets one row per world (layout.APPEARANCE) that the
+A scene that declares the "appearance" effect gets one row per world (row_layouts.APPEARANCE) that the
 shaders read in the same instanced pass as everything else:
 
 - the directional light (direction, colour) and the ambient light;
@@ -37,10 +37,10 @@ import math
 
 import torch
 
-from . import layout
-from .keyed_random import KeyedRandom, as_keys, derive_keys
-from .threads import one_thread
-from .validation import as_tensor, check_finite, check_host, check_range, describe
+from ..util.keyed_random import KeyedRandom, as_keys, derive_keys
+from ..util.threads import one_thread
+from ..util.validation import as_tensor, check_finite, check_host, check_range, describe
+from . import row_layouts
 
 PATTERNS = ("plain", "checker", "stripes", "dots", "bricks")  # shaders/batch.frag's surface_pattern
 TRAIN_PATTERNS = (0, 1, 2)
@@ -157,7 +157,7 @@ class AppearanceRows:
             "value": torch.ones(W, dtype=torch.float64),
         }
         self.num_worlds = W
-        self.rows = torch.zeros(W, layout.APPEARANCE.texels, 4)
+        self.rows = torch.zeros(W, row_layouts.APPEARANCE.texels, 4)
         self._write()
         self.dirty = True  # not yet packed
         self.version = 0  # counts the changes (what a renderer's sky images follow)
@@ -180,7 +180,7 @@ class AppearanceRows:
     def plain_surfaces(self) -> torch.Tensor:
         """[W, 2] bool: whether each world's floor and wall pattern leaves every factor 1 (plain, or no
         contrast), so that a variant without patterns draws them to the same pixels."""
-        field = layout.APPEARANCE.fields
+        field = row_layouts.APPEARANCE.fields
         texels = [field[f"{surface}_pattern"].texel + 1 for surface in ("floor", "wall")]
         factors = self.rows[:, texels, :3]  # [W, 2, 3]
         return (factors == 1).all(-1)
@@ -214,11 +214,11 @@ class AppearanceRows:
 
     def _write(self) -> None:
         rows, v = self.rows, self.values
-        field = layout.APPEARANCE.fields
+        field = row_layouts.APPEARANCE.fields
         rows.zero_()
 
         def put(name, values):
-            texel, lanes = layout.APPEARANCE[name]
+            texel, lanes = row_layouts.APPEARANCE[name]
             rows[:, texel, lanes] = values.to(torch.float32)
 
         put("light_direction", self.light_directions())

@@ -2,7 +2,9 @@
 
 Per step:
 Packing (steps 1-2) is packing.py's FramePacker, which holds the state and writes into
-the buffer textures' memory; this module owns the GL objects, draws and reads back.
+the buffer textures' memory; this module owns the GL objects and draws them: the framebuffers
+are framebuffers.py's, the groups' nodes and textures draw_groups.py's, the reads
+frame_reads.py's (a base class of BatchRenderer).
 1. pack the groups that changed into their buffer textures (one row per world
    instance, read by all A views of that world);
 2. pack one view-projection per view when a camera moved (cameras free or mounted on
@@ -12,9 +14,9 @@ the buffer textures' memory; this module owns the GL objects, draws and reads ba
    clips it to that tile (under the appearance effect, a floor or wall group takes two:
    the worlds whose pattern shows, then the plain ones with the variant without patterns);
 4. once every framebuffer is drawn, one GL read per framebuffer and output: straight
-   into the batch tensor on the host (marl_render/readback.py), or into one GL pixel-pack
+   into the batch tensor on the host (readback.py), or into one GL pixel-pack
    buffer that CUDA then copies device to device into tensors born on `device`
-   (marl_render/interop.py; readback="auto" | "gpu").
+   (interop.py; readback="auto" | "gpu").
 """
 from __future__ import annotations
 
@@ -26,19 +28,23 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import backend, interop, layout, memory, readback, shaders, skinning
-from .meshes import MeshData, to_panda_geom
+from ..assets import skinning
+from ..assets.meshes import MeshData, to_panda_geom
+from ..util.threads import one_thread
+from ..util.validation import describe, positive_int, torch_device, unpicklable
+from . import backend, interop, memory, readback, row_layouts, shaders
+from .draw_groups import DrawGroup, PandaTargets, per_pass, set_draw
+from .frame_reads import FrameReads
+from .framebuffers import RenderPass, make_pass
 from .packing import FramePacker
-from .panda_buffers import TextureMemory, buffer_texture, clip_distances, int_input, panda_texture, vec3_input
+from .panda_buffers import buffer_texture, int_input, panda_texture, vec3_input
 from .provoking import shared_corner_mesh
 from .readback import max_array_texture_layers
 from .scene import ROLES, Scene
 from .shadows import ShadowPass, atlas_layout, light_projection
 from .sky import SkyImages
-from .threads import one_thread
 from .tiling import TileLayout, column_layout, layer_layout
 from .triangle_corners import to_panda_geom_with_corners
-from .validation import describe, positive_int, torch_device, unpicklable
 
 
 @dataclass
@@ -52,69 +58,7 @@ class Frame:
     segmentation: torch.Tensor | None = None
 
 
-@dataclass
-class DrawGroup:
-    """GL side of one group: its nodes (one per framebuffer), instance data and visible pairs.
-    The renderer hands these to its other passes (the shadow pass draws the same nodes and
-    instance textures); culling is the packer's, for every pass."""
-
-    node: object  # the node drawn in the first framebuffer (the others are copies of it)
-    count: int  # instances per world (static: in total)
-    static: bool
-    instances: object  # float32 buffer texture (packing.py writes it)
-    pairs: object  # int32 buffer texture: visible view * count + instance
-    pass_nodes: list | None = None  # [(NodePath, PTA_int pair offset, instance count drawn)] per pass
-    plain_nodes: list | None = None  # the same for the variant without patterns (packing.py: plain_counts)
-
-
-class _PandaTargets:
-    """The packer's destinations (packing.PackTargets): the RAM images of the buffer
-    textures, each marked for upload when the packer asks for it (views made once:
-    panda_buffers.TextureMemory says why)."""
-
-    def __init__(self, groups: dict):
-        self.groups = groups  # the renderer's draw groups by name, filled as they are built
-        self.views_texture = None
-        self.appearance_texture = None  # the "appearance" effect's rows, one per world
-        self._memory: dict[tuple, TextureMemory] = {}
-
-    def views(self) -> torch.Tensor:
-        return self._view(("views",), self.views_texture, np.float32)
-
-    def instances(self, group: str) -> torch.Tensor:
-        return self._view(("instances", group), self.groups[group].instances, np.float32)
-
-    def pairs(self, group: str) -> torch.Tensor:
-        return self._view(("pairs", group), self.groups[group].pairs, np.int32)
-
-    def appearance(self) -> torch.Tensor:
-        return self._view(("appearance",), self.appearance_texture, np.float32)
-
-    def _view(self, key: tuple, texture, dtype) -> torch.Tensor:
-        view = self._memory.get(key)
-        if view is None or view.texture is not texture:
-            view = self._memory[key] = TextureMemory(texture, dtype)
-        return view()
-
-    def release(self) -> None:
-        for view in self._memory.values():
-            view.release()
-        self._memory.clear()
-
-
-@dataclass
-class _Pass:
-    """One framebuffer: a column of up to layout.rows views, its scene root and render textures."""
-
-    views: range
-    buffer: object  # Panda3D GraphicsBuffer
-    root: object  # NodePath holding this pass's copy of every group node
-    color: object  # Texture rendered into (RGBA8)
-    aux: dict  # name -> Texture of the depth / segmentation outputs
-    texture_ids: dict | None = None  # GL names of the textures, known after the first frame
-
-
-class BatchRenderer:
+class BatchRenderer(FrameReads):
     """Renders scene.num_worlds x scene.agents_per_world views per call of render()."""
 
     # "auto", "gpu", "host" (interop.READBACKS), and two host reads kept for benchmarks and tests.
@@ -225,9 +169,9 @@ class BatchRenderer:
             self.layout = column_layout(scene.num_views, height * k, width * k, max_framebuffer_size)
         self.effects = frozenset(scene.effects)
         self.packer = FramePacker(scene, self.layout)  # the state and its packing; this class draws it
-        self._passes: list[_Pass] = []
+        self._passes: list[RenderPass] = []
         self._groups: dict[str, DrawGroup] = {}
-        self._targets = _PandaTargets(self._groups)  # the packer writes into their textures
+        self._targets = PandaTargets(self._groups)  # the packer writes into their textures
         self.shadow_pass = None
         self._sky = None  # the appearance effect's sky images (sky.py)
         self._pack = None  # the GL pixel-pack buffer of the "pbo" and interop reads (readback.PackBuffer)
@@ -302,99 +246,17 @@ class BatchRenderer:
             "tile_size": LVecBase2f(self.layout.tile_width, self.layout.tile_height)}
         if "appearance" in self.effects:
             self.appearance_texture = self._targets.appearance_texture = buffer_texture(
-                "appearance", self.scene.num_worlds * layout.APPEARANCE.texels)
+                "appearance", self.scene.num_worlds * row_layouts.APPEARANCE.texels)
             self._shared_inputs["appearance"] = self.appearance_texture
             self._sky = SkyImages(self.layout, self.scene.agents_per_world, gray=self.color == "gray",
                                   layered=self.layered)
         for index in range(self.layout.num_passes):
             self._passes.append(self._make_pass(self.layout.pass_views(index)))
 
-    def _make_pass(self, views: range) -> _Pass:
-        from panda3d.core import (
-            Camera,
-            ColorBlendAttrib,
-            CullFaceAttrib,
-            DepthTestAttrib,
-            DepthWriteAttrib,
-            FrameBufferProperties,
-            GraphicsOutput,
-            GraphicsPipe,
-            NodePath,
-            OmniBoundingVolume,
-            Texture,
-            TransparencyAttrib,
-            WindowProperties,
-        )
-
-        ctx, layout = self._context, self.layout
-        width, height = layout.tile_width, layout.tile_height * (1 if self.layered else len(views))
-        aux_names = [e for e in ("depth", "segmentation") if e in self.effects]
-        props = FrameBufferProperties()
-        props.set_rgba_bits(8, 8, 8, 8)
-        props.set_depth_bits(24)
-        props.set_aux_rgba(len(aux_names))
-        props.set_multisamples(self.multisamples)
-        # One name for all buffers: Panda3D keeps a statistics collector per buffer name
-        # for the life of the process (a unique name per renderer leaked about 3 KB each).
-        buffer = ctx.engine.make_output(
-            ctx.pipe, "marl_render", 0, props, WindowProperties.size(width, height),
-            GraphicsPipe.BF_refuse_window, ctx.gsg, ctx.host)
-        if buffer is None:
-            samples = f" and {self.multisamples} MSAA samples (multisamples)" if self.multisamples else ""
-            raise backend.GLUnavailableError(
-                f"could not create a {width}x{height} offscreen framebuffer with {len(aux_names)} aux targets"
-                f"{samples}; lower resolution / num views{', multisamples' if samples else ''} or max_framebuffer_size")
-        granted = buffer.get_fb_properties().get_multisamples()
-        if granted < self.multisamples:  # the GL may hand out fewer samples without failing: refuse, not alias
-            ctx.engine.remove_window(buffer)
-            raise backend.GLUnavailableError(
-                f"multisamples={self.multisamples} was asked for but the GL ({ctx.gsg.get_driver_renderer()}) "
-                f"gave {granted}; lower multisamples (or use supersample)")
-        # Render into textures that stay in GL; readback.py reads them once all passes are drawn.
-        # layered: one array texture layer per view, all attached at once (Panda3D makes its depth
-        # buffer a layered texture too); a vertex shader picks the layer (gl_Layer).
-        mode = GraphicsOutput.RTM_bind_layered if self.layered else GraphicsOutput.RTM_bind_or_copy
-        color = Texture("color")
-        if self.layered:
-            color.setup_2d_texture_array(len(views))
-        buffer.add_render_texture(color, mode, GraphicsOutput.RTP_color)
-        aux = {}
-        for index, name in enumerate(aux_names):
-            texture = Texture(name)
-            if self.layered:
-                texture.setup_2d_texture_array(len(views))
-            plane = GraphicsOutput.RTP_aux_rgba_0 + index
-            buffer.add_render_texture(texture, mode, plane)
-            # Clear values as RGBA bytes of the little-endian value: depth +inf (0x7f800000), segment 0.
-            clear = (0.0, 0.0, 128 / 255, 127 / 255) if name == "depth" else (0.0, 0.0, 0.0, 0.0)
-            buffer.set_clear_active(plane, True)
-            buffer.set_clear_value(plane, clear)
-            aux[name] = texture
-        ctx.drop_render_texture_events()
-        background = np.asarray(self.scene.background[:3], dtype=float)
-        if self.color == "gray":  # the shader's luma of the background
-            background = np.full(3, float(np.dot(background, shaders.GRAY_WEIGHTS)))
-        buffer.set_clear_color(tuple(background) + (1.0,))
-        buffer.set_clear_color_active("appearance" not in self.effects)  # the sky is copied over every tile instead
-        buffer.set_active(False)
-
-        root = NodePath(f"marl_render_pass_{views.start}")
-        camera = Camera("tiles")
-        camera.set_cull_bounds(OmniBoundingVolume())
-        buffer.make_display_region().set_camera(root.attach_new_node(camera))
-        # The per-view vertical flip reverses winding: cull the other side.
-        root.set_attrib(CullFaceAttrib.make(CullFaceAttrib.M_cull_counter_clockwise))
-        root.set_attrib(DepthTestAttrib.make(DepthTestAttrib.M_less))
-        root.set_attrib(DepthWriteAttrib.make(DepthWriteAttrib.M_on))
-        root.set_transparency(TransparencyAttrib.M_none)
-        root.set_attrib(ColorBlendAttrib.make_off())
-        if not self.layered:
-            root.set_attrib(clip_distances(2))  # the tiles' top and bottom (shaders/batch.vert)
-        for name, value in self._shared_inputs.items():
-            root.set_shader_input(name, value)
-        root.set_shader_input("tiles", int_input(len(views)))
-        root.set_shader_input("view_offset", int_input(views.start))
-        return _Pass(views, buffer, root, color, aux)
+    def _make_pass(self, views: range) -> RenderPass:
+        return make_pass(self._context, self.layout, views, effects=self.effects, multisamples=self.multisamples,
+                         gray=self.color == "gray", layered=self.layered, background=self.scene.background,
+                         shared_inputs=self._shared_inputs)
 
     def _build_groups(self):
         from panda3d.core import DepthTestAttrib, NodePath, OmniBoundingVolume
@@ -458,24 +320,11 @@ class BatchRenderer:
             if surface:  # the worlds whose floors or walls show no pattern: the variant without
                 plain = node.copy_to(NodePath())
                 plain.set_shader(shaders.compiled(variant(surface=False)))
-                draw.plain_nodes = self._per_pass(plain)
-            draw.pass_nodes = self._per_pass(node)
+                draw.plain_nodes = per_pass(plain, self._passes)
+            draw.pass_nodes = per_pass(node, self._passes)
             self._groups[group.name] = draw
             if static:
                 self.packer.pack_static(group, self._targets.instances(group.name))
-
-    def _per_pass(self, node) -> list:
-        """One copy of the node in every framebuffer (they share the geometry), each with its own pair
-        offset and instance count: [[NodePath, PTA_int pair offset, instance count drawn]] per pass."""
-        entries = []
-        for index, render_pass in enumerate(self._passes):
-            if index == 0:
-                node.reparent_to(render_pass.root)
-            copy = node if index == 0 else node.copy_to(render_pass.root)
-            offset = int_input(0)  # updated in place (a new PTA would make a new render state)
-            copy.set_shader_input("pair_offset", offset)
-            entries.append([copy, offset, None])
-        return entries
 
     # ------------------------------------------------------------------ public updates
     @one_thread
@@ -589,8 +438,8 @@ class BatchRenderer:
                 if draw.plain_nodes is not None:
                     plain = packing.plain_counts[index]
                     count -= plain
-                    self._set_draw(draw.plain_nodes[index], first + count, plain)
-                self._set_draw(draw.pass_nodes[index], first, count)
+                    set_draw(draw.plain_nodes[index], first + count, plain)
+                set_draw(draw.pass_nodes[index], first, count)
         if self._sky is not None:
             if self._passes[0].texture_ids is None:  # the colour textures are made by the first frame
                 self._render_frame()
@@ -618,21 +467,6 @@ class BatchRenderer:
         rgb = rgb.view((W, A) + rgb_shape[1:])
         return Frame(rgb, None if depth is None else depth.view(W, A, height, width),
                      None if segmentation is None else segmentation.view(W, A, height, width))
-
-    @staticmethod
-    def _set_draw(entry: list, first: int, count: int) -> None:
-        """Point a pass's node (entry of DrawGroup.pass_nodes) at `count` pairs from `first`."""
-        node, offset, drawn = entry
-        offset[0] = first
-        if count == drawn:
-            return
-        if count == 0:  # Panda3D would draw an instance count of 0 once
-            node.hide()
-        else:
-            if not drawn:
-                node.show()
-            node.set_instance_count(count)
-        entry[2] = count
 
     def _render_frame(self) -> None:
         """Every pass is drawn in one frame before any is read: llvmpipe rasterises one
@@ -676,148 +510,6 @@ class BatchRenderer:
             shaders.forget_compiled()  # the failed Shader keeps its error flag: never hand it out again
             text = "\n".join(log or self._context.recent_log[-20:])
             raise backend.ShaderCompileError(f"the shader of group(s) {failed} failed to compile or link:\n{text}")
-
-    def _read_pass(self, render_pass: _Pass, rgb, depth, segmentation) -> tuple[float, float]:
-        """Read one framebuffer's textures into the outputs on the host; returns the seconds of
-        the GL reads and of the copies after them (none for plain channels-last colour and k = 1)."""
-        self._texture_ids()
-        views, k = render_pass.views, self.supersample
-        height, width = self.scene.resolution
-        # layered: each view is a layer of rows height * k; the layers follow each other in memory.
-        layers = len(views) if self.layered else 1
-        rows, columns = len(views) * height * k // layers, width * k
-        ids = render_pass.texture_ids
-        destination = rgb[views.start:views.stop]
-        C = self.channels
-        read_seconds = copy_seconds = 0.0
-        started = time.perf_counter()
-        # One channel is laid out alike channels first or last: read straight into it too.
-        if self._color_reads_straight() and self.readback != "copy":
-            readback.read_texture(ids["color"], columns, rows, C, destination, layers)
-            read_seconds += time.perf_counter() - started
-        else:
-            staging = self._staging_buffer(layers * rows * columns * C)
-            readback.read_texture(ids["color"], columns, rows, C, staging, layers)
-            read_seconds += time.perf_counter() - started
-            started = time.perf_counter()
-            self._finish_color(staging.view(len(views), height * k, width * k, C), destination)
-            copy_seconds += time.perf_counter() - started
-        for name, out in (("depth", depth), ("segmentation", segmentation)):
-            if out is None:
-                continue
-            target = out[views.start:views.stop]
-            started = time.perf_counter()
-            if k == 1:
-                readback.read_texture(ids[name], columns, rows, 4, target, layers)
-                read_seconds += time.perf_counter() - started
-                continue
-            staging = self._staging_buffer(layers * rows * columns * 4)
-            readback.read_texture(ids[name], columns, rows, 4, staging, layers)
-            read_seconds += time.perf_counter() - started
-            started = time.perf_counter()
-            self._finish_aux(staging.view(out.dtype).view(len(views), height * k, width * k), target)
-            copy_seconds += time.perf_counter() - started
-        return read_seconds, copy_seconds
-
-    def _color_reads_straight(self) -> bool:
-        """Whether the colour texture's bytes are the output's: k = 1, and channels last or one channel
-        (laid out alike channels first or last)."""
-        return self.supersample == 1 and (self.channels == 1 or not self.channels_first)
-
-    def _finish_color(self, samples: torch.Tensor, destination: torch.Tensor) -> None:
-        """samples [n, kH, kW, C] as read -> destination (n views of the output): channels first, box filter."""
-        if self.channels_first:  # write through a channels-last view of the output
-            destination = destination.permute(0, 2, 3, 1)
-        if self.supersample > 1:
-            self._box_filter(samples, destination)
-        else:
-            destination.copy_(samples)
-
-    def _finish_aux(self, samples: torch.Tensor, target: torch.Tensor) -> None:
-        """Depth or segmentation samples [n, kH, kW] -> target [n, H, W]: the sample nearest each pixel's centre."""
-        k = self.supersample
-        target.copy_(samples[:, k // 2::k, k // 2::k])
-
-    # ------------------------------------------------------------------ reads through the pack buffer
-    def _make_pack_buffer(self) -> None:
-        """The pack buffer and where each output lies in it: all views' colour, then all views'
-        depth, then segmentation, each as a direct read would give it (so that plain colour, depth
-        and segmentation are the output's bytes, copied in one piece)."""
-        height, width = self.scene.resolution
-        samples = height * width * self.supersample ** 2
-        offset = 0
-        for name, components in (("color", self.channels), ("depth", 4), ("segmentation", 4)):
-            if name == "color" or name in self.effects:
-                self._pack_layout[name] = (offset, samples * components)
-                offset += self.scene.num_views * samples * components
-        self._pack = readback.PackBuffer()
-        self._pack.reserve(offset)
-
-    def _read_pass_into_pack(self, render_pass: _Pass) -> float:
-        """Read one framebuffer's textures into the pack buffer at their places; returns the seconds."""
-        started = time.perf_counter()
-        self._texture_ids()
-        views, k = render_pass.views, self.supersample
-        height, width = self.scene.resolution
-        rows, columns = len(views) * height * k, width * k
-        for name, texture in render_pass.texture_ids.items():
-            offset, per_view = self._pack_layout[name]
-            components = self.channels if name == "color" else 4
-            self._pack.read_texture(texture, columns, rows, components, offset + views.start * per_view)
-        return time.perf_counter() - started
-
-    def _unpack(self, rgb, depth, segmentation) -> None:
-        """The pack buffer into the outputs: each output in one copy (to the host, or device to
-        device through the interop), through a staging tensor where it needs reshaping after."""
-        k, C = self.supersample, self.channels
-        height, width = self.scene.resolution
-        copies, finish = [], []
-        for name, out in (("color", rgb), ("depth", depth), ("segmentation", segmentation)):
-            if out is None:
-                continue
-            offset, per_view = self._pack_layout[name]
-            if (self._color_reads_straight() if name == "color" else k == 1):
-                copies.append((offset, out))
-                continue
-            staging = self._unpack_staging.get(name)
-            if staging is None or staging.device != out.device:
-                staging = self._unpack_staging[name] = torch.empty(self.scene.num_views * per_view, dtype=torch.uint8,
-                                                                   device=out.device)
-            copies.append((offset, staging))
-            finish.append((name, staging, out))
-        if self._interop is not None:
-            self._interop.copy(self._pack.name, copies)
-        else:
-            for offset, destination in copies:
-                self._pack.download(offset, destination)
-        for name, staging, out in finish:  # per pass: the box filter's accumulator holds one pass
-            for render_pass in self._passes:
-                views = render_pass.views
-                _, per_view = self._pack_layout[name]
-                part = staging[views.start * per_view:views.stop * per_view]
-                if name == "color":
-                    self._finish_color(part.view(len(views), height * k, width * k, C), out[views.start:views.stop])
-                else:
-                    self._finish_aux(part.view(out.dtype).view(len(views), height * k, width * k),
-                                     out[views.start:views.stop])
-
-    def _staging_buffer(self, size: int) -> torch.Tensor:
-        """Reused bytes for reads that need a copy afterwards (channels-first, supersampling, "copy")."""
-        if self._staging is None or self._staging.numel() < size:
-            self._staging = torch.empty(size, dtype=torch.uint8)
-        return self._staging[:size]
-
-    def _box_filter(self, samples: torch.Tensor, destination: torch.Tensor) -> None:
-        """samples [n, kH, kW, C] uint8 -> destination [n, H, W, C], each pixel the rounded
-        mean of its k x k samples (through an accumulator made once per renderer)."""
-        k, count, C = self.supersample, destination.shape[0], self.channels
-        height, width = self.scene.resolution
-        if self._accumulator is None or self._accumulator.device != samples.device:
-            self._accumulator = torch.empty((self.layout.views_per_pass, height, width, C), dtype=torch.int32,
-                                            device=samples.device)
-        total = self._accumulator[:count]
-        torch.sum(samples.view(count, height, k, width, k, C), dim=(2, 4), dtype=torch.int32, out=total)
-        destination.copy_(total.add_((k * k) // 2).div_(k * k, rounding_mode="floor"))
 
     # ------------------------------------------------------------------ helpers / lifecycle
     def _check_open(self):

@@ -95,12 +95,12 @@ def test_make_bot_refuses_a_seed_the_envs_do_not_take(seed, error):
 
 def test_register_bot_refuses_a_non_bool_overwrite_and_a_non_str_description(registries):
     register_bot("forage", "circler", wander)
-    before = copy.deepcopy(bots.POPULATIONS), {k: dict(v) for k, v in bots.SCRIPTS.items()}
+    before = copy.deepcopy(bots._REGISTERED)
     with pytest.raises(TypeError, match="overwrite must be a bool, got"):
         register_bot("forage", "circler", wander, overwrite="no")  # a truthy "no" replaced the bot
     with pytest.raises(TypeError, match="description of bot 'other' must be a str"):
         register_bot("forage", "other", wander, description=5)
-    assert (copy.deepcopy(bots.POPULATIONS), {k: dict(v) for k, v in bots.SCRIPTS.items()}) == before
+    assert copy.deepcopy(bots._REGISTERED) == before and bots.populations("forage")["test"][-1] == "circler"
 
 
 def _scenario(**changes) -> HeldOutScenario:

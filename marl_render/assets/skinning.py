@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .extras import require
+from ..util.extras import require
+from ..util.transforms import quat_to_matrix
 from .meshes import MeshData, lathe, parse_model_file, to_panda_geom
-from .transforms import quat_to_matrix
 
 MAX_INFLUENCES = 4  # joints per vertex
 
