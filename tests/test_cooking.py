@@ -1,5 +1,6 @@
 """Tests for envs/cooking.py: collaborative cooking (dispensers, pots, dishes, delivery of the recipe)."""
 import math
+import types
 from collections import deque
 
 import pytest
@@ -217,3 +218,25 @@ def test_the_heuristic_serves_soups_and_random_does_not():
     env.close()
     assert (heuristic > 0).float().mean() >= 0.75  # measured: 13 of 16 kitchens, 13 soups
     assert random.sum() == 0
+
+
+@limited_threads(1)
+def test_the_test_bots_fetch_or_plate_only():
+    """Agent 0 plays the fetcher, agent 1 the plater, 200 steps in 8 procedural kitchens: the fetcher never
+    holds a dish nor a soup but fills pots, the plater never holds an ingredient but plates soups."""
+    env = make(num_worlds=8, resolution=8, kitchen="procedural", cook_time=5, levels=100)
+    env.reset()
+    s, state = env.scenario, env.sim
+    alive = torch.ones(8, 2, dtype=torch.bool)
+    held, filled = [], torch.zeros(8, dtype=torch.int64)
+    for _ in range(200):
+        view = types.SimpleNamespace(scenario=s, sim=state, alive=alive)
+        actions = torch.stack((ck.fetcher(view)[:, 0], ck.plater(view)[:, 1]), 1)
+        step = s.step(state, actions, alive, torch.Generator()).state
+        filled += (step.pot.sum((1, 2)) > state.pot.sum((1, 2))).long()  # an ingredient went into a pot
+        state = step
+        held.append(state.held)
+    env.close()
+    held = torch.stack(held)
+    assert (held[..., 0] <= ck.TOMATO).all() and (filled > 0).all()
+    assert ((held[..., 1] == ck.EMPTY) | (held[..., 1] >= ck.DISH)).all() and (held[..., 1] >= ck.SOUP).any()
