@@ -251,8 +251,9 @@ class Cooking(ArenaScenario):
             raise ValueError("state['pot'] may hold at most 3 ingredients, and only in pots (state['cells'] == POT)")
         if bool(((state["cook"] > 0) & (pot.sum(-1) < 3)).any()):
             raise ValueError("state['cook'] may count only in full pots (3 ingredients in state['pot'])")
-        if self.params.num_ingredients == 1 and bool(((state["held"] == TOMATO) | (state["item"] == TOMATO)
-                                                      | (pot[..., 1] > 0) | (cells == TOMATO_BOX)).any()):
+        tomatoes = ((state["held"] == TOMATO).any() | (state["item"] == TOMATO).any() | (pot[..., 1] > 0).any()
+                    | (cells == TOMATO_BOX).any())
+        if self.params.num_ingredients == 1 and bool(tomatoes):
             raise ValueError("with num_ingredients=1 the state may hold no tomatoes nor tomato dispensers")
 
     def spawn_level(self, draws):

@@ -240,3 +240,14 @@ def test_the_test_bots_fetch_or_plate_only():
     held = torch.stack(held)
     assert (held[..., 0] <= ck.TOMATO).all() and (filled > 0).all()
     assert ((held[..., 1] == ck.EMPTY) | (held[..., 1] >= ck.DISH)).all() and (held[..., 1] >= ck.SOUP).any()
+
+
+def test_one_ingredient_makes_the_tomato_dispenser_a_counter_and_refuses_tomatoes():
+    with make(difficulty="easy") as env:  # num_ingredients=1, cook_time=10
+        env.reset()
+        assert env.sim.cells[:, TOMATO_BOX].tolist() == [ck.COUNTER] * W and env.sim.recipe.tolist() == [0] * W
+        state = env.get_state()
+        state["held"] = torch.tensor([[ck.TOMATO, 0]] * W)
+        with pytest.raises(ValueError, match="num_ingredients=1 the state may hold no tomatoes"):
+            env.set_state(state)
+        assert env.sim.held.tolist() == [[0, 0]] * W
