@@ -9,8 +9,8 @@ import pytest
 from marl_render.envs import env_class, list_envs, make_env, make_vec_env
 from marl_render.envs.registry import split_kwargs
 
-TASKS = ("capture_flag", "cartpole", "commons", "cooking", "forage", "push", "rooms", "speaker_listener", "spread", "tag",
-         "territory")
+TASKS = ("capture_flag", "cartpole", "commons", "cooking", "forage", "push", "rooms", "speaker_listener",
+         "spread", "tag", "territory")
 
 
 @pytest.mark.parametrize("name", TASKS)

@@ -16,8 +16,8 @@ import torch
 
 from marl_render.envs import list_envs, make_env
 
-BUILT_IN = ("capture_flag", "cartpole", "commons", "cooking", "forage", "push", "rooms", "speaker_listener", "spread", "tag",
-            "territory")
+BUILT_IN = ("capture_flag", "cartpole", "commons", "cooking", "forage", "push", "rooms", "speaker_listener",
+            "spread", "tag", "territory")
 
 
 def digest(name: str, **kwargs) -> str:
