@@ -295,6 +295,7 @@ STEP_STATISTICS = {  # the info keys each task declares, written out (not read f
     "clean_up": {"eaten", "cleaned", "dirt_fraction", "apples_left", "tags"},
     "coop_mining": {"iron", "gold", "gold_lost", "ores_left"},
     "matrix": {"collected", "interactions"},
+    "cooking": {"delivered", "wrong", "served"}, "territory": {"painted", "claimed", "zaps", "removed"},
 }
 SOCIAL = {"efficiency", "equality", "sustainability", "peace"}  # mixed-motive tasks' outcomes (envs/episodes.py)
 
