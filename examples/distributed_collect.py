@@ -45,6 +45,8 @@ import time
 import torch
 from torch import nn
 
+from marl_render.envs.masking import with_fallback
+
 
 class LogitsRandomPolicy(nn.Module):
     """Samples each agent's action from softmax(logits) over its valid actions (action_mask).
@@ -60,7 +62,8 @@ class LogitsRandomPolicy(nn.Module):
     def forward(self, td):
         for group in self.groups:
             mask = td.get((group, "action_mask"))
-            logits = self.logits.detach().expand(mask.shape).masked_fill(~mask, float("-inf"))
+            # An agent whose mask allows nothing (one out of the episode) plays 0, which the step ignores.
+            logits = self.logits.detach().expand(mask.shape).masked_fill(~with_fallback(mask), float("-inf"))
             td.set((group, "action"), torch.distributions.Categorical(logits=logits).sample())
         return td
 
