@@ -13,7 +13,9 @@ allowed only noop still moves on forward). ``EnvOptions(enforce_action_mask=True
 * only the agents the step acts for are checked: agents that left the episode, and worlds a
   ``"next_step"`` autoreset restarts in this step, have their actions ignored anyway;
 * ``random_actions()`` samples among the allowed actions, so ``env.step(env.random_actions())``
-  always passes.
+  always passes. ``sample_allowed`` is the one such sampler (the random policy, the noisy bots and
+  the evaluation's random opponents use it too); an agent whose mask allows nothing, which only an
+  agent out of the episode may have, gets action 0 (``with_fallback``).
 
 Refusing was chosen over replacing a forbidden action by noop: a policy that picks forbidden
 actions has a bug (or reads the mask of another step), and a silent replacement would train it

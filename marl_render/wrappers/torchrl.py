@@ -179,6 +179,7 @@ class MarlRenderTorchRLEnv(EnvBase):
                              for g, names in resolved.items()}
         # A group covering all agents in core order needs no gather.
         self._identity = {g: names == list(env.agent_names) for g, names in resolved.items()}
+        self._obs_keys = env.spec.obs_keys  # every key of the spec, the action mask included
         self._next_seed = None
         self._started = False  # the core needs a full reset() before reset_worlds()
         self._make_specs()
@@ -308,7 +309,7 @@ class MarlRenderTorchRLEnv(EnvBase):
                 pick = lambda t: t  # noqa: E731
             else:
                 pick = lambda t, idx=idx: t.index_select(1, idx)  # noqa: E731
-            entries = {key: pick(obs[key]) for key in self.core.obs_keys}
+            entries = {key: pick(obs[key]) for key in self._obs_keys}
             entries["done"] = pick(done)[..., None]
             entries["terminated"] = pick(terminated)[..., None]
             entries["truncated"] = pick(truncated)[..., None]
