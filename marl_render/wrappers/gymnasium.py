@@ -33,7 +33,8 @@ Autoreset: ``autoreset_mode`` (a ``gymnasium.vector.AutoresetMode``; stored in
   ``infos["_final_obs"]`` / ``infos["_final_info"]``. A step on which a world ends renders
   twice (the final frame and the new one).
 * ``DISABLED``: nothing resets by itself; ``reset(options={"reset_mask": mask})`` resets
-  the worlds of the entries where the bool [num_envs] mask is True.
+  the worlds of the entries where the bool [num_envs] mask is True (the first reset resets
+  every world, as TorchRL's does: a world never reset has no episode to keep).
 
 Levels (an env built with ``levels=``, envs/levels.py): ``reset(options={"level_ids": ids})``
 resets worlds to chosen levels (the core's ``reset_to_level``): ``ids`` is an int64 numpy array
@@ -271,7 +272,8 @@ class MarlRenderVectorEnv(VectorEnv):
     # ------------------------------------------------------------------ API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """(observations, {}) of a new episode in every world, or only in the worlds of
-        ``options["reset_mask"]``; `seed` re-seeds the core's generator first."""
+        ``options["reset_mask"]`` (after the first reset, which resets every world); `seed`
+        re-seeds the core's generator first."""
         if seed is not None and (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))):
             raise TypeError(f"seed must be None or an int (one generator draws for every world, so per-entry "
                             f"seeds are not supported), got {describe(seed)}")
