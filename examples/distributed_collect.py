@@ -45,8 +45,6 @@ import time
 import torch
 from torch import nn
 
-from marl_render.envs.masking import with_fallback
-
 
 class LogitsRandomPolicy(nn.Module):
     """Samples each agent's action from softmax(logits) over its valid actions (action_mask).
@@ -60,6 +58,10 @@ class LogitsRandomPolicy(nn.Module):
         self.logits = nn.Parameter(torch.zeros(num_actions))
 
     def forward(self, td):
+        # Imported here, as main() imports marl_render: every process the collector spawns runs this
+        # file's top level again, and most of them never act.
+        from marl_render.envs.masking import with_fallback
+
         for group in self.groups:
             mask = td.get((group, "action_mask"))
             # An agent whose mask allows nothing (one out of the episode) plays 0, which the step ignores.
