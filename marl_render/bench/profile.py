@@ -31,8 +31,8 @@ import time
 import numpy as np
 import torch
 
-from ..impostors import is_sphere
-from ..meshes import MeshData
+from ..assets.meshes import MeshData
+from ..render.impostors import is_sphere
 from .common import (
     env_spec_argument,
     machine,
