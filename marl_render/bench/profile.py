@@ -23,6 +23,7 @@ triangles (a lower bound for large ones, whose rasterisation the pixel slope cou
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import statistics
 import subprocess
@@ -204,13 +205,15 @@ def profile(name: str, agents: int | None, worlds: int, resolution: int, levels,
     per_pixel = _slope([r["pixels"] for r in by_pixels], [r["render_cpu_ms"] for r in by_pixels])
     vertex = per_triangle * base["triangles"]
     fragment = per_pixel * base["pixels"]
+    split = {"ns_per_triangle": 1e6 * per_triangle, "ns_per_pixel": 1e6 * per_pixel, "vertex_ms": vertex,
+             "fragment_ms": fragment, "rest_ms": base["render_cpu_ms"] - vertex - fragment,
+             "vertex_share": vertex / base["render_cpu_ms"], "fragment_share": fragment / base["render_cpu_ms"]}
+    split = {key: None if math.isnan(value) else value for key, value in split.items()}  # JSON has no NaN
     return {"env": name, "agents": num_agents, "worlds": worlds, "resolution": resolution,
             "step_cpu_ms": 1e3 * statistics.median(step_times), "render_ms": base["render_ms"],
             "render_cpu_ms": base["render_cpu_ms"],
             "draw_ms": base["draw_ms"], "read_ms": base["read_ms"], "triangles": base["triangles"],
-            "pixels": base["pixels"], "ns_per_triangle": 1e6 * per_triangle, "ns_per_pixel": 1e6 * per_pixel,
-            "vertex_ms": vertex, "fragment_ms": fragment, "rest_ms": base["render_cpu_ms"] - vertex - fragment,
-            "vertex_share": vertex / base["render_cpu_ms"], "fragment_share": fragment / base["render_cpu_ms"],
+            "pixels": base["pixels"], **split,
             "variants": rows}
 
 
@@ -331,15 +334,18 @@ def markdown(result: dict) -> list[str]:
              "| triangles/frame | ns/triangle | ns/pixel |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in result["results"]:
+        split = r["vertex_ms"] is not None and r["fragment_ms"] is not None  # None: one setting, no fit
+        vertex = f"{r['vertex_ms']:.2f} ({r['vertex_share']:.0%})" if split else ""
+        fragment = f"{r['fragment_ms']:.2f} ({r['fragment_share']:.0%})" if split else ""
+        rest = f"{r['rest_ms']:.2f}" if split else ""
+        per_triangle = "" if r["ns_per_triangle"] is None else f"{r['ns_per_triangle']:.2f}"
+        per_pixel = "" if r["ns_per_pixel"] is None else f"{r['ns_per_pixel']:.2f}"
         lines.append(f"| {r['env']} | {r['agents']} | {r['resolution']} | {r['step_cpu_ms']:.2f} "
-                     f"| {r['render_cpu_ms']:.2f} "
-                     f"| {r['vertex_ms']:.2f} ({r['vertex_share']:.0%}) "
-                     f"| {r['fragment_ms']:.2f} ({r['fragment_share']:.0%}) "
-                     f"| {r['rest_ms']:.2f} | {r['triangles']:,} "
-                     f"| {r['ns_per_triangle']:.2f} | {r['ns_per_pixel']:.2f} |")
+                     f"| {r['render_cpu_ms']:.2f} | {vertex} | {fragment} | {rest} | {r['triangles']:,} "
+                     f"| {per_triangle} | {per_pixel} |")
     grouped = [r for r in result["results"] if "groups" in r]
     if grouped:
-        lines += ["", "Env step CPU ms under each switch (--groups); in brackets the difference from base. "
+        lines += ["", "Env step CPU ms under each switch (--groups) and its difference from base. "
                   "\"hide X\": X packed and culled but not drawn (its GL cost); \"static last\": static groups "
                   "drawn after moving ones; \"impostors unculled\": impostor groups never frustum-tested.", "",
                   "| env | px | variant | step CPU ms | difference | same frame as base |",

@@ -121,7 +121,7 @@ def compiled(variant: tuple[str, ...]):
 
 # Quads per GL instance. llvmpipe runs its vertex pipeline once per instance (fetch, a vertex shader
 # call over 8 lanes, clipping, primitive setup), half empty for one 4-corner quad; a batch of them per
-# instance shares that. Measured: 2% of a commons step at 64 worlds (tools/impostor_batches.py).
+# instance shares that. Measured: 2-5% of a commons step at 64 worlds (tools/impostor_batches.py).
 QUADS_PER_INSTANCE = 16
 
 
