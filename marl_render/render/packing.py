@@ -201,13 +201,11 @@ class FramePacker:
                                  "has a rigid mesh")
             joints = _float_arg("joints", joints, state["joints"].shape)
             staged["joints"] = normalize_quat(joints.to(torch.float64), name="joints").to(torch.float32)
-        # Masks that did not change keep the group's candidate pairs (envs pass them every step).
-        masks_changed = any(not torch.equal(state[key], staged[key]) for key in ("active", "owner") if key in staged)
         for key, value in staged.items():
             state[key].copy_(value)
         if staged:
             self._dirty.add(group)
-        if masks_changed:
+        if "active" in staged or "owner" in staged:
             self._mask_dirty.add(group)
 
     def set_cameras(self, *, position=None, rotation=None, look_at=None, fov_y=None, near=None, far=None,
