@@ -31,6 +31,11 @@ from . import row_layouts, shaders
 
 MODES = (False, True, "auto")
 
+# Quads per GL instance. llvmpipe runs its vertex pipeline once per instance (fetch, a vertex shader
+# call over 8 lanes, clipping, primitive setup), half empty for one 4-corner quad; a batch of them per
+# instance shares that. Measured: 2-5% of a commons step at 64 worlds (tools/impostor_batches.py).
+QUADS_PER_INSTANCE = 16
+
 
 def check_mode(impostors) -> bool | str:
     """impostors: False, True or "auto" (a bool-like numpy value counts as its bool)."""
@@ -117,12 +122,6 @@ def compiled(variant: tuple[str, ...]):
     if shader is None:
         raise RuntimeError(f"impostor variant {variant} failed to parse; see the GL log above")
     return shader
-
-
-# Quads per GL instance. llvmpipe runs its vertex pipeline once per instance (fetch, a vertex shader
-# call over 8 lanes, clipping, primitive setup), half empty for one 4-corner quad; a batch of them per
-# instance shares that. Measured: 2-5% of a commons step at 64 worlds (tools/impostor_batches.py).
-QUADS_PER_INSTANCE = 16
 
 
 def quad_node():
