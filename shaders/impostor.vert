@@ -8,12 +8,13 @@
 // the hit point maps back exactly.
 // The same instance, view and pair buffers as batch.vert (layout.py's ROW_* / VIEW_*), and
 // the same tiles: views stacked in one column, each clipped to its own tile.
-in vec4 p3d_Vertex;  // quad corner: (+-1, +-1, 0)
+in vec4 p3d_Vertex;  // quad corner (+-1, +-1) and the quad's index in its instance's batch (impostors.quad_node)
 
 uniform samplerBuffer instances;
 uniform samplerBuffer views;
 uniform isamplerBuffer pairs;
 uniform int pair_offset;
+uniform int pair_count;  // pairs this pass draws: quads of the last batch past it draw nothing
 uniform int capacity;
 uniform int agents;
 uniform int view_offset;
@@ -52,7 +53,8 @@ vec3 rotate(vec4 q, vec3 v) {
 }
 
 void main() {
-    int pair = texelFetch(pairs, pair_offset + gl_InstanceID).x;
+    int drawn = gl_InstanceID * QUADS_PER_INSTANCE + int(p3d_Vertex.z);
+    int pair = texelFetch(pairs, pair_offset + min(drawn, pair_count - 1)).x;
     int view = pair / capacity;
     int instance = pair - view * capacity;
     int pass_view = view - view_offset;
@@ -121,8 +123,9 @@ void main() {
     vec3 quad = toward * (RADIUS * RADIUS / d) + half_side * (p3d_Vertex.x * u + p3d_Vertex.y * v);
     v_quad = quad;
     vec4 clip = view_projection * vec4(relative + rotate(rotation, scale * quad), 1.0);
-    if (d <= RADIUS) {
-        clip = vec4(0.0, 0.0, 2.0, 1.0);  // the camera is inside: nothing to draw (as a mesh, culled faces)
+    if (d <= RADIUS || drawn >= pair_count) {
+        // The camera is inside (nothing to draw: as a mesh, culled faces), or a quad past the pass's pairs.
+        clip = vec4(0.0, 0.0, 2.0, 1.0);
     }
 
     // The tile placement of batch.vert: clipped to this view's frustum, then moved into its tile

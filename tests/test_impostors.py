@@ -180,3 +180,37 @@ def test_envs_refuse_impostors_true_with_shadows_and_fall_back_with_auto():
         make_env("commons", num_worlds=1, resolution=16, shadows=True, impostors=True)
     with make_env("commons", num_worlds=1, resolution=16, shadows=True) as env:
         assert env.renderer.impostor_groups == frozenset()
+
+
+def _grid_of_spheres(monkeypatch, quads_per_instance):
+    """37 spheres (two batches of 16 and 5 more) in a 7 x 6 grid facing each of 3 worlds' cameras."""
+    monkeypatch.setattr(impostors, "QUADS_PER_INSTANCE", quads_per_instance)
+    scene = mr.Scene(num_worlds=3, agents_per_world=1, resolution=64, effects=("lighting", "segmentation"))
+    scene.add_group("balls", mr.sphere(segments=10, rings=5), capacity=37)
+    column, row = np.meshgrid(np.arange(7) - 3.0, np.arange(6) - 2.5)
+    grid = np.stack([0.6 * column.ravel(), np.zeros(42), 1.0 + 0.6 * row.ravel()], -1)[:37]
+    renderer = mr.BatchRenderer(scene, impostors=True)
+    try:
+        renderer.update("balls", position=torch.tensor(grid, dtype=torch.float64).expand(3, -1, -1),
+                        scale=torch.full((3, 37, 3), 0.4), color=torch.tensor(RED + (1.0,)).expand(3, 37, 4),
+                        active=torch.ones(3, 37, dtype=torch.bool))
+        renderer.set_cameras(position=torch.tensor([[(0.0, -7.0, 1.0)]] * 3, dtype=torch.float64),
+                             look_at=torch.tensor([[(0.0, 0.0, 1.0)]] * 3, dtype=torch.float64))
+        frame = renderer.render()
+        (node, _, drawn, pair_count, batch), = renderer._groups["balls"].pass_nodes
+        return frame, scene, (node.get_instance_count(), drawn, pair_count[0], batch)
+    finally:
+        renderer.close()
+
+
+def test_impostor_batches_draw_every_pair_and_nothing_past_the_last(monkeypatch):
+    """Each GL instance draws QUADS_PER_INSTANCE impostors: every one of 37 spheres (3 worlds) is seen,
+    and the frame is the one of a quad per instance, byte for byte."""
+    batched, scene, draws = _grid_of_spheres(monkeypatch, 16)
+    assert draws == (-(-3 * 37 // 16), 3 * 37, 3 * 37, 16)  # 7 instances for 111 pairs
+    ids = batched.segmentation.numpy() - scene.groups["balls"].segment_base
+    for world in range(3):
+        assert set(np.unique(ids[world, 0])) - {-1 - scene.groups["balls"].segment_base} >= set(range(37))
+    single, _, draws = _grid_of_spheres(monkeypatch, 1)
+    assert draws == (111, 111, 111, 1)
+    assert torch.equal(batched.rgb, single.rgb) and torch.equal(batched.segmentation, single.segmentation)

@@ -326,3 +326,26 @@ def test_view_and_projection_put_the_look_at_target_on_the_axis():
     for depth, ndc in ((0.05, -1.0), (100.0, 1.0)):
         c = proj @ torch.tensor([0.0, 0.0, -depth, 1.0], dtype=F64)
         assert abs(c[2].item() / c[3].item() - ndc) < 1e-12
+
+
+def _textbook_matrix(q: torch.Tensor) -> torch.Tensor:
+    """quat_to_matrix as it was written before it became one gather: every entry's own ops."""
+    s = 2.0 / (q * q).sum(-1)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack((
+        torch.stack((1 - s * (y * y + z * z), s * (x * y - w * z), s * (x * z + w * y)), -1),
+        torch.stack((s * (x * y + w * z), 1 - s * (x * x + z * z), s * (y * z - w * x)), -1),
+        torch.stack((s * (x * z - w * y), s * (y * z + w * x), 1 - s * (x * x + y * y)), -1)), -2)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_quat_to_matrix_is_the_textbook_formula_bit_for_bit(dtype):
+    """Frames and digests depend on the camera matrices' last bits: the gathered form keeps them."""
+    q = torch.randn(2000, 7, 4, dtype=dtype, generator=torch.Generator().manual_seed(0))
+    q[::3] *= 1e3
+    q[1::5, :, 2] = 0.0
+    q[2::7, :, 1] = -0.0
+    got = T.quat_to_matrix(q)
+    assert got.shape == (2000, 7, 3, 3) and got.dtype == dtype
+    assert got.numpy().tobytes() == _textbook_matrix(q).numpy().tobytes()
+    assert T.quat_to_matrix(q[0, 0]).shape == (3, 3)

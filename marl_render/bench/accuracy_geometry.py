@@ -28,8 +28,8 @@ import time
 import numpy as np
 import torch
 
-from ..impostors import is_sphere
-from ..meshes import MeshData, sphere
+from ..assets.meshes import MeshData, sphere
+from ..render.impostors import is_sphere
 from .common import machine, positive_int_argument, progress, write_report
 from .profile import cpu_model
 

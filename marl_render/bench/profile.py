@@ -23,6 +23,7 @@ triangles (a lower bound for large ones, whose rasterisation the pixel slope cou
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import statistics
 import subprocess
@@ -31,8 +32,8 @@ import time
 import numpy as np
 import torch
 
-from ..impostors import is_sphere
-from ..meshes import MeshData
+from ..assets.meshes import MeshData
+from ..render.impostors import is_sphere
 from .common import (
     env_spec_argument,
     machine,
@@ -57,6 +58,9 @@ def add_arguments(parser):
                         help="spheres as meshes (off: the split before impostors) or as impostors (the env default)")
     parser.add_argument("--rounds", type=positive_int_argument, default=5)
     parser.add_argument("--block-seconds", type=positive_seconds_argument, default=0.3)
+    parser.add_argument("--groups", action="store_true",
+                        help="also time an env step with each draw group hidden, with static groups drawn last and "
+                             "with impostor groups never frustum-tested (what each group and choice costs)")
     parser.add_argument("--out", default=None, help="also write DIR/profile.json and DIR/profile.md")
 
 
@@ -130,6 +134,9 @@ def _block(function, count: int) -> tuple[float, float]:
 
 
 def _slope(xs, ys) -> float:
+    """The fitted cost per unit; NaN from a single setting (--subdivide 0 or --coverage 1 alone: no split)."""
+    if len(set(xs)) < 2:
+        return float("nan")
     return float(np.polyfit(np.asarray(xs, float), np.asarray(ys, float), 1)[0])
 
 
@@ -198,13 +205,15 @@ def profile(name: str, agents: int | None, worlds: int, resolution: int, levels,
     per_pixel = _slope([r["pixels"] for r in by_pixels], [r["render_cpu_ms"] for r in by_pixels])
     vertex = per_triangle * base["triangles"]
     fragment = per_pixel * base["pixels"]
+    split = {"ns_per_triangle": 1e6 * per_triangle, "ns_per_pixel": 1e6 * per_pixel, "vertex_ms": vertex,
+             "fragment_ms": fragment, "rest_ms": base["render_cpu_ms"] - vertex - fragment,
+             "vertex_share": vertex / base["render_cpu_ms"], "fragment_share": fragment / base["render_cpu_ms"]}
+    split = {key: None if math.isnan(value) else value for key, value in split.items()}  # JSON has no NaN
     return {"env": name, "agents": num_agents, "worlds": worlds, "resolution": resolution,
             "step_cpu_ms": 1e3 * statistics.median(step_times), "render_ms": base["render_ms"],
             "render_cpu_ms": base["render_cpu_ms"],
             "draw_ms": base["draw_ms"], "read_ms": base["read_ms"], "triangles": base["triangles"],
-            "pixels": base["pixels"], "ns_per_triangle": 1e6 * per_triangle, "ns_per_pixel": 1e6 * per_pixel,
-            "vertex_ms": vertex, "fragment_ms": fragment, "rest_ms": base["render_cpu_ms"] - vertex - fragment,
-            "vertex_share": vertex / base["render_cpu_ms"], "fragment_share": fragment / base["render_cpu_ms"],
+            "pixels": base["pixels"], **split,
             "variants": rows}
 
 
@@ -220,6 +229,10 @@ def run(args) -> dict:
             progress(f"profile {name} at {resolution} px, {args.worlds} worlds")
             results.append(profile(name, int(agents) if agents else None, args.worlds, resolution, args.subdivide,
                                    args.coverage, args.rounds, args.block_seconds, args.impostors))
+            if args.groups:
+                progress(f"profile {name} at {resolution} px, {args.worlds} worlds: draw groups")
+                results[-1]["groups"] = group_costs(name, int(agents) if agents else None, args.worlds, resolution,
+                                                    args.rounds, args.block_seconds, args.impostors)
     result = {"machine": {**machine(), "cpu_model": cpu_model(), "cpus": os.cpu_count()},
               "load_average_before": load_before[0], "load_average_after": os.getloadavg()[0],
               "seconds": time.perf_counter() - started, "impostors": args.impostors, "rounds": args.rounds,
@@ -228,6 +241,88 @@ def run(args) -> dict:
     if args.out:
         write_report(args.out, "profile", result, markdown=markdown(result))
     return result
+
+
+class _GroupVariants:
+    """Switches of one env's renderer, each undone by `base()`: a draw group left out (its pairs are
+    still packed and culled: what is left out is its GL work), static groups drawn after the moving
+    ones (so that the depth test drops floor and wall pixels behind them before they are shaded), and
+    impostor groups never frustum-tested (every candidate pair drawn). Reaches into the renderer's
+    draw groups and packer on purpose: these are the choices being measured."""
+
+    def __init__(self, renderer):
+        self.renderer = renderer
+        self.groups = renderer._groups
+        self.orders = {name: [p[0].get_bin_draw_order() for p in draw.pass_nodes] for name, draw in self.groups.items()}
+        self.names = ["base", *(f"hide {name}" for name in self.groups), "hide all", "static last"]
+        if renderer.impostor_groups:
+            self.names.append("impostors unculled")
+
+    def base(self):
+        for name, draw in self.groups.items():
+            for (node, *_), order in zip(draw.pass_nodes, self.orders[name], strict=True):
+                if node.is_stashed():
+                    node.unstash()
+                node.set_bin("fixed", order)
+        for name in self.renderer.impostor_groups:
+            self.renderer.packer.groups[name].frustum_pause = 0
+
+    def set(self, variant: str):
+        self.base()
+        if variant.startswith("hide "):
+            hidden = list(self.groups) if variant == "hide all" else [variant[len("hide "):]]
+            for name in hidden:
+                for node, *_ in self.groups[name].pass_nodes:
+                    node.stash()  # not hide(): the renderer shows and hides nodes itself (draw_groups.set_draw)
+        elif variant == "static last":
+            count = len(self.groups)
+            for name, draw in self.groups.items():
+                for (node, *_), order in zip(draw.pass_nodes, self.orders[name], strict=True):
+                    # Surfaces with patterns already sort after everything (order >= count): kept there.
+                    node.set_bin("fixed", order + count if draw.static and order < count else order)
+        elif variant == "impostors unculled":
+            for name in self.renderer.impostor_groups:
+                self.renderer.packer.groups[name].frustum_pause = 1 << 30
+        # The next frame packs and culls again, as after a step.
+        self.renderer.packer._cameras_dirty = True
+
+
+def group_costs(name: str, agents: int | None, worlds: int, resolution: int, rounds: int, block_seconds: float,
+                impostors: str = "auto") -> dict:
+    """CPU ms of an env step (random actions) under each of _GroupVariants' switches, alternated in
+    timed blocks (medians over rounds), and whether the frame of one state is the same byte for byte
+    under "static last" and "impostors unculled" as under base."""
+    from marl_render.envs import make_env
+
+    kwargs = dict(num_worlds=worlds, seed=0, autoreset="next_step", impostors=impostors == "auto")
+    if agents is not None:
+        kwargs["num_agents"] = agents
+    with make_env(name, resolution=resolution, **kwargs) as env:
+        env.reset(seed=0)
+        generator = torch.Generator().manual_seed(0)
+
+        def step():
+            env.step(env.random_actions(generator))
+        for _ in range(3):
+            step()
+        variants = _GroupVariants(env.renderer)
+        frames = {}
+        for variant in ("base", "static last", "impostors unculled"):
+            if variant in variants.names:
+                variants.set(variant)
+                frame = env.renderer.render()
+                frames[variant] = bytes(frame.rgb.numpy().tobytes())
+        variants.set("base")
+        count = max(2, min(200, round(block_seconds / _block(step, 2)[1])))
+        timings = {variant: [] for variant in variants.names}
+        for _ in range(rounds):
+            for variant in variants.names:
+                variants.set(variant)
+                timings[variant].append(_block(step, count)[1])
+        variants.set("base")
+    medians = {variant: 1e3 * statistics.median(values) for variant, values in timings.items()}
+    return {"step_cpu_ms": medians, "delta_ms": {v: medians[v] - medians["base"] for v in medians},
+            "same_frame": {v: frames[v] == frames["base"] for v in frames if v != "base"}}
 
 
 def markdown(result: dict) -> list[str]:
@@ -239,10 +334,26 @@ def markdown(result: dict) -> list[str]:
              "| triangles/frame | ns/triangle | ns/pixel |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in result["results"]:
+        split = r["vertex_ms"] is not None and r["fragment_ms"] is not None  # None: one setting, no fit
+        vertex = f"{r['vertex_ms']:.2f} ({r['vertex_share']:.0%})" if split else ""
+        fragment = f"{r['fragment_ms']:.2f} ({r['fragment_share']:.0%})" if split else ""
+        rest = f"{r['rest_ms']:.2f}" if split else ""
+        per_triangle = "" if r["ns_per_triangle"] is None else f"{r['ns_per_triangle']:.2f}"
+        per_pixel = "" if r["ns_per_pixel"] is None else f"{r['ns_per_pixel']:.2f}"
         lines.append(f"| {r['env']} | {r['agents']} | {r['resolution']} | {r['step_cpu_ms']:.2f} "
-                     f"| {r['render_cpu_ms']:.2f} "
-                     f"| {r['vertex_ms']:.2f} ({r['vertex_share']:.0%}) "
-                     f"| {r['fragment_ms']:.2f} ({r['fragment_share']:.0%}) "
-                     f"| {r['rest_ms']:.2f} | {r['triangles']:,} "
-                     f"| {r['ns_per_triangle']:.2f} | {r['ns_per_pixel']:.2f} |")
+                     f"| {r['render_cpu_ms']:.2f} | {vertex} | {fragment} | {rest} | {r['triangles']:,} "
+                     f"| {per_triangle} | {per_pixel} |")
+    grouped = [r for r in result["results"] if "groups" in r]
+    if grouped:
+        lines += ["", "Env step CPU ms under each switch (--groups) and its difference from base. "
+                  "\"hide X\": X packed and culled but not drawn (its GL cost); \"static last\": static groups "
+                  "drawn after moving ones; \"impostors unculled\": impostor groups never frustum-tested.", "",
+                  "| env | px | variant | step CPU ms | difference | same frame as base |",
+                  "|---|---:|---|---:|---:|---|"]
+        for r in grouped:
+            g = r["groups"]
+            for variant, ms in g["step_cpu_ms"].items():
+                same = g["same_frame"].get(variant)
+                lines.append(f"| {r['env']} | {r['resolution']} | {variant} | {ms:.2f} | {g['delta_ms'][variant]:+.2f} "
+                             f"| {'' if same is None else ('yes' if same else 'no')} |")
     return lines

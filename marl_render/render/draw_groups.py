@@ -60,9 +60,11 @@ class PandaTargets:
         self._memory.clear()
 
 
-def per_pass(node, passes: list) -> list:
+def per_pass(node, passes: list, batch: int | None = None) -> list:
     """One copy of the node in every framebuffer (they share the geometry), each with its own pair
-    offset and instance count: [[NodePath, PTA_int pair offset, instance count drawn]] per pass."""
+    offset and instance count: [[NodePath, PTA_int pair offset, pairs drawn, PTA_int pair count]] per
+    pass. batch (impostor groups): each GL instance draws `batch` pairs (impostors.quad_node), the last
+    one only up to the pair count (a shader input then)."""
     entries = []
     for index, render_pass in enumerate(passes):
         if index == 0:
@@ -70,13 +72,17 @@ def per_pass(node, passes: list) -> list:
         copy = node if index == 0 else node.copy_to(render_pass.root)
         offset = int_input(0)  # updated in place (a new PTA would make a new render state)
         copy.set_shader_input("pair_offset", offset)
-        entries.append([copy, offset, None])
+        pair_count = None
+        if batch is not None:
+            pair_count = int_input(0)
+            copy.set_shader_input("pair_count", pair_count)
+        entries.append([copy, offset, None, pair_count, batch or 1])
     return entries
 
 
 def set_draw(entry: list, first: int, count: int) -> None:
     """Point a pass's node (entry of DrawGroup.pass_nodes) at `count` pairs from `first`."""
-    node, offset, drawn = entry
+    node, offset, drawn, pair_count, batch = entry
     offset[0] = first
     if count == drawn:
         return
@@ -85,5 +91,7 @@ def set_draw(entry: list, first: int, count: int) -> None:
     else:
         if not drawn:
             node.show()
-        node.set_instance_count(count)
+        if pair_count is not None:
+            pair_count[0] = count
+        node.set_instance_count(-(-count // batch))
     entry[2] = count

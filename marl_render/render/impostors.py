@@ -31,6 +31,11 @@ from . import row_layouts, shaders
 
 MODES = (False, True, "auto")
 
+# Quads per GL instance. llvmpipe runs its vertex pipeline once per instance (fetch, a vertex shader
+# call over 8 lanes, clipping, primitive setup), half empty for one 4-corner quad; a batch of them per
+# instance shares that. Measured: 2-5% of a commons step at 64 worlds (tools/impostor_batches.py).
+QUADS_PER_INSTANCE = 16
+
 
 def check_mode(impostors) -> bool | str:
     """impostors: False, True or "auto" (a bool-like numpy value counts as its bool)."""
@@ -98,6 +103,7 @@ def defines(effects, *, static: bool, gray: bool) -> tuple[str, ...]:
     if static:
         names.add("STATIC_GROUP")
     names.update(row_layouts.glsl_defines(static=static))
+    names.add(f"QUADS_PER_INSTANCE {QUADS_PER_INSTANCE}")
     names.update(f"{name.upper()}_LOCATION {location}"
                  for location, name in enumerate([n for n in ("depth", "segmentation") if n in effects], start=1))
     return tuple(sorted(names))
@@ -119,15 +125,19 @@ def compiled(variant: tuple[str, ...]):
 
 
 def quad_node():
-    """A NodePath of the impostor quad: corners (+-1, +-1, 0), two triangles, drawn from either
-    side (the vertex stage turns it to face the camera)."""
+    """A NodePath of QUADS_PER_INSTANCE impostor quads: corners (+-1, +-1, k) for the k-th quad of
+    an instance, two triangles each, drawn from either side (the vertex stage turns each to face the
+    camera and draws pair instance * QUADS_PER_INSTANCE + k, or nothing past the pass's pair count)."""
     from panda3d.core import CullFaceAttrib, NodePath
 
     from ..assets.meshes import to_panda_geom
 
     corners = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=np.float32)
-    quad = MeshData("impostor_quad", corners, np.tile(np.float32([0, 0, 1]), (4, 1)),
-                    (corners[:, :2] * 0.5 + 0.5).astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]], np.int32))
-    node = NodePath(to_panda_geom(quad))
+    positions = np.tile(corners, (QUADS_PER_INSTANCE, 1))
+    positions[:, 2] = np.repeat(np.arange(QUADS_PER_INSTANCE, dtype=np.float32), 4)
+    triangles = np.array([[0, 1, 2], [0, 2, 3]], np.int32)[None] + 4 * np.arange(QUADS_PER_INSTANCE)[:, None, None]
+    quads = MeshData("impostor_quads", positions, np.tile(np.float32([0, 0, 1]), (len(positions), 1)),
+                     (positions[:, :2] * 0.5 + 0.5).astype(np.float32), triangles.reshape(-1, 3).astype(np.int32))
+    node = NodePath(to_panda_geom(quads))
     node.set_attrib(CullFaceAttrib.make(CullFaceAttrib.M_cull_none))
     return node

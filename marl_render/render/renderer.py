@@ -333,7 +333,7 @@ class BatchRenderer(FrameReads):
                 plain = node.copy_to(NodePath())
                 plain.set_shader(shaders.compiled(variant(surface=False)))
                 draw.plain_nodes = per_pass(plain, self._passes)
-            draw.pass_nodes = per_pass(node, self._passes)
+            draw.pass_nodes = per_pass(node, self._passes, sphere_impostors.QUADS_PER_INSTANCE if impostor else None)
             self._groups[group.name] = draw
             if static:
                 self.packer.pack_static(group, self._targets.instances(group.name))

@@ -47,25 +47,31 @@ def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return v + w * t + torch.cross(u, t, dim=-1)
 
 
+# quat_to_matrix's nine entries, row by row: [1 -] s * (q[a] q[b] + sign q[c] q[d]), the products and
+# sums of the textbook formula in its order (a - b and a + (-1 * b) are the same float), as one gather.
+_M_A = torch.tensor([2, 1, 1, 1, 1, 2, 1, 2, 1])
+_M_B = torch.tensor([2, 2, 3, 2, 1, 3, 3, 3, 1])
+_M_C = torch.tensor([3, 0, 0, 0, 3, 0, 0, 0, 2])
+_M_D = torch.tensor([3, 3, 2, 3, 3, 1, 2, 1, 2])
+_M_SIGN = torch.tensor([1.0, -1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
+_M_DIAGONAL = torch.tensor([True, False, False, False, True, False, False, False, True])
+
+
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     """[..., 4] -> [..., 3, 3]; columns are the rotated x, y, z axes.
 
     Any non-zero scale of q gives the same rotation (the formula is divided by |q|^2),
     so slightly unnormalised quaternions never shear or scale; (near-)zero ones raise.
+    The entries are those of the textbook formula (1 - s (y^2 + z^2), s (xy - wz), ...) bit for
+    bit, computed as a few gathered products instead of 30 small ops (it runs every frame).
     """
     norm2 = (q * q).sum(-1)
     if bool((norm2 < _MIN_QUAT_NORM**2).any()):
         raise ValueError(f"q must be non-zero quaternions (w, x, y, z), got one with norm < {_MIN_QUAT_NORM}")
-    s = 2.0 / norm2
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        (
-            torch.stack((1 - s * (y * y + z * z), s * (x * y - w * z), s * (x * z + w * y)), -1),
-            torch.stack((s * (x * y + w * z), 1 - s * (x * x + z * z), s * (y * z - w * x)), -1),
-            torch.stack((s * (x * z - w * y), s * (y * z + w * x), 1 - s * (x * x + y * y)), -1),
-        ),
-        dim=-2,
-    )
+    s = (2.0 / norm2)[..., None]
+    sign = _M_SIGN.to(device=q.device, dtype=q.dtype)
+    scaled = s * (q[..., _M_A] * q[..., _M_B] + sign * (q[..., _M_C] * q[..., _M_D]))
+    return torch.where(_M_DIAGONAL.to(q.device), 1 - scaled, scaled).unflatten(-1, (3, 3))
 
 
 def matrix_to_quat(m: torch.Tensor) -> torch.Tensor:
