@@ -109,14 +109,8 @@ from . import spec as env_spec
 from . import state as explicit_state
 from .options import EnvOptions
 from .rendering import EnvRenderer, check_memory
-from .scenario import MAX_COUNT, Layout, Scenario
-
-OBS_KEYS = ("pixels", "depth", "state", "lidar", "agent_id", "action_mask")
-DRIVER_INFO = ("step_count", "done_worlds", "autoreset_worlds", "final_obs", "level",
-               "final_level")  # info names the driver fills in
-# ... and those the gymnasium front ends fill in: the vector env's "final_info" and its mask "_" + key
-# of every key, and RecordEpisodeStatistics' "episode"
-GYMNASIUM_INFO = ("final_info", "episode")
+from .scenario import MAX_COUNT, BatchShape, Scenario
+from .spec import OBS_KEYS, RESERVED_INFO  # noqa: F401 (OBS_KEYS: marl_render.envs.core.OBS_KEYS, as before)
 
 
 def _from_user(name: str, value):
@@ -259,16 +253,12 @@ class BatchedEnv:
         compile_physics = check.flag("compile_physics", options.compile_physics)
         exact_tiles = check.flag("exact_tiles", options.exact_tiles)
 
-        self.scenario = scenario(params, Layout(self.num_worlds, self.num_agents, self.continuous, self.device))
+        self.scenario = scenario(params, BatchShape(self.num_worlds, self.num_agents, self.continuous, self.device))
         if options.physics_substeps is not None:
             self.scenario.physics = check.physics_substeps(options.physics_substeps, self.scenario)
         self._describe(self.scenario)
         self._sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
         self._check_scenario()
-        self.obs_keys = tuple(k for k, on in (("pixels", True), ("depth", self.depth), ("state", self.state_obs),
-                                              ("lidar", self.lidar_rays > 0), ("agent_id", self.agent_ids),
-                                              ("action_mask", not self.continuous))
-                              if on)
         team_index = torch.tensor([t for t, names in enumerate(self.groups.values()) for _ in names])
         self._ids = torch.cat((torch.eye(self.num_agents), torch.nn.functional.one_hot(team_index, len(self.groups))),
                               -1).to(self.device, torch.float32)  # [A, A + teams]: see "agent_id"
@@ -283,6 +273,7 @@ class BatchedEnv:
         if self.levels is not None:  # the driver's info entry, after the task's were checked
             self.info_keys["level"] = torch.int64
         self.spec = env_spec.build(self)
+        self.obs_keys = self.spec.obs_keys
         self._needs_reset = True
         with limited_threads(self.torch_threads):
             self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=effects,
@@ -715,11 +706,11 @@ class BatchedEnv:
             raise RuntimeError(f"{name}.initial_state must return a dataclass of tensors (envs/state.py), "
                                f"got {describe(self._sim)}")
         # Every field has the worlds first. A field whose length is W by chance (a task's constant
-        # vector) would be split between worlds by partial resets, so the task's layout is probed
+        # vector) would be split between worlds by partial resets, so the task's batch shape is probed
         # with another world count too (1, or 2 for W = 1): its fields must follow it.
         W, probe_worlds = self.num_worlds, 2 if self.num_worlds == 1 else 1
         try:
-            probe = explicit_state.fields(type(s)(s.params, Layout(probe_worlds, A, self.continuous,
+            probe = explicit_state.fields(type(s)(s.params, BatchShape(probe_worlds, A, self.continuous,
                                                                     self.device)).initial_state())
         except Exception:  # a task that cannot be built for that count: the check below is all there is
             probe = None
@@ -746,10 +737,10 @@ class BatchedEnv:
         for key, dtype in keys.items():
             if not isinstance(key, str) or not isinstance(dtype, torch.dtype):
                 raise TypeError(f"{name}.info_keys must map str names to torch dtypes, got {key!r}: {describe(dtype)}")
-        reserved = sorted(key for key in keys if key in DRIVER_INFO + GYMNASIUM_INFO or key.startswith("_"))
+        reserved = sorted(key for key in keys if key in RESERVED_INFO or key.startswith("_"))
         if reserved:
             raise ValueError(f"{name}.info_keys names {reserved}, which the driver's own info entries use "
-                             f"({list(DRIVER_INFO + GYMNASIUM_INFO)}, and gymnasium's masks '_' + key); rename the "
+                             f"({list(RESERVED_INFO)}, and gymnasium's masks '_' + key); rename the "
                              f"task's statistic(s) (they would replace the driver's values, or be replaced by them)")
 
     def _checked_bounds(self, bounds) -> dict:
