@@ -91,7 +91,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import math
 import threading
 
 import numpy as np
@@ -107,10 +106,11 @@ from . import masking
 from . import options as check
 from . import spec as env_spec
 from . import state as explicit_state
+from .contract import HookContract
 from .options import EnvOptions
 from .rendering import EnvRenderer, check_memory
 from .scenario import MAX_COUNT, BatchShape, Scenario
-from .spec import OBS_KEYS, RESERVED_INFO  # noqa: F401 (OBS_KEYS: marl_render.envs.core.OBS_KEYS, as before)
+from .spec import OBS_KEYS  # noqa: F401 (marl_render.envs.core.OBS_KEYS, as before)
 
 
 def _from_user(name: str, value):
@@ -253,12 +253,13 @@ class BatchedEnv:
         compile_physics = check.flag("compile_physics", options.compile_physics)
         exact_tiles = check.flag("exact_tiles", options.exact_tiles)
 
-        self.scenario = scenario(params, BatchShape(self.num_worlds, self.num_agents, self.continuous, self.device))
+        self._batch = BatchShape(self.num_worlds, self.num_agents, self.continuous, self.device)
+        self.scenario = scenario(params, self._batch)
         if options.physics_substeps is not None:
             self.scenario.physics = check.physics_substeps(options.physics_substeps, self.scenario)
         self._describe(self.scenario)
         self._sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
-        self._check_scenario()
+        self._contract = HookContract(self.scenario, self._batch, self._sim, self.state_obs)
         team_index = torch.tensor([t for t, names in enumerate(self.groups.values()) for _ in names])
         self._ids = torch.cat((torch.eye(self.num_agents), torch.nn.functional.one_hot(team_index, len(self.groups))),
                               -1).to(self.device, torch.float32)  # [A, A + teams]: see "agent_id"
@@ -433,7 +434,7 @@ class BatchedEnv:
         else:
             restart = torch.zeros(W, dtype=torch.bool, device=self.device)
         alive_before = self._alive & ~restart[:, None]
-        sim, reward, terminated, task_info = self._checked_step(
+        sim, reward, terminated, task_info = self._contract.checked_step(
             self.scenario.step(self._sim, actions, alive_before, self.generator))
         reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         alive = alive_before & ~terminated
@@ -479,7 +480,7 @@ class BatchedEnv:
             return torch.rand(W, A, self.action_dim, generator=generator) * 2 - 1
         if self.enforce_action_mask:  # among the allowed actions only (envs/masking.py)
             with self._lock, torch.no_grad(), limited_threads(self.torch_threads):  # a committed state's mask
-                return masking.sample_allowed(self._action_mask(self._sim, self._alive), generator)
+                return masking.sample_allowed(self._contract.action_mask(self._sim, self._alive), generator)
         return torch.randint(self.num_actions, (W, A), generator=generator)
 
     @torch.no_grad()
@@ -600,7 +601,7 @@ class BatchedEnv:
             if looks is not None and not torch.equal(looks, levels):
                 raise ValueError("state['appearance_ids'] must equal state['level_ids'] with levels on (a level "
                                  "fixes the look of its world)")
-        self._check_values(state, "state[{key!r}]")
+        self._contract.check_values(state, "state[{key!r}]")
         try:
             torch.Generator().set_state(rng)
         except RuntimeError as exc:
@@ -659,113 +660,16 @@ class BatchedEnv:
             counters["level_ids"] = self._level_ids
         return counters
 
-    def _action_mask(self, sim, alive: torch.Tensor) -> torch.Tensor:
-        """The scenario's action mask [W, A, num_actions] of state `sim`, checked (the hook's own tensor:
-        it may be a constant or the state's; copy it before handing it out)."""
-        mask = self.scenario.action_mask(sim, alive)
-        where = f"{type(self.scenario).__name__}.action_mask"
-        _check_tensor(where, mask, (self.num_worlds, self.num_agents, self.num_actions), "bool", self.device)
-        if not self._fresh_masks:  # an agent in the episode with no valid action cannot act, masked or not
-            stuck = alive & ~mask.any(-1)
-            if bool(stuck.any()):
-                world, agent = stuck.nonzero()[0].tolist()
-                raise ValueError(f"{where} must allow at least one action to every agent in the episode, got none "
-                                 f"for {int(stuck.sum())} agent(s), e.g. world {world} agent "
-                                 f"{self.agent_names[agent]!r}")
-        return mask
-
     def _check_allowed(self, actions: torch.Tensor) -> None:
         """enforce_action_mask: a ValueError naming the forbidden actions of the agents this step acts
         for (those of departed agents and of worlds a next_step autoreset restarts are ignored)."""
         acting = self._alive
         if self.autoreset == "next_step":
             acting = acting & ~self.episode_over()[:, None]
-        mask = self._action_mask(self._sim, self._alive)
+        mask = self._contract.action_mask(self._sim, self._alive)
         refused = masking.forbidden(mask, actions, acting)
         if bool(refused.any()):
             raise masking.refusal(refused, mask, actions, self.agent_names, self.action_meanings)
-
-    def _check_scenario(self):
-        """A scenario whose declarations are incomplete or disagree fails here, when the env is built,
-        naming the declaration or the hook (not at the first reset or step, or deep in the renderer)."""
-        s, A, name = self.scenario, self.num_agents, type(self.scenario).__name__
-        where = f"{name}.setup"
-        if len(self.agent_names) != A or len(set(self.agent_names)) != A:
-            raise RuntimeError(f"{where} must give teams holding {A} distinct agent names, got {self.agent_names}")
-        if self.continuous and not (isinstance(self.action_dim, int) and self.action_dim >= 1):
-            raise RuntimeError(f"{where} must declare continuous_actions(dim) with dim >= 1 for continuous=True")
-        if not self.continuous and not (isinstance(self.num_actions, int) and self.num_actions >= 1):
-            raise RuntimeError(f"{where} must declare discrete_actions(meanings) with at least one action")
-        if isinstance(self.dt, bool) or not isinstance(self.dt, (int, float)) or not 0 < self.dt < math.inf:
-            raise ValueError(f"{name}.dt (simulated seconds per step) must be a finite number > 0, got {self.dt!r}")
-        if self.state_obs and not self.state_dim:
-            raise ValueError(f"state_obs=True needs a task with a state observation, and {name} has none "
-                             f"(state_dim 0, no observation hook)")
-        self._check_info_keys()
-        if not (dataclasses.is_dataclass(self._sim) and not isinstance(self._sim, type)):
-            raise RuntimeError(f"{name}.initial_state must return a dataclass of tensors (envs/state.py), "
-                               f"got {describe(self._sim)}")
-        # Every field has the worlds first. A field whose length is W by chance (a task's constant
-        # vector) would be split between worlds by partial resets, so the task's batch shape is probed
-        # with another world count too (1, or 2 for W = 1): its fields must follow it.
-        W, probe_worlds = self.num_worlds, 2 if self.num_worlds == 1 else 1
-        try:
-            probe = explicit_state.fields(type(s)(s.params, BatchShape(probe_worlds, A, self.continuous,
-                                                                    self.device)).initial_state())
-        except Exception:  # a task that cannot be built for that count: the check below is all there is
-            probe = None
-        for field, value in explicit_state.fields(self._sim).items():
-            probed = value if probe is None else probe.get(field)
-            expected = W if probe is None else probe_worlds
-            if not (isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == W
-                    and isinstance(probed, torch.Tensor) and probed.ndim and probed.shape[0] == expected):
-                got = [f"shape {list(t.shape)}" if isinstance(t, torch.Tensor) else describe(t)
-                       for t in (value, probed)]
-                raise ValueError(f"{name}.initial_state's field {field!r} must be a tensor with the worlds first, "
-                                 f"[W, ...] (every world has its own value); with W={W} it has {got[0]}, "
-                                 f"with W={expected} {got[1]}")
-            if not _same_device(value.device, self.device):
-                raise ValueError(f"{name}.initial_state's field {field!r} must be on device {self.device}, got "
-                                 f"{value.device}")
-        self._bounds = self._checked_bounds(s.state_bounds())
-        self._fresh_masks = type(s).action_mask is Scenario.action_mask  # see _observe
-        s.check_declarations(self._sim)
-
-    def _check_info_keys(self):
-        """info_keys: {str: torch.dtype}, none of them a name the driver's own info entries use."""
-        name, keys = type(self.scenario).__name__, self.info_keys
-        for key, dtype in keys.items():
-            if not isinstance(key, str) or not isinstance(dtype, torch.dtype):
-                raise TypeError(f"{name}.info_keys must map str names to torch dtypes, got {key!r}: {describe(dtype)}")
-        reserved = sorted(key for key in keys if key in RESERVED_INFO or key.startswith("_"))
-        if reserved:
-            raise ValueError(f"{name}.info_keys names {reserved}, which the driver's own info entries use "
-                             f"({list(RESERVED_INFO)}, and gymnasium's masks '_' + key); rename the "
-                             f"task's statistic(s) (they would replace the driver's values, or be replaced by them)")
-
-    def _checked_bounds(self, bounds) -> dict:
-        """The scenario's state_bounds(), checked once: fields of the state, (low, high) numbers or
-        one number per index of the field's last axis."""
-        where = f"{type(self.scenario).__name__}.state_bounds"
-        fields = explicit_state.fields(self._sim)
-        if not isinstance(bounds, dict):
-            raise TypeError(f"{where} must return a dict {{field: (low, high)}}, got {describe(bounds)}")
-        for key, pair in bounds.items():
-            if key not in fields:
-                raise ValueError(f"{where} names {key!r}, which is not a field of the state {sorted(fields)}")
-            try:
-                low, high = (torch.as_tensor(v, dtype=torch.float64) for v in pair)
-                np.broadcast_shapes(low.shape, high.shape, fields[key].shape)  # torch's imports sympy (1.3 CPU-s)
-            except (TypeError, ValueError, RuntimeError) as error:
-                raise ValueError(f"{where}[{key!r}] must be (low, high), each a number or one per index of the "
-                                 f"field's last axis (shape {list(fields[key].shape)}), got {describe(pair)}"
-                                 ) from error
-        return bounds
-
-    def _check_values(self, state: dict, label: str) -> None:
-        """Floats finite, every field within state_bounds and the task's check_state rules."""
-        explicit_state.check_bounds(state, self._bounds, label)
-        self.scenario.check_state(state)
 
     # ------------------------------------------------------------------ atomic calls
     @contextlib.contextmanager
@@ -860,8 +764,8 @@ class BatchedEnv:
             levels = torch.where(mask.cpu(), chosen, levels)
             keys = level_sets.level_keys(levels, self.name, self.scenario.params, self.num_agents)
             fresh = self.scenario.spawn_level(level_sets.KeyedDraws(keys))
-        fresh = self._check_state(where, fresh)
-        self._check_values(explicit_state.fields(fresh), where + "'s state.{key}")
+        fresh = self._contract.checked_state(where, fresh)
+        self._contract.check_values(explicit_state.fields(fresh), where + "'s state.{key}")
         if looks is not None:  # drawn after spawn: the first layouts match those with appearance off
             fresh_ids = levels if levels is not None else torch.randint(
                 -2 ** 63, 2 ** 63 - 1, (self.num_worlds,), generator=self.generator)
@@ -883,51 +787,13 @@ class BatchedEnv:
         if self._needs_reset:
             raise RuntimeError(f"call reset() before using this {type(self.scenario).__name__} environment")
 
-    def _checked_step(self, result):
-        """Scenario.step's result after checking its form, so that a task's mistake is named at its
-        hook rather than deep in the renderer (shape and dtype reads, and whether the reward is finite)."""
-        where = f"{type(self.scenario).__name__}.{self.scenario.step_hook}"
-        if not (isinstance(result, tuple) and len(result) == 4):
-            raise TypeError(f"{where} must return (state, reward, terminated, info), got {describe(result)}")
-        state, reward, terminated, info = result
-        state = self._check_state(where, state)
-        W, A = self.num_worlds, self.num_agents
-        _check_tensor(f"{where}'s reward", reward, (W, A), "float", self.device)
-        _check_tensor(f"{where}'s terminated", terminated, (W, A), "bool", self.device)
-        task_keys = self.scenario.info_keys
-        if not isinstance(info, dict) or set(info) != set(task_keys):
-            raise ValueError(f"{where}'s info must be a dict with the keys of info_keys {sorted(task_keys)}, "
-                             f"got {sorted(info) if isinstance(info, dict) else describe(info)}")
-        for key, dtype in task_keys.items():
-            _check_tensor(f"{where}'s info[{key!r}]", info[key], (W,), dtype, self.device)
-        # A finite sum proves every value finite in one reduction (isfinite().all() costs ~4x more);
-        # a sum that overflowed is checked in full.
-        if not math.isfinite(reward.sum().item()) and not bool(torch.isfinite(reward).all()):
-            raise ValueError(f"{where}'s reward must be finite, got NaN or Inf in world(s) "
-                             f"{(~torch.isfinite(reward)).any(1).nonzero()[:, 0].tolist()}")
-        return state, reward, terminated, info
-
-    def _check_state(self, where: str, state):
-        """A hook's new state, checked field by field; cut from autograd where a field requires grad (a
-        task's nn.Parameter, say): nothing the env keeps requires grad."""
-        if type(state) is not type(self._sim):
-            raise TypeError(f"{where} must return a {type(self._sim).__name__} (the class of initial_state()), "
-                            f"got {describe(state)}")
-        graphed = {}
-        for name, want in explicit_state.fields(self._sim).items():
-            value = getattr(state, name)
-            _check_tensor(f"{where}'s state.{name}", value, tuple(want.shape), want.dtype, want.device)
-            if value.requires_grad:
-                graphed[name] = value.detach()
-        return dataclasses.replace(state, **graphed) if graphed else state
-
     def _observe(self, sim, alive: torch.Tensor, full: bool) -> dict:
         """The observations of state `sim`: a render and the task's observation hooks, as tensors the
         caller owns (a hook may return its state's tensors or a constant; those are copied)."""
         try:
             self.views.sync(sim, full)
         except (TypeError, ValueError, RuntimeError, IndexError) as error:
-            self._name_non_finite(sim, error)
+            self._contract.name_non_finite(sim, error)
             raise
         frame = self.views.render()
         obs = {"pixels": frame.rgb.to(self.device)}  # a new tensor every render (BatchRenderer.render)
@@ -940,58 +806,21 @@ class BatchedEnv:
         if self.agent_ids:
             obs["agent_id"] = self._ids.expand(self.num_worlds, -1, -1).clone()
         if not self.continuous:
-            mask = self._action_mask(sim, alive)
+            mask = self._contract.action_mask(sim, alive)
             # The default hook makes a new tensor every call; a task's own may return a constant or a
             # field of its state, so its mask is copied. (Copying the default's too cost cartpole at
             # 1024 worlds hundreds of page faults a step: beside the frame's 12 MB, the extra small
             # allocations kept glibc from reusing the freed frames' memory.)
-            obs["action_mask"] = mask if self._fresh_masks else mask.clone(memory_format=torch.contiguous_format)
+            fresh = self._contract.fresh_masks
+            obs["action_mask"] = mask if fresh else mask.clone(memory_format=torch.contiguous_format)
         return obs
 
     def _state_obs(self, sim, alive: torch.Tensor) -> torch.Tensor:
-        return self._owned("observation", self.scenario.observation(sim, alive), self.state_dim)
+        return self._contract.owned("observation", self.scenario.observation(sim, alive), self.state_dim)
 
     def _lidar_obs(self, sim) -> torch.Tensor:
-        return self._owned("lidar", self.scenario.lidar(sim, self.lidar_rays, self.lidar_range), self.lidar_rays)
-
-    def _owned(self, hook: str, value, width: int) -> torch.Tensor:
-        """A hook's per-agent observation [W, A, width], checked, as a float32 copy the caller owns."""
-        where = f"{type(self.scenario).__name__}.{hook}"
-        _check_tensor(where, value, (self.num_worlds, self.num_agents, width), "float", self.device)
-        owned = value.to(dtype=torch.float32, memory_format=torch.contiguous_format, copy=True)
-        if not math.isfinite(owned.sum().item()) and not bool(torch.isfinite(owned).all()):  # as the reward's
-            raise ValueError(f"{where} must return finite values, got NaN or Inf in world(s) "
-                             f"{(~torch.isfinite(owned)).flatten(1).any(1).nonzero()[:, 0].tolist()}")
-        return owned
-
-    def _name_non_finite(self, sim, error: BaseException) -> None:
-        """The renderer refused the instances of a state the step hook made: where fields of it are
-        not finite, say so, naming the hook and the fields (the renderer knows neither)."""
-        bad = [name for name, value in explicit_state.fields(sim).items()
-               if value.is_floating_point() and not bool(torch.isfinite(value).all())]
-        if bad:
-            where = f"{type(self.scenario).__name__}.{self.scenario.step_hook}"
-            raise ValueError(f"{where} returned a state with non-finite values (NaN or Inf) in "
-                             f"{', '.join('state.' + name for name in bad)}") from error
-
-
-def _check_tensor(what: str, value, shape: tuple, dtype, device: torch.device) -> None:
-    """A hook's tensor has the declared shape, dtype (a torch.dtype, or "float" / "bool") and device."""
-    if not isinstance(value, torch.Tensor):
-        raise TypeError(f"{what} must be a torch.Tensor of shape {list(shape)}, got {describe(value)}")
-    if dtype == "float":
-        dtype_ok, want_dtype = value.is_floating_point(), "a float dtype"
-    elif dtype == "bool":
-        dtype_ok, want_dtype = value.dtype == torch.bool, "torch.bool"
-    else:
-        dtype_ok, want_dtype = value.dtype == dtype, str(dtype)
-    if tuple(value.shape) != shape or not dtype_ok or not _same_device(value.device, device):
-        raise ValueError(f"{what} must have shape {list(shape)}, {want_dtype}, device {device}; got shape "
-                         f"{list(value.shape)}, {value.dtype}, device {value.device}")
-
-
-def _same_device(given: torch.device, want: torch.device) -> bool:
-    return given.type == want.type and (want.index is None or given.index == want.index)
+        return self._contract.owned("lidar", self.scenario.lidar(sim, self.lidar_rays, self.lidar_range),
+                                    self.lidar_rays)
 
 
 def _version(tensor: torch.Tensor) -> int | None:
