@@ -88,24 +88,24 @@ the RNG state, and ``set_state(state)`` restores all of it exactly.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import functools
 import threading
 
-import numpy as np
 import torch
 
 import marl_render as mr
 from marl_render.shadows import atlas_layout
 from marl_render.threads import limited_threads, thread_count
-from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, unpicklable
+from marl_render.validation import describe, positive_int, unpicklable
 
 from . import levels as level_sets
 from . import masking
 from . import options as check
 from . import spec as env_spec
 from . import state as explicit_state
+from .actions import checked as checked_actions
+from .actions import from_user, world_mask
+from .atomic import AllOrNothing, env_call
 from .contract import HookContract
 from .options import EnvOptions
 from .rendering import EnvRenderer, check_memory
@@ -113,33 +113,7 @@ from .scenario import MAX_COUNT, BatchShape, Scenario
 from .spec import OBS_KEYS  # noqa: F401 (marl_render.envs.core.OBS_KEYS, as before)
 
 
-def _from_user(name: str, value):
-    """A tensor the user handed in, cut from its autograd graph (a policy output that was not
-    detached would otherwise flow into the state, and through torch.where survive every
-    reset); nested, sparse and meta tensors, which have no plain data to read, are a TypeError."""
-    if not isinstance(value, torch.Tensor):
-        return value
-    if value.is_nested or value.layout != torch.strided or value.device.type == "meta":
-        kind = "a nested tensor" if value.is_nested else f"layout {value.layout}"
-        raise TypeError(f"{name} must be a dense tensor with data, got {kind} on {value.device}")
-    return value.detach()
-
-
-def _env_call(method):
-    """A call of the env's public API: one at a time (two steps from two threads at once read the
-    same state and one of them was lost, silently; an RLock, as calls nest), outside
-    torch.inference_mode() and without grad (in this order: inference_mode(False) turns grad on).
-    Inference mode makes inference tensors, which nothing may write into outside it: an env reset
-    under it failed every later call outside it in the renderer's buffers. So what the env keeps
-    and returns are normal tensors, whatever mode the caller is in."""
-    @functools.wraps(method)
-    def call(self, *args, **kwargs):
-        with self._lock, torch.inference_mode(False), torch.no_grad():
-            return method(self, *args, **kwargs)
-    return call
-
-
-class BatchedEnv:
+class BatchedEnv(AllOrNothing):
     """The driver of a task: see the module docstring for the contract.
 
     ``BatchedEnv(scenario, options=None, params=None)``: `scenario` is a Scenario subclass,
@@ -178,17 +152,21 @@ class BatchedEnv:
     levels (None or the level sampler, envs/levels.py), level_ids ([W] int64 or None); and
     the scenario's camera settings (background, fov_y, near, far,
     overview_resolution, overview_fov_y, arena_half_extent) and agent_range.
-    Methods: reset, reset_worlds, reset_to_level, step, check_actions, episode_over, random_actions,
-    heuristic_actions, render_overview, state_observation, get_state, set_state, close.
+    Methods: reset, reset_worlds, reset_to_level, step, check_actions, episode_over, action_mask,
+    random_actions, heuristic_actions, render_overview, state_observation, get_state, set_state, close.
     """
 
+    # What a call replaces at its end, once every hook and the render have succeeded (envs/atomic.py): a
+    # call that raises before then leaves these, the generator and the renderer's looks as they were.
+    _committed = {"sim": "_sim", "alive": "_alive", "step_count": "_step_count", "looks": "_appearance_ids",
+                  "levels": "_level_ids", "seed": "seed", "needs_reset": "_needs_reset"}
+
     def __init__(self, scenario: type[Scenario], options: EnvOptions | None = None, params=None):
-        with torch.inference_mode(False), torch.no_grad():  # what the env keeps are normal tensors: _env_call
+        with torch.inference_mode(False), torch.no_grad():  # what the env keeps are normal tensors: env_call
             self._build(scenario, options, params)
 
     def _build(self, scenario, options, params) -> None:
-        self._lock = threading.RLock()  # see _env_call
-        self._running_hooks = False  # see _all_or_nothing
+        self._lock = threading.RLock()  # see envs/atomic.py
         self._closed = True  # until fully built: close() and __del__ then do nothing
         if not (isinstance(scenario, type) and issubclass(scenario, Scenario)):
             raise TypeError(f"scenario must be a Scenario subclass (envs/scenario.py), got {describe(scenario)}")
@@ -321,6 +299,13 @@ class BatchedEnv:
         return None if self._level_ids is None else self._level_ids.clone()
 
     @property
+    def needs_reset(self) -> bool:
+        """Whether the env must be reset before it can step: True until the first reset() or set_state(),
+        and again after a call failed in a way that cannot be undone (a hook wrote into the state it
+        was given). step, reset_worlds, get_state and the like raise RuntimeError while it is True."""
+        return self._needs_reset
+
+    @property
     def physics_compiled(self) -> bool:
         """Whether steps run the task's compiled physics kernel (compile_physics=True and compiling
         worked; False again if the kernel ever failed at a step and the default path took over)."""
@@ -339,7 +324,7 @@ class BatchedEnv:
             setattr(self, name, getattr(s, name))
 
     # ================================================================== public API
-    @_env_call
+    @env_call
     def reset(self, seed: int | None = None) -> dict:
         """Reset every world; `seed` (optional) re-seeds the env's generator first.
 
@@ -356,11 +341,11 @@ class BatchedEnv:
                 torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), self._sim, self._step_count,
                 self._alive, self._appearance_ids, self._level_ids)
             obs = self._observe(sim, alive, full=True)
-            self._commit(sim, alive, step_count, looks, levels)
+            self._commit(sim=sim, alive=alive, step_count=step_count, looks=looks, levels=levels)
             self._needs_reset = False
             return obs
 
-    @_env_call
+    @env_call
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
         """Reset only the worlds where mask [W] (bool) is True; returns obs of all worlds.
 
@@ -368,11 +353,11 @@ class BatchedEnv:
         self._check_open()
         self._check_process()
         self._check_started()
-        mask = self._world_mask(mask)
+        mask = world_mask(mask, self.num_worlds, self.device)
         seed = check.seed("seed", seed)
         return self._reset_some(mask, seed, None)
 
-    @_env_call
+    @env_call
     def reset_to_level(self, mask, level_ids, seed: int | None = None) -> dict:
         """Reset the worlds where mask [W] (bool) is True to the levels level_ids [W] (int64, read
         where mask is True; each in [0, 2**62)); returns obs of all worlds. Needs levels= (any set:
@@ -384,17 +369,10 @@ class BatchedEnv:
         if self.levels is None:
             raise ValueError(f"reset_to_level needs an env built with levels= (envs/levels.py), and this "
                              f"{type(self.scenario).__name__} env has levels=None")
-        mask = self._world_mask(mask)
-        chosen = level_sets.check_level_ids("level_ids", _from_user("level_ids", level_ids), self.num_worlds,
+        mask = world_mask(mask, self.num_worlds, self.device)
+        chosen = level_sets.check_level_ids("level_ids", from_user("level_ids", level_ids), self.num_worlds,
                                             where=mask.cpu())
         return self._reset_some(mask, check.seed("seed", seed), chosen)
-
-    def _world_mask(self, mask) -> torch.Tensor:
-        mask = as_tensor("mask", _from_user("mask", mask), dtype_kind="bool")
-        if tuple(mask.shape) != (self.num_worlds,):
-            raise ValueError(f"mask must be a bool tensor of shape [{self.num_worlds}] (num_worlds), "
-                             f"got shape {list(mask.shape)}")
-        return mask.to(self.device)
 
     def _reset_some(self, mask: torch.Tensor, seed: int | None, chosen: torch.Tensor | None) -> dict:
         with limited_threads(self.torch_threads), self._all_or_nothing():
@@ -402,10 +380,10 @@ class BatchedEnv:
             sim, step_count, alive, looks, levels = self._respawned(mask, self._sim, self._step_count, self._alive,
                                                                     self._appearance_ids, self._level_ids, chosen)
             obs = self._observe(sim, alive, full=True)
-            self._commit(sim, alive, step_count, looks, levels)
+            self._commit(sim=sim, alive=alive, step_count=step_count, looks=looks, levels=levels)
             return obs
 
-    @_env_call
+    @env_call
     def step(self, actions):
         """Advance all worlds one step: (obs, reward, terminated, truncated, info).
 
@@ -418,8 +396,9 @@ class BatchedEnv:
         self._check_started()
         with limited_threads(self.torch_threads):
             actions = self.check_actions(actions)
-            if self.enforce_action_mask:
-                self._check_allowed(actions)
+            if self.enforce_action_mask:  # the agents this step acts for take actions their mask allows
+                mask = self._contract.action_mask(self._sim, self._alive)
+                masking.check_allowed(mask, actions, masking.acting(self), self.agent_names, self.action_meanings)
             with self._all_or_nothing():
                 return self._step(actions)
 
@@ -464,13 +443,25 @@ class BatchedEnv:
                 obs = self._observe(sim, alive, full=True)
         if levels is not None:  # the level of the episode the returned obs belong to
             info["level"] = levels.to(self.device, copy=True)
-        self._commit(sim, alive, step_count, looks, levels)
+        self._commit(sim=sim, alive=alive, step_count=step_count, looks=looks, levels=levels)
         return obs, reward, terminated, truncated, info
 
     def episode_over(self) -> torch.Tensor:
         """bool [W]: worlds whose episode has ended (every agent terminated or truncated). The
         front ends ask this rather than work it out."""
         return (~self._alive).all(dim=1) | (self._step_count >= self.max_steps)
+
+    @env_call
+    def action_mask(self) -> torch.Tensor:
+        """bool [W, A, num_actions]: the actions the current state allows (obs key "action_mask"; a copy),
+        for discrete envs; what enforce_action_mask=True checks a step's actions against."""
+        self._check_open()
+        self._check_started()
+        if self.continuous:
+            raise ValueError(f"action_mask applies to discrete actions, and this {type(self.scenario).__name__} "
+                             f"env has continuous=True")
+        with limited_threads(self.torch_threads):
+            return self._contract.action_mask(self._sim, self._alive).clone(memory_format=torch.contiguous_format)
 
     def random_actions(self, generator: torch.Generator | None = None) -> torch.Tensor:
         """Uniformly random valid actions for every agent of every world (the action space's
@@ -483,47 +474,12 @@ class BatchedEnv:
                 return masking.sample_allowed(self._contract.action_mask(self._sim, self._alive), generator)
         return torch.randint(self.num_actions, (W, A), generator=generator)
 
-    @torch.no_grad()
     def check_actions(self, actions) -> torch.Tensor:
         """Validated actions on self.device (long [W, A] or float32 [W, A, action_dim]); raises
         TypeError / ValueError naming `actions`, the expected and the given, else changes nothing."""
-        W, A = self.num_worlds, self.num_agents
-        if not isinstance(actions, (torch.Tensor, np.ndarray, list, tuple)):
-            raise TypeError(f"actions must be a torch.Tensor (or array-like), got {describe(actions)}")
-        actions = _from_user("actions", actions)
-        if self.continuous:
-            want = f"a float tensor of shape [{W}, {A}, {self.action_dim}] (worlds, agents, action_dim) in [-1, 1]"
-            if isinstance(actions, (torch.Tensor, np.ndarray)) and not (
-                    torch.is_tensor(actions) and actions.is_floating_point()
-                    or isinstance(actions, np.ndarray) and np.issubdtype(actions.dtype, np.floating)):
-                raise TypeError(f"actions must be {want}, got {describe(actions)}")
-            tensor = as_tensor("actions", actions, dtype_kind="float")
-            tensor = tensor if tensor.dtype in FLOAT_DTYPES else tensor.to(torch.float32)  # float8: no isfinite
-            if tuple(tensor.shape) != (W, A, self.action_dim):
-                raise ValueError(f"actions must be {want}, got shape {list(tensor.shape)}")
-            if not bool(torch.isfinite(tensor).all()):
-                raise ValueError(f"actions must be {want}, got non-finite values (NaN/Inf)")
-            if bool((tensor.abs() > 1).any()):
-                raise ValueError(f"actions must be {want}, got values in "
-                                 f"[{tensor.min().item():.4g}, {tensor.max().item():.4g}] (clamp them first)")
-            return tensor.to(device=self.device, dtype=torch.float32, copy=True)  # the env's own: see below
-        want = f"an integer tensor of shape [{W}, {A}] (worlds, agents) with values in [0, {self.num_actions})"
-        try:
-            tensor = as_tensor("actions", actions, dtype_kind="int")
-        except TypeError as exc:
-            raise TypeError(f"actions must be {want}, got {describe(actions)}") from exc
-        if tuple(tensor.shape) != (W, A):
-            raise ValueError(f"actions must be {want}, got shape {list(tensor.shape)}")
-        checked = tensor.to(torch.float64) if tensor.dtype in (torch.uint16, torch.uint32, torch.uint64) else tensor
-        if checked.numel():
-            low, high = (value.item() for value in torch.aminmax(checked))
-            if low < 0 or high >= self.num_actions:
-                raise ValueError(f"actions must be {want}, got values in [{low}, {high}]")
-        # A copy even where no conversion is needed: a task may keep actions in its state, and the
-        # caller's tensor (a rollout buffer written in place) must not change the env afterwards.
-        return tensor.to(device=self.device, dtype=torch.int64, copy=True)
+        return checked_actions(actions, self.spec, self.device)
 
-    @_env_call
+    @env_call
     def render_overview(self, resolution=None) -> torch.Tensor:
         """uint8 [W, H2, W2, 3]: one camera per world that sees the whole arena, for humans.
 
@@ -535,7 +491,7 @@ class BatchedEnv:
         with limited_threads(self.torch_threads):
             return self.views.overview(self._sim, resolution)
 
-    @_env_call
+    @env_call
     def state_observation(self) -> torch.Tensor:
         """float32 [W, A, state_dim]: the low-dimensional observation of the current state (obs
         key "state"), whether or not the env was built with state_obs=True."""
@@ -546,7 +502,7 @@ class BatchedEnv:
         with limited_threads(self.torch_threads):
             return self._state_obs(self._sim, self._alive)
 
-    @_env_call
+    @env_call
     def heuristic_actions(self) -> torch.Tensor:
         """The scenario's scripted policy's actions for the current state (valid actions, as
         random_actions gives them): a reference that reads the state and beats random."""
@@ -560,7 +516,7 @@ class BatchedEnv:
                 raise type(error)(f"{type(self.scenario).__name__}.heuristic must return valid actions: "
                                   f"{error}") from error
 
-    @_env_call
+    @env_call
     def get_state(self) -> dict:
         """Copies of the whole state as {name: tensor}: the fields of `sim` (the simulation),
         "step_count" [W] int64, "alive" [W, A] bool, "rng" (the generator's state, uint8, CPU) and,
@@ -573,7 +529,7 @@ class BatchedEnv:
         state["rng"] = self.generator.get_state()
         return state
 
-    @_env_call
+    @env_call
     def set_state(self, state: dict) -> None:
         """Restore a state from get_state() (of this env or one built with the same arguments),
         RNG included; the env then continues from it as if it had never left it.
@@ -612,13 +568,12 @@ class BatchedEnv:
             if looks is not None:
                 self.views.set_appearance(looks)
             self.views.sync(sim, full=True)  # per-episode instance data (landmarks, ...) changed too
-            self._commit(sim, alive, step_count, looks, levels)
             self.generator.set_state(rng)
-            self._needs_reset = False
+            self._commit(sim=sim, alive=alive, step_count=step_count, looks=looks, levels=levels, needs_reset=False)
 
     def close(self) -> None:
         """Release the renderers; safe to call twice. Any later use raises RuntimeError."""
-        with self._lock:  # not _env_call: finalisers at interpreter exit may find torch's modules gone
+        with self._lock:  # not env_call: finalisers at interpreter exit may find torch's modules gone
             if self._closed:
                 return
             self._refuse_reentry()
@@ -660,87 +615,24 @@ class BatchedEnv:
             counters["level_ids"] = self._level_ids
         return counters
 
-    def _check_allowed(self, actions: torch.Tensor) -> None:
-        """enforce_action_mask: a ValueError naming the forbidden actions of the agents this step acts
-        for (those of departed agents and of worlds a next_step autoreset restarts are ignored)."""
-        acting = self._alive
-        if self.autoreset == "next_step":
-            acting = acting & ~self.episode_over()[:, None]
-        mask = self._contract.action_mask(self._sim, self._alive)
-        refused = masking.forbidden(mask, actions, acting)
-        if bool(refused.any()):
-            raise masking.refusal(refused, mask, actions, self.agent_names, self.action_meanings)
+    # ------------------------------------------------------------------ all or nothing (envs/atomic.py)
+    def _generators(self) -> list:
+        return [self.generator]
 
-    # ------------------------------------------------------------------ atomic calls
-    @contextlib.contextmanager
-    def _all_or_nothing(self):
-        """A call that changes the env works out the new state, counters and frames in locals and
-        commits them at its end (_commit): if a hook (or the renderer) raises on the way, or the call
-        is interrupted, the generator and seed are put back and nothing else has changed. The
-        renderer may hold the uncommitted state's instances by then: its next sync sends all; and the
-        uncommitted worlds' looks: the committed ones are put back."""
-        self._refuse_reentry()
-        rng, seed = self.generator.get_state(), self.seed
-        held = self._held()
-        versions = [_version(tensor) for tensor in held.values()]
-        self._running_hooks = True
-        try:
-            yield
-        except BaseException as error:
-            self.generator.set_state(rng)
-            self.seed = seed
-            self.views.invalidate()
-            if self.appearance is not None and not self._needs_reset:  # before the first reset: none to keep
-                self.views.set_appearance(self._appearance_ids)
-            written = [name for (name, tensor), version in zip(held.items(), versions, strict=True)
-                       if _version(tensor) != version]
-            if written:  # a hook broke the contract: what it wrote cannot be undone
-                self._needs_reset = True
-                raise RuntimeError(f"a hook of {type(self.scenario).__name__} wrote into the env's state in place "
-                                   f"({', '.join(written)}) and the call failed, so it cannot be undone: call reset(); "
-                                   f"hooks must return new tensors, never write into the state they are given"
-                                   ) from error
-            raise
-        finally:
-            self._running_hooks = False
+    def _after_undo(self) -> None:
+        """The renderer may hold the undone state's instances: its next sync sends all; and the undone
+        worlds' looks: the committed ones are put back."""
+        self.views.invalidate()
+        if self.appearance is not None and not self._needs_reset:  # before the first reset: none to keep
+            self.views.set_appearance(self._appearance_ids)
 
-    @contextlib.contextmanager
-    def _kept(self):
-        """For a wrapper whose one call is a call of this env and then code of its own (envs/focal.py:
-        the core's reset, then the bots' reset): if the wrapper's part raises after this env committed,
-        the env is put back as it was before the call. Committed tensors are replaced, never written
-        into, so holding them keeps them; the lock is held throughout, so no other call comes between."""
-        with self._lock:
-            rng, seed, needs_reset = self.generator.get_state(), self.seed, self._needs_reset
-            committed = (self._sim, self._alive, self._step_count, self._appearance_ids, self._level_ids)
-            try:
-                yield
-            except BaseException:
-                self.generator.set_state(rng)
-                self.seed, self._needs_reset = seed, needs_reset
-                self._commit(*committed)
-                self.views.invalidate()  # it may hold the undone state's instances: its next sync sends all
-                if self.appearance is not None and not needs_reset:
-                    self.views.set_appearance(self._appearance_ids)
-                raise
-
-    def _refuse_reentry(self) -> None:
-        """A call that changes the env, made by one of its hooks (the same thread: others wait for the
-        lock), is refused: the outer call would commit over what it did, or run on with the renderer closed."""
-        if self._running_hooks:
-            raise RuntimeError(f"a hook of {type(self.scenario).__name__} called the env's step, reset, reset_worlds, "
-                               f"reset_to_level, set_state or close while the env ran its hooks: hooks must not "
-                               f"call the env (they get the state and return new values)")
+    def _hooks_owner(self) -> str:
+        return type(self.scenario).__name__
 
     def _held(self) -> dict:
         """{name: tensor} of the state the env has committed (what a failed call must leave as it was)."""
         return {**{f"state.{name}": value for name, value in explicit_state.fields(self._sim).items()},
                 "alive": self._alive, "step_count": self._step_count}
-
-    def _commit(self, sim, alive: torch.Tensor, step_count: torch.Tensor, looks: torch.Tensor | None,
-                levels: torch.Tensor | None) -> None:
-        self._sim, self._alive, self._step_count, self._appearance_ids = sim, alive, step_count, looks
-        self._level_ids = levels
 
     def _reseed(self, seed: int | None) -> None:
         if seed is not None:
@@ -822,7 +714,3 @@ class BatchedEnv:
         return self._contract.owned("lidar", self.scenario.lidar(sim, self.lidar_rays, self.lidar_range),
                                     self.lidar_rays)
 
-
-def _version(tensor: torch.Tensor) -> int | None:
-    """The count of in-place writes into `tensor` (None for inference tensors, which keep none)."""
-    return None if tensor.is_inference() else tensor._version
