@@ -2,9 +2,11 @@
 
 Every environment is a ``BatchedEnv`` driving a scenario (envs/scenario.py: the task's rules
 and scene binding, pure functions of an explicit state). The driver owns everything that is
-the same for all tasks: option checks (envs/options.py), seeding, step counters, the alive
-mask, truncation, auto-reset, the renderers (envs/rendering.py), the observation dict and
-the spec the front ends translate (envs/spec.py).
+the same for all tasks: seeding, step counters, the alive mask, truncation, auto-reset and
+the observation dict. It leans on one module per job: the options and their resolution
+(envs/options.py), the checks of the scenario's hooks (envs/contract.py), of the caller's
+actions (envs/actions.py) and masks (envs/masking.py), all-or-nothing calls (envs/atomic.py),
+the renderers (envs/rendering.py) and the spec the front ends translate (envs/spec.py).
 
     env = BatchedEnv(Spread, EnvOptions(num_worlds=64), Spread.Params(num_landmarks=4))
     env = make_env("spread", num_worlds=64, num_landmarks=4)     # the same, by name
@@ -64,7 +66,9 @@ info keys (e.g. spread's ``coverage``) of those worlds describe the discarded st
 ended episode, taken with all of its agents absent; ignore them there.
 
 Every call validates all of its input before it changes anything, so a rejected call
-leaves the state (bodies, counters, RNG) exactly as it was.
+leaves the state (bodies, counters, RNG) exactly as it was; a call that fails later (a hook
+raises) leaves it so too (envs/atomic.py). ``needs_reset`` says whether the env must be reset
+before it can step.
 
 Actions (and a reset mask) are detached from autograd where they enter, and the calls run
 under ``torch.no_grad()``: a policy output that still requires grad steps the env like
@@ -93,10 +97,8 @@ import threading
 
 import torch
 
-import marl_render as mr
-from marl_render.shadows import atlas_layout
-from marl_render.threads import limited_threads, thread_count
-from marl_render.validation import describe, positive_int, unpicklable
+from marl_render.threads import limited_threads
+from marl_render.validation import describe, unpicklable
 
 from . import levels as level_sets
 from . import masking
@@ -108,7 +110,7 @@ from .actions import from_user, world_mask
 from .atomic import AllOrNothing, env_call
 from .contract import HookContract
 from .options import EnvOptions
-from .rendering import EnvRenderer, check_memory
+from .rendering import EnvRenderer
 from .scenario import MAX_COUNT, BatchShape, Scenario
 from .spec import OBS_KEYS  # noqa: F401 (marl_render.envs.core.OBS_KEYS, as before)
 
@@ -117,29 +119,8 @@ class BatchedEnv(AllOrNothing):
     """The driver of a task: see the module docstring for the contract.
 
     ``BatchedEnv(scenario, options=None, params=None)``: `scenario` is a Scenario subclass,
-    `options` an EnvOptions (the options every env takes: num_worlds, num_agents, resolution
-    (int or (H, W)), max_steps, continuous, state_obs, depth, shadows (False, True or a
-    marl_render.Shadows; True: Shadows(bounds=the task's shadow_bounds)), device, seed,
-    autoreset (False, "next_step", "same_step" or True = "same_step"), grayscale (one-channel
-    pixels), torch_threads (default 1, at most 1024: torch intra-op threads used *inside* env
-    calls, the caller's setting restored on return; None leaves torch's setting alone) and
-    context (a marl_render.GLContext to render on; None: the process's default), readback ("auto",
-    "gpu" or "host": how frames reach `device`, marl_render.BatchRenderer's readback), and the
-    accuracy knobs multisamples (MSAA samples of the agents' views, colour only), supersample
-    (k x the resolution, box-filtered down), exact_tiles (the agents' views bit-identical in any
-    world slot and at any batch size, at a cost in render time: docs/levels.md) and
-    physics_substeps (planar physics substeps per step; None: the task's own; coarser than the
-    no-tunnelling bound is refused)), and
-    compile_physics (torch.compile the task's physics kernel where it has one (cartpole):
-    within 1e-12 of the default path, faster at small batches; seconds to compile at construction;
-    a RuntimeWarning and the default path where compiling fails), lidar (rays of the "lidar"
-    observation, 0: none) and lidar_range (m it is divided by; None: the arena's diagonal),
-    enforce_action_mask (refuse forbidden actions: envs/masking.py), and appearance (None: off;
-    "train", "heldout" or a marl_render.Appearance: each world's light, sky, floor and wall colours
-    and patterns, object colour jitter and camera jitter, drawn at every reset of the world from its
-    appearance_ids, see docs/appearance.md), levels (None: resets draw from the env's generator; else
-    the levels the worlds play, each reset a pure function of its level id: envs/levels.py), `params`
-    an instance of the scenario's Params (None: its defaults).
+    `options` an EnvOptions (the options every env takes; EnvOptions lists them) and `params` an
+    instance of the scenario's Params (None: its defaults).
 
     Attributes: scenario, spec (the EnvSpec every front end translates), name, num_worlds (W),
     num_agents (A), agent_names, groups (team -> agent names, in agent-index order), resolution
@@ -149,7 +130,7 @@ class BatchedEnv(AllOrNothing):
     lidar_rays, lidar_range, enforce_action_mask,
     sim (the simulation state), alive [W, A] bool,
     step_count [W] int64, appearance (None or the Appearance), appearance_ids ([W] int64 or None),
-    levels (None or the level sampler, envs/levels.py), level_ids ([W] int64 or None); and
+    levels (None or the level sampler, envs/levels.py), level_ids ([W] int64 or None), needs_reset; and
     the scenario's camera settings (background, fov_y, near, far,
     overview_resolution, overview_fov_y, arena_half_extent) and agent_range.
     Methods: reset, reset_worlds, reset_to_level, step, check_actions, episode_over, action_mask,
@@ -176,65 +157,15 @@ class BatchedEnv(AllOrNothing):
         params = scenario.Params() if params is None else params
         if not isinstance(params, scenario.Params):
             raise TypeError(f"params must be a {scenario.__name__}.Params, got {describe(params)}")
-        self.num_worlds = positive_int("num_worlds", options.num_worlds)
-        self.num_agents = check.num_agents(scenario.num_agents_for(params, options.num_agents), scenario)
-        context = options.context
-        if context is not None and not isinstance(context, mr.GLContext):
-            raise TypeError(f"context must be a marl_render.GLContext or None, got {describe(context)}")
-        self.device = check.device(options.device)
-        self.readback = check.readback(options.readback)
-        if context is None:  # with a CUDA device, the first context opens the EGL device that is that device
-            cuda_index = None if self.device.type != "cuda" else (
-                torch.cuda.current_device() if self.device.index is None else self.device.index)
-            context = mr.backend.context_for_cuda(cuda_index)
-        self.context = context
-        self.context.check_usable()
-        self.resolution = check.resolution(options.resolution, scenario, self.context.info().max_framebuffer_size)
-        self.max_steps = check.max_steps(options.max_steps, scenario)
-        self.continuous = check.flag("continuous", options.continuous)
-        self.state_obs = check.flag("state_obs", options.state_obs)
-        self.depth = check.flag("depth", options.depth)
-        self.grayscale = check.flag("grayscale", options.grayscale)
-        self.pixel_channels = 1 if self.grayscale else 3
-        self.lidar_rays, self.lidar_range = check.lidar(options.lidar, options.lidar_range, scenario)
-        self.enforce_action_mask = check.flag("enforce_action_mask", options.enforce_action_mask)
-        self.agent_ids = check.flag("agent_ids", options.agent_ids)
-        if self.enforce_action_mask and self.continuous:
-            raise ValueError("enforce_action_mask applies to discrete actions (continuous=False), which have an "
-                             "action mask; got enforce_action_mask=True with continuous=True")
-        self.autoreset = check.autoreset_mode(options.autoreset)  # False, "next_step" or "same_step"
-        torch_threads = options.torch_threads
-        self.torch_threads = None if torch_threads is None else thread_count("torch_threads", torch_threads)
-        seed = check.seed("seed", options.seed)
-        self.seed = int(torch.Generator().seed() % 2 ** 63) if seed is None else seed
+        settings = check.resolve(options, scenario, params)
+        for name in check.PUBLISHED:  # num_worlds, device, resolution, seed, ...: the attributes listed above
+            setattr(self, name, getattr(settings, name))
         self.generator = torch.Generator().manual_seed(self.seed)
-        self.shadows = check.shadows(options.shadows, scenario.shadow_bounds)
-        effects = ("lighting", "depth") if self.depth else ("lighting",)
-        effects += ("shadows",) if self.shadows else ()
-        self.appearance = check.appearance(options.appearance)  # None, or the Appearance of the worlds' looks
-        self.levels = level_sets.as_sampler(options.levels)  # None (off), or the level sampler
-        if self.levels is not None and not scenario.has_levels():
-            raise ValueError(f"levels={describe(options.levels)} needs a task whose resets draw from "
-                             f"spawn_level(draws) (envs/levels.py); {scenario.__name__} implements only "
-                             f"spawn(generator): levels must be None for it")
-        effects += ("appearance",) if self.appearance is not None else ()
-        if self.shadows:  # an atlas GL cannot hold is named as such, not as a memory shortage
-            atlas_layout(self.num_worlds, self.shadows.resolution, self.context.info().max_framebuffer_size)
-        # Views and pixels alone, before the scenario allocates anything; the whole scene below.
-        check_memory(mr.Scene(num_worlds=self.num_worlds, agents_per_world=self.num_agents,
-                              resolution=self.resolution, effects=effects),
-                     self.num_worlds, self.num_agents, self.resolution)
-        self.context.check_usable()  # in a forked child: ForkedContextError now, not a torch deadlock below
-
-        multisamples = check.multisamples(options.multisamples)
-        supersample = positive_int("supersample", options.supersample)
-        compile_physics = check.flag("compile_physics", options.compile_physics)
-        exact_tiles = check.flag("exact_tiles", options.exact_tiles)
 
         self._batch = BatchShape(self.num_worlds, self.num_agents, self.continuous, self.device)
         self.scenario = scenario(params, self._batch)
-        if options.physics_substeps is not None:
-            self.scenario.physics = check.physics_substeps(options.physics_substeps, self.scenario)
+        if settings.physics_substeps is not None:
+            self.scenario.physics = check.physics_substeps(settings.physics_substeps, self.scenario)
         self._describe(self.scenario)
         self._sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
         self._contract = HookContract(self.scenario, self._batch, self._sim, self.state_obs)
@@ -255,14 +186,14 @@ class BatchedEnv(AllOrNothing):
         self.obs_keys = self.spec.obs_keys
         self._needs_reset = True
         with limited_threads(self.torch_threads):
-            self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=effects,
+            self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=settings.effects,
                                      shadows=self.shadows, grayscale=self.grayscale, context=self.context,
-                                     device=self.device, multisamples=multisamples, supersample=supersample,
-                                     appearance=self.appearance, readback=self.readback,
-                                     exact_tiles=exact_tiles)
+                                     device=self.device, multisamples=settings.multisamples,
+                                     supersample=settings.supersample, appearance=self.appearance,
+                                     readback=self.readback, exact_tiles=settings.exact_tiles)
         self.renderer = self.views.renderer
         # Last: compiling takes seconds, so every other option has been checked by now.
-        if compile_physics:
+        if settings.compile_physics:
             try:
                 with limited_threads(self.torch_threads):
                     self.scenario.compile_physics()
@@ -335,15 +266,7 @@ class BatchedEnv(AllOrNothing):
         self._check_open()
         self._check_process()
         seed = check.seed("seed", seed)
-        with limited_threads(self.torch_threads), self._all_or_nothing():
-            self._reseed(seed)
-            sim, step_count, alive, looks, levels = self._respawned(
-                torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), self._sim, self._step_count,
-                self._alive, self._appearance_ids, self._level_ids)
-            obs = self._observe(sim, alive, full=True)
-            self._commit(sim=sim, alive=alive, step_count=step_count, looks=looks, levels=levels)
-            self._needs_reset = False
-            return obs
+        return self._reset_some(torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), seed, None)
 
     @env_call
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
@@ -375,12 +298,13 @@ class BatchedEnv(AllOrNothing):
         return self._reset_some(mask, check.seed("seed", seed), chosen)
 
     def _reset_some(self, mask: torch.Tensor, seed: int | None, chosen: torch.Tensor | None) -> dict:
+        """A new episode in the worlds of mask [W] (with levels on, the levels `chosen` there, None: drawn)."""
         with limited_threads(self.torch_threads), self._all_or_nothing():
             self._reseed(seed)
             sim, step_count, alive, looks, levels = self._respawned(mask, self._sim, self._step_count, self._alive,
                                                                     self._appearance_ids, self._level_ids, chosen)
             obs = self._observe(sim, alive, full=True)
-            self._commit(sim=sim, alive=alive, step_count=step_count, looks=looks, levels=levels)
+            self._commit(sim=sim, alive=alive, step_count=step_count, looks=looks, levels=levels, needs_reset=False)
             return obs
 
     @env_call
