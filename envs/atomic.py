@@ -55,7 +55,7 @@ class AllOrNothing:
     """The mixin of an env whose calls are all or nothing; see the module docstring. The env holds an
     RLock in ``_lock`` and names, in ``_committed``, the attributes its calls replace at their end
     ({keyword of _commit: attribute}); ``_generators()`` are the generators its calls draw from, and
-    ``_after_undo()`` puts back what else a failed call may have touched."""
+    ``_save_more()`` / ``_restore_more(saved)`` put back what else a failed call may have touched."""
 
     _committed: dict = {}
     _running_hooks = False  # see _all_or_nothing
@@ -63,8 +63,14 @@ class AllOrNothing:
     def _generators(self) -> list:
         return []
 
-    def _after_undo(self) -> None:
-        pass
+    def _save_more(self):
+        """What else a failed call must put back, saved when kept() begins (e.g. a mutable part's
+        snapshot); _restore_more(saved) gets it back."""
+        return None
+
+    def _restore_more(self, saved) -> None:
+        """After a failed call's committed attributes and generators were put back: the rest (the
+        driver: its renderer's caches)."""
 
     def _commit(self, **values) -> None:
         """Replace the committed attributes (each keyword one of _committed's): the end of a call."""
@@ -79,13 +85,14 @@ class AllOrNothing:
         with self._lock:
             committed = {key: getattr(self, attribute) for key, attribute in self._committed.items()}
             rngs = [generator.get_state() for generator in self._generators()]
+            more = self._save_more()
             try:
                 yield
             except BaseException:
                 self._commit(**committed)
                 for generator, rng in zip(self._generators(), rngs, strict=True):
                     generator.set_state(rng)
-                self._after_undo()
+                self._restore_more(more)
                 raise
 
     # ------------------------------------------------------------------ an env that runs a task's hooks

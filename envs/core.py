@@ -543,7 +543,7 @@ class BatchedEnv(AllOrNothing):
     def _generators(self) -> list:
         return [self.generator]
 
-    def _after_undo(self) -> None:
+    def _restore_more(self, saved) -> None:
         """The renderer may hold the undone state's instances: its next sync sends all; and the undone
         worlds' looks: the committed ones are put back."""
         self.views.invalidate()
