@@ -231,9 +231,9 @@ class BatchedEnv(AllOrNothing):
 
     @property
     def needs_reset(self) -> bool:
-        """Whether the env must be reset before it can step: True until the first reset() or set_state(),
-        and again after a call failed in a way that cannot be undone (a hook wrote into the state it
-        was given). step, reset_worlds, get_state and the like raise RuntimeError while it is True."""
+        """True while the env must be reset before it can step, as it must until the first reset() or
+        set_state() and again after a call failed in a way that cannot be undone (a hook wrote into the
+        state it was given). While it is True, step, reset_worlds, get_state and the like raise RuntimeError."""
         return self._needs_reset
 
     @property

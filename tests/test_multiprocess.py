@@ -309,7 +309,7 @@ class _FakeEnv:
     """Just enough of a BatchedEnv for a worker's step: it logs its step and returns fixed outputs."""
 
     def __init__(self, log: list):
-        self.log, self._needs_reset = log, False
+        self.log, self.needs_reset = log, False
         self.alive, self.step_count = torch.ones(2, 1, dtype=torch.bool), torch.tensor([4, 5])
 
     def get_state(self):
