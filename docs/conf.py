@@ -49,4 +49,5 @@ nitpick_ignore_regex = [
                  r"|render\.frame_reads\.FrameReads"  # BatchRenderer's base class: its reads
                  r"|envs\.planar\.(Obstacles|BodyState)|envs\.levels\.Draws|baselines\.(ppo\.MAPPO|policy\.GreedyPolicy))"),
     ("py:class", r"Actor"),  # marl_render.baselines.networks.Actor, held by ActorPolicy
+    ("py:class", r"marl_render\.envs\.atomic\.AllOrNothing"),  # the base of BatchedEnv and FocalEnv (envs/atomic.py)
 ]

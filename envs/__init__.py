@@ -13,18 +13,19 @@ docs/authoring.md builds one step by step. Importing this package registers the 
 "marl_render/<name>-v0" of the built-in tasks (see marl_render/wrappers/gymnasium.py).
 """
 from .arena import ArenaScenario, ArenaState, Prop, Static
-from .core import OBS_KEYS, BatchedEnv
+from .core import BatchedEnv
 from .episodes import EpisodeEnd
 from .focal import FocalEnv, Population
 from .multiprocess import MultiProcessEnv
 from .options import EnvOptions
 from .registry import env_class, list_envs, make_env, register_env
-from .scenario import Layout, NoParams, Scenario, Step, VectorObs, numbered
-from .spec import ActionSpec, ArraySpec, EnvSpec
+from .scenario import BatchShape, Layout, NoParams, Scenario, Step, VectorObs, numbered
+from .spec import OBS_KEYS, ActionSpec, ArraySpec, EnvSpec
 
-__all__ = ["ActionSpec", "ArenaScenario", "ArenaState", "ArraySpec", "BatchedEnv", "EnvOptions", "EnvSpec", "FocalEnv",
-           "Layout", "MultiProcessEnv", "NoParams", "OBS_KEYS", "Population", "Prop", "Scenario", "Static", "Step",
-           "env_class", "list_envs", "make_env", "numbered", "register_env", "EpisodeEnd", "VectorObs"]
+__all__ = ["ActionSpec", "ArenaScenario", "ArenaState", "ArraySpec", "BatchShape", "BatchedEnv", "EnvOptions",
+           "EnvSpec", "FocalEnv", "Layout", "MultiProcessEnv", "NoParams", "OBS_KEYS", "Population", "Prop", "Scenario",
+           "Static", "Step", "env_class", "list_envs", "make_env", "numbered", "register_env", "EpisodeEnd",
+           "VectorObs"]
 
 # The front ends (marl_render/wrappers/) are exported lazily, so that importing
 # marl_render.envs never imports pettingzoo or torchrl: public name -> "module:attribute".

@@ -2,9 +2,11 @@
 
 Every environment is a ``BatchedEnv`` driving a scenario (envs/scenario.py: the task's rules
 and scene binding, pure functions of an explicit state). The driver owns everything that is
-the same for all tasks: option checks (envs/options.py), seeding, step counters, the alive
-mask, truncation, auto-reset, the renderers (envs/rendering.py), the observation dict and
-the spec the front ends translate (envs/spec.py).
+the same for all tasks: seeding, step counters, the alive mask, truncation, auto-reset and
+the observation dict. It leans on one module per job: the options and their resolution
+(envs/options.py), the checks of the scenario's hooks (envs/contract.py), of the caller's
+actions (envs/actions.py) and masks (envs/masking.py), all-or-nothing calls (envs/atomic.py),
+the renderers (envs/rendering.py) and the spec the front ends translate (envs/spec.py).
 
     env = BatchedEnv(Spread, EnvOptions(num_worlds=64), Spread.Params(num_landmarks=4))
     env = make_env("spread", num_worlds=64, num_landmarks=4)     # the same, by name
@@ -66,7 +68,9 @@ info keys (e.g. spread's ``coverage``) of those worlds describe the discarded st
 ended episode, taken with all of its agents absent; ignore them there.
 
 Every call validates all of its input before it changes anything, so a rejected call
-leaves the state (bodies, counters, RNG) exactly as it was.
+leaves the state (bodies, counters, RNG) exactly as it was; a call that fails later (a hook
+raises) leaves it so too (envs/atomic.py). ``needs_reset`` says whether the env must be reset
+before it can step.
 
 Actions (and a reset mask) are detached from autograd where they enter, and the calls run
 under ``torch.no_grad()``: a policy output that still requires grad steps the env like
@@ -90,20 +94,13 @@ the RNG state, and ``set_state(state)`` restores all of it exactly.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import functools
-import math
 import threading
 
-import numpy as np
 import torch
 
-import marl_render as mr
-from marl_render.render.impostors import check_mode as check_impostors
-from marl_render.shadows import atlas_layout
-from marl_render.threads import limited_threads, thread_count
-from marl_render.validation import FLOAT_DTYPES, as_tensor, describe, positive_int, unpicklable
+from marl_render.threads import limited_threads
+from marl_render.validation import describe, unpicklable
 
 from . import episodes as episode_book
 from . import levels as level_sets
@@ -111,71 +108,22 @@ from . import masking
 from . import options as check
 from . import spec as env_spec
 from . import state as explicit_state
+from .actions import checked as checked_actions
+from .actions import from_user, world_mask
+from .atomic import AllOrNothing, env_call
+from .contract import HookContract
 from .options import EnvOptions
-from .rendering import EnvRenderer, check_memory
-from .scenario import MAX_COUNT, Layout, Scenario, VectorObs
-
-OBS_KEYS = ("pixels", "depth", "state", "lidar", "agent_id", "action_mask")
-DRIVER_INFO = ("step_count", "done_worlds", "autoreset_worlds", "final_obs", "level",
-               "final_level")  # info names the driver fills in
-# ... and those the gymnasium front ends fill in: the vector env's "final_info" and its mask "_" + key
-# of every key, and RecordEpisodeStatistics' "episode"
-GYMNASIUM_INFO = ("final_info", "episode")
+from .rendering import EnvRenderer
+from .scenario import MAX_COUNT, BatchShape, Scenario
+from .spec import OBS_KEYS  # noqa: F401 (marl_render.envs.core.OBS_KEYS, as before)
 
 
-def _from_user(name: str, value):
-    """A tensor the user handed in, cut from its autograd graph (a policy output that was not
-    detached would otherwise flow into the state, and through torch.where survive every
-    reset); nested, sparse and meta tensors, which have no plain data to read, are a TypeError."""
-    if not isinstance(value, torch.Tensor):
-        return value
-    if value.is_nested or value.layout != torch.strided or value.device.type == "meta":
-        kind = "a nested tensor" if value.is_nested else f"layout {value.layout}"
-        raise TypeError(f"{name} must be a dense tensor with data, got {kind} on {value.device}")
-    return value.detach()
-
-
-def _env_call(method):
-    """A call of the env's public API: one at a time (two steps from two threads at once read the
-    same state and one of them was lost, silently; an RLock, as calls nest), outside
-    torch.inference_mode() and without grad (in this order: inference_mode(False) turns grad on).
-    Inference mode makes inference tensors, which nothing may write into outside it: an env reset
-    under it failed every later call outside it in the renderer's buffers. So what the env keeps
-    and returns are normal tensors, whatever mode the caller is in."""
-    @functools.wraps(method)
-    def call(self, *args, **kwargs):
-        with self._lock, torch.inference_mode(False), torch.no_grad():
-            return method(self, *args, **kwargs)
-    return call
-
-
-class BatchedEnv:
+class BatchedEnv(AllOrNothing):
     """The driver of a task: see the module docstring for the contract.
 
     ``BatchedEnv(scenario, options=None, params=None)``: `scenario` is a Scenario subclass,
-    `options` an EnvOptions (the options every env takes: num_worlds, num_agents, resolution
-    (int or (H, W)), max_steps, continuous, state_obs, depth, shadows (False, True or a
-    marl_render.Shadows; True: Shadows(bounds=the task's shadow_bounds)), device, seed,
-    autoreset (False, "next_step", "same_step" or True = "same_step"), grayscale (one-channel
-    pixels), torch_threads (default 1, at most 1024: torch intra-op threads used *inside* env
-    calls, the caller's setting restored on return; None leaves torch's setting alone) and
-    context (a marl_render.GLContext to render on; None: the process's default), readback ("auto",
-    "gpu" or "host": how frames reach `device`, marl_render.BatchRenderer's readback), and the
-    accuracy knobs multisamples (MSAA samples of the agents' views, colour only), supersample
-    (k x the resolution, box-filtered down), exact_tiles (the agents' views bit-identical in any
-    world slot and at any batch size, at a cost in render time: docs/levels.md) and
-    physics_substeps (planar physics substeps per step; None: the task's own; coarser than the
-    no-tunnelling bound is refused)), and
-    compile_physics (torch.compile the task's physics kernel where it has one (cartpole):
-    within 1e-12 of the default path, faster at small batches; seconds to compile at construction;
-    a RuntimeWarning and the default path where compiling fails), lidar (rays of the "lidar"
-    observation, 0: none) and lidar_range (m it is divided by; None: the arena's diagonal),
-    enforce_action_mask (refuse forbidden actions: envs/masking.py), and appearance (None: off;
-    "train", "heldout" or a marl_render.Appearance: each world's light, sky, floor and wall colours
-    and patterns, object colour jitter and camera jitter, drawn at every reset of the world from its
-    appearance_ids, see docs/appearance.md), levels (None: resets draw from the env's generator; else
-    the levels the worlds play, each reset a pure function of its level id: envs/levels.py), `params`
-    an instance of the scenario's Params (None: its defaults).
+    `options` an EnvOptions (the options every env takes; EnvOptions lists them) and `params` an
+    instance of the scenario's Params (None: its defaults).
 
     Attributes: scenario, spec (the EnvSpec every front end translates), name, num_worlds (W),
     num_agents (A), agent_names, groups (team -> agent names, in agent-index order), resolution
@@ -185,20 +133,24 @@ class BatchedEnv:
     lidar_rays, lidar_range, enforce_action_mask,
     sim (the simulation state), alive [W, A] bool,
     step_count [W] int64, appearance (None or the Appearance), appearance_ids ([W] int64 or None),
-    levels (None or the level sampler, envs/levels.py), level_ids ([W] int64 or None); and
+    levels (None or the level sampler, envs/levels.py), level_ids ([W] int64 or None), needs_reset; and
     the scenario's camera settings (background, fov_y, near, far,
     overview_resolution, overview_fov_y, arena_half_extent) and agent_range.
-    Methods: reset, reset_worlds, reset_to_level, step, check_actions, episode_over, random_actions,
-    heuristic_actions, render_overview, state_observation, get_state, set_state, close.
+    Methods: reset, reset_worlds, reset_to_level, step, check_actions, episode_over, action_mask,
+    random_actions, heuristic_actions, render_overview, state_observation, get_state, set_state, close.
     """
 
+    # What a call replaces at its end, once every hook and the render have succeeded (envs/atomic.py): a
+    # call that raises before then leaves these, the generator and the renderer's looks as they were.
+    _committed = {"sim": "_sim", "alive": "_alive", "step_count": "_step_count", "looks": "_appearance_ids",
+                  "levels": "_level_ids", "seed": "seed", "needs_reset": "_needs_reset"}
+
     def __init__(self, scenario: type[Scenario], options: EnvOptions | None = None, params=None):
-        with torch.inference_mode(False), torch.no_grad():  # what the env keeps are normal tensors: _env_call
+        with torch.inference_mode(False), torch.no_grad():  # what the env keeps are normal tensors: env_call
             self._build(scenario, options, params)
 
     def _build(self, scenario, options, params) -> None:
-        self._lock = threading.RLock()  # see _env_call
-        self._running_hooks = False  # see _all_or_nothing
+        self._lock = threading.RLock()  # see envs/atomic.py
         self._closed = True  # until fully built: close() and __del__ then do nothing
         if not (isinstance(scenario, type) and issubclass(scenario, Scenario)):
             raise TypeError(f"scenario must be a Scenario subclass (envs/scenario.py), got {describe(scenario)}")
@@ -208,73 +160,18 @@ class BatchedEnv:
         params = scenario.Params() if params is None else params
         if not isinstance(params, scenario.Params):
             raise TypeError(f"params must be a {scenario.__name__}.Params, got {describe(params)}")
-        self.num_worlds = positive_int("num_worlds", options.num_worlds)
-        self.num_agents = check.num_agents(scenario.num_agents_for(params, options.num_agents), scenario)
-        context = options.context
-        if context is not None and not isinstance(context, mr.GLContext):
-            raise TypeError(f"context must be a marl_render.GLContext or None, got {describe(context)}")
-        self.device = check.device(options.device)
-        self.readback = check.readback(options.readback)
-        if context is None:  # with a CUDA device, the first context opens the EGL device that is that device
-            cuda_index = None if self.device.type != "cuda" else (
-                torch.cuda.current_device() if self.device.index is None else self.device.index)
-            context = mr.backend.context_for_cuda(cuda_index)
-        self.context = context
-        self.context.check_usable()
-        self.resolution = check.resolution(options.resolution, scenario, self.context.info().max_framebuffer_size)
-        self.max_steps = check.max_steps(options.max_steps, scenario)
-        self.continuous = check.flag("continuous", options.continuous)
-        self.state_obs = check.flag("state_obs", options.state_obs)
-        self.depth = check.flag("depth", options.depth)
-        self.grayscale = check.flag("grayscale", options.grayscale)
-        self.pixel_channels = 1 if self.grayscale else 3
-        self.lidar_rays, self.lidar_range = check.lidar(options.lidar, options.lidar_range, scenario)
-        self.enforce_action_mask = check.flag("enforce_action_mask", options.enforce_action_mask)
-        self.agent_ids = check.flag("agent_ids", options.agent_ids)
-        if self.enforce_action_mask and self.continuous:
-            raise ValueError("enforce_action_mask applies to discrete actions (continuous=False), which have an "
-                             "action mask; got enforce_action_mask=True with continuous=True")
-        self.autoreset = check.autoreset_mode(options.autoreset)  # False, "next_step" or "same_step"
-        torch_threads = options.torch_threads
-        self.torch_threads = None if torch_threads is None else thread_count("torch_threads", torch_threads)
-        seed = check.seed("seed", options.seed)
-        self.seed = int(torch.Generator().seed() % 2 ** 63) if seed is None else seed
+        settings = check.resolve(options, scenario, params)
+        for name in check.PUBLISHED:  # num_worlds, device, resolution, seed, ...: the attributes listed above
+            setattr(self, name, getattr(settings, name))
         self.generator = torch.Generator().manual_seed(self.seed)
-        self.shadows = check.shadows(options.shadows, scenario.shadow_bounds)
-        effects = ("lighting", "depth") if self.depth else ("lighting",)
-        effects += ("shadows",) if self.shadows else ()
-        self.appearance = check.appearance(options.appearance)  # None, or the Appearance of the worlds' looks
-        self.levels = level_sets.as_sampler(options.levels)  # None (off), or the level sampler
-        if self.levels is not None and not scenario.has_levels():
-            raise ValueError(f"levels={describe(options.levels)} needs a task whose resets draw from "
-                             f"spawn_level(draws) (envs/levels.py); {scenario.__name__} implements only "
-                             f"spawn(generator): levels must be None for it")
-        effects += ("appearance",) if self.appearance is not None else ()
-        if self.shadows:  # an atlas GL cannot hold is named as such, not as a memory shortage
-            atlas_layout(self.num_worlds, self.shadows.resolution, self.context.info().max_framebuffer_size)
-        # Views and pixels alone, before the scenario allocates anything; the whole scene below.
-        check_memory(mr.Scene(num_worlds=self.num_worlds, agents_per_world=self.num_agents,
-                              resolution=self.resolution, effects=effects),
-                     self.num_worlds, self.num_agents, self.resolution)
-        self.context.check_usable()  # in a forked child: ForkedContextError now, not a torch deadlock below
 
-        multisamples = check.multisamples(options.multisamples)
-        supersample = positive_int("supersample", options.supersample)
-        compile_physics = check.flag("compile_physics", options.compile_physics)
-        exact_tiles = check.flag("exact_tiles", options.exact_tiles)
-        impostors = check_impostors(options.impostors)
-
-        self.scenario = scenario(params, Layout(self.num_worlds, self.num_agents, self.continuous, self.device))
-        if options.physics_substeps is not None:
-            self.scenario.physics = check.physics_substeps(options.physics_substeps, self.scenario)
+        self._batch = BatchShape(self.num_worlds, self.num_agents, self.continuous, self.device)
+        self.scenario = scenario(params, self._batch)
+        if settings.physics_substeps is not None:
+            self.scenario.physics = check.physics_substeps(settings.physics_substeps, self.scenario)
         self._describe(self.scenario)
         self._sim = self.scenario.initial_state()  # the simulation state (a frozen dataclass of tensors)
-        self._check_scenario()
-        self.obs_keys = tuple(k for k, on in (("pixels", True), ("depth", self.depth), ("state", self.state_obs),
-                                              ("lidar", self.lidar_rays > 0), ("agent_id", self.agent_ids),
-                                              *((key, True) for key in self.vector_obs),
-                                              ("action_mask", not self.continuous))
-                              if on)
+        self._contract = HookContract(self.scenario, self._batch, self._sim, self.state_obs)
         team_index = torch.tensor([t for t, names in enumerate(self.groups.values()) for _ in names])
         self._ids = torch.cat((torch.eye(self.num_agents), torch.nn.functional.one_hot(team_index, len(self.groups))),
                               -1).to(self.device, torch.float32)  # [A, A + teams]: see "agent_id"
@@ -288,19 +185,21 @@ class BatchedEnv:
         self._level_ids = torch.zeros(W, dtype=torch.int64) if self.levels is not None else None
         if self.levels is not None:  # the driver's info entry, after the task's were checked
             self.info_keys["level"] = torch.int64
-        self.episodes = self._episode_book(scenario, options, params)
+        self.episodes = episode_book.for_env(options, scenario, params, self.info_keys, self._batch, self.max_steps)
         self.info_keys.update(self.episodes.info_keys)
         self.spec = env_spec.build(self)
+        self.obs_keys = self.spec.obs_keys
         self._needs_reset = True
         with limited_threads(self.torch_threads):
-            self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=effects,
+            self.views = EnvRenderer(self.scenario, resolution=self.resolution, effects=settings.effects,
                                      shadows=self.shadows, grayscale=self.grayscale, context=self.context,
-                                     device=self.device, multisamples=multisamples, supersample=supersample,
-                                     appearance=self.appearance, readback=self.readback,
-                                     exact_tiles=exact_tiles, impostors=impostors)
+                                     device=self.device, multisamples=settings.multisamples,
+                                     supersample=settings.supersample, appearance=self.appearance,
+                                     readback=self.readback, exact_tiles=settings.exact_tiles,
+                                     impostors=settings.impostors)
         self.renderer = self.views.renderer
         # Last: compiling takes seconds, so every other option has been checked by now.
-        if compile_physics:
+        if settings.compile_physics:
             try:
                 with limited_threads(self.torch_threads):
                     self.scenario.compile_physics()
@@ -337,6 +236,13 @@ class BatchedEnv:
         return None if self._level_ids is None else self._level_ids.clone()
 
     @property
+    def needs_reset(self) -> bool:
+        """True while the env must be reset before it can step, as it must until the first reset() or
+        set_state() and again after a call failed in a way that cannot be undone (a hook wrote into the
+        state it was given). While it is True, step, reset_worlds, get_state and the like raise RuntimeError."""
+        return self._needs_reset
+
+    @property
     def physics_compiled(self) -> bool:
         """Whether steps run the task's compiled physics kernel (compile_physics=True and compiling
         worked; False again if the kernel ever failed at a step and the default path took over)."""
@@ -350,18 +256,13 @@ class BatchedEnv:
         self.num_actions, self.action_meanings, self.action_dim = s.num_actions, s.action_meanings, s.action_dim
         self.state_dim, self.physics, self.physics_terms = s.state_dim, s.physics, s.physics_terms
         self.vector_obs = dict(s.vector_obs)  # key -> VectorObs: the task's own per-agent vectors (obs keys)
-        for key, entry in self.vector_obs.items():
-            if not (isinstance(key, str) and key not in OBS_KEYS and isinstance(entry, VectorObs)
-                    and isinstance(entry.width, int) and entry.width >= 1 and entry.low < entry.high):
-                raise ValueError(f"{type(s).__name__}.vector_obs must map new obs keys (not {list(OBS_KEYS)}) to "
-                                 f"VectorObs(width >= 1, low < high), got {key!r}: {describe(entry)}")
         # The cameras' and the scene's settings, read by tools that draw the same scene (bench floor).
         for name in ("agent_range", "background", "fov_y", "near", "overview_resolution", "overview_fov_y",
                      "arena_half_extent"):
             setattr(self, name, getattr(s, name))
 
     # ================================================================== public API
-    @_env_call
+    @env_call
     def reset(self, seed: int | None = None) -> dict:
         """Reset every world; `seed` (optional) re-seeds the env's generator first.
 
@@ -369,65 +270,50 @@ class BatchedEnv:
         grayscale), "action_mask" bool [W, A, num_actions] (discrete actions), and where asked for
         "depth" float32 [W, A, H, Wpx], "state" float32 [W, A, state_dim], "lidar" float32
         [W, A, rays]. Each task's card (docs/envs/NAME.md) lists its keys, shapes and values."""
-        self._check_open()
-        self._check_process()
+        self._check_open(process=True)
         seed = check.seed("seed", seed)
-        with limited_threads(self.torch_threads), self._all_or_nothing():
-            self._reseed(seed)
-            sim, step_count, alive, looks, levels = self._respawned(
-                torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), self._sim, self._step_count,
-                self._alive, self._appearance_ids, self._level_ids)
-            obs = self._observe(sim, alive, full=True)
-            self._commit(sim, alive, step_count, looks, levels)
-            self._needs_reset = False
-            return obs
+        return self._reset_some(torch.ones(self.num_worlds, dtype=torch.bool, device=self.device), seed, None)
 
-    @_env_call
+    @env_call
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
         """Reset only the worlds where mask [W] (bool) is True; returns obs of all worlds.
 
         `seed` (optional) re-seeds the env's generator before sampling."""
-        self._check_open()
-        self._check_process()
+        self._check_open(process=True)
         self._check_started()
-        mask = self._world_mask(mask)
+        mask = world_mask(mask, self.num_worlds, self.device)
         seed = check.seed("seed", seed)
         return self._reset_some(mask, seed, None)
 
-    @_env_call
+    @env_call
     def reset_to_level(self, mask, level_ids, seed: int | None = None) -> dict:
         """Reset the worlds where mask [W] (bool) is True to the levels level_ids [W] (int64, read
         where mask is True; each in [0, 2**62)); returns obs of all worlds. Needs levels= (any set:
         the ids given need not be in it, so a curriculum or an evaluation may pick any level).
         `seed` (optional) re-seeds the env's generator (the step-time draws that follow)."""
-        self._check_open()
-        self._check_process()
+        self._check_open(process=True)
         self._check_started()
         if self.levels is None:
             raise ValueError(f"reset_to_level needs an env built with levels= (envs/levels.py), and this "
                              f"{type(self.scenario).__name__} env has levels=None")
-        mask = self._world_mask(mask)
-        chosen = level_sets.check_level_ids("level_ids", _from_user("level_ids", level_ids), self.num_worlds,
+        mask = world_mask(mask, self.num_worlds, self.device)
+        chosen = level_sets.check_level_ids("level_ids", from_user("level_ids", level_ids), self.num_worlds,
                                             where=mask.cpu())
         return self._reset_some(mask, check.seed("seed", seed), chosen)
 
-    def _world_mask(self, mask) -> torch.Tensor:
-        mask = as_tensor("mask", _from_user("mask", mask), dtype_kind="bool")
-        if tuple(mask.shape) != (self.num_worlds,):
-            raise ValueError(f"mask must be a bool tensor of shape [{self.num_worlds}] (num_worlds), "
-                             f"got shape {list(mask.shape)}")
-        return mask.to(self.device)
-
     def _reset_some(self, mask: torch.Tensor, seed: int | None, chosen: torch.Tensor | None) -> dict:
+        """A new episode in the worlds of mask [W] (with levels on, the levels `chosen` there, None: drawn)."""
         with limited_threads(self.torch_threads), self._all_or_nothing():
-            self._reseed(seed)
+            if seed is not None:
+                self.seed = seed
+                self.generator.manual_seed(seed)
             sim, step_count, alive, looks, levels = self._respawned(mask, self._sim, self._step_count, self._alive,
                                                                     self._appearance_ids, self._level_ids, chosen)
             obs = self._observe(sim, alive, full=True)
-            self._commit(sim, alive, step_count, looks, levels)
+            self._commit(sim=sim, alive=alive, step_count=step_count, looks=looks, levels=levels, needs_reset=False)
             return obs
 
-    @_env_call
+    @env_call
     def step(self, actions):
         """Advance all worlds one step: (obs, reward, terminated, truncated, info).
 
@@ -435,13 +321,13 @@ class BatchedEnv:
         [-1, 1] (``continuous=True``); a bad one raises before anything changes. Returns obs as
         reset's, reward float32 [W, A], terminated and truncated bool [W, A], and info {name: [W]
         tensor} (the step count, ``done_worlds`` and the task's episode statistics)."""
-        self._check_open()
-        self._check_process()
+        self._check_open(process=True)
         self._check_started()
         with limited_threads(self.torch_threads):
             actions = self.check_actions(actions)
-            if self.enforce_action_mask:
-                self._check_allowed(actions)
+            if self.enforce_action_mask:  # the agents this step acts for take actions their mask allows
+                mask = self._contract.action_mask(self._sim, self._alive)
+                masking.check_allowed(mask, actions, masking.acting(self), self.agent_names, self.action_meanings)
             with self._all_or_nothing():
                 return self._step(actions)
 
@@ -456,12 +342,13 @@ class BatchedEnv:
         else:
             restart = torch.zeros(W, dtype=torch.bool, device=self.device)
         alive_before = self._alive & ~restart[:, None]
-        sim, reward, terminated, task_info = self._checked_step(
+        sim, reward, terminated, task_info = self._contract.checked_step(
             self.scenario.step(self._sim, actions, alive_before, self.generator))
         reward = torch.where(alive_before, reward.to(torch.float32), torch.zeros((), device=self.device))
         alive = alive_before & ~terminated
         step_count = self._step_count + 1
-        task_info = {**task_info, **self.episodes.record(reward, alive_before, self._tagged_out(sim), step_count)}
+        tagged = self._contract.tagged_out(sim) if self.episodes.social else None
+        task_info = {**task_info, **self.episodes.record(reward, alive_before, tagged, step_count)}
         restarted, looks, levels = bool(restart.any()), self._appearance_ids, self._level_ids
         if restarted:  # alive again, step_count 0: not terminated, not truncated
             sim, step_count, alive, looks, levels = self._respawned(restart, sim, step_count, alive, looks, levels)
@@ -487,13 +374,25 @@ class BatchedEnv:
                 obs = self._observe(sim, alive, full=True)
         if levels is not None:  # the level of the episode the returned obs belong to
             info["level"] = levels.to(self.device, copy=True)
-        self._commit(sim, alive, step_count, looks, levels)
+        self._commit(sim=sim, alive=alive, step_count=step_count, looks=looks, levels=levels)
         return obs, reward, terminated, truncated, info
 
     def episode_over(self) -> torch.Tensor:
         """bool [W]: worlds whose episode has ended (every agent terminated or truncated). The
         front ends ask this rather than work it out."""
         return (~self._alive).all(dim=1) | (self._step_count >= self.episodes.limit(self.max_steps))
+
+    @env_call
+    def action_mask(self) -> torch.Tensor:
+        """bool [W, A, num_actions]: the actions the current state allows (obs key "action_mask"; a copy),
+        for discrete envs; what enforce_action_mask=True checks a step's actions against."""
+        self._check_open()
+        self._check_started()
+        if self.continuous:
+            raise ValueError(f"action_mask applies to discrete actions, and this {type(self.scenario).__name__} "
+                             f"env has continuous=True")
+        with limited_threads(self.torch_threads):
+            return self._contract.action_mask(self._sim, self._alive).clone(memory_format=torch.contiguous_format)
 
     def random_actions(self, generator: torch.Generator | None = None) -> torch.Tensor:
         """Uniformly random valid actions for every agent of every world (the action space's
@@ -503,62 +402,26 @@ class BatchedEnv:
             return torch.rand(W, A, self.action_dim, generator=generator) * 2 - 1
         if self.enforce_action_mask:  # among the allowed actions only (envs/masking.py)
             with self._lock, torch.no_grad(), limited_threads(self.torch_threads):  # a committed state's mask
-                return masking.sample_allowed(self._action_mask(self._sim, self._alive), generator)
+                return masking.sample_allowed(self._contract.action_mask(self._sim, self._alive), generator)
         return torch.randint(self.num_actions, (W, A), generator=generator)
 
-    @torch.no_grad()
     def check_actions(self, actions) -> torch.Tensor:
         """Validated actions on self.device (long [W, A] or float32 [W, A, action_dim]); raises
         TypeError / ValueError naming `actions`, the expected and the given, else changes nothing."""
-        W, A = self.num_worlds, self.num_agents
-        if not isinstance(actions, (torch.Tensor, np.ndarray, list, tuple)):
-            raise TypeError(f"actions must be a torch.Tensor (or array-like), got {describe(actions)}")
-        actions = _from_user("actions", actions)
-        if self.continuous:
-            want = f"a float tensor of shape [{W}, {A}, {self.action_dim}] (worlds, agents, action_dim) in [-1, 1]"
-            if isinstance(actions, (torch.Tensor, np.ndarray)) and not (
-                    torch.is_tensor(actions) and actions.is_floating_point()
-                    or isinstance(actions, np.ndarray) and np.issubdtype(actions.dtype, np.floating)):
-                raise TypeError(f"actions must be {want}, got {describe(actions)}")
-            tensor = as_tensor("actions", actions, dtype_kind="float")
-            tensor = tensor if tensor.dtype in FLOAT_DTYPES else tensor.to(torch.float32)  # float8: no isfinite
-            if tuple(tensor.shape) != (W, A, self.action_dim):
-                raise ValueError(f"actions must be {want}, got shape {list(tensor.shape)}")
-            if not bool(torch.isfinite(tensor).all()):
-                raise ValueError(f"actions must be {want}, got non-finite values (NaN/Inf)")
-            if bool((tensor.abs() > 1).any()):
-                raise ValueError(f"actions must be {want}, got values in "
-                                 f"[{tensor.min().item():.4g}, {tensor.max().item():.4g}] (clamp them first)")
-            return tensor.to(device=self.device, dtype=torch.float32, copy=True)  # the env's own: see below
-        want = f"an integer tensor of shape [{W}, {A}] (worlds, agents) with values in [0, {self.num_actions})"
-        try:
-            tensor = as_tensor("actions", actions, dtype_kind="int")
-        except TypeError as exc:
-            raise TypeError(f"actions must be {want}, got {describe(actions)}") from exc
-        if tuple(tensor.shape) != (W, A):
-            raise ValueError(f"actions must be {want}, got shape {list(tensor.shape)}")
-        checked = tensor.to(torch.float64) if tensor.dtype in (torch.uint16, torch.uint32, torch.uint64) else tensor
-        if checked.numel():
-            low, high = (value.item() for value in torch.aminmax(checked))
-            if low < 0 or high >= self.num_actions:
-                raise ValueError(f"actions must be {want}, got values in [{low}, {high}]")
-        # A copy even where no conversion is needed: a task may keep actions in its state, and the
-        # caller's tensor (a rollout buffer written in place) must not change the env afterwards.
-        return tensor.to(device=self.device, dtype=torch.int64, copy=True)
+        return checked_actions(actions, self.spec, self.device)
 
-    @_env_call
+    @env_call
     def render_overview(self, resolution=None) -> torch.Tensor:
         """uint8 [W, H2, W2, 3]: one camera per world that sees the whole arena, for humans.
 
         Built on the first call (a second renderer with the same groups and free cameras);
         `resolution` (int or (H, W)) defaults to `overview_resolution` and rebuilds it if changed."""
-        self._check_open()
-        self._check_process()
+        self._check_open(process=True)
         self._check_started()
         with limited_threads(self.torch_threads):
             return self.views.overview(self._sim, resolution)
 
-    @_env_call
+    @env_call
     def state_observation(self) -> torch.Tensor:
         """float32 [W, A, state_dim]: the low-dimensional observation of the current state (obs
         key "state"), whether or not the env was built with state_obs=True."""
@@ -569,7 +432,7 @@ class BatchedEnv:
         with limited_threads(self.torch_threads):
             return self._state_obs(self._sim, self._alive)
 
-    @_env_call
+    @env_call
     def heuristic_actions(self) -> torch.Tensor:
         """The scenario's scripted policy's actions for the current state (valid actions, as
         random_actions gives them): a reference that reads the state and beats random."""
@@ -583,7 +446,7 @@ class BatchedEnv:
                 raise type(error)(f"{type(self.scenario).__name__}.heuristic must return valid actions: "
                                   f"{error}") from error
 
-    @_env_call
+    @env_call
     def get_state(self) -> dict:
         """Copies of the whole state as {name: tensor}: the fields of `sim` (the simulation),
         "step_count" [W] int64, "alive" [W, A] bool, "rng" (the generator's state, uint8, CPU) and,
@@ -596,7 +459,7 @@ class BatchedEnv:
         state["rng"] = self.generator.get_state()
         return state
 
-    @_env_call
+    @env_call
     def set_state(self, state: dict) -> None:
         """Restore a state from get_state() (of this env or one built with the same arguments),
         RNG included; the env then continues from it as if it had never left it.
@@ -625,7 +488,7 @@ class BatchedEnv:
             if looks is not None and not torch.equal(looks, levels):
                 raise ValueError("state['appearance_ids'] must equal state['level_ids'] with levels on (a level "
                                  "fixes the look of its world)")
-        self._check_values(state, "state[{key!r}]")
+        self._contract.check_values(state, "state[{key!r}]")
         try:
             torch.Generator().set_state(rng)
         except RuntimeError as exc:
@@ -636,14 +499,13 @@ class BatchedEnv:
             if looks is not None:
                 self.views.set_appearance(looks)
             self.views.sync(sim, full=True)  # per-episode instance data (landmarks, ...) changed too
-            self._commit(sim, alive, step_count, looks, levels)
-            self.episodes.restore(book)
             self.generator.set_state(rng)
-            self._needs_reset = False
+            self._commit(sim=sim, alive=alive, step_count=step_count, looks=looks, levels=levels, needs_reset=False)
+            self.episodes.restore(book)
 
     def close(self) -> None:
         """Release the renderers; safe to call twice. Any later use raises RuntimeError."""
-        with self._lock:  # not _env_call: finalisers at interpreter exit may find torch's modules gone
+        with self._lock:  # not env_call: finalisers at interpreter exit may find torch's modules gone
             if self._closed:
                 return
             self._refuse_reentry()
@@ -685,192 +547,28 @@ class BatchedEnv:
             counters["level_ids"] = self._level_ids
         return {**counters, **self.episodes.counters()}
 
-    def _action_mask(self, sim, alive: torch.Tensor) -> torch.Tensor:
-        """The scenario's action mask [W, A, num_actions] of state `sim`, checked (the hook's own tensor:
-        it may be a constant or the state's; copy it before handing it out)."""
-        mask = self.scenario.action_mask(sim, alive)
-        where = f"{type(self.scenario).__name__}.action_mask"
-        _check_tensor(where, mask, (self.num_worlds, self.num_agents, self.num_actions), "bool", self.device)
-        if not self._fresh_masks:  # an agent in the episode with no valid action cannot act, masked or not
-            stuck = alive & ~mask.any(-1)
-            if bool(stuck.any()):
-                world, agent = stuck.nonzero()[0].tolist()
-                raise ValueError(f"{where} must allow at least one action to every agent in the episode, got none "
-                                 f"for {int(stuck.sum())} agent(s), e.g. world {world} agent "
-                                 f"{self.agent_names[agent]!r}")
-        return mask
+    # ------------------------------------------------------------------ all or nothing (envs/atomic.py)
+    def _generators(self) -> list:
+        return [self.generator]
 
-    def _check_allowed(self, actions: torch.Tensor) -> None:
-        """enforce_action_mask: a ValueError naming the forbidden actions of the agents this step acts
-        for (those of departed agents and of worlds a next_step autoreset restarts are ignored)."""
-        acting = self._alive
-        if self.autoreset == "next_step":
-            acting = acting & ~self.episode_over()[:, None]
-        mask = self._action_mask(self._sim, self._alive)
-        refused = masking.forbidden(mask, actions, acting)
-        if bool(refused.any()):
-            raise masking.refusal(refused, mask, actions, self.agent_names, self.action_meanings)
+    def _save_more(self):
+        return self.episodes.snapshot()  # the random ends and social tallies (envs/episodes.py)
 
-    def _check_scenario(self):
-        """A scenario whose declarations are incomplete or disagree fails here, when the env is built,
-        naming the declaration or the hook (not at the first reset or step, or deep in the renderer)."""
-        s, A, name = self.scenario, self.num_agents, type(self.scenario).__name__
-        where = f"{name}.setup"
-        if len(self.agent_names) != A or len(set(self.agent_names)) != A:
-            raise RuntimeError(f"{where} must give teams holding {A} distinct agent names, got {self.agent_names}")
-        if self.continuous and not (isinstance(self.action_dim, int) and self.action_dim >= 1):
-            raise RuntimeError(f"{where} must declare continuous_actions(dim) with dim >= 1 for continuous=True")
-        if not self.continuous and not (isinstance(self.num_actions, int) and self.num_actions >= 1):
-            raise RuntimeError(f"{where} must declare discrete_actions(meanings) with at least one action")
-        if isinstance(self.dt, bool) or not isinstance(self.dt, (int, float)) or not 0 < self.dt < math.inf:
-            raise ValueError(f"{name}.dt (simulated seconds per step) must be a finite number > 0, got {self.dt!r}")
-        if self.state_obs and not self.state_dim:
-            raise ValueError(f"state_obs=True needs a task with a state observation, and {name} has none "
-                             f"(state_dim 0, no observation hook)")
-        self._check_info_keys()
-        if not (dataclasses.is_dataclass(self._sim) and not isinstance(self._sim, type)):
-            raise RuntimeError(f"{name}.initial_state must return a dataclass of tensors (envs/state.py), "
-                               f"got {describe(self._sim)}")
-        # Every field has the worlds first. A field whose length is W by chance (a task's constant
-        # vector) would be split between worlds by partial resets, so the task's layout is probed
-        # with another world count too (1, or 2 for W = 1): its fields must follow it.
-        W, probe_worlds = self.num_worlds, 2 if self.num_worlds == 1 else 1
-        try:
-            probe = explicit_state.fields(type(s)(s.params, Layout(probe_worlds, A, self.continuous,
-                                                                    self.device)).initial_state())
-        except Exception:  # a task that cannot be built for that count: the check below is all there is
-            probe = None
-        for field, value in explicit_state.fields(self._sim).items():
-            probed = value if probe is None else probe.get(field)
-            expected = W if probe is None else probe_worlds
-            if not (isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == W
-                    and isinstance(probed, torch.Tensor) and probed.ndim and probed.shape[0] == expected):
-                got = [f"shape {list(t.shape)}" if isinstance(t, torch.Tensor) else describe(t)
-                       for t in (value, probed)]
-                raise ValueError(f"{name}.initial_state's field {field!r} must be a tensor with the worlds first, "
-                                 f"[W, ...] (every world has its own value); with W={W} it has {got[0]}, "
-                                 f"with W={expected} {got[1]}")
-            if not _same_device(value.device, self.device):
-                raise ValueError(f"{name}.initial_state's field {field!r} must be on device {self.device}, got "
-                                 f"{value.device}")
-        self._bounds = self._checked_bounds(s.state_bounds())
-        self._fresh_masks = type(s).action_mask is Scenario.action_mask  # see _observe
-        s.check_declarations(self._sim)
+    def _restore_more(self, saved) -> None:
+        """The episode book as it was; the renderer may hold the undone state's instances: its next sync
+        sends all; and the undone worlds' looks: the committed ones are put back."""
+        self.episodes.restore(saved)
+        self.views.invalidate()
+        if self.appearance is not None and not self._needs_reset:  # before the first reset: none to keep
+            self.views.set_appearance(self._appearance_ids)
 
-    def _check_info_keys(self):
-        """info_keys: {str: torch.dtype}, none of them a name the driver's own info entries use."""
-        name, keys = type(self.scenario).__name__, self.info_keys
-        for key, dtype in keys.items():
-            if not isinstance(key, str) or not isinstance(dtype, torch.dtype):
-                raise TypeError(f"{name}.info_keys must map str names to torch dtypes, got {key!r}: {describe(dtype)}")
-        reserved = sorted(key for key in keys if key in DRIVER_INFO + GYMNASIUM_INFO or key.startswith("_"))
-        if reserved:
-            raise ValueError(f"{name}.info_keys names {reserved}, which the driver's own info entries use "
-                             f"({list(DRIVER_INFO + GYMNASIUM_INFO)}, and gymnasium's masks '_' + key); rename the "
-                             f"task's statistic(s) (they would replace the driver's values, or be replaced by them)")
-
-    def _checked_bounds(self, bounds) -> dict:
-        """The scenario's state_bounds(), checked once: fields of the state, (low, high) numbers or
-        one number per index of the field's last axis."""
-        where = f"{type(self.scenario).__name__}.state_bounds"
-        fields = explicit_state.fields(self._sim)
-        if not isinstance(bounds, dict):
-            raise TypeError(f"{where} must return a dict {{field: (low, high)}}, got {describe(bounds)}")
-        for key, pair in bounds.items():
-            if key not in fields:
-                raise ValueError(f"{where} names {key!r}, which is not a field of the state {sorted(fields)}")
-            try:
-                low, high = (torch.as_tensor(v, dtype=torch.float64) for v in pair)
-                np.broadcast_shapes(low.shape, high.shape, fields[key].shape)  # torch's imports sympy (1.3 CPU-s)
-            except (TypeError, ValueError, RuntimeError) as error:
-                raise ValueError(f"{where}[{key!r}] must be (low, high), each a number or one per index of the "
-                                 f"field's last axis (shape {list(fields[key].shape)}), got {describe(pair)}"
-                                 ) from error
-        return bounds
-
-    def _check_values(self, state: dict, label: str) -> None:
-        """Floats finite, every field within state_bounds and the task's check_state rules."""
-        explicit_state.check_bounds(state, self._bounds, label)
-        self.scenario.check_state(state)
-
-    # ------------------------------------------------------------------ atomic calls
-    @contextlib.contextmanager
-    def _all_or_nothing(self):
-        """A call that changes the env works out the new state, counters and frames in locals and
-        commits them at its end (_commit): if a hook (or the renderer) raises on the way, or the call
-        is interrupted, the generator and seed are put back and nothing else has changed. The
-        renderer may hold the uncommitted state's instances by then: its next sync sends all; and the
-        uncommitted worlds' looks: the committed ones are put back."""
-        self._refuse_reentry()
-        rng, seed, book = self.generator.get_state(), self.seed, self.episodes.snapshot()
-        held = self._held()
-        versions = [_version(tensor) for tensor in held.values()]
-        self._running_hooks = True
-        try:
-            yield
-        except BaseException as error:
-            self.generator.set_state(rng)
-            self.seed = seed
-            self.episodes.restore(book)
-            self.views.invalidate()
-            if self.appearance is not None and not self._needs_reset:  # before the first reset: none to keep
-                self.views.set_appearance(self._appearance_ids)
-            written = [name for (name, tensor), version in zip(held.items(), versions, strict=True)
-                       if _version(tensor) != version]
-            if written:  # a hook broke the contract: what it wrote cannot be undone
-                self._needs_reset = True
-                raise RuntimeError(f"a hook of {type(self.scenario).__name__} wrote into the env's state in place "
-                                   f"({', '.join(written)}) and the call failed, so it cannot be undone: call reset(); "
-                                   f"hooks must return new tensors, never write into the state they are given"
-                                   ) from error
-            raise
-        finally:
-            self._running_hooks = False
-
-    @contextlib.contextmanager
-    def _kept(self):
-        """For a wrapper whose one call is a call of this env and then code of its own (envs/focal.py:
-        the core's reset, then the bots' reset): if the wrapper's part raises after this env committed,
-        the env is put back as it was before the call. Committed tensors are replaced, never written
-        into, so holding them keeps them; the lock is held throughout, so no other call comes between."""
-        with self._lock:
-            rng, seed, needs_reset = self.generator.get_state(), self.seed, self._needs_reset
-            book = self.episodes.snapshot()
-            committed = (self._sim, self._alive, self._step_count, self._appearance_ids, self._level_ids)
-            try:
-                yield
-            except BaseException:
-                self.generator.set_state(rng)
-                self.seed, self._needs_reset = seed, needs_reset
-                self.episodes.restore(book)
-                self._commit(*committed)
-                self.views.invalidate()  # it may hold the undone state's instances: its next sync sends all
-                if self.appearance is not None and not needs_reset:
-                    self.views.set_appearance(self._appearance_ids)
-                raise
-
-    def _refuse_reentry(self) -> None:
-        """A call that changes the env, made by one of its hooks (the same thread: others wait for the
-        lock), is refused: the outer call would commit over what it did, or run on with the renderer closed."""
-        if self._running_hooks:
-            raise RuntimeError(f"a hook of {type(self.scenario).__name__} called the env's step, reset, reset_worlds, "
-                               f"reset_to_level, set_state or close while the env ran its hooks: hooks must not "
-                               f"call the env (they get the state and return new values)")
+    def _hooks_owner(self) -> str:
+        return type(self.scenario).__name__
 
     def _held(self) -> dict:
         """{name: tensor} of the state the env has committed (what a failed call must leave as it was)."""
         return {**{f"state.{name}": value for name, value in explicit_state.fields(self._sim).items()},
                 "alive": self._alive, "step_count": self._step_count}
-
-    def _commit(self, sim, alive: torch.Tensor, step_count: torch.Tensor, looks: torch.Tensor | None,
-                levels: torch.Tensor | None) -> None:
-        self._sim, self._alive, self._step_count, self._appearance_ids = sim, alive, step_count, looks
-        self._level_ids = levels
-
-    def _reseed(self, seed: int | None) -> None:
-        if seed is not None:
-            self.seed = seed
-            self.generator.manual_seed(seed)
 
     def _respawned(self, mask: torch.Tensor, sim, step_count: torch.Tensor, alive: torch.Tensor,
                    looks: torch.Tensor | None, levels: torch.Tensor | None, chosen=None) -> tuple:
@@ -889,8 +587,8 @@ class BatchedEnv:
             levels = torch.where(mask.cpu(), chosen, levels)
             keys = level_sets.level_keys(levels, self.name, self.scenario.params, self.num_agents)
             fresh = self.scenario.spawn_level(level_sets.KeyedDraws(keys))
-        fresh = self._check_state(where, fresh)
-        self._check_values(explicit_state.fields(fresh), where + "'s state.{key}")
+        fresh = self._contract.checked_state(where, fresh)
+        self._contract.check_values(explicit_state.fields(fresh), where + "'s state.{key}")
         if looks is not None:  # drawn after spawn: the first layouts match those with appearance off
             fresh_ids = levels if levels is not None else torch.randint(
                 -2 ** 63, 2 ** 63 - 1, (self.num_worlds,), generator=self.generator)
@@ -900,56 +598,17 @@ class BatchedEnv:
         return (explicit_state.select_worlds(mask, fresh, sim),
                 torch.where(mask, torch.zeros_like(step_count), step_count), alive | mask[:, None], looks, levels)
 
-    def _check_open(self):
+    def _check_open(self, process: bool = False):
+        """Open, and with `process`, in the process that made it: else ForkedContextError now, before
+        anything changes (the render at the end of a step would raise only after physics ran)."""
         if self._closed:
             raise RuntimeError(f"this {type(self.scenario).__name__} environment is closed; create a new one")
-
-    def _check_process(self):
-        """In a process forked from the one that made this env: ForkedContextError now, before
-        anything changes (the render at the end of a step would raise only after physics ran)."""
-        self.context.check_usable()
+        if process:
+            self.context.check_usable()
 
     def _check_started(self):
         if self._needs_reset:
             raise RuntimeError(f"call reset() before using this {type(self.scenario).__name__} environment")
-
-    def _checked_step(self, result):
-        """Scenario.step's result after checking its form, so that a task's mistake is named at its
-        hook rather than deep in the renderer (shape and dtype reads, and whether the reward is finite)."""
-        where = f"{type(self.scenario).__name__}.{self.scenario.step_hook}"
-        if not (isinstance(result, tuple) and len(result) == 4):
-            raise TypeError(f"{where} must return (state, reward, terminated, info), got {describe(result)}")
-        state, reward, terminated, info = result
-        state = self._check_state(where, state)
-        W, A = self.num_worlds, self.num_agents
-        _check_tensor(f"{where}'s reward", reward, (W, A), "float", self.device)
-        _check_tensor(f"{where}'s terminated", terminated, (W, A), "bool", self.device)
-        task_keys = self.scenario.info_keys
-        if not isinstance(info, dict) or set(info) != set(task_keys):
-            raise ValueError(f"{where}'s info must be a dict with the keys of info_keys {sorted(task_keys)}, "
-                             f"got {sorted(info) if isinstance(info, dict) else describe(info)}")
-        for key, dtype in task_keys.items():
-            _check_tensor(f"{where}'s info[{key!r}]", info[key], (W,), dtype, self.device)
-        # A finite sum proves every value finite in one reduction (isfinite().all() costs ~4x more);
-        # a sum that overflowed is checked in full.
-        if not math.isfinite(reward.sum().item()) and not bool(torch.isfinite(reward).all()):
-            raise ValueError(f"{where}'s reward must be finite, got NaN or Inf in world(s) "
-                             f"{(~torch.isfinite(reward)).any(1).nonzero()[:, 0].tolist()}")
-        return state, reward, terminated, info
-
-    def _check_state(self, where: str, state):
-        """A hook's new state, checked field by field; cut from autograd where a field requires grad (a
-        task's nn.Parameter, say): nothing the env keeps requires grad."""
-        if type(state) is not type(self._sim):
-            raise TypeError(f"{where} must return a {type(self._sim).__name__} (the class of initial_state()), "
-                            f"got {describe(state)}")
-        graphed = {}
-        for name, want in explicit_state.fields(self._sim).items():
-            value = getattr(state, name)
-            _check_tensor(f"{where}'s state.{name}", value, tuple(want.shape), want.dtype, want.device)
-            if value.requires_grad:
-                graphed[name] = value.detach()
-        return dataclasses.replace(state, **graphed) if graphed else state
 
     def _observe(self, sim, alive: torch.Tensor, full: bool) -> dict:
         """The observations of state `sim`: a render and the task's observation hooks, as tensors the
@@ -957,7 +616,7 @@ class BatchedEnv:
         try:
             self.views.sync(sim, full)
         except (TypeError, ValueError, RuntimeError, IndexError) as error:
-            self._name_non_finite(sim, error)
+            self._contract.name_non_finite(sim, error)
             raise
         frame = self.views.render()
         obs = {"pixels": frame.rgb.to(self.device)}  # a new tensor every render (BatchRenderer.render)
@@ -966,97 +625,21 @@ class BatchedEnv:
         if self.state_obs:
             obs["state"] = self._state_obs(sim, alive)
         if self.lidar_rays:
-            obs["lidar"] = self._lidar_obs(sim)
+            obs["lidar"] = self._contract.owned("lidar", self.scenario.lidar(sim, self.lidar_rays, self.lidar_range),
+                                                self.lidar_rays)
         if self.agent_ids:
             obs["agent_id"] = self._ids.expand(self.num_worlds, -1, -1).clone()
         if self.vector_obs:
-            obs.update(self._vector_obs(sim, alive))
+            obs.update(self._contract.vector_observations(sim, alive))
         if not self.continuous:
-            mask = self._action_mask(sim, alive)
+            mask = self._contract.action_mask(sim, alive)
             # The default hook makes a new tensor every call; a task's own may return a constant or a
             # field of its state, so its mask is copied. (Copying the default's too cost cartpole at
             # 1024 worlds hundreds of page faults a step: beside the frame's 12 MB, the extra small
             # allocations kept glibc from reusing the freed frames' memory.)
-            obs["action_mask"] = mask if self._fresh_masks else mask.clone(memory_format=torch.contiguous_format)
+            fresh = self._contract.fresh_masks
+            obs["action_mask"] = mask if fresh else mask.clone(memory_format=torch.contiguous_format)
         return obs
 
     def _state_obs(self, sim, alive: torch.Tensor) -> torch.Tensor:
-        return self._owned("observation", self.scenario.observation(sim, alive), self.state_dim)
-
-    def _vector_obs(self, sim, alive: torch.Tensor) -> dict:
-        """The task's vector observations (Scenario.vector_obs), checked, as float32 copies."""
-        given = self.scenario.vector_observations(sim, alive)
-        if not (isinstance(given, dict) and set(given) == set(self.vector_obs)):
-            got = sorted(given) if isinstance(given, dict) else describe(given)
-            raise ValueError(f"{type(self.scenario).__name__}.vector_observations must return a dict with the keys of "
-                             f"vector_obs {sorted(self.vector_obs)}, got {got}")
-        return {key: self._owned("vector_observations", given[key], entry.width)
-                for key, entry in self.vector_obs.items()}
-
-    def _tagged_out(self, sim) -> torch.Tensor | None:
-        """Scenario.tagged_out of `sim`, checked (only where the social metrics are on)."""
-        if not self.episodes.social:
-            return None
-        tagged = self.scenario.tagged_out(sim)
-        _check_tensor(f"{type(self.scenario).__name__}.tagged_out", tagged, (self.num_worlds, self.num_agents), "bool",
-                      self.device)
-        return tagged
-
-    def _episode_book(self, scenario, options, params) -> episode_book.EpisodeBook:
-        """The random ends and social tallies of the options (envs/episodes.py)."""
-        end = episode_book.episode_end(options.episode_end, scenario, self.max_steps)
-        social = options.social_metrics
-        social = bool(scenario.mixed_motive) if social is None else check.flag("social_metrics", social)
-        clash = sorted(set(self.info_keys) & set(episode_book.SOCIAL_KEYS)) if social else []
-        if clash:
-            raise ValueError(f"{scenario.__name__}.info_keys names {clash}, which the social metrics' info entries use "
-                             f"(envs/episodes.py); rename them, or pass social_metrics=False")
-        return episode_book.EpisodeBook(end, social, self.num_worlds, self.num_agents, self.max_steps, self.device,
-                                        scenario.name, params)
-
-    def _lidar_obs(self, sim) -> torch.Tensor:
-        return self._owned("lidar", self.scenario.lidar(sim, self.lidar_rays, self.lidar_range), self.lidar_rays)
-
-    def _owned(self, hook: str, value, width: int) -> torch.Tensor:
-        """A hook's per-agent observation [W, A, width], checked, as a float32 copy the caller owns."""
-        where = f"{type(self.scenario).__name__}.{hook}"
-        _check_tensor(where, value, (self.num_worlds, self.num_agents, width), "float", self.device)
-        owned = value.to(dtype=torch.float32, memory_format=torch.contiguous_format, copy=True)
-        if not math.isfinite(owned.sum().item()) and not bool(torch.isfinite(owned).all()):  # as the reward's
-            raise ValueError(f"{where} must return finite values, got NaN or Inf in world(s) "
-                             f"{(~torch.isfinite(owned)).flatten(1).any(1).nonzero()[:, 0].tolist()}")
-        return owned
-
-    def _name_non_finite(self, sim, error: BaseException) -> None:
-        """The renderer refused the instances of a state the step hook made: where fields of it are
-        not finite, say so, naming the hook and the fields (the renderer knows neither)."""
-        bad = [name for name, value in explicit_state.fields(sim).items()
-               if value.is_floating_point() and not bool(torch.isfinite(value).all())]
-        if bad:
-            where = f"{type(self.scenario).__name__}.{self.scenario.step_hook}"
-            raise ValueError(f"{where} returned a state with non-finite values (NaN or Inf) in "
-                             f"{', '.join('state.' + name for name in bad)}") from error
-
-
-def _check_tensor(what: str, value, shape: tuple, dtype, device: torch.device) -> None:
-    """A hook's tensor has the declared shape, dtype (a torch.dtype, or "float" / "bool") and device."""
-    if not isinstance(value, torch.Tensor):
-        raise TypeError(f"{what} must be a torch.Tensor of shape {list(shape)}, got {describe(value)}")
-    if dtype == "float":
-        dtype_ok, want_dtype = value.is_floating_point(), "a float dtype"
-    elif dtype == "bool":
-        dtype_ok, want_dtype = value.dtype == torch.bool, "torch.bool"
-    else:
-        dtype_ok, want_dtype = value.dtype == dtype, str(dtype)
-    if tuple(value.shape) != shape or not dtype_ok or not _same_device(value.device, device):
-        raise ValueError(f"{what} must have shape {list(shape)}, {want_dtype}, device {device}; got shape "
-                         f"{list(value.shape)}, {value.dtype}, device {value.device}")
-
-
-def _same_device(given: torch.device, want: torch.device) -> bool:
-    return given.type == want.type and (want.index is None or given.index == want.index)
-
-
-def _version(tensor: torch.Tensor) -> int | None:
-    """The count of in-place writes into `tensor` (None for inference tensors, which keep none)."""
-    return None if tensor.is_inference() else tensor._version
+        return self._contract.owned("observation", self.scenario.observation(sim, alive), self.state_dim)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
 import torch
 
 from marl_render.keyed_random import derive_keys
@@ -89,6 +90,22 @@ def episode_end(value, scenario, max_steps: int) -> EpisodeEnd | None:
     if isinstance(value, EpisodeEnd):
         return value
     raise TypeError(f"episode_end must be {want}, got {describe(value)}")
+
+
+def for_env(options, scenario, params, info_keys: dict, batch, max_steps: int) -> EpisodeBook:
+    """The book of a driver built with `options` (EnvOptions) for the Scenario subclass `scenario`: its
+    random ends (episode_end) and social tallies (social_metrics), none of whose info entries may be
+    one of the task's `info_keys`; `batch` is the driver's BatchShape."""
+    end = episode_end(options.episode_end, scenario, max_steps)
+    social = options.social_metrics
+    if social is not None and not isinstance(social, (bool, np.bool_)):
+        raise TypeError(f"social_metrics must be a bool, got {describe(social)}")
+    social = bool(scenario.mixed_motive) if social is None else bool(social)
+    clash = sorted(set(info_keys) & set(SOCIAL_KEYS)) if social else []
+    if clash:
+        raise ValueError(f"{scenario.__name__}.info_keys names {clash}, which the social metrics' info entries use "
+                         f"(envs/episodes.py); rename them, or pass social_metrics=False")
+    return EpisodeBook(end, social, batch.num_worlds, batch.num_agents, max_steps, batch.device, scenario.name, params)
 
 
 def describe_end(scenario, max_steps: int | None = None) -> str:

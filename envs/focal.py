@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import threading
 
 import torch
@@ -40,6 +39,7 @@ from marl_render.validation import describe
 
 from . import levels as level_sets
 from . import masking
+from .atomic import AllOrNothing, one_at_a_time
 from .core import BatchedEnv
 
 # The driver's attributes a focal-only env shares unchanged (settings of the whole batch).
@@ -48,7 +48,7 @@ SHARED = ("name", "num_worlds", "resolution", "continuous", "num_actions", "acti
           "far", "state_obs", "lidar_rays", "lidar_range", "grayscale", "enforce_action_mask", "scenario",
           "renderer", "physics", "physics_compiled", "context", "agent_range", "background", "fov_y", "near",
           "overview_resolution", "overview_fov_y", "arena_half_extent", "appearance", "appearance_ids",
-          "torch_threads", "generator", "step_count", "sim", "closed", "levels", "level_ids")
+          "torch_threads", "generator", "step_count", "sim", "closed", "levels", "level_ids", "needs_reset")
 
 
 def _check_generator_state(name: str, state) -> None:
@@ -59,16 +59,6 @@ def _check_generator_state(name: str, state) -> None:
     except (TypeError, RuntimeError) as error:
         raise ValueError(f"{name} must be a torch.Generator state (a uint8 tensor from get_state()), got "
                          f"{describe(state)}: {error}") from None
-
-
-def _one_at_a_time(method):
-    """A call that changes the env: one at a time (the driver's lock covers the driver's part; the bots'
-    assignment and memories are this env's)."""
-    @functools.wraps(method)
-    def call(self, *args, **kwargs):
-        with self._lock:
-            return method(self, *args, **kwargs)
-    return call
 
 
 def _agent_names(focal) -> tuple:
@@ -106,7 +96,7 @@ class Population:
         return f"Population({roles}, focal={self.focal})"
 
 
-class FocalEnv:
+class FocalEnv(AllOrNothing):
     """The driver `core` with its background slots played by `population`; see the module docstring."""
 
     def __init__(self, core: BatchedEnv, population: Population):
@@ -182,31 +172,31 @@ class FocalEnv:
     def alive(self) -> torch.Tensor:
         return self.core.alive[:, self.focal_slots]
 
-    @_one_at_a_time
+    @one_at_a_time
     def reset(self, seed: int | None = None) -> dict:
-        with self._all_or_nothing():
+        with self.kept():
             obs = self.core.reset(seed=seed)  # checks the seed before anything changes
             return self._after_reset(torch.ones(self.num_worlds, dtype=torch.bool), obs, seed)
 
-    @_one_at_a_time
+    @one_at_a_time
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
-        with self._all_or_nothing():
+        with self.kept():
             obs = self.core.reset_worlds(mask, seed=seed)
             return self._after_reset(torch.as_tensor(mask).cpu(), obs, seed)
 
-    @_one_at_a_time
+    @one_at_a_time
     def reset_to_level(self, mask, level_ids, seed: int | None = None) -> dict:
         """The core's reset_to_level (envs/levels.py), then new bots for those worlds."""
-        with self._all_or_nothing():
+        with self.kept():
             obs = self.core.reset_to_level(mask, level_ids, seed=seed)
             return self._after_reset(torch.as_tensor(mask).cpu(), obs, seed)
 
-    @_one_at_a_time
+    @one_at_a_time
     def step(self, actions):
         actions = self.check_actions(actions)
         if self._obs is None:
             self._check_bots_can_act()
-        with self._all_or_nothing():  # a bot that raises, in act or in an autoreset's reset, changes nothing
+        with self.kept():  # a bot that raises, in act or in an autoreset's reset, changes nothing
             full = self._background_actions()
             full[:, self.focal_slots] = actions
             obs, reward, terminated, truncated, info = self.core.step(full)
@@ -215,7 +205,7 @@ class FocalEnv:
                 info["final_obs"] = self._focal(info["final_obs"])
             if "autoreset_worlds" in info and bool(info["autoreset_worlds"].any()):
                 self._restart(info["autoreset_worlds"].cpu(), obs)
-            self._obs = obs
+            self._commit(obs=obs)
         focal = self.focal_slots
         return self._focal(obs), reward[:, focal], terminated[:, focal], truncated[:, focal], info
 
@@ -238,6 +228,9 @@ class FocalEnv:
     def episode_over(self) -> torch.Tensor:
         return self.core.episode_over()
 
+    def action_mask(self) -> torch.Tensor:
+        return self.core.action_mask()[:, self.focal_slots]
+
     def random_actions(self, generator: torch.Generator | None = None) -> torch.Tensor:
         return self.core.random_actions(generator)[:, self.focal_slots]
 
@@ -258,7 +251,7 @@ class FocalEnv:
         return {**self.core.get_state(), "background_bots": self.assignment.clone(),
                 "background_rng": self.bot_generator.get_state(), "bot_rngs": self._bot_rngs()}
 
-    @_one_at_a_time
+    @one_at_a_time
     def set_state(self, state: dict) -> None:
         keys = ("background_bots", "background_rng", "bot_rngs")
         if not isinstance(state, dict) or any(k not in state for k in keys):
@@ -272,11 +265,10 @@ class FocalEnv:
         _check_generator_state("state['background_rng']", rng)
         self._check_bot_rngs(bot_rngs)
         self.core.set_state(state)
-        self.assignment = bots.clone()
         self.bot_generator.set_state(rng)
         self._set_bot_rngs(bot_rngs)
-        self._obs = None  # no observation of this state yet: bots that read the simulation state act on
-        self._pairs = self._pairs_of(self.assignment)
+        # obs None: no observation of this state yet (bots that read the simulation state act on)
+        self._commit(assignment=bots.clone(), pairs=self._pairs_of(bots), obs=None)
 
     def close(self) -> None:
         self.core.close()
@@ -296,21 +288,22 @@ class FocalEnv:
         names = [getattr(b, "name", type(b).__name__) for b in self.bots]
         return [[names[k] for k in row] for row in self.assignment.tolist()]
 
+    # ------------------------------------------------------------------ all or nothing (envs/atomic.py)
+    # A call that raises (in the core, or in a bot's act or reset after the core committed) leaves the env
+    # as it was: the core's state and generator, the bots' assignment, the generator that draws them and
+    # the bots' own generators. Bots' memories (an actor's frame stack) are the bots': a failed call may
+    # have cleared some of them.
+    _committed = {"assignment": "assignment", "pairs": "_pairs", "obs": "_obs"}
+
+    def _generators(self) -> list:
+        return [self.bot_generator, *(b.generator for b in self.bots
+                                      if isinstance(getattr(b, "generator", None), torch.Generator))]
+
     @contextlib.contextmanager
-    def _all_or_nothing(self):
-        """A call that raises (in the core, or in a bot's act or reset after the core committed)
-        leaves the env as it was: the core's state and generator, the bots' assignment, the generator
-        that draws them and the bots' own generators. Bots' memories (an actor's frame stack) are the
-        bots': a failed call may have cleared some of them."""
-        saved = self.assignment, self._pairs, self._obs, self.bot_generator.get_state(), self._bot_rngs()
-        with self.core._kept():
-            try:
-                yield
-            except BaseException:
-                self.assignment, self._pairs, self._obs, rng, bot_rngs = saved
-                self.bot_generator.set_state(rng)
-                self._set_bot_rngs(bot_rngs)
-                raise
+    def kept(self):
+        """AllOrNothing.kept, the core's part included."""
+        with self.core.kept(), super().kept():
+            yield
 
     def _after_reset(self, worlds: torch.Tensor, obs: dict, seed: int | None) -> dict:
         """After the core reset the worlds of mask [W] (re-seeded with `seed`, if given): the bots'
@@ -339,7 +332,7 @@ class FocalEnv:
         assignment = torch.where(worlds[:, None], fresh, self.assignment)
         for bot in self.bots:
             bot.reset(self.core, worlds)
-        self.assignment, self._pairs, self._obs = assignment, self._pairs_of(assignment), obs
+        self._commit(assignment=assignment, pairs=self._pairs_of(assignment), obs=obs)
 
     def _bot_rngs(self) -> list:
         """[K] each distinct bot's generator state (a uint8 tensor), None for a bot without one."""
@@ -363,7 +356,7 @@ class FocalEnv:
 
     def _check_bots_can_act(self) -> None:
         """Before the first reset, or after set_state with bots that read observations: RuntimeError."""
-        if self.core._needs_reset:
+        if self.core.needs_reset:
             raise RuntimeError(f"call reset() before using this focal-only {self.name} env")
         seeing = [getattr(b, "name", repr(b)) for b in self.bots if set(getattr(b, "needs", ())) - {"sim"}]
         if seeing:
@@ -427,11 +420,7 @@ class FocalEnv:
         """enforce_action_mask: ValueError naming the bot where it took a forbidden action (for the agents
         the step acts for, as the core counts them)."""
         core = self.core
-        acting = core.alive
-        if core.autoreset == "next_step":
-            acting = acting & ~core.episode_over()[:, None]
-        mask = core._action_mask(core.sim, core.alive)
-        mask, acting = mask[worlds, slots].cpu(), acting[worlds, slots].cpu()
+        mask, acting = core.action_mask()[worlds, slots].cpu(), masking.acting(core)[worlds, slots].cpu()
         refused = masking.forbidden(mask, actions, acting)
         if bool(refused.any()):
             i = int(refused.nonzero()[0, 0])

@@ -29,6 +29,23 @@ from torch import Tensor
 SHOWN = 4  # refused (world, agent) pairs the error lists; it counts the rest
 
 
+def acting(env) -> Tensor:
+    """[W, A] bool: the agents a step of the driver `env` acts for (its actions of the others are ignored:
+    agents that left the episode, and the worlds a "next_step" autoreset restarts in this step)."""
+    acting = env.alive
+    if env.autoreset == "next_step":
+        acting = acting & ~env.episode_over()[:, None]
+    return acting
+
+
+def check_allowed(mask: Tensor, actions: Tensor, acting: Tensor, agent_names: list, meanings) -> None:
+    """enforce_action_mask: the ValueError of refusal() where an acting agent's action int64 [W, A] is one
+    its mask [W, A, n] forbids."""
+    refused = forbidden(mask, actions, acting)
+    if bool(refused.any()):
+        raise refusal(refused, mask, actions, agent_names, meanings)
+
+
 def forbidden(mask: Tensor, actions: Tensor, acting: Tensor) -> Tensor:
     """[W, A] bool: acting agents whose action (int64 [W, A]) mask [W, A, n] does not allow."""
     allowed = mask.gather(-1, actions[..., None])[..., 0]

@@ -37,7 +37,6 @@ and joins every worker.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import multiprocessing.connection
 import pickle
 import signal
@@ -55,6 +54,7 @@ from marl_render.validation import describe, positive_int, unpicklable
 from . import levels as level_sets
 from . import masking
 from . import options as check
+from .atomic import env_call
 from .core import BatchedEnv
 from .options import EnvOptions
 
@@ -109,16 +109,6 @@ def output_layout(spec, num_agents: int, autoreset, has_levels: bool) -> dict:
         if autoreset == "same_step":
             layout["info/final_level"] = ((), torch.int64)
     return layout
-
-
-def _env_call(method):
-    """A call of the env's public API: one at a time, outside inference mode and without grad (as
-    BatchedEnv's calls)."""
-    @functools.wraps(method)
-    def call(self, *args, **kwargs):
-        with self._lock, torch.inference_mode(False), torch.no_grad():
-            return method(self, *args, **kwargs)
-    return call
 
 
 class MultiProcessEnv:
@@ -199,7 +189,7 @@ class MultiProcessEnv:
         return [process.pid for process in self._processes]
 
     # ================================================================== public API
-    @_env_call
+    @env_call
     def reset(self, seed: int | None = None) -> dict:
         """Reset every world (BatchedEnv.reset); `seed` re-seeds every worker (worker_seed)."""
         self._check_open()
@@ -210,7 +200,7 @@ class MultiProcessEnv:
             self.seed = seed
         return self._copies("obs/")
 
-    @_env_call
+    @env_call
     def reset_worlds(self, mask, seed: int | None = None) -> dict:
         """Reset the worlds where mask [W] (bool) is True (BatchedEnv.reset_worlds); obs of all worlds."""
         self._check_open()
@@ -221,7 +211,7 @@ class MultiProcessEnv:
                                     for k, (lo, hi) in enumerate(self._slices())])
         return self._copies("obs/")
 
-    @_env_call
+    @env_call
     def reset_to_level(self, mask, level_ids, seed: int | None = None) -> dict:
         """Reset the worlds where mask is True to level_ids [W] (BatchedEnv.reset_to_level)."""
         self._check_open()
@@ -236,7 +226,7 @@ class MultiProcessEnv:
                                       for k, (lo, hi) in enumerate(self._slices())])
         return self._copies("obs/")
 
-    @_env_call
+    @env_call
     def step(self, actions):
         """Advance all worlds one step (BatchedEnv.step): (obs, reward, terminated, truncated, info)."""
         self._check_open()
@@ -280,7 +270,7 @@ class MultiProcessEnv:
         """int64 [W] on the CPU (a copy) with levels on, else None."""
         return None if self.levels is None else self._outputs["state/level_ids"].cpu().clone()
 
-    @_env_call
+    @env_call
     def render_overview(self, resolution=None) -> torch.Tensor:
         """uint8 [W, H2, W2, 3] (BatchedEnv.render_overview), gathered from the workers."""
         self._check_open()
@@ -288,7 +278,7 @@ class MultiProcessEnv:
         parts = self._call("render_overview", [resolution] * self.num_processes)
         return torch.cat([torch.from_numpy(part) for part in parts]).to(self.device)
 
-    @_env_call
+    @env_call
     def get_state(self) -> dict:
         """The whole state (BatchedEnv.get_state) of all worlds; "rng" is uint8 [N, bytes], the workers'
         generator states in order."""
@@ -301,7 +291,7 @@ class MultiProcessEnv:
         state["rng"] = torch.stack([torch.from_numpy(arrays["rng"]) for arrays, _ in parts])
         return state
 
-    @_env_call
+    @env_call
     def set_state(self, state: dict) -> None:
         """Restore a state from get_state() of an env with the same arguments and num_processes; checked
         by the workers (BatchedEnv.set_state's checks), undone everywhere if one of them refuses it."""
@@ -581,7 +571,7 @@ class _Worker:
                 self._write_state()
             return None
         if command in _MUTATING:
-            self.before = self.env.get_state() if not self.env._needs_reset else None
+            self.before = self.env.get_state() if not self.env.needs_reset else None
         if self.free is not None:  # the parent's writes (actions) and reads (last outputs) come first
             torch.cuda.current_stream().wait_event(self.free)
         result = getattr(self, command)(argument)
@@ -635,4 +625,4 @@ class _Worker:
         self.outputs["state/step_count"].copy_(self.env.step_count)
         self.outputs["state/episode_over"].copy_(self.env.episode_over())
         if "state/level_ids" in self.outputs:
-            self.outputs["state/level_ids"].copy_(self.env._level_ids)
+            self.outputs["state/level_ids"].copy_(self.env.level_ids)

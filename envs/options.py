@@ -7,7 +7,8 @@ Every env takes the same options whatever the task (a task's own keywords are it
 
 None means "the task's default" for num_agents, resolution and max_steps. The checks run when
 the driver is built (some bounds depend on the task and the GL context), each raising
-TypeError / ValueError naming the option, the expected and the given.
+TypeError / ValueError naming the option, the expected and the given: ``resolve(options, scenario,
+params)`` runs them all and returns the ``Settings`` the driver is built with.
 """
 from __future__ import annotations
 
@@ -17,7 +18,13 @@ import numpy as np
 import torch
 
 import marl_render as mr
+from marl_render.render.impostors import check_mode as check_impostors
+from marl_render.shadows import atlas_layout
+from marl_render.threads import thread_count
 from marl_render.validation import describe, positive_float, positive_int, resolution_hw, torch_device
+
+from . import levels as level_sets
+from .rendering import check_memory
 
 AUTORESET_MODES = ("next_step", "same_step")
 MAX_SUBSTEPS = 1024  # physics_substeps; docs/accuracy takes 64 substeps as its reference already
@@ -26,7 +33,29 @@ MAX_LIDAR_RAYS = 1024  # every ray meets every body and box of its world: W x A 
 
 @dataclasses.dataclass(frozen=True)
 class EnvOptions:
-    """The options every env takes; see the module docstring and BatchedEnv's."""
+    """The options every env takes (see the module docstring): num_worlds, num_agents, resolution
+    (int or (H, W)), max_steps, continuous, state_obs, depth, shadows (False, True or a
+    marl_render.Shadows; True: Shadows(bounds=the task's shadow_bounds)), device, seed,
+    autoreset (False, "next_step", "same_step" or True = "same_step"), grayscale (one-channel
+    pixels), torch_threads (default 1, at most 1024: torch intra-op threads used *inside* env
+    calls, the caller's setting restored on return; None leaves torch's setting alone) and
+    context (a marl_render.GLContext to render on; None: the process's default), readback ("auto",
+    "gpu" or "host": how frames reach `device`, marl_render.BatchRenderer's readback), and the
+    accuracy knobs multisamples (MSAA samples of the agents' views, colour only), supersample
+    (k x the resolution, box-filtered down), exact_tiles (the agents' views bit-identical in any
+    world slot and at any batch size, at a cost in render time: docs/levels.md) and
+    physics_substeps (planar physics substeps per step; None: the task's own; coarser than the
+    no-tunnelling bound is refused), and
+    compile_physics (torch.compile the task's physics kernel where it has one (cartpole):
+    within 1e-12 of the default path, faster at small batches; seconds to compile at construction;
+    a RuntimeWarning and the default path where compiling fails), lidar (rays of the "lidar"
+    observation, 0: none) and lidar_range (m it is divided by; None: the arena's diagonal),
+    enforce_action_mask (refuse forbidden actions: envs/masking.py), and appearance (None: off;
+    "train", "heldout" or a marl_render.Appearance: each world's light, sky, floor and wall colours
+    and patterns, object colour jitter and camera jitter, drawn at every reset of the world from its
+    appearance_ids, see docs/appearance.md), levels (None: resets draw from the env's generator; else
+    the levels the worlds play, each reset a pure function of its level id: envs/levels.py).
+    """
 
     num_worlds: int = 1
     num_agents: int | None = None
@@ -82,6 +111,112 @@ class EnvOptions:
 
 
 OPTION_NAMES = frozenset(field.name for field in dataclasses.fields(EnvOptions))
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """EnvOptions resolved for one task on this machine (``resolve``): every option checked, the task's
+    defaults filled in, the GL context chosen, the seed drawn where none was given. The driver
+    publishes those named in PUBLISHED as its attributes; the rest serve its construction."""
+
+    num_worlds: int
+    num_agents: int
+    device: torch.device
+    readback: str
+    context: object  # the marl_render.GLContext the env renders on
+    resolution: tuple  # (H, W)
+    max_steps: int
+    continuous: bool
+    state_obs: bool
+    depth: bool
+    grayscale: bool
+    pixel_channels: int  # 1 with grayscale, else 3
+    lidar_rays: int
+    lidar_range: float | None
+    enforce_action_mask: bool
+    agent_ids: bool
+    autoreset: object  # False, "next_step" or "same_step"
+    torch_threads: int | None
+    seed: int
+    shadows: object  # None or a marl_render.Shadows
+    appearance: object  # None or a marl_render.Appearance
+    levels: object  # None or a level sampler (envs/levels.py)
+    effects: tuple  # the renderer's effects
+    multisamples: int
+    supersample: int
+    compile_physics: bool
+    exact_tiles: bool
+    impostors: object  # "auto", True or False (marl_render/render/impostors.py)
+    physics_substeps: int | None  # checked by physics_substeps() once the scenario is built
+
+
+PUBLISHED = ("num_worlds", "num_agents", "device", "readback", "context", "resolution", "max_steps", "continuous",
+             "state_obs", "depth", "grayscale", "pixel_channels", "lidar_rays", "lidar_range", "enforce_action_mask",
+             "agent_ids", "autoreset", "torch_threads", "seed", "shadows", "appearance", "levels")
+
+
+def resolve(options: EnvOptions, scenario, params) -> Settings:
+    """The Settings of `options` for the Scenario subclass `scenario` with `params`, checked in this
+    order; finally the batch is checked against the machine's memory (views and pixels, before the
+    scenario allocates anything) and the context against a fork (ForkedContextError now, not a torch
+    deadlock later)."""
+    num_worlds = positive_int("num_worlds", options.num_worlds)
+    agents = num_agents(scenario.num_agents_for(params, options.num_agents), scenario)
+    context = options.context
+    if context is not None and not isinstance(context, mr.GLContext):
+        raise TypeError(f"context must be a marl_render.GLContext or None, got {describe(context)}")
+    env_device = device(options.device)
+    frames_readback = readback(options.readback)
+    if context is None:  # with a CUDA device, the first context opens the EGL device that is that device
+        cuda_index = None if env_device.type != "cuda" else (
+            torch.cuda.current_device() if env_device.index is None else env_device.index)
+        context = mr.backend.context_for_cuda(cuda_index)
+    context.check_usable()
+    gl_limit = context.info().max_framebuffer_size
+    hw = resolution(options.resolution, scenario, gl_limit)
+    steps = max_steps(options.max_steps, scenario)
+    continuous = flag("continuous", options.continuous)
+    state_obs = flag("state_obs", options.state_obs)
+    depth = flag("depth", options.depth)
+    grayscale = flag("grayscale", options.grayscale)
+    lidar_rays, lidar_range = lidar(options.lidar, options.lidar_range, scenario)
+    enforce_action_mask = flag("enforce_action_mask", options.enforce_action_mask)
+    agent_ids = flag("agent_ids", options.agent_ids)
+    if enforce_action_mask and continuous:
+        raise ValueError("enforce_action_mask applies to discrete actions (continuous=False), which have an "
+                         "action mask; got enforce_action_mask=True with continuous=True")
+    autoreset = autoreset_mode(options.autoreset)
+    torch_threads = None if options.torch_threads is None else thread_count("torch_threads", options.torch_threads)
+    given_seed = seed("seed", options.seed)
+    drawn_seed = int(torch.Generator().seed() % 2 ** 63) if given_seed is None else given_seed
+    scene_shadows = shadows(options.shadows, scenario.shadow_bounds)
+    effects = ("lighting", "depth") if depth else ("lighting",)
+    effects += ("shadows",) if scene_shadows else ()
+    looks = appearance(options.appearance)
+    levels = level_sets.as_sampler(options.levels)
+    if levels is not None and not scenario.has_levels():
+        raise ValueError(f"levels={describe(options.levels)} needs a task whose resets draw from "
+                         f"spawn_level(draws) (envs/levels.py); {scenario.__name__} implements only "
+                         f"spawn(generator): levels must be None for it")
+    effects += ("appearance",) if looks is not None else ()
+    if scene_shadows:  # an atlas GL cannot hold is named as such, not as a memory shortage
+        atlas_layout(num_worlds, scene_shadows.resolution, gl_limit)
+    # Views and pixels alone, before the scenario allocates anything; the driver checks the whole scene.
+    check_memory(mr.Scene(num_worlds=num_worlds, agents_per_world=agents, resolution=hw, effects=effects),
+                 num_worlds, agents, hw)
+    context.check_usable()  # in a forked child: ForkedContextError now, not a torch deadlock below
+    return Settings(
+        num_worlds=num_worlds, num_agents=agents, device=env_device, readback=frames_readback, context=context,
+        resolution=hw,
+        max_steps=steps, continuous=continuous, state_obs=state_obs, depth=depth, grayscale=grayscale,
+        pixel_channels=1 if grayscale else 3, lidar_rays=lidar_rays, lidar_range=lidar_range,
+        enforce_action_mask=enforce_action_mask, agent_ids=agent_ids, autoreset=autoreset,
+        torch_threads=torch_threads, seed=drawn_seed, shadows=scene_shadows, appearance=looks, levels=levels,
+        effects=effects, multisamples=multisamples(options.multisamples),
+        supersample=positive_int("supersample", options.supersample),
+        compile_physics=flag("compile_physics", options.compile_physics),
+        exact_tiles=flag("exact_tiles", options.exact_tiles), impostors=check_impostors(options.impostors),
+        physics_substeps=options.physics_substeps)
 
 
 def flag(name: str, value) -> bool:

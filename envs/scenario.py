@@ -48,13 +48,18 @@ class NoParams:
     """The parameters of a task that has no keywords of its own."""
 
 
-class Layout(NamedTuple):
+class BatchShape(NamedTuple):
     """The batch a scenario is built for (fixed for the env's lifetime)."""
 
     num_worlds: int
     num_agents: int
     continuous: bool
     device: torch.device
+
+
+# Its name until issue 40, kept for user code ("layout" also names the renderer's packed-buffer table,
+# marl_render/layout.py, and the frame's tiling, tiling.TileLayout).
+Layout = BatchShape
 
 
 class Step(NamedTuple):
@@ -129,9 +134,9 @@ class Scenario(abc.ABC):
     episode_end: tuple | None = None  # (min_steps, interval, probability) of its random end; None: from max_steps
     schelling: tuple = ()  # (cooperator bot, defector bot) a Schelling diagram plays (baselines/schelling.py)
 
-    def __init__(self, params, layout: Layout):
+    def __init__(self, params, batch: BatchShape):
         self.params = params
-        self.num_worlds, self.num_agents, self.continuous, self.device = layout
+        self.num_worlds, self.num_agents, self.continuous, self.device = batch
         self.teams: dict = {"agents": numbered("agent", self.num_agents)}
         self.num_actions: int | None = None
         self.action_meanings: tuple | None = None

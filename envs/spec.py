@@ -18,6 +18,15 @@ import dataclasses
 
 import torch
 
+# The observation keys an env can have, in the order obs dicts and specs list them.
+OBS_KEYS = ("pixels", "depth", "state", "lidar", "agent_id", "action_mask")
+DRIVER_INFO = ("step_count", "done_worlds", "autoreset_worlds", "final_obs", "level",
+               "final_level")  # info names the driver fills in
+# ... and those the gymnasium front ends fill in: the vector env's "final_info" and its mask "_" + key
+# of every key, and RecordEpisodeStatistics' "episode"
+GYMNASIUM_INFO = ("final_info", "episode")
+RESERVED_INFO = DRIVER_INFO + GYMNASIUM_INFO  # no task may name an info entry of its own so
+
 
 @dataclasses.dataclass(frozen=True)
 class ArraySpec:
@@ -72,7 +81,8 @@ class EnvSpec:
 
 
 def build(env) -> EnvSpec:
-    """The spec of a built driver (``BatchedEnv``)."""
+    """The spec of a built driver (``BatchedEnv``): the one place that decides its observation keys
+    (the driver's ``obs_keys`` are the spec's)."""
     H, Wpx = env.resolution
     observations = {"pixels": ArraySpec((H, Wpx, env.pixel_channels), torch.uint8, 0, 255)}
     if env.depth:

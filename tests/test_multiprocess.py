@@ -309,11 +309,14 @@ class _FakeEnv:
     """Just enough of a BatchedEnv for a worker's step: it logs its step and returns fixed outputs."""
 
     def __init__(self, log: list):
-        self.log, self._needs_reset = log, False
+        self.log, self.needs_reset = log, False
         self.alive, self.step_count = torch.ones(2, 1, dtype=torch.bool), torch.tensor([4, 5])
 
     def get_state(self):
         return {}
+
+    def episode_over(self):
+        return torch.zeros(2, dtype=torch.bool)
 
     def step(self, actions):
         self.log.append(f"step {actions.tolist()}")
@@ -331,8 +334,8 @@ def test_a_cuda_worker_waits_for_the_parents_event_before_it_writes_and_records_
     log = []
     layout = {"obs/pixels": ((1, 2, 2, 3), torch.uint8), "reward": ((1,), torch.float32),
               "terminated": ((1,), torch.bool), "truncated": ((1,), torch.bool), "state/alive": ((1,), torch.bool),
-              "state/step_count": ((), torch.int64), "info/step_count": ((), torch.int64),
-              "info/done_worlds": ((), torch.bool)}
+              "state/step_count": ((), torch.int64), "state/episode_over": ((), torch.bool),
+              "info/step_count": ((), torch.int64), "info/done_worlds": ((), torch.bool)}
 
     class Watched(torch.Tensor):  # logs every write into the worker's slice of an output
         def copy_(self, source, non_blocking=False):

@@ -41,7 +41,7 @@ def snapshot(env) -> dict:
         state.update({f"renderer/{group}/{k}": v for k, v in renderer.instance_state(group).items()})
     for key in ("camera_position", "camera_rotation", "fov_y", "near", "far", "world_origin"):
         state[f"renderer/{key}"] = getattr(renderer, key).clone()
-    state["needs_reset"] = torch.tensor(env._needs_reset)
+    state["needs_reset"] = torch.tensor(env.needs_reset)
     return state
 
 

@@ -432,15 +432,15 @@ class Sweeps:
         return out
 
     def spread_physics(self):
-        from marl_render.envs import Layout
+        from marl_render.envs import BatchShape
         from marl_render.envs.spread import Spread
 
         c = self.cfg
         W, T = c["physics_worlds"], c["spread_horizon"]  # worlds, steps (the horizon)
         started = time.perf_counter()
         # The task's public scenario, stepped without an env or a renderer; float64 bodies (bench only).
-        layout = Layout(num_worlds=W, num_agents=Spread.default_num_agents, continuous=False,
-                        device=torch.device("cpu"))
+        layout = BatchShape(num_worlds=W, num_agents=Spread.default_num_agents, continuous=False,
+                            device=torch.device("cpu"))
         template = Spread(Spread.Params(), layout)
         base = template.physics
         s = template.spawn(torch.Generator().manual_seed(self.args.seed))
