@@ -427,7 +427,7 @@ def test_a_spawn_worker_given_an_env_gets_the_clear_error():
 EXIT_SCRIPT = textwrap.dedent("""
     import atexit, sys
     def teardown():  # registered before marl_render is imported, so it runs after marl_render's exit hook
-        for module in ("marl_render.backend", "marl_render.renderer"):
+        for module in ("marl_render.render.backend", "marl_render.render.renderer"):
             sys.modules[module].os = None  # what the interpreter's teardown leaves once it clears module globals
         for owner in owners:
             owner.__del__()
