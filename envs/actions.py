@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from marl_render.validation import FLOAT_DTYPES, as_tensor, describe
+from marl_render.util.validation import FLOAT_DTYPES, as_tensor, describe
 
 from .spec import EnvSpec
 

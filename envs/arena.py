@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 import marl_render as mr
-from marl_render.validation import describe, positive_float, positive_int
+from marl_render.util.validation import describe, positive_float, positive_int
 
 from . import egomotion, planar, scenery, sight
 from .scenario import Scenario, Step, numbered

@@ -16,7 +16,7 @@ import dataclasses
 import functools
 from collections.abc import Mapping
 
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 
 from . import options as check
 from . import registry  # the module: registry.make_env reads this one's heldout_scenario

@@ -48,7 +48,7 @@ import math
 
 import torch
 
-from marl_render.validation import COUNT_LIMIT, positive_int, reward_weight
+from marl_render.util.validation import COUNT_LIMIT, positive_int, reward_weight
 
 from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop, Static, numbered

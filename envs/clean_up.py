@@ -54,7 +54,7 @@ from marl_render.envs import ArenaScenario, ArenaState, Prop, Static, numbered
 from marl_render.envs.roster import Bot, HeldOut
 from marl_render.envs.scenario import MAX_COUNT
 from marl_render.envs.scenery import heading, wrap_angle
-from marl_render.validation import COUNT_LIMIT, finite_float, positive_int
+from marl_render.util.validation import COUNT_LIMIT, finite_float, positive_int
 
 ARENA = 2.0  # half extent (m)
 AGENT_RADIUS = 0.15

@@ -49,7 +49,7 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.validation import COUNT_LIMIT, positive_int
+from marl_render.util.validation import COUNT_LIMIT, positive_int
 
 from . import egomotion, scenery
 from .arena import NOOP, ArenaScenario, ArenaState, Prop, numbered

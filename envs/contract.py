@@ -23,7 +23,7 @@ import math
 import numpy as np
 import torch
 
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 
 from . import state as explicit_state
 from .scenario import BatchShape, Scenario, VectorObs

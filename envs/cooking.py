@@ -43,7 +43,7 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.validation import COUNT_LIMIT, positive_int, reward_weight
+from marl_render.util.validation import COUNT_LIMIT, positive_int, reward_weight
 
 from . import planar, scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered

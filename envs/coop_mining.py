@@ -41,7 +41,7 @@ from marl_render.envs import ArenaScenario, ArenaState, Prop, numbered
 from marl_render.envs.roster import Bot, HeldOut
 from marl_render.envs.scenario import MAX_COUNT
 from marl_render.envs.scenery import cell_spawn, wrap_angle
-from marl_render.validation import COUNT_LIMIT, positive_int, reward_weight
+from marl_render.util.validation import COUNT_LIMIT, positive_int, reward_weight
 
 ARENA = 2.0  # half extent (m)
 SPAWN_GRID = 6

@@ -99,8 +99,8 @@ import threading
 
 import torch
 
-from marl_render.threads import limited_threads
-from marl_render.validation import describe, unpicklable
+from marl_render.util.threads import limited_threads
+from marl_render.util.validation import describe, unpicklable
 
 from . import episodes as episode_book
 from . import levels as level_sets

@@ -35,8 +35,8 @@ import math
 import numpy as np
 import torch
 
-from marl_render.keyed_random import derive_keys
-from marl_render.validation import describe
+from marl_render.util.keyed_random import derive_keys
+from marl_render.util.validation import describe
 
 from . import levels as level_sets
 

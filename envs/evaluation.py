@@ -30,7 +30,7 @@ import time
 
 import torch
 
-from marl_render import strict_json
+from marl_render.util import strict_json
 
 from . import masking
 from . import options as check

@@ -34,8 +34,8 @@ import threading
 
 import torch
 
-from marl_render.keyed_random import KeyedRandom, derive_keys
-from marl_render.validation import describe
+from marl_render.util.keyed_random import KeyedRandom, derive_keys
+from marl_render.util.validation import describe
 
 from . import levels as level_sets
 from . import masking

@@ -39,7 +39,7 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.validation import COUNT_LIMIT, FLOAT32_MAX, positive_int, reward_weight
+from marl_render.util.validation import COUNT_LIMIT, FLOAT32_MAX, positive_int, reward_weight
 
 from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered, wander

@@ -44,8 +44,8 @@ import numbers
 import numpy as np
 import torch
 
-from marl_render.keyed_random import KeyedRandom, derive_keys
-from marl_render.validation import describe
+from marl_render.util.keyed_random import KeyedRandom, derive_keys
+from marl_render.util.validation import describe
 
 TEST_START = 2 ** 40  # train ids lie in [0, TEST_START), test ids in [TEST_START, LEVEL_LIMIT)
 LEVEL_LIMIT = 2 ** 62

@@ -54,7 +54,7 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.validation import COUNT_LIMIT, describe, positive_int
+from marl_render.util.validation import COUNT_LIMIT, describe, positive_int
 
 from . import scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered

@@ -48,8 +48,8 @@ import numpy as np
 import torch
 import torch.multiprocessing
 
-from marl_render.keyed_random import derive_keys
-from marl_render.validation import describe, positive_int, unpicklable
+from marl_render.util.keyed_random import derive_keys
+from marl_render.util.validation import describe, positive_int, unpicklable
 
 from . import levels as level_sets
 from . import masking

@@ -19,9 +19,9 @@ import torch
 
 import marl_render as mr
 from marl_render.render.impostors import check_mode as check_impostors
-from marl_render.shadows import atlas_layout
-from marl_render.threads import thread_count
-from marl_render.validation import describe, positive_float, positive_int, resolution_hw, torch_device
+from marl_render.render.shadows import atlas_layout
+from marl_render.util.threads import thread_count
+from marl_render.util.validation import describe, positive_float, positive_int, resolution_hw, torch_device
 
 from . import levels as level_sets
 from .rendering import check_memory

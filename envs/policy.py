@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import torch
 
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 
 from .arena import NOOP
 from .masking import sample_allowed

@@ -50,7 +50,7 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.validation import reward_weight
+from marl_render.util.validation import reward_weight
 
 from . import egomotion, scenery
 from .arena import ArenaScenario, Prop, Static, numbered

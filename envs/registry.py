@@ -20,7 +20,7 @@ import importlib
 from gymnasium.envs.registration import register as register_gymnasium_id
 from gymnasium.envs.registration import registry as gymnasium_ids
 
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 
 from . import bots  # the tasks' declared bots and held-out scenarios (it reads env_class back: imported as a module)
 from .core import BatchedEnv

@@ -10,9 +10,9 @@ from __future__ import annotations
 import torch
 
 import marl_render as mr
-from marl_render import memory
-from marl_render.transforms import quat_from_yaw_pitch_roll, quat_multiply
-from marl_render.validation import resolution_hw
+from marl_render.render import memory
+from marl_render.util.transforms import quat_from_yaw_pitch_roll, quat_multiply
+from marl_render.util.validation import resolution_hw
 
 
 class EnvRenderer:

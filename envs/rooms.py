@@ -59,7 +59,7 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.validation import boolean, finite_float, reward_weight
+from marl_render.util.validation import boolean, finite_float, reward_weight
 
 from . import egomotion, planar, scenery
 from .arena import ArenaScenario, ArenaState, Prop, Static, numbered, wander

@@ -33,7 +33,7 @@ import math
 
 import torch
 
-from marl_render.validation import positive_int
+from marl_render.util.validation import positive_int
 
 from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop

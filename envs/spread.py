@@ -29,7 +29,7 @@ import math
 
 import torch
 
-from marl_render.validation import positive_int, reward_weight
+from marl_render.util.validation import positive_int, reward_weight
 
 from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered, wander

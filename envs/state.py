@@ -16,7 +16,7 @@ import dataclasses
 
 import torch
 
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 
 
 def fields(sim) -> dict:

@@ -56,7 +56,7 @@ import math
 
 import torch
 
-from marl_render.validation import positive_int, reward_weight
+from marl_render.util.validation import positive_int, reward_weight
 
 from . import egomotion, planar, scenery
 from .arena import NOOP, ArenaScenario, ArenaState, Prop, numbered, wander

@@ -16,7 +16,7 @@ import importlib
 import sys
 
 from marl_render.envs import Scenario, list_envs, register_env
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 
 
 def add_import_option(parser: argparse.ArgumentParser) -> None:

@@ -35,7 +35,7 @@ import math
 
 import torch
 
-from marl_render.validation import COUNT_LIMIT, finite_float, positive_float, positive_int, reward_weight
+from marl_render.util.validation import COUNT_LIMIT, finite_float, positive_float, positive_int, reward_weight
 
 from . import scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered

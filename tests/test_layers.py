@@ -50,10 +50,10 @@ def is_package(module: str) -> bool:
     return MODULES[module].name == "__init__.py"
 
 
-def imported_modules(module: str) -> set[str]:
-    """The package's modules that `module` imports (real names: old paths resolved)."""
+def imported_names(module: str) -> list[str]:
+    """The dotted names `module`'s imports spell (relative ones made absolute), as written."""
     package = module if is_package(module) else module.rpartition(".")[0]
-    found = set()
+    spelled = []
     for node in ast.walk(ast.parse(MODULES[module].read_text(), str(MODULES[module]))):
         if isinstance(node, ast.Import):
             names = [alias.name for alias in node.names]
@@ -67,12 +67,19 @@ def imported_modules(module: str) -> set[str]:
                      if aliases.resolve(f"{base}.{alias.name}") in MODULES] or [base]
         else:
             continue
-        for name in names:
-            real = aliases.resolve(name)
-            while real not in MODULES and "." in real:  # `import marl_render.envs.spread.Spread`-like paths
-                real = real.rpartition(".")[0]
-            if real in MODULES:
-                found.add(real)
+        spelled.extend(names)
+    return spelled
+
+
+def imported_modules(module: str) -> set[str]:
+    """The package's modules that `module` imports (real names: old paths resolved)."""
+    found = set()
+    for name in imported_names(module):
+        real = aliases.resolve(name)
+        while real not in MODULES and "." in real:  # `import marl_render.envs.spread.Spread`-like paths
+            real = real.rpartition(".")[0]
+        if real in MODULES:
+            found.add(real)
     return found
 
 
@@ -89,6 +96,14 @@ def upward_imports() -> list[str]:
 def test_no_module_imports_a_higher_layer():
     upward = sorted(upward_imports())
     assert upward == [], "a lower layer imports a higher one (docs/architecture.md: where each change goes)"
+
+
+def test_the_package_imports_its_modules_by_their_real_paths():
+    """Old paths (marl_render/aliases.py) are for users' code, pickles and docs: the package's own
+    imports name the modules where they live, so that reading an import tells where to look."""
+    through_alias = sorted(f"{module} imports {name}" for module in MODULES for name in imported_names(module)
+                           if aliases.resolve(name) != name)
+    assert through_alias == []
 
 
 def test_every_module_is_in_a_layer():

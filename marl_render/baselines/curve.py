@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from marl_render.extras import needs_extra
+from marl_render.util.extras import needs_extra
 
 
 def pyplot():

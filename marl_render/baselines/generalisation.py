@@ -42,9 +42,9 @@ import time
 import numpy as np
 import torch
 
-from marl_render import strict_json
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
 from marl_render.populations import stats
+from marl_render.util import strict_json
 
 from . import published
 from .settings import task_hyperparameters

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from marl_render import strict_json
+from marl_render.util import strict_json
 
 ENVIRONMENT = "marl_render"
 ALGORITHMS = {"pixels": "mappo_pixels", "state": "mappo_state"}

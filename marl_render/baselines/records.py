@@ -12,8 +12,8 @@ import tempfile
 import numpy as np
 import torch
 
-from marl_render import strict_json
 from marl_render.populations import stats
+from marl_render.util import strict_json
 
 from . import reproducible
 

@@ -75,14 +75,14 @@ import time
 
 import torch
 
-from marl_render import strict_json
 from marl_render.envs import list_envs, make_env
 from marl_render.envs.evaluation import SEALED_SEEDS, evaluate, heuristic_policy, random_policy
 from marl_render.envs.levels import levels_option
 from marl_render.envs.task_imports import add_import_option, load_user_tasks
-from marl_render.extras import command_needs_extra
 from marl_render.populations.networks import ENCODERS, INITS, PRECISIONS
-from marl_render.threads import MAX_THREADS
+from marl_render.util import strict_json
+from marl_render.util.extras import command_needs_extra
+from marl_render.util.threads import MAX_THREADS
 
 from . import reproducible
 from .curve import plot_curve

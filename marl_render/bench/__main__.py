@@ -9,7 +9,7 @@ import importlib
 import json
 import sys
 
-from marl_render.extras import MissingExtraError, needs_extra
+from marl_render.util.extras import MissingExtraError, needs_extra
 
 # subcommand -> (module, one-line help). Each module is imported to list its options.
 SUBCOMMANDS = {

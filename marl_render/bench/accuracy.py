@@ -184,7 +184,7 @@ def render_point(state: SpreadState, cfg: dict, *, resolution: int, effects, aa:
                  offset=None, float32=False, timed=True):
     """(image [W, A, H, Wpx, 3] uint8, seconds per view or None, skip reason or None)."""
     import marl_render as mr
-    from marl_render import backend
+    from marl_render.render import backend
 
     supersample, multisamples = AA_MODES[aa]
     if multisamples in _REFUSED_SAMPLES:
@@ -357,9 +357,9 @@ class Sweeps:
         env's bounds (the arena). Every frame moves the bodies, so the atlas is redrawn each
         time; cost = the fastest of cfg["rounds"] passes over the settings."""
         import marl_render as mr
-        from marl_render import backend
         from marl_render.envs import scenery
         from marl_render.envs.spread import Spread
+        from marl_render.render import backend
 
         c, state = self.cfg, self.state
         bounds = scenery.arena_shadow_bounds(Spread.arena_half_extent)

@@ -117,7 +117,7 @@ def measure(name: str, resolution: int, worlds: int, steps: int) -> dict:
 def policy_agreement(run_folder: str, worlds: int, steps: int) -> dict:
     """Share of the actor's greedy decisions that are the same from impostor frames as from mesh frames."""
     from marl_render.envs import make_env
-    from marl_render.policies import joint_actions, load_policy
+    from marl_render.populations.policies import joint_actions, load_policy
 
     on_meshes, on_impostors = load_policy(run_folder), load_policy(run_folder)
     kwargs = dict(on_meshes.env_kwargs, num_worlds=worlds, seed=0, autoreset="next_step")

@@ -152,7 +152,7 @@ def settled_rss_mb() -> float:
 
 
 def machine() -> dict:
-    from marl_render import backend
+    from marl_render.render import backend
 
     info = backend.gl_info()
     return {"gl_renderer": info.renderer, "gl_version": info.gl_version, "python": platform.python_version(),

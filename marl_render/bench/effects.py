@@ -180,7 +180,7 @@ def _appearance(args) -> dict:
     wall patterns ("no_patterns"), in alternating blocks of frames: per variant views/s, wall and CPU
     ms per frame, and the median of its blocks' ratios to "off"."""
     import marl_render as mr
-    from marl_render.threads import single_threaded
+    from marl_render.util.threads import single_threaded
 
     variants = {"off": None, "on": mr.Appearance(), "no_patterns": mr.Appearance(textures=False)}
     ids = torch.arange(args.worlds, dtype=torch.int64)
@@ -223,8 +223,8 @@ def _appearance(args) -> dict:
 def _skinning(args) -> dict:
     """Skinned against rigid agents (the same character mesh), alternating blocks of frames."""
     import marl_render as mr
-    from marl_render.threads import single_threaded
-    from marl_render.transforms import normalize_quat
+    from marl_render.util.threads import single_threaded
+    from marl_render.util.transforms import normalize_quat
 
     character = mr.skinned_character()
     renderers, motions = {}, {}

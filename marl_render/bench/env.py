@@ -32,8 +32,9 @@ import time
 import numpy as np
 import torch
 
-from ..extras import require
-from ..renderer import BatchRenderer
+from marl_render.render.renderer import BatchRenderer
+from marl_render.util.extras import require
+
 from .common import env_name_or_all_argument, machine, positive_int_argument, progress
 
 APIS = ("core", "vec", "sb3", "jax")

@@ -22,7 +22,8 @@ import time
 
 import torch
 
-from ..threads import single_threaded
+from marl_render.util.threads import single_threaded
+
 from .common import (
     env_spec_argument,
     machine,

@@ -44,9 +44,9 @@ import moderngl
 import numpy as np
 import torch
 
-from ..meshes import MeshData
-from ..scene import Scene
-from ..skinning import SkinnedMesh
+from marl_render.assets.meshes import MeshData
+from marl_render.assets.skinning import SkinnedMesh
+from marl_render.render.scene import Scene
 
 TILES_PER_FRAMEBUFFER = 256
 FLOATS_PER_INSTANCE = 16  # position xyz, active, rotation wxyz, scale xyz, owner, colour rgba

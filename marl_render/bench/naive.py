@@ -14,12 +14,12 @@ import math
 import numpy as np
 import torch
 
-from marl_render import backend
-from marl_render.meshes import MeshData, to_panda_geom
-from marl_render.renderer import Frame
-from marl_render.scene import Scene
-from marl_render.tiling import plan_layout
-from marl_render.transforms import look_at_quat, normalize_quat
+from marl_render.assets.meshes import MeshData, to_panda_geom
+from marl_render.render import backend
+from marl_render.render.renderer import Frame
+from marl_render.render.scene import Scene
+from marl_render.render.tiling import plan_layout
+from marl_render.util.transforms import look_at_quat, normalize_quat
 
 
 class NaiveRenderer:

@@ -24,7 +24,7 @@ from marl_render.envs.arena import wander
 from marl_render.envs.bots import POPULATIONS, REGISTERED_BOTS, bot_names, has_bots, make_bot, populations, roster
 from marl_render.envs.policy import Perturbed
 from marl_render.envs.roster import Bot
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 
 # The run-time half lives with the tasks' declarations (envs/bots.py), so that make_env(heldout=...)
 # needs no layer above the envs; these names are this module's too, as they always were.

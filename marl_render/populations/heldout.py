@@ -27,7 +27,7 @@ from marl_render.envs.bots import (
     scenarios,
 )
 from marl_render.envs.registry import list_envs, make_env
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 
 # The run-time half lives with the tasks' declarations (envs/bots.py), so that make_env(heldout=...)
 # needs no layer above the envs; these names are this module's too, as they always were.

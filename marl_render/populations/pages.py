@@ -10,8 +10,8 @@ import sys
 
 import numpy as np
 
-from marl_render import strict_json
 from marl_render.envs import env_class
+from marl_render.util import strict_json
 
 from . import scores
 from .bots import POPULATIONS

@@ -34,7 +34,7 @@ from PIL import Image
 
 from marl_render.envs import Scenario, env_class, make_env
 from marl_render.envs.evaluation import random_policy
-from marl_render.validation import positive_int
+from marl_render.util.validation import positive_int
 from marl_render.wrappers.window import window_unavailable
 
 # Keys by the meaning of the action they take, where the task's action has that meaning.

@@ -40,7 +40,7 @@ from marl_render.envs.policy import (
     heuristic_policy,
     joint_actions,
 )
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 
 from .networks import Actor
 

@@ -14,9 +14,9 @@ import os
 import numpy as np
 import torch
 
-from marl_render import strict_json
 from marl_render.envs import Population, env_class, make_env
 from marl_render.envs.episodes import EpisodeOutcomes
+from marl_render.util import strict_json
 
 from .bots import POPULATIONS, bot_names, make_bot
 from .elo import elo_ratings

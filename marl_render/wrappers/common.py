@@ -28,7 +28,7 @@ from marl_render.envs.core import BatchedEnv
 from marl_render.envs.focal import FocalEnv
 from marl_render.envs.levels import require_levels
 from marl_render.envs.options import flag as check_flag
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 
 CORES = (BatchedEnv, FocalEnv)  # the drivers a front end wraps (TorchRL's also takes a MultiProcessEnv)
 

@@ -77,7 +77,7 @@ from gymnasium.vector.utils import batch_space
 
 from marl_render.envs.levels import check_level_ids
 from marl_render.envs.registry import env_class, make_env, split_kwargs
-from marl_render.validation import describe, positive_int, unpicklable
+from marl_render.util.validation import describe, positive_int, unpicklable
 from marl_render.wrappers import spaces as spaces_from_spec
 from marl_render.wrappers.common import (
     check_core,

@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from marl_render.envs.registry import make_env
-from marl_render.extras import needs_extra
+from marl_render.util.extras import needs_extra
 from marl_render.wrappers.common import check_core, closed_on_error, refuse_num_processes
 
 with needs_extra("jax", "make_jax_env"):

@@ -93,7 +93,7 @@ from pettingzoo.utils.wrappers import OrderEnforcingWrapper
 
 from marl_render.envs.levels import check_level_ids
 from marl_render.envs.registry import make_env
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 from marl_render.wrappers import spaces as spaces_from_spec
 from marl_render.wrappers.common import (
     check_core,

@@ -23,7 +23,7 @@ import gymnasium
 import numpy as np
 from gymnasium.vector import VectorObservationWrapper
 
-from marl_render.validation import describe
+from marl_render.util.validation import describe
 from marl_render.wrappers.common import closed_on_error
 from marl_render.wrappers.gymnasium import make_vec_env
 

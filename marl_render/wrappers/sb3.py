@@ -38,8 +38,8 @@ import torch
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
-from marl_render.extras import needs_extra
-from marl_render.validation import describe, unpicklable
+from marl_render.util.extras import needs_extra
+from marl_render.util.validation import describe, unpicklable
 
 from .common import closed_on_error
 from .gymnasium import MarlRenderVectorEnv, make_vec_env

@@ -91,7 +91,7 @@ from torchrl.envs.utils import MarlGroupMapType, check_marl_grouping
 from marl_render.envs.levels import check_level_ids
 from marl_render.envs.multiprocess import MultiProcessEnv
 from marl_render.envs.registry import make_env
-from marl_render.validation import describe, unpicklable
+from marl_render.util.validation import describe, unpicklable
 from marl_render.wrappers.common import CORES, check_core, closed_on_error, require_levels, reset_core
 
 GROUP_MAPS = ("team", "one_group", "per_agent")
