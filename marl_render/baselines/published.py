@@ -74,7 +74,7 @@ def _entry(env: str, *, state_resolution: int = 8, torch_init: tuple[str, ...] =
 
 # Registered tasks with no published runs yet (no step budget chosen, nothing trained): they have no entry in
 # RUNS, and the report shows them as "pending" rows. A task leaves this tuple when its runs are committed.
-PENDING = ("clean_up", "coop_mining", "matrix")
+PENDING = ("clean_up", "cooking", "coop_mining", "matrix", "territory")
 PENDING_CELL = "pending: no trained runs yet"
 
 RUNS: dict[str, dict[str, Published]] = {
