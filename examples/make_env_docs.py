@@ -474,6 +474,10 @@ def schelling_section(name: str) -> list:
             for label, key in ((f"cooperator (`{result['bots'][0]}`)", "cooperator"),
                                (f"defector (`{result['bots'][1]}`)", "defector"))]
     yes = {True: "yes", False: "no"}
+    A, cooperator, defector = result["num_agents"], result["cooperator"], result["defector"]
+    # The group's mean return per agent with k cooperators: k of them earn cooperator[k - 1], A - k defector[k].
+    group = [(k * (cooperator[k - 1] if k else 0) + (A - k) * (defector[k] if k < A else 0)) / A for k in range(A + 1)]
+    best = max(range(A + 1), key=group.__getitem__)
     return (["", "### Schelling diagram", "",
              f"![{name}: Schelling diagram](../schelling/{name}.png)", "",
              f"Mean return per episode of a cooperator and of a defector (the task's bots `{result['bots'][0]}` and "
@@ -484,7 +488,8 @@ def schelling_section(name: str) -> list:
             + ["", f"Defecting pays the individual at every count (defector > cooperator): "
                    f"**{yes[result['defecting_pays_the_individual']]}**. Cooperating pays the group (all cooperating "
                    f"earn each {result['cooperator'][-1]:.3g}, all defecting {result['defector'][0]:.3g}): "
-                   f"**{yes[result['cooperating_pays_the_group']]}**."])
+                   f"**{yes[result['cooperating_pays_the_group']]}**. The group's mean return per agent with k = 0 .. "
+                   f"{A} cooperators: {', '.join(f'{g:.3g}' for g in group)} (highest at k = {best})."])
 
 
 def speed_section(name: str) -> list:
