@@ -148,7 +148,7 @@ class CaptureFlag(ArenaScenario):
                        "scores, -capture_reward per capture of the other team; optional shaping by the progress "
                        "towards the next capture",
                 episode_end="with captures_to_win > 0, every agent terminates once a team has that many captures; "
-                            "truncated at max_steps",
+                            "truncated at the episode's end (random by default: mixed motive)",
                 continuous=egomotion.CONTINUOUS_MEANINGS,
                 info={"captures_red": "captures red scored in this step",
                       "captures_blue": "captures blue scored in this step",

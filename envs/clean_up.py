@@ -50,8 +50,8 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.envs import ArenaScenario, ArenaState, Prop, Static, numbered
-from marl_render.envs.roster import Bot, HeldOut
+from marl_render.envs import ArenaScenario, ArenaState, Prop, Static, egomotion, numbered
+from marl_render.envs.roster import Bot, Card, HeldOut
 from marl_render.envs.scenario import MAX_COUNT
 from marl_render.envs.scenery import heading, wrap_angle
 from marl_render.util.validation import COUNT_LIMIT, finite_float, positive_int
@@ -140,7 +140,15 @@ def zapper(env) -> torch.Tensor:
     return env.scenario.scripted(env.sim, torch.zeros_like(env.alive), zap=True)
 
 
-CARD = """\
+def cooperator(env) -> torch.Tensor:
+    """Every slot cleans while the river is dirty (its dirt fraction at least half of dirt_threshold,
+    where apples regrow at half the rate) and eats the nearest apple otherwise; never zaps."""
+    scenario = env.scenario
+    dirty = env.sim.dirt.to(torch.float32).mean(-1) >= scenario.params.dirt_threshold / 2  # [W]
+    return scenario.scripted(env.sim, dirty[:, None].expand_as(env.alive))
+
+
+CARD_TEXT = """\
 **Clean up** is a public-good dilemma after Melting Pot's substrate of the same name. A river runs
 along one wall of the arena and an orchard along the opposite one. Dirt piles up in the river cell
 by cell. Apples regrow in the orchard at a rate that falls linearly with the river's dirt fraction
@@ -180,12 +188,28 @@ class CleanUp(ArenaScenario):
     team_colors = {"agents": AGENT_COLOR}
     shown = "shown"
     mixed_motive = True
-    card = CARD
+    card = Card(text=CARD_TEXT,
+                reward="per agent: +1 per apple it eats; cleaning the river pays nothing but apples regrow only "
+                       "while its dirt fraction is below dirt_threshold (0.4); zapping tags another agent out for "
+                       "tag_timeout (25) steps",
+                episode_end="never terminates; truncated at the episode's end (random by default: mixed motive)",
+                continuous=egomotion.CONTINUOUS_MEANINGS + (
+                    "zap (> 0.5: tag the nearest agent in play within 1.5 m and 45 degrees ahead)",
+                    "clean (> 0.5: remove the dirt of the river cells up to 1 m ahead, 0.25 m to each side)"),
+                info={"eaten": "apples eaten in this step",
+                      "cleaned": "dirty river cells cleaned in this step",
+                      "dirt_fraction": "fraction of the river's 16 cells dirty after the step",
+                      "apples_left": "apples present after the step",
+                      "tags": "agents zapped out in this step"})
     bots = {"cleaner": Bot("cleans the river and never eats", script=cleaner),
             "free_rider": Bot("eats the nearest apple and never cleans", script=free_rider),
             "zapper": Bot("a free rider that zaps whoever is in front of it", script=zapper),
             "lazy0.5": Bot.lazy(0.5),
-            "noisy0.1": Bot.noisy(0.1, population="train")}
+            "noisy0.1": Bot.noisy(0.1, population="train"),
+            # Last, so that the bots above keep their places (and draws) in the test population.
+            "cooperator": Bot("cleans while the river is dirty (at least half the threshold), eats otherwise",
+                              script=cooperator)}
+    schelling = ("cooperator", "free_rider")  # baselines/schelling.py: the dilemma's two modes
     heldout = (
         HeldOut("resident_with_free_riders", "five focal agents with two that eat and never clean", num_agents=7,
                 focal=tuple(numbered("agent", 5)), bots_by_role={"agents": ("free_rider",)}),

@@ -151,7 +151,7 @@ class Commons(ArenaScenario):
     )
     card = Card(reward="per agent: +1 per apple it collects; apples regrow only next to present ones; zapping tags "
                        "another agent out for tag_timeout (25) steps",
-                episode_end="never terminates; truncated at max_steps",
+                episode_end="never terminates; truncated at the episode's end (random by default: mixed motive)",
                 continuous=egomotion.CONTINUOUS_MEANINGS + ("zap (> 0.5: tag the nearest agent in view within 1.5 m)",),
                 info={"collected": "items (forage) or apples (commons) collected in this step",
                       "apples_left": "apples present after the step",

@@ -45,9 +45,9 @@ import torch
 import marl_render as mr
 from marl_render.util.validation import COUNT_LIMIT, positive_int, reward_weight
 
-from . import planar, scenery
+from . import egomotion, planar, scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 from .scenario import MAX_COUNT
 
 GW, GH = 9, 5  # grid columns, rows (row 0 is the far side, +y)
@@ -517,11 +517,19 @@ class Cooking(ArenaScenario):
         return torch.where(facing_goal, INTERACT, action)
 
     # ------------------------------------------------------------------ declarations
-    card = (
-        "Collaborative cooking after Overcooked: ingredients go from dispensers into a pot, cook, are "
-        "plated on a dish and delivered; only a soup of the current recipe pays the team. Five classic "
-        "kitchens and procedural ones; the recipe may be shown to one agent only (`recipe_view=\"one\"`), "
-        "so that the other must learn it from its partner.")
+    card = Card(
+        text="Collaborative cooking after Overcooked: ingredients go from dispensers into a pot, cook, are "
+             "plated on a dish and delivered; only a soup of the current recipe pays the team. Five classic "
+             "kitchens and procedural ones; the recipe may be shown to one agent only (`recipe_view=\"one\"`), "
+             "so that the other must learn it from its partner.",
+        reward="shared: delivery_reward (20) to every agent per soup of the episode's recipe delivered; any other "
+               "soup pays nothing",
+        episode_end="never terminates; truncated at max_steps",
+        continuous=egomotion.CONTINUOUS_MEANINGS + (
+            "interact (> 0.5: take, put, cook, plate or deliver at the counter 0.45 m ahead)",),
+        info={"delivered": "soups of the recipe delivered in this step",
+              "wrong": "other soups delivered in this step",
+              "served": "soups of the recipe delivered this episode"})
     bots = {"fetcher": Bot(fetcher.__doc__, script=fetcher), "plater": Bot(plater.__doc__, script=plater),
             "slow": Bot.lazy(0.5), "noisy0.1": Bot.noisy(0.1, population="train")}
     heldout = (

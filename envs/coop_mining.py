@@ -37,8 +37,8 @@ import math
 import torch
 
 import marl_render as mr
-from marl_render.envs import ArenaScenario, ArenaState, Prop, numbered
-from marl_render.envs.roster import Bot, HeldOut
+from marl_render.envs import ArenaScenario, ArenaState, Prop, egomotion, numbered
+from marl_render.envs.roster import Bot, Card, HeldOut
 from marl_render.envs.scenario import MAX_COUNT
 from marl_render.envs.scenery import cell_spawn, wrap_angle
 from marl_render.util.validation import COUNT_LIMIT, positive_int, reward_weight
@@ -93,7 +93,7 @@ def gold_seeker(env) -> torch.Tensor:
     return s.mine_towards(state, s.nearest(state, s.is_gold))
 
 
-CARD = """\
+CARD_TEXT = """\
 **Cooperative mining** is a stag hunt in space, after Melting Pot's coop_mining. Rocks of ore lie
 about the arena: rust-red iron and yellow gold. An agent mines the rock in front of it with the
 `mine` action.
@@ -132,7 +132,17 @@ class CoopMining(ArenaScenario):
     info_keys = {"iron": torch.int64, "gold": torch.int64, "gold_lost": torch.int64, "ores_left": torch.int64}
     arena_half_extent = (ARENA, ARENA)
     mixed_motive = True
-    card = CARD
+    card = Card(text=CARD_TEXT,
+                reward="per agent: +1 per iron ore it mines alone; gold_reward (4) to each of exactly two agents "
+                       "whose strikes on one gold ore fall within gold_window (3) steps, nothing to one alone, "
+                       "nothing when three strike at once",
+                episode_end="never terminates; truncated at the episode's end (random by default: mixed motive)",
+                continuous=egomotion.CONTINUOUS_MEANINGS + (
+                    "mine (> 0.5: strike the nearest present ore within 0.45 m and 45 degrees ahead)",),
+                info={"iron": "iron ores mined in this step",
+                      "gold": "gold ores mined by a pair in this step",
+                      "gold_lost": "gold ores crumbled by three or more strikers in this step",
+                      "ores_left": "ores present after the step"})
     bots = {"iron_miner": Bot("mines the nearest iron, never gold", script=iron_miner),
             "gold_seeker": Bot("goes to the nearest gold and strikes it until a partner comes", script=gold_seeker),
             "lazy0.5": Bot.lazy(0.5),

@@ -9,7 +9,9 @@ For each task it plays `episodes` episodes at once (one per world, no autoreset,
 default length) with the scripted heuristic (``Scenario.heuristic``, which reads the state)
 and with uniformly random valid actions (sampled among the actions the action mask allows),
 and reports the mean and standard deviation of the episode return. The return of an episode
-is the sum of the rewards of the evaluated agents, averaged over those agents. In tasks with
+is the sum of the rewards of the evaluated agents, averaged over those agents. A mixed-motive
+task (``Scenario.mixed_motive``) adds its episodes' mean social outcomes over all agents
+(``efficiency_mean``, ``equality_mean``, ``sustainability_mean``, ``peace_mean``: envs/episodes.py). In tasks with
 opponents (``Scenario.opponents``: tag's prey, push's and capture_flag's second team) only the
 other agents are evaluated, and the opponents play random actions in both rows: the rows then
 say how well a team does against random opponents.
@@ -34,6 +36,7 @@ from marl_render.util import strict_json
 
 from . import masking
 from . import options as check
+from .episodes import EpisodeOutcomes
 from .levels import levels_option
 from .policy import as_policy, heuristic_policy, joint_actions
 from .registry import env_class, list_envs, make_env
@@ -79,6 +82,7 @@ def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution
         player.reset(env, torch.ones(episodes, dtype=torch.bool))
         episode_return = torch.zeros(episodes, env.num_agents, dtype=torch.float64)
         running = torch.ones(episodes, dtype=torch.bool)
+        outcomes = EpisodeOutcomes(env)  # mixed-motive tasks: efficiency, equality, sustainability, peace
         steps = 0
         while bool(running.any()) and steps < env.max_steps:
             actions = joint_actions(player, env, obs)
@@ -86,13 +90,15 @@ def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution
                 actions = torch.where(_expand_like(opponents, actions), random_policy(env, obs, generator), actions)
             obs, reward, terminated, truncated, info = env.step(actions)
             episode_return += reward.to(torch.float64) * running[:, None]
+            outcomes.add(info, running)
             running &= ~info["done_worlds"]
             steps += 1
         per_world = (episode_return * evaluated).sum(-1) / evaluated.sum()
         return {"mean": float(per_world.mean()), "std": float(per_world.std(unbiased=False)),
                 "min": float(per_world.min()), "max": float(per_world.max()), "episodes": episodes,
                 "per_episode": per_world.tolist(),
-                "evaluated_agents": [n for n, e in zip(env.agent_names, evaluated.tolist(), strict=True) if e]}
+                "evaluated_agents": [n for n, e in zip(env.agent_names, evaluated.tolist(), strict=True) if e],
+                **outcomes.fields()}
     finally:
         env.close()
 

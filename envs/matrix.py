@@ -56,9 +56,9 @@ import torch
 import marl_render as mr
 from marl_render.util.validation import COUNT_LIMIT, describe, positive_int
 
-from . import scenery
+from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 from .scenario import MAX_COUNT, VectorObs
 
 ARENA = 2.5
@@ -202,11 +202,18 @@ class Matrix(ArenaScenario):
                 num_agents=2, focal=("agent_0",), bots_by_role={"agents": ("reciprocator",)},
                 params={"repeated": True}),
     )
-    card = ("Collect resources of K kinds into an inventory, which is a mixed strategy, then beam another "
-            "agent: both are paid by a matrix game of the two inventories (prisoner's dilemma by default; "
-            "stag hunt, chicken, pure coordination, battle of the sexes, rock-paper-scissors or your own "
-            "payoff) and come back with empty inventories. Each agent observes its inventory beside the "
-            "pixels (obs key \"inventory\"). After Melting Pot's \"in the matrix\" substrates.")
+    card = Card(text="Collect resources of K kinds into an inventory, which is a mixed strategy, then beam another "
+                     "agent: both are paid by a matrix game of the two inventories (prisoner's dilemma by default; "
+                     "stag hunt, chicken, pure coordination, battle of the sexes, rock-paper-scissors or your own "
+                     "payoff) and come back with empty inventories. Each agent observes its inventory beside the "
+                     "pixels (obs key \"inventory\"). After Melting Pot's \"in the matrix\" substrates.",
+                reward="per agent, at an interaction: p^T A q for the beaming (row) agent, p^T B q for its partner "
+                       "(p, q: the two inventories' proportions; A, B: the game's payoff matrices); 0 otherwise",
+                episode_end="never terminates; truncated at the episode's end (random by default: mixed motive)",
+                continuous=egomotion.CONTINUOUS_MEANINGS + (
+                    "interact (> 0.5: beam the nearest agent holding resources within 1.2 m and 30 degrees ahead)",),
+                info={"collected": "resources collected in this step",
+                      "interactions": "pairs that interacted in this step"})
 
     @classmethod
     def num_agents_for(cls, params, num_agents):

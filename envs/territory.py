@@ -37,10 +37,10 @@ import torch
 
 from marl_render.util.validation import COUNT_LIMIT, finite_float, positive_float, positive_int, reward_weight
 
-from . import scenery
+from . import egomotion, scenery
 from .arena import ArenaScenario, ArenaState, Prop, numbered
 from .rooms import ARENA, DOOR_RANGE, GRID, TABLES, WALL_COLOR, WALL_HEIGHT, Rooms, outer_walls, room_floors, room_of
-from .roster import Bot, HeldOut
+from .roster import Bot, Card, HeldOut
 
 CELLS_PER_SIDE = 12
 CELL = 2 * ARENA / CELLS_PER_SIDE
@@ -315,11 +315,21 @@ class Territory(ArenaScenario):
         action = torch.where(zap, ZAP, torch.where(paint, PAINT, move))
         return torch.where(playing, action, 0)
 
-    card = (
-        "Territory after Melting Pot's territory__rooms: agents claim floor cells with a painting beam and "
-        "are paid a little each step for every cell they hold; claims can be overpainted, and an agent "
-        "zapped twice is out for the rest of the episode. A mixed-motive task: painting pays each agent, "
-        "zapping removes a rival's income and its own risk.")
+    card = Card(
+        text="Territory after Melting Pot's territory__rooms: agents claim floor cells with a painting beam and "
+             "are paid a little each step for every cell they hold; claims can be overpainted, and an agent "
+             "zapped twice is out for the rest of the episode. A mixed-motive task: painting pays each agent, "
+             "zapping removes a rival's income and its own risk.",
+        reward="per agent in play: claim_reward (0.01) per floor cell it holds after the step",
+        episode_end="an agent terminates when zapped twice (removed); truncated at the episode's end (random by "
+                    "default: mixed motive)",
+        continuous=egomotion.CONTINUOUS_MEANINGS + (
+            "paint (> 0.5: claim the cell 0.45 m ahead)",
+            "zap (> 0.5: hit the nearest agent in play within zap_range and 30 degrees ahead, in sight)"),
+        info={"painted": "cells that changed owner in this step",
+              "claimed": "cells held by anyone after the step",
+              "zaps": "hits landed in this step",
+              "removed": "agents removed (zapped twice) so far this episode"})
     bots = {"painter": Bot(painter.__doc__, script=painter), "zapper": Bot(zapper.__doc__, script=zapper),
             "defender": Bot(defender.__doc__, script=defender), "noisy0.2": Bot.noisy(0.2, population="train")}
     heldout = (

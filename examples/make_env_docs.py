@@ -1,7 +1,7 @@
 """Write the task pages of the docs from the tasks themselves: docs/envs.md (the index) and one
 card per task, docs/envs/NAME.md, with its picture NAME.png and animation NAME.gif.
 
-    python examples/make_env_docs.py [--out docs] [--seed S] [--no-animations]
+    python examples/make_env_docs.py [--out docs] [--seed S] [--no-animations | --animate TASK ...]
 
 For every env in ``list_envs()`` it builds the env with its defaults and reads what a card
 shows from the objects: the task's Params (defaults, and the comment beside each field as its
@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from marl_render.baselines import report
+from marl_render.baselines import published, report
 from marl_render.envs import env_class, list_envs, make_env, make_parallel_env, make_torchrl_env
 from marl_render.envs.roster import card_of
 from record_video import frame_image  # examples/record_video.py: labelled views beside the overview
@@ -59,7 +59,16 @@ DIFFICULTY_COMMAND = ("python -m marl_render.envs.evaluation --env all --difficu
 DRIVER_INFO = {  # step info keys of every task -> meaning (a task's own: its card's info)
     "step_count": "steps of the episode just stepped",
     "done_worlds": "every agent of the world terminated or truncated",
+    # The social outcomes of a mixed-motive task (envs/episodes.py), for the episode so far:
+    "efficiency": "social outcome: the collective return (the sum of every agent's return)",
+    "equality": "social outcome: one minus the Gini coefficient of the agents' returns (1: all equal)",
+    "sustainability": "social outcome: the mean step at which rewards were earned (0: none earned)",
+    "peace": "social outcome: the agent-steps not spent tagged out",
 }
+SOCIAL = ("efficiency", "equality", "sustainability", "peace")  # the social outcomes' columns (Perolat et al. 2017)
+SOCIAL_COMMAND = ("python -m marl_render.envs.evaluation --env {names} --json  # the rows of "
+                  "docs/reference_returns.json")
+SCHELLING_COMMAND = "python -m marl_render.baselines.schelling --env {name} --episodes 8 --out docs/schelling/{name}"
 CONDITION = {"pixels": "always", "depth": "`depth=True`", "state": "`state_obs=True`",
              "action_mask": "discrete actions (the default)"}
 
@@ -338,12 +347,15 @@ def card(name: str, seed: int | None, picture_dir: str | None, animate: bool = T
             ("physics", physics_text(env)),
             ("reward", reward),
             ("episode end", episode),
+            ("episode end (default)", f"{cls.episode_end_description()} (`episode_end=` of `make_env`: "
+                                      "docs/authoring.md)"),
         ]
         lines += table(("", ""), [(f"**{k}**", v) for k, v in facts])
         lines += ["", "## Parameters", "", f"The task's own keywords, `{cls.__name__}.Params` (a frozen dataclass; "
                   "`make_env` passes them on, beside the options every task takes):", ""]
         lines += params_table(cls)
         lines += ["", "## Returns", ""] + returns_section(name)
+        lines += social_section(name) + schelling_section(name)
         lines += ["", "## Speed", ""] + speed_section(name)
         lines += ["", "## Observations", "", "`obs = env.reset()` / `env.step(actions)[0]` of the batched core "
                   f"(`make_env({name!r}, num_worlds=W)`), shapes at the defaults; values as at `reset(seed=0)`:", ""]
@@ -404,6 +416,80 @@ def returns_section(name: str) -> list:
              "entry per training seed; "
              "learning results: [results](../results.md), [baselines](../baselines.md)):", ""]
             + table(("policy", "return", "episodes", "made by"), rows))
+
+
+def social_section(name: str) -> list:
+    """A mixed-motive task's social outcomes (Perolat et al. 2017; envs/episodes.py) of random and the
+    heuristic, from docs/reference_returns.json, and the state of its learned policies; none for others."""
+    if not env_class(name).mixed_motive:
+        return []
+    with open(os.path.join(DOCS, "reference_returns.json")) as f:
+        reference = json.load(f).get(name, {})
+    if not all(f"{key}_mean" in reference.get(policy, {}) for policy in ("random", "heuristic") for key in SOCIAL):
+        raise KeyError(f"docs/reference_returns.json has no social outcomes for {name!r}: run "
+                       f"`{SOCIAL_COMMAND.format(names=name)}` and put its rows in")
+    return (["", "### Social outcomes", "",
+             f"Per episode, over all {env_class(name).default_num_agents} agents (opponents included), mean over the "
+             f"{reference['heuristic']['episodes']} episodes of the returns above (each task's default episode end); "
+             "efficiency is the collective return, equality one minus the Gini coefficient of the returns, "
+             "sustainability the mean step of the rewards, peace the agent-steps not tagged out "
+             "(envs/episodes.py). Reproduce with "
+             f"`{SOCIAL_COMMAND.format(names=name).split('  #')[0]}`. MAPPO's row: "
+             + ("no trained runs of this task yet." if name in published.PENDING else
+                "the evaluation CLI (`python -m marl_render.evaluate`) scores the trained actors on held-out "
+                "scenarios only, and its training-condition row carries the return alone."), ""]
+            + table(("policy",) + SOCIAL, social_rows(name, reference)))
+
+
+def social_rows(name: str, reference: dict) -> list:
+    """Rows (policy, efficiency, equality, sustainability, peace) of random, the heuristic and MAPPO."""
+    rows = [(policy, *(outcome(reference[policy][f"{key}_mean"]) for key in SOCIAL))
+            for policy in ("random", "heuristic")]
+    mappo = published.PENDING_CELL if name in published.PENDING else MAPPO_SOCIAL
+    return rows + [("MAPPO", *(mappo,) * len(SOCIAL))]
+
+
+def outcome(value: float) -> str:
+    """A social outcome's cell: 3 significant digits, whole numbers from 1000 up (peace in agent-steps)."""
+    return f"{value:.3g}" if abs(value) < 1000 else f"{value:.0f}"
+
+
+# A published task's MAPPO cells: the evaluation CLI (python -m marl_render.evaluate) plays trained actors on
+# held-out scenarios only, and the training condition's row (--gap) carries its return, not its social outcomes.
+MAPPO_SOCIAL = "pending: not measured from the trained actors yet"
+
+
+def schelling_section(name: str) -> list:
+    """The Schelling diagram (docs/schelling/NAME.json and .png) of a task that declares one."""
+    cls = env_class(name)
+    if not cls.schelling:
+        return []
+    path = os.path.join(DOCS, "schelling", f"{name}.json")
+    if not os.path.isfile(path):
+        raise KeyError(f"no docs/schelling/{name}.json: run `{SCHELLING_COMMAND.format(name=name)}`")
+    with open(path) as f:
+        result = json.load(f)
+    others = result["others_cooperating"]
+    rows = [(label, *(f"{v:.3g}" for v in result[key]))
+            for label, key in ((f"cooperator (`{result['bots'][0]}`)", "cooperator"),
+                               (f"defector (`{result['bots'][1]}`)", "defector"))]
+    yes = {True: "yes", False: "no"}
+    A, cooperator, defector = result["num_agents"], result["cooperator"], result["defector"]
+    # The group's mean return per agent with k cooperators: k of them earn cooperator[k - 1], A - k defector[k].
+    group = [(k * (cooperator[k - 1] if k else 0) + (A - k) * (defector[k] if k < A else 0)) / A for k in range(A + 1)]
+    best = max(range(A + 1), key=group.__getitem__)
+    return (["", "### Schelling diagram", "",
+             f"![{name}: Schelling diagram](../schelling/{name}.png)", "",
+             f"Mean return per episode of a cooperator and of a defector (the task's bots `{result['bots'][0]}` and "
+             f"`{result['bots'][1]}`) against the number of other cooperators among the {result['num_agents']} "
+             f"agents; {result['episodes_per_mix']} episodes of {result['max_steps']} steps (fixed ends) per mix, "
+             f"seed {result['seed']}. Made by `{SCHELLING_COMMAND.format(name=name)}`.", ""]
+            + table(("other cooperators",) + tuple(map(str, others)), rows)
+            + ["", f"Defecting pays the individual at every count (defector > cooperator): "
+                   f"**{yes[result['defecting_pays_the_individual']]}**. Cooperating pays the group (all cooperating "
+                   f"earn each {result['cooperator'][-1]:.3g}, all defecting {result['defector'][0]:.3g}): "
+                   f"**{yes[result['cooperating_pays_the_group']]}**. The group's mean return per agent with k = 0 .. "
+                   f"{A} cooperators: {', '.join(f'{g:.3g}' for g in group)} (highest at k = {best})."])
 
 
 def speed_section(name: str) -> list:
@@ -527,6 +613,8 @@ def parse_args(argv=None):
                                                       "and authoring.png")
     parser.add_argument("--no-animations", dest="animations", action="store_false",
                         help="leave the GIFs out (the pages are the same; a GIF takes seconds per task)")
+    parser.add_argument("--animate", nargs="+", metavar="TASK", default=None,
+                        help="draw the GIFs of these tasks only (default: every task's, unless --no-animations)")
     parser.add_argument("--seed", type=int, default=None, help="reset seed of every picture; none: "
                                                                  f"{PICTURE_SEEDS}, else 0")
     return parser.parse_args(argv)
@@ -534,11 +622,15 @@ def parse_args(argv=None):
 
 def main(argv=None) -> None:
     args = parse_args(argv)
+    unknown = sorted(set(args.animate or ()) - set(list_envs()))
+    if unknown:
+        raise SystemExit(f"--animate: unknown tasks {unknown}; known: {list_envs()}")
     picture_dir = os.path.join(args.out, "envs")
     os.makedirs(picture_dir, exist_ok=True)
     pages = {os.path.join(args.out, "envs.md"): page(args.seed, picture_dir)}
     for name in list_envs():
-        pages[os.path.join(picture_dir, f"{name}.md")] = card(name, args.seed, picture_dir, args.animations)
+        pages[os.path.join(picture_dir, f"{name}.md")] = card(name, args.seed, picture_dir,
+                                                                  args.animations and name in (args.animate or [name]))
     for path, text in pages.items():
         with open(path, "w") as f:
             f.write(text)

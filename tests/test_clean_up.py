@@ -241,3 +241,23 @@ def test_appearance_changes_the_look_not_the_layout_and_the_river_stays_blue():
         assert not torch.equal(views[0], views[1])
         r, g, b = views[1][:, -4:, 12:20].to(torch.int32).unbind(-1)
         assert (b > r + 20).all()  # the river, hue-shifted a little, still blue in every world
+
+
+def test_the_cooperator_cleans_while_the_river_is_dirty_and_eats_otherwise():
+    """The Schelling diagram's cooperator (schelling = ("cooperator", "free_rider")): below half of
+    dirt_threshold (0.2: 3 of 16 cells) it acts as the free rider, from half of it up as the cleaner."""
+    assert clean_up.CleanUp.schelling == ("cooperator", "free_rider")
+    assert list(clean_up.CleanUp.bots)[:5] == ["cleaner", "free_rider", "zapper", "lazy0.5", "noisy0.1"]
+    env = make(num_worlds=2)
+    env.reset(seed=0)
+    pos = MIDDLE[None].repeat(2, 1, 1)
+    pos[:, 0] = torch.tensor([-1.75, 0.9])  # below dirty column 0, facing it
+    dirt = torch.zeros(2, D, dtype=torch.bool)
+    dirt[:, :3] = True  # world 0: 3 dirty cells, a fraction 0.1875 < 0.2
+    dirt[1, 3] = True  # world 1: 4, 0.25 >= 0.2
+    place(env, pos, dirt=dirt)
+    actions = clean_up.cooperator(env)
+    assert torch.equal(actions[0], clean_up.free_rider(env)[0])
+    assert torch.equal(actions[1], clean_up.cleaner(env)[1]) and actions[1, 0] == clean_up.CLEAN
+    assert not torch.equal(actions[0], actions[1])
+    env.close()

@@ -6,6 +6,8 @@ does. The test uses Sphinx's dummy builder, which does all of that but write HTM
 CPU-seconds of the full build here); the HTML writer itself is Sphinx's and furo's own code."""
 import dataclasses
 import importlib.util
+import json
+import re
 import sys
 from pathlib import Path
 
@@ -14,6 +16,7 @@ import pytest
 import torch
 from PIL import Image
 
+from marl_render.baselines import published
 from marl_render.envs import ArenaScenario, list_envs, make_env, numbered, register_env, registry
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,6 +59,62 @@ def test_every_task_card_has_a_short_gif_of_its_heuristic():
             assert np.asarray(gif.convert("RGB")).std() > 10
 
 
+NUMBERS = {9: "Nine", 10: "Ten", 11: "Eleven", 12: "Twelve", 13: "Thirteen", 14: "Fourteen", 15: "Fifteen"}
+
+
+def test_the_readme_and_the_landing_page_count_the_tasks_list_envs_has():
+    """README.md's "N tasks" and docs/index.md's follow list_envs(), and README's gallery shows every task."""
+    count = NUMBERS[len(list_envs())]
+    readme = (ROOT / "README.md").read_text()
+    assert f"{count} tasks, each with a card" in readme
+    assert f"{count} tasks, a card each" in (DOCS / "index.md").read_text()
+    gallery = readme.split("## Tasks")[1].split("## ")[0]
+    assert sorted(set(re.findall(r"\]\(docs/envs/(\w+)\.md\)", gallery))) == sorted(list_envs())
+
+
+def test_every_mixed_motive_card_shows_its_social_outcomes_and_episode_end():
+    """The cards (examples/make_env_docs.py) say each task's default episode end; a mixed-motive task's card
+    shows the social outcomes of random and the heuristic of docs/reference_returns.json, and MAPPO's state."""
+    make_env_docs = load_make_env_docs()
+    reference = json.loads((DOCS / "reference_returns.json").read_text())
+    results = (DOCS / "results.md").read_text()
+    mixed = [name for name in list_envs() if registry.env_class(name).mixed_motive]
+    assert {"commons", "capture_flag", "clean_up", "coop_mining", "matrix"} <= set(mixed)
+    for name in list_envs():
+        card = (DOCS / "envs" / f"{name}.md").read_text()
+        assert f"| **episode end (default)** | {registry.env_class(name).episode_end_description()} " in card
+        assert ("### Social outcomes" in card) == (name in mixed), name
+    for name in mixed:
+        card = (DOCS / "envs" / f"{name}.md").read_text()
+        for policy in ("random", "heuristic"):
+            cells = " | ".join(make_env_docs.outcome(reference[name][policy][f"{key}_mean"])
+                               for key in ("efficiency", "equality", "sustainability", "peace"))
+            assert f"| {policy} | {cells} |" in card, (name, policy)
+            assert f"| {name} | {policy} | {cells} |" in results, (name, policy)  # docs/results.md's table
+        mappo = (published.PENDING_CELL if name in published.PENDING else make_env_docs.MAPPO_SOCIAL,) * 4
+        assert "| MAPPO | " + " | ".join(mappo) + " |" in card, name
+        assert f"| {name} | MAPPO | " + " | ".join(mappo) + " |" in results, name
+
+
+def test_the_schelling_diagrams_are_committed_and_shown_on_their_cards():
+    """clean_up's and matrix's Schelling diagrams (python -m marl_render.baselines.schelling): the JSON and
+    PNG under docs/schelling/, their numbers on the cards and their verdicts the numbers' own."""
+    for name in ("clean_up", "matrix"):
+        assert registry.env_class(name).schelling
+        result = json.loads((DOCS / "schelling" / f"{name}.json").read_text())
+        assert result["task"] == name and len(result["cooperator"]) == len(result["defector"]) == result["num_agents"]
+        assert result["defecting_pays_the_individual"] == all(
+            d > c for c, d in zip(result["cooperator"], result["defector"], strict=True))
+        assert result["cooperating_pays_the_group"] == (result["cooperator"][-1] > result["defector"][0])
+        with Image.open(DOCS / "schelling" / f"{name}.png") as picture:
+            assert picture.format == "PNG" and np.asarray(picture.convert("RGB")).std() > 10
+        card = (DOCS / "envs" / f"{name}.md").read_text()
+        assert f"](../schelling/{name}.png)" in card
+        assert "| " + " | ".join(f"{v:.3g}" for v in result["cooperator"]) + " |" in card
+        assert "| " + " | ".join(f"{v:.3g}" for v in result["defector"]) + " |" in card
+        assert f"](schelling/{name}.png)" in (DOCS / "results.md").read_text()
+
+
 @dataclasses.dataclass(frozen=True)
 class HoldParams:
     radius: float = 0.5  # how near the centre counts as holding it (m)
@@ -92,8 +151,7 @@ class Hold(ArenaScenario):
         return torch.ones(self.num_worlds, self.num_agents, dtype=torch.int64)  # forward
 
 
-@pytest.fixture
-def make_env_docs():
+def load_make_env_docs():
     spec = importlib.util.spec_from_file_location("make_env_docs", ROOT / "examples" / "make_env_docs.py")
     module = importlib.util.module_from_spec(spec)
     sys.path.insert(0, str(ROOT / "examples"))  # it imports record_video, as it does when run
@@ -101,6 +159,12 @@ def make_env_docs():
         spec.loader.exec_module(module)
     finally:
         sys.path.remove(str(ROOT / "examples"))
+    return module
+
+
+@pytest.fixture
+def make_env_docs():
+    module = load_make_env_docs()
     register_env(Hold.name, Hold)
     yield module
     registry._REGISTRY.pop(Hold.name, None)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import torch
 
+from marl_render.envs import evaluation as reference
 from marl_render.envs.episodes import EpisodeOutcomes
 from marl_render.evaluate import evaluate
 
@@ -32,3 +33,16 @@ def test_the_evaluation_rows_of_a_mixed_motive_task_carry_them():
     row, = evaluate("heuristic", ["commons/resident_with_greedy"], episodes=2, resolution=8, max_steps=5)
     assert {"efficiency_mean", "equality_mean", "sustainability_mean", "peace_mean"} <= set(row)
     assert 0.0 <= row["equality_mean"] <= 1.0 and row["peace_mean"] <= 5 * 5
+
+
+def test_the_reference_evaluation_of_a_mixed_motive_task_reports_them_and_of_others_not():
+    """python -m marl_render.envs.evaluation (docs/reference_returns.json, the cards' social tables): the
+    episodes' mean social outcomes of a mixed-motive task; efficiency is the collective return, so the
+    per-agent mean return times the agents (every agent evaluated in clean_up)."""
+    row = reference.evaluate("clean_up", reference.heuristic_policy, episodes=2, resolution=8, max_steps=12,
+                             num_agents=3, episode_end=False)
+    assert set(row) >= {"efficiency_mean", "equality_mean", "sustainability_mean", "peace_mean"}
+    assert abs(row["efficiency_mean"] - 3 * row["mean"]) < 1e-9
+    assert row["peace_mean"] == 3 * 12  # nobody zaps: every agent-step in play
+    assert not {"efficiency_mean", "peace_mean"} & set(reference.evaluate("spread", reference.random_policy,
+                                                                          episodes=2, resolution=8, max_steps=3))

@@ -34,7 +34,7 @@ from marl_render.populations import stats
 
 from . import figures, marl_eval
 from .ablate import ABLATION, CONSTANT_ACTIONS
-from .published import BUDGET_FLAG, EVALUATION_SET_FLAG, OBSERVATIONS, ROOT, folder, learner_argv
+from .published import BUDGET_FLAG, EVALUATION_SET_FLAG, OBSERVATIONS, PENDING, PENDING_CELL, ROOT, folder, learner_argv
 from .settings import EVALUATION_SETS, Hyperparameters
 
 START, END = "<!-- baselines:start -->", "<!-- baselines:end -->"
@@ -317,6 +317,12 @@ def table(runs: dict, short: bool = False, constants: dict | None = None) -> str
     rows = [head, rule]
     for env in tasks(runs):
         by_obs = runs.get(env, {})
+        if not by_obs and env in PENDING:  # registered, no runs yet: said so, not left out
+            width = rule.count("|") - 1
+            cells = ["–", "–", PENDING_CELL, PENDING_CELL, "pending; pending"] + ["–"] * (width - 7) + [
+                "pending; pending"]
+            rows.append(f"| {env} | " + " | ".join(cells) + " |")
+            continue
         pixels, state = by_obs.get("pixels"), by_obs.get("state")
         constant = (constants or {}).get(env)
         row = (f"| {env} | {reference_cell(by_obs, 'random')} | {reference_cell(by_obs, 'heuristic')} "
@@ -334,7 +340,10 @@ def aggregate_scores(runs: dict, obs: str) -> tuple[np.ndarray | None, list[str]
     """The (runs, tasks) normalised scores of every task learned from `obs` whose heuristic beats
     random, the tasks, and why there is no matrix (or what was left out)."""
     columns, names, left_out = [], [], []
+    pending = [env for env in tasks(runs) if env in PENDING and not runs.get(env)]
     for env in tasks(runs):
+        if env in pending:
+            continue
         results = runs.get(env, {}).get(obs)
         values = normalised(results) if results else None
         if values is None:
@@ -342,7 +351,9 @@ def aggregate_scores(runs: dict, obs: str) -> tuple[np.ndarray | None, list[str]
         else:
             columns.append(values)
             names.append(env)
-    note = f"left out (no run, or a heuristic that does not beat random): {', '.join(left_out)}" if left_out else ""
+    notes = ([f"left out (no run, or a heuristic that does not beat random): {', '.join(left_out)}"] * bool(left_out)
+             + [f"left out ({PENDING_CELL}): {', '.join(pending)}"] * bool(pending))
+    note = "; ".join(notes)
     counts = {len(c) for c in columns}
     if not columns:
         return None, names, "no task has runs"
