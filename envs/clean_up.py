@@ -180,6 +180,10 @@ class CleanUp(ArenaScenario):
     team_colors = {"agents": AGENT_COLOR}
     shown = "shown"
     mixed_motive = True
+    # Step budgets (env steps summed over worlds; estimated, not yet trained): commons' (the same 300-step
+    # apple game, 5 agents) doubled, for the payoff of cleaning comes only through the apples it lets regrow:
+    # 180 and 788 updates of 32 worlds x 32 decisions (commons: 90 and 394).
+    training = {"budget": {"pixels": 184_320, "state": 806_912}}
     card = CARD
     bots = {"cleaner": Bot("cleans the river and never eats", script=cleaner),
             "free_rider": Bot("eats the nearest apple and never cleans", script=free_rider),
