@@ -32,6 +32,7 @@ import torch
 
 from marl_render import strict_json
 
+from . import masking
 from . import options as check
 from .levels import levels_option
 from .policy import as_policy, heuristic_policy, joint_actions
@@ -40,11 +41,12 @@ from .task_imports import add_import_option, load_user_tasks
 
 
 def random_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
-    """Uniformly random valid actions: among the unmasked ones for discrete actions."""
+    """Uniformly random valid actions: among the unmasked ones for discrete actions (0 for an agent
+    whose mask allows nothing: masking.sample_allowed), on the observations' device."""
     if env.continuous:
         return env.random_actions(generator)
-    mask = obs["action_mask"].reshape(-1, env.num_actions).to(torch.float32)
-    return torch.multinomial(mask, 1, generator=generator).reshape(env.num_worlds, env.num_agents)
+    mask = obs["action_mask"]
+    return masking.sample_allowed(mask, generator).to(mask.device)
 
 
 # Env seeds of sealed evaluation sets (marl_render/baselines/settings.py, final_set.py): committed before

@@ -206,6 +206,14 @@ def levels_option(text: str):
     raise argparse.ArgumentTypeError(f"expected a count n >= 1 or one of {list(NAMED)}, got {text!r}")
 
 
+def require_levels(env, what: str) -> None:
+    """ValueError unless `env` (a driver or a front end's core) was built with levels=: `what` (a
+    method, a reset option) names what needs them. The one wording of this guard."""
+    if env.levels is None:
+        raise ValueError(f"{what} needs an env built with levels= (envs/levels.py), and this {env.name!r} env "
+                         f"has levels=None")
+
+
 def check_level_ids(name: str, ids: torch.Tensor, num_worlds: int, where: torch.Tensor | None = None) -> torch.Tensor:
     """ids as int64 [W] on the CPU, each in [0, LEVEL_LIMIT) (only those where `where` [W] is True are
     read; the others are returned as 0); else TypeError / ValueError naming `name`."""

@@ -13,7 +13,9 @@ allowed only noop still moves on forward). ``EnvOptions(enforce_action_mask=True
 * only the agents the step acts for are checked: agents that left the episode, and worlds a
   ``"next_step"`` autoreset restarts in this step, have their actions ignored anyway;
 * ``random_actions()`` samples among the allowed actions, so ``env.step(env.random_actions())``
-  always passes.
+  always passes. ``sample_allowed`` is the one such sampler (the random policy, the noisy bots and
+  the evaluation's random opponents use it too); an agent whose mask allows nothing, which only an
+  agent out of the episode may have, gets action 0 (``with_fallback``).
 
 Refusing was chosen over replacing a forbidden action by noop: a policy that picks forbidden
 actions has a bug (or reads the mask of another step), and a silent replacement would train it
@@ -52,10 +54,21 @@ def refusal(refused: Tensor, mask: Tensor, actions: Tensor, agent_names: list, m
                       f"{'; '.join(cases)}{more}")
 
 
+def with_fallback(mask: Tensor) -> Tensor:
+    """A copy of mask [..., n] in which a row that allows nothing allows action 0 (noop in every
+    built-in task). Only an agent out of the episode can have such a row (the driver refuses one for
+    an agent in it), and it must still be given a valid value, which the step ignores: 0, what
+    gymnasium's ``Discrete.sample(mask=...)`` gives for an all-zero mask and what the PettingZoo
+    front end fills in for agents that left."""
+    nothing = ~mask.any(-1, keepdim=True)
+    return torch.cat((mask[..., :1] | nothing, mask[..., 1:]), -1)
+
+
 def sample_allowed(mask: Tensor, generator: torch.Generator | None) -> Tensor:
     """int64 [W, A] on the CPU (as random_actions gives them): uniformly random actions among those
-    mask [W, A, n] allows (among all where it allows none: such an agent cannot act, and a step that
-    needs it to says so)."""
+    mask [W, A, n] allows; 0 where a row allows nothing (``with_fallback``). The one sampler of
+    random allowed actions: the driver's random_actions, the random policy and bots, and
+    ``envs.evaluation.random_policy`` use it."""
     W, A, n = mask.shape
-    weights = (mask | ~mask.any(-1, keepdim=True)).reshape(W * A, n).to("cpu", torch.float32)
+    weights = with_fallback(mask).reshape(W * A, n).to("cpu", torch.float32)
     return torch.multinomial(weights, 1, generator=generator).reshape(W, A)

@@ -226,9 +226,7 @@ class MultiProcessEnv:
         """Reset the worlds where mask is True to level_ids [W] (BatchedEnv.reset_to_level)."""
         self._check_open()
         self._check_started()
-        if self.levels is None:
-            raise ValueError(f"reset_to_level needs an env built with levels= (envs/levels.py), and this "
-                             f"{self.name!r} env has levels=None")
+        level_sets.require_levels(self, "reset_to_level")
         mask = self._world_mask(mask)
         from_user = level_ids.detach() if isinstance(level_ids, torch.Tensor) else level_ids
         chosen = level_sets.check_level_ids("level_ids", from_user, self.num_worlds, where=mask)

@@ -43,6 +43,8 @@ _REGISTRY: dict = {
     "clean_up": "marl_render.envs.clean_up:CleanUp",
     "coop_mining": "marl_render.envs.coop_mining:CoopMining",
     "matrix": "marl_render.envs.matrix:Matrix",
+    "cooking": "marl_render.envs.cooking:Cooking",
+    "territory": "marl_render.envs.territory:Territory",
 }
 
 

@@ -58,9 +58,14 @@ class LogitsRandomPolicy(nn.Module):
         self.logits = nn.Parameter(torch.zeros(num_actions))
 
     def forward(self, td):
+        # Imported here, as main() imports marl_render: every process the collector spawns runs this
+        # file's top level again, and most of them never act.
+        from marl_render.envs.masking import with_fallback
+
         for group in self.groups:
             mask = td.get((group, "action_mask"))
-            logits = self.logits.detach().expand(mask.shape).masked_fill(~mask, float("-inf"))
+            # An agent whose mask allows nothing (one out of the episode) plays 0, which the step ignores.
+            logits = self.logits.detach().expand(mask.shape).masked_fill(~with_fallback(mask), float("-inf"))
             td.set((group, "action"), torch.distributions.Categorical(logits=logits).sample())
         return td
 

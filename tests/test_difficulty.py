@@ -9,8 +9,8 @@ import pytest
 from marl_render.envs import env_class, list_envs, make_env, make_vec_env
 from marl_render.envs.registry import split_kwargs
 
-TASKS = ("capture_flag", "cartpole", "clean_up", "commons", "coop_mining", "forage", "push", "rooms",
-         "speaker_listener", "spread", "tag")
+TASKS = ("capture_flag", "cartpole", "clean_up", "commons", "cooking", "coop_mining", "forage", "matrix", "push",
+         "rooms", "speaker_listener", "spread", "tag", "territory")
 
 
 @pytest.mark.parametrize("name", TASKS)

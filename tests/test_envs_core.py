@@ -193,8 +193,10 @@ def test_pixels_are_not_constant_and_owned_by_caller(name):
     first = env.reset()["pixels"]
     assert int(first.max()) - int(first.min()) > 50
     kept = first.clone()
-    # cartpole: full force; the arena tasks: backward (their own actions, such as matrix's interact, come after it)
-    push = torch.full((W, env.num_agents), env.num_actions - 1 if env.physics is None else 4)
+    # cartpole: full force; the arena tasks: backward (a task's own last action, cooking's interact, may do nothing)
+    meanings = env.action_meanings
+    push = meanings.index("backward") if "backward" in meanings else env.num_actions - 1
+    push = torch.full((W, env.num_agents), push)
     for _ in range(20):
         later = env.step(push)[0]["pixels"]
     assert torch.equal(first, kept), "a later render overwrote earlier observations"
@@ -579,6 +581,8 @@ DECLARED_TERMS = {
     "clean_up": {"walls", "body_collisions", "drag"},
     "coop_mining": {"walls", "body_collisions", "drag"},
     "matrix": {"walls", "body_collisions", "drag"},
+    "cooking": {"walls", "body_collisions", "drag", "obstacles"},
+    "territory": {"walls", "body_collisions", "drag", "obstacles"},
 }
 
 

@@ -21,8 +21,8 @@ from marl_render.envs.scenario import Scenario
 
 warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
 
-TASKS = ("capture_flag", "cartpole", "clean_up", "commons", "coop_mining", "forage", "matrix", "push", "rooms",
-         "speaker_listener", "spread", "tag")
+TASKS = ("capture_flag", "cartpole", "clean_up", "commons", "cooking", "coop_mining", "forage", "matrix", "push",
+         "rooms", "speaker_listener", "spread", "tag", "territory")
 DIGESTS = pathlib.Path(__file__).parent / "data" / "default_path_digests.json"
 DOC = pathlib.Path(__file__).resolve().parents[1] / "docs" / "levels.md"
 

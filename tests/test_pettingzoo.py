@@ -295,6 +295,7 @@ STEP_STATISTICS = {  # the info keys each task declares, written out (not read f
     "clean_up": {"eaten", "cleaned", "dirt_fraction", "apples_left", "tags"},
     "coop_mining": {"iron", "gold", "gold_lost", "ores_left"},
     "matrix": {"collected", "interactions"},
+    "cooking": {"delivered", "wrong", "served"}, "territory": {"painted", "claimed", "zaps", "removed"},
 }
 SOCIAL = {"efficiency", "equality", "sustainability", "peace"}  # mixed-motive tasks' outcomes (envs/episodes.py)
 
@@ -305,7 +306,7 @@ def test_infos_carry_the_envs_step_statistics(name):
     # prey_left, push's goal: the core's info of the world, per agent, as Python scalars.
     env = make(name, seed=0)
     env.reset(seed=0)
-    twin = make_env(name, num_worlds=1, resolution=RES, seed=0)
+    twin = make_env(name, num_worlds=1, resolution=RES, seed=0, episode_end=False)  # as make()
     twin.reset(seed=0)
     for _ in range(3):
         actions = {a: 1 for a in env.agents}

@@ -16,8 +16,8 @@ import torch
 
 from marl_render.envs import env_class, list_envs, make_env
 
-BUILT_IN = ("capture_flag", "cartpole", "clean_up", "commons", "coop_mining", "forage", "matrix", "push", "rooms",
-            "speaker_listener", "spread", "tag")
+BUILT_IN = ("capture_flag", "cartpole", "clean_up", "commons", "cooking", "coop_mining", "forage", "matrix",
+            "push", "rooms", "speaker_listener", "spread", "tag", "territory")
 
 
 def digest(name: str, **kwargs) -> str:

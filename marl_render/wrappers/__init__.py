@@ -9,6 +9,9 @@
 Each module imports its library (pettingzoo, torchrl, gymnasium, stable_baselines3); names
 are resolved lazily so that importing ``marl_render.wrappers`` imports none of them until
 one is used.
+
+What they share (building and closing the core, the checks of their own arguments, the choice of
+observation keys, the level guard and the reset dispatch) is written once, in ``common.py``.
 """
 from __future__ import annotations
 

@@ -33,7 +33,8 @@ Autoreset: ``autoreset_mode`` (a ``gymnasium.vector.AutoresetMode``; stored in
   ``infos["_final_obs"]`` / ``infos["_final_info"]``. A step on which a world ends renders
   twice (the final frame and the new one).
 * ``DISABLED``: nothing resets by itself; ``reset(options={"reset_mask": mask})`` resets
-  the worlds of the entries where the bool [num_envs] mask is True.
+  the worlds of the entries where the bool [num_envs] mask is True (the first reset resets
+  every world, as TorchRL's does: a world never reset has no episode to keep).
 
 Levels (an env built with ``levels=``, envs/levels.py): ``reset(options={"level_ids": ids})``
 resets worlds to chosen levels (the core's ``reset_to_level``): ``ids`` is an int64 numpy array
@@ -74,12 +75,21 @@ from gymnasium.envs.registration import EnvSpec
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from marl_render.envs.core import BatchedEnv
-from marl_render.envs.focal import FocalEnv
 from marl_render.envs.levels import check_level_ids
 from marl_render.envs.registry import env_class, make_env, split_kwargs
 from marl_render.validation import describe, positive_int, unpicklable
 from marl_render.wrappers import spaces as spaces_from_spec
+from marl_render.wrappers.common import (
+    check_core,
+    check_flag,
+    check_render_mode,
+    closed_on_error,
+    numpy_observations,
+    observation_keys,
+    refuse_num_processes,
+    require_levels,
+    reset_core,
+)
 
 RENDER_MODES = ("rgb_array",)
 CORE_AUTORESET = {AutoresetMode.NEXT_STEP: "next_step", AutoresetMode.SAME_STEP: "same_step",
@@ -99,21 +109,15 @@ def make_vec_env(name: str, num_worlds: int = 1, *, autoreset_mode=AutoresetMode
     kwargs go to ``marl_render.envs.make_env`` (resolution, num_agents, max_steps, continuous,
     state_obs, depth, seed, device and the env's own arguments); ``autoreset`` is set from
     autoreset_mode and may not be passed."""
-    if "num_processes" in kwargs:
-        raise TypeError("make_vec_env() does not accept 'num_processes': only marl_render.envs.make_env and "
-                        "make_torchrl_env split the worlds over worker processes (docs/distributed.md)")
+    refuse_num_processes("make_vec_env", kwargs)
     if "autoreset" in kwargs:
         raise TypeError("make_vec_env() does not accept 'autoreset'; pass autoreset_mode="
                         "gymnasium.vector.AutoresetMode.NEXT_STEP, SAME_STEP or DISABLED")
     mode = _autoreset_mode(autoreset_mode)
-    _check_flag("action_mask", action_mask)
-    _check_render_mode(render_mode)
-    core = make_env(name, num_worlds=num_worlds, autoreset=CORE_AUTORESET[mode], **kwargs)
-    try:
+    check_flag("action_mask", action_mask)
+    check_render_mode(render_mode, RENDER_MODES)
+    with closed_on_error(make_env(name, num_worlds=num_worlds, autoreset=CORE_AUTORESET[mode], **kwargs)) as core:
         envs = MarlRenderVectorEnv(core, action_mask=action_mask, render_mode=render_mode)
-    except BaseException:
-        core.close()
-        raise
     # gymnasium.make_vec(envs.spec) builds the same again (num_envs is the number of entries).
     envs.spec = _spec(name, vector_entry_point=f"{__name__}:gymnasium_vector_entry_point",
                       kwargs=dict(name=name, num_envs=envs.num_envs, autoreset_mode=mode.value,
@@ -142,12 +146,12 @@ def gymnasium_vector_entry_point(name: str, num_envs: int = 1, **kwargs) -> Marl
     if isinstance(agents, (int, np.integer)) and not isinstance(agents, bool) and agents >= 1 and num_envs % agents:
         raise ValueError(f"num_envs must be a multiple of num_agents={agents} for {name!r} (num_envs = num_worlds x "
                          f"num_agents entries), got {num_envs}")
-    envs = make_vec_env(name, max(1, num_envs // agents) if isinstance(agents, (int, np.integer)) else num_envs,
-                        **kwargs)
-    if envs.num_envs != num_envs:
-        envs.close()
-        raise ValueError(f"num_envs must be a multiple of num_agents={envs.num_agents} for {name!r}, got {num_envs}")
-    return envs
+    worlds = max(1, num_envs // agents) if isinstance(agents, (int, np.integer)) else num_envs
+    with closed_on_error(make_vec_env(name, worlds, **kwargs)) as envs:
+        if envs.num_envs != num_envs:
+            raise ValueError(f"num_envs must be a multiple of num_agents={envs.num_agents} for {name!r}, "
+                             f"got {num_envs}")
+        return envs
 
 
 def _agents_per_world(name: str, kwargs: dict):
@@ -171,12 +175,12 @@ def make_gym_env(name: str, *, render_mode: str | None = None, **kwargs) -> Marl
         if key in kwargs:
             raise TypeError(f"make_gym_env() does not accept {key!r}: a gymnasium.Env is one world that resets "
                             f"when reset() is called; use make_vec_env for batched worlds")
-    envs = make_vec_env(name, 1, autoreset_mode=AutoresetMode.DISABLED, render_mode=render_mode, **kwargs)
-    if envs.num_agents != 1:
-        envs.close()
-        raise ValueError(f"make_gym_env needs a single-agent env, and {name!r} has {envs.num_agents} agents: use "
-                         f"make_parallel_env (PettingZoo) or make_vec_env (one entry per agent) for it")
-    env = MarlRenderGymEnv(envs)
+    with closed_on_error(make_vec_env(name, 1, autoreset_mode=AutoresetMode.DISABLED, render_mode=render_mode,
+                                      **kwargs)) as envs:
+        if envs.num_agents != 1:
+            raise ValueError(f"make_gym_env needs a single-agent env, and {name!r} has {envs.num_agents} agents: use "
+                             f"make_parallel_env (PettingZoo) or make_vec_env (one entry per agent) for it")
+        env = MarlRenderGymEnv(envs)
     env.spec = _spec(name, entry_point=f"{__name__}:make_gym_env", kwargs=dict(name=name, render_mode=render_mode,
                                                                                **kwargs))
     return env
@@ -242,40 +246,23 @@ def _autoreset_mode(value) -> AutoresetMode:
                          f"{[m.value for m in AutoresetMode]}), got {describe(value)}") from None
 
 
-def _check_flag(name, value):
-    if not isinstance(value, (bool, np.bool_)):
-        raise TypeError(f"{name} must be a bool, got {describe(value)}")
-
-
-def _check_render_mode(render_mode):
-    if render_mode is not None and render_mode not in RENDER_MODES:
-        raise ValueError(f"render_mode must be None or one of {list(RENDER_MODES)}, got {render_mode!r}")
-
-
 class MarlRenderVectorEnv(VectorEnv):
     """All worlds and agents of a ``BatchedEnv`` as one gymnasium VectorEnv; see the module
     docstring. ``core`` is the wrapped BatchedEnv, owned (closed in ``close()``); its
     ``autoreset`` gives the autoreset mode."""
 
     def __init__(self, env, *, action_mask: bool = False, render_mode: str | None = None):
-        if not isinstance(env, (BatchedEnv, FocalEnv)):
-            raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
-                            f"got {describe(env)}")
-        if env.closed:
-            raise ValueError("env is closed")
-        _check_flag("action_mask", action_mask)
-        _check_render_mode(render_mode)
-        if action_mask and env.continuous:
-            raise ValueError("action_mask=True needs a discrete env (continuous=False); "
-                             "continuous actions have no mask")
+        check_core(env)
+        check_flag("action_mask", action_mask)
+        check_render_mode(render_mode, RENDER_MODES)
+        self._obs_keys = observation_keys(env, action_mask)
+        self._dict_obs = self._obs_keys != ("pixels",)
         self.core = env
         self.num_worlds, self.num_agents = env.num_worlds, env.num_agents
         self.num_envs = env.num_worlds * env.num_agents
         self.render_mode = render_mode
         self.metadata = {"autoreset_mode": _MODE_OF_CORE[env.autoreset], "render_modes": list(RENDER_MODES),
                          "name": env.name}
-        self._obs_keys = tuple(k for k in env.obs_keys if k != "action_mask" or action_mask)
-        self._dict_obs = self._obs_keys != ("pixels",)
         self.single_observation_space = spaces_from_spec.observation_space(env.spec, self._obs_keys)
         self.single_action_space = spaces_from_spec.action_space(env.spec)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
@@ -285,20 +272,15 @@ class MarlRenderVectorEnv(VectorEnv):
     # ------------------------------------------------------------------ API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """(observations, {}) of a new episode in every world, or only in the worlds of
-        ``options["reset_mask"]``; `seed` re-seeds the core's generator first."""
+        ``options["reset_mask"]`` (after the first reset, which resets every world); `seed`
+        re-seeds the core's generator first."""
         if seed is not None and (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))):
             raise TypeError(f"seed must be None or an int (one generator draws for every world, so per-entry "
                             f"seeds are not supported), got {describe(seed)}")
         seed = None if seed is None else int(seed)  # gymnasium's own seeding takes Python ints only
         worlds = self._reset_mask(options)
         levels = self._level_ids(options, worlds)
-        if levels is not None:
-            if not self._started:  # a first reset is a full one
-                self.core.reset(seed=seed)
-            obs = self.core.reset_to_level(torch.ones(self.num_worlds, dtype=torch.bool) if worlds is None
-                                           else worlds, levels, seed=None if not self._started else seed)
-        else:
-            obs = self.core.reset(seed=seed) if worlds is None else self.core.reset_worlds(worlds, seed=seed)
+        obs = reset_core(self.core, seed, worlds=worlds, levels=levels, full=not self._started)
         super().reset(seed=seed)
         self._started = True
         infos = {} if self.core.levels is None else _masked({"level": self._entries(self.core.level_ids)}, None)
@@ -360,8 +342,7 @@ class MarlRenderVectorEnv(VectorEnv):
         """int64 [W] levels from options["level_ids"] (numpy int, shape (num_worlds,)); None if absent."""
         if not isinstance(options, dict) or "level_ids" not in options:
             return None
-        if self.core.levels is None:
-            raise ValueError("options['level_ids'] needs an env built with levels= (envs/levels.py)")
+        require_levels(self.core, "options['level_ids']")
         ids = options["level_ids"]
         want = f"an int64 numpy array of shape ({self.num_worlds},) (num_worlds: one level per world)"
         if not isinstance(ids, np.ndarray) or not np.issubdtype(ids.dtype, np.integer):
@@ -393,9 +374,7 @@ class MarlRenderVectorEnv(VectorEnv):
             for key in self._obs_keys:
                 if key != "action_mask":
                     obs[key][departed] = 0
-        arrays = {key: self._entries(obs[key]) for key in self._obs_keys}
-        if "action_mask" in arrays:
-            arrays["action_mask"] = arrays["action_mask"].astype(np.int8)
+        arrays = numpy_observations(obs, self._obs_keys, self._entries)
         return arrays if self._dict_obs else arrays["pixels"]
 
     def _entries(self, value: torch.Tensor) -> np.ndarray:
@@ -426,9 +405,7 @@ class MarlRenderVectorEnv(VectorEnv):
 
     def _observations_of_final(self, obs: dict, ended: np.ndarray) -> np.ndarray:
         """gymnasium's final_obs: an object array with each ended entry's last observation."""
-        arrays = {key: self._entries(obs[key]) for key in self._obs_keys}
-        if "action_mask" in arrays:
-            arrays["action_mask"] = arrays["action_mask"].astype(np.int8)
+        arrays = numpy_observations(obs, self._obs_keys, self._entries)
         final = np.full(self.num_envs, None, dtype=object)
         for i in np.flatnonzero(ended):  # one object per ended entry is gymnasium's layout
             final[i] = {key: value[i] for key, value in arrays.items()} if self._dict_obs else arrays["pixels"][i]

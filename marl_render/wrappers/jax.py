@@ -48,11 +48,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from marl_render.envs.core import BatchedEnv
-from marl_render.envs.focal import FocalEnv
 from marl_render.envs.registry import make_env
 from marl_render.extras import needs_extra
-from marl_render.validation import describe
+from marl_render.wrappers.common import check_core, closed_on_error, refuse_num_processes
 
 with needs_extra("jax", "make_jax_env"):
     import jax
@@ -70,15 +68,9 @@ def make_jax_env(name: str, num_worlds: int = 1, **kwargs) -> JaxEnv:
 
     kwargs go to ``marl_render.envs.make_env`` (resolution, num_agents, max_steps, continuous,
     state_obs, depth, seed, autoreset, device and the env's own arguments)."""
-    if "num_processes" in kwargs:
-        raise TypeError("make_jax_env() does not accept 'num_processes': only marl_render.envs.make_env and "
-                        "make_torchrl_env split the worlds over worker processes (docs/distributed.md)")
-    core = make_env(name, num_worlds=num_worlds, **kwargs)
-    try:
+    refuse_num_processes("make_jax_env", kwargs)
+    with closed_on_error(make_env(name, num_worlds=num_worlds, **kwargs)) as core:
         return JaxEnv(core)
-    except BaseException:
-        core.close()
-        raise
 
 
 def to_jax(tensor: torch.Tensor) -> jax.Array:
@@ -132,9 +124,7 @@ class JaxEnv:
     """
 
     def __init__(self, core):
-        if not isinstance(core, (BatchedEnv, FocalEnv)):
-            raise TypeError(f"core must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
-                            f"got {describe(core)}")
+        check_core(core, name="core")
         _check_jax_backend(core.device)
         if core.levels is not None and not jax.config.jax_enable_x64:
             # Level ids reach 2**62: JAX's default 32-bit conversion of info["level"] would wrap them.

@@ -91,12 +91,21 @@ from gymnasium import spaces
 from pettingzoo.utils.conversions import parallel_to_aec_wrapper
 from pettingzoo.utils.wrappers import OrderEnforcingWrapper
 
-from marl_render.envs.core import BatchedEnv
-from marl_render.envs.focal import FocalEnv
 from marl_render.envs.levels import check_level_ids
 from marl_render.envs.registry import make_env
 from marl_render.validation import describe
 from marl_render.wrappers import spaces as spaces_from_spec
+from marl_render.wrappers.common import (
+    check_core,
+    check_flag,
+    check_render_mode,
+    closed_on_error,
+    numpy_observations,
+    observation_keys,
+    refuse_num_processes,
+    require_levels,
+    reset_core,
+)
 from marl_render.wrappers.window import Window
 
 RENDER_MODES = ("human", "rgb_array")
@@ -125,28 +134,18 @@ def make_parallel_env(name, *, render_mode: str | None = None, action_mask: bool
     kwargs go to ``marl_render.envs.registry.make_env`` (resolution, num_agents, max_steps,
     continuous, state_obs, depth, seed, device and the env's own arguments); num_worlds
     (always 1) and autoreset (always False) are set here and may not be passed."""
-    if "num_processes" in kwargs:
-        raise TypeError("make_parallel_env() does not accept 'num_processes': only marl_render.envs.make_env and "
-                        "make_torchrl_env split the worlds over worker processes (docs/distributed.md)")
+    refuse_num_processes("make_parallel_env", kwargs)
     for key in ("num_worlds", "autoreset"):
         if key in kwargs:
             raise TypeError(f"make_parallel_env() does not accept {key!r}: a PettingZoo env is one world "
                             f"(num_worlds=1) and resets only when reset() is called (autoreset=False); "
                             f"use make_torchrl_env or marl_render.envs.make_env for batched worlds")
     # Check the wrapper's own arguments before building the (GL-backed) core.
-    _check_render_mode(render_mode)
-    _check_flag("action_mask", action_mask)
-    _check_policy("departed_actions", departed_actions)
-    _check_policy("unknown_options", unknown_options)
-    _check_flag("black_death", black_death)
-    core = make_env(name, num_worlds=1, **kwargs)
-    try:
+    _check_arguments(render_mode, action_mask, departed_actions, unknown_options, black_death)
+    with closed_on_error(make_env(name, num_worlds=1, **kwargs)) as core:
         env = MarlRenderParallelEnv(core, render_mode=render_mode, action_mask=action_mask,
                                     departed_actions=departed_actions, unknown_options=unknown_options,
                                     black_death=black_death)
-    except BaseException:
-        core.close()
-        raise
     # How to build this env again: pickling (vectorising wrappers copy envs that way) makes
     # a fresh env of the same configuration in the receiving process, not a GL state copy. The
     # task goes by its Scenario class (module and name), so a worker that never called
@@ -179,14 +178,12 @@ def _rebuild(name, kwargs):
     return make_parallel_env(name, **kwargs)
 
 
-def _check_render_mode(render_mode):
-    if render_mode is not None and render_mode not in RENDER_MODES:
-        raise ValueError(f"render_mode must be None or one of {list(RENDER_MODES)}, got {render_mode!r}")
-
-
-def _check_flag(name, value):
-    if not isinstance(value, (bool, np.bool_)):
-        raise TypeError(f"{name} must be a bool, got {describe(value)}")
+def _check_arguments(render_mode, action_mask, departed_actions, unknown_options, black_death):
+    check_render_mode(render_mode, RENDER_MODES)
+    check_flag("action_mask", action_mask)
+    _check_policy("departed_actions", departed_actions)
+    _check_policy("unknown_options", unknown_options)
+    check_flag("black_death", black_death)
 
 
 def _check_policy(name, value):
@@ -212,23 +209,12 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
 
     def __init__(self, env, *, render_mode: str | None = None, action_mask: bool = False,
                  departed_actions: str = "ignore", unknown_options: str = "ignore", black_death: bool = False):
-        if not isinstance(env, (BatchedEnv, FocalEnv)):
-            raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
-                            f"got {describe(env)}")
+        check_core(env, no_autoreset="the PettingZoo env resets only in reset()")
         if env.num_worlds != 1:
             raise ValueError(f"env must have num_worlds=1 for PettingZoo (one world per env), got {env.num_worlds}")
-        if env.autoreset:
-            raise ValueError("env must be built with autoreset=False: the PettingZoo env resets only in reset()")
-        if env.closed:
-            raise ValueError("env is closed")
-        _check_render_mode(render_mode)
-        _check_flag("action_mask", action_mask)
-        _check_policy("departed_actions", departed_actions)
-        _check_policy("unknown_options", unknown_options)
-        _check_flag("black_death", black_death)
-        if action_mask and env.continuous:
-            raise ValueError("action_mask=True needs a discrete env (continuous=False); "
-                             "continuous actions have no mask")
+        _check_arguments(render_mode, action_mask, departed_actions, unknown_options, black_death)
+        self._obs_keys = observation_keys(env, action_mask)
+        self._dict_obs = self._obs_keys != ("pixels",)
 
         self.core = env
         self.render_mode = render_mode
@@ -240,8 +226,6 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         self.possible_agents = list(env.agent_names)
         self.agents: list[str] = []
         self._index = {agent: i for i, agent in enumerate(self.possible_agents)}
-        self._obs_keys = tuple(k for k in env.obs_keys if k != "action_mask" or action_mask)
-        self._dict_obs = self._obs_keys != ("pixels",)
 
         # One space object per agent (seeding one agent's space must not affect another's).
         self.observation_spaces = {agent: spaces_from_spec.observation_space(env.spec, self._obs_keys)
@@ -273,9 +257,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         """(observations, infos) of a new episode; `seed` re-seeds the core's generator."""
         self._check_options(options)
         level = self._level_option(options)
-        obs = self.core.reset(seed=seed)  # validates seed before changing anything
-        if level is not None:
-            obs = self.core.reset_to_level(torch.ones(1, dtype=torch.bool), level)
+        obs = reset_core(self.core, seed, levels=level, full=True)  # the core checks seed before changing anything
         self._started = True
         self.agents = [a for a, alive in zip(self.possible_agents, self.core.alive[0].tolist(), strict=True) if alive]
         observations = self._observations(obs, self.agents)
@@ -288,8 +270,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         """options["level"] as the core's level_ids [1], checked; None if not given."""
         if options is None or "level" not in options:
             return None
-        if self.core.levels is None:
-            raise ValueError("options['level'] needs an env built with levels= (envs/levels.py)")
+        require_levels(self.core, "options['level']")
         level = options["level"]
         if isinstance(level, (bool, np.bool_)) or not isinstance(level, (int, np.integer)):
             raise TypeError(f"options['level'] must be an int level id, got {describe(level)}")
@@ -423,9 +404,7 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         return convert(agent, action, self.action_spaces[agent])
 
     def _observations(self, obs: dict, agents) -> dict:
-        arrays = {key: obs[key][0].cpu().numpy() for key in self._obs_keys}  # [A, ...], fresh memory every call
-        if "action_mask" in arrays:
-            arrays["action_mask"] = arrays["action_mask"].astype(np.int8)
+        arrays = numpy_observations(obs, self._obs_keys, _first_world)  # [A, ...], fresh memory every call
         if self.render_mode is not None:  # render() keeps its own copy: writing into an observation changes nothing
             self._views = arrays["pixels"].copy()
         if not self._dict_obs:
@@ -437,6 +416,10 @@ class MarlRenderParallelEnv(pettingzoo.ParallelEnv):
         overview = self.core.render_overview()[0].cpu().numpy()
         views = self._views if self._views.shape[-1] == 3 else self._views.repeat(3, axis=-1)  # gray
         return tile_views(list(views), overview)
+
+
+def _first_world(tensor: torch.Tensor) -> np.ndarray:
+    return tensor[0].cpu().numpy()
 
 
 def _world_info(info: dict, num_agents: int) -> dict:

@@ -24,6 +24,7 @@ import numpy as np
 from gymnasium.vector import VectorObservationWrapper
 
 from marl_render.validation import describe
+from marl_render.wrappers.common import closed_on_error
 from marl_render.wrappers.gymnasium import make_vec_env
 
 
@@ -62,9 +63,8 @@ def make_rllib_env(env_config: Mapping) -> FloatPixels:
     seed = config.get("seed", 0)
     if seed is not None:  # None: unseeded, as in make_vec_env
         config["seed"] = seed + getattr(env_config, "worker_index", 0)
-    envs = make_vec_env(name, config.pop("num_worlds", 1), **config)
-    if num_envs is not None and num_envs != envs.num_envs:
-        envs.close()
-        raise ValueError(f"num_envs_per_env_runner must be num_worlds x num_agents = {envs.num_envs} for "
-                         f"env_config {dict(env_config)}, got {num_envs}")
-    return FloatPixels(envs)
+    with closed_on_error(make_vec_env(name, config.pop("num_worlds", 1), **config)) as envs:
+        if num_envs is not None and num_envs != envs.num_envs:
+            raise ValueError(f"num_envs_per_env_runner must be num_worlds x num_agents = {envs.num_envs} for "
+                             f"env_config {dict(env_config)}, got {num_envs}")
+        return FloatPixels(envs)

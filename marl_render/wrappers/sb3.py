@@ -41,6 +41,7 @@ from gymnasium.vector import AutoresetMode
 from marl_render.extras import needs_extra
 from marl_render.validation import describe, unpicklable
 
+from .common import closed_on_error
 from .gymnasium import MarlRenderVectorEnv, make_vec_env
 
 with needs_extra("sb3", "make_sb3_env"):
@@ -58,12 +59,8 @@ def make_sb3_env(name: str, num_worlds: int = 1, **kwargs) -> MarlRenderSB3VecEn
     if "autoreset_mode" in kwargs or "autoreset" in kwargs:
         raise TypeError("make_sb3_env() does not accept 'autoreset_mode' or 'autoreset': SB3 resets "
                         "in the same step (AutoresetMode.SAME_STEP)")
-    venv = make_vec_env(name, num_worlds, autoreset_mode=AutoresetMode.SAME_STEP, **kwargs)
-    try:
+    with closed_on_error(make_vec_env(name, num_worlds, autoreset_mode=AutoresetMode.SAME_STEP, **kwargs)) as venv:
         return MarlRenderSB3VecEnv(venv)
-    except BaseException:
-        venv.close()
-        raise
 
 
 class MarlRenderSB3VecEnv(VecEnv):

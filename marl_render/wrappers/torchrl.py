@@ -88,12 +88,11 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import MarlGroupMapType, check_marl_grouping
 
-from marl_render.envs.core import BatchedEnv
-from marl_render.envs.focal import FocalEnv
 from marl_render.envs.levels import check_level_ids
 from marl_render.envs.multiprocess import MultiProcessEnv
 from marl_render.envs.registry import make_env
 from marl_render.validation import describe, unpicklable
+from marl_render.wrappers.common import CORES, check_core, closed_on_error, require_levels, reset_core
 
 GROUP_MAPS = ("team", "one_group", "per_agent")
 _DONE_KEYS = ("done", "terminated", "truncated")
@@ -112,12 +111,8 @@ def make_torchrl_env(name: str, num_worlds: int = 1, group_map="team", **kwargs)
                         "(env.rollout / collectors call reset with '_reset' masks), so the core is always "
                         "built with autoreset=False")
     _check_group_map_type(group_map)
-    core = make_env(name, num_worlds=num_worlds, **kwargs)
-    try:
+    with closed_on_error(make_env(name, num_worlds=num_worlds, **kwargs)) as core:
         return MarlRenderTorchRLEnv(core, group_map=group_map)
-    except BaseException:
-        core.close()
-        raise
 
 
 def _check_group_map_type(group_map):
@@ -174,13 +169,7 @@ class MarlRenderTorchRLEnv(EnvBase):
     resolved {group: [agent names]}."""
 
     def __init__(self, env, group_map="team"):
-        if not isinstance(env, (BatchedEnv, FocalEnv, MultiProcessEnv)):
-            raise TypeError(f"env must be a marl_render BatchedEnv (see marl_render.envs.make_env), "
-                            f"got {describe(env)}")
-        if env.autoreset:
-            raise ValueError("env must be built with autoreset=False: TorchRL resets done worlds itself")
-        if env.closed:
-            raise ValueError("env is closed")
+        check_core(env, kinds=(*CORES, MultiProcessEnv), no_autoreset="TorchRL resets done worlds itself")
         resolved = resolve_group_map(group_map, env.agent_names, env.groups)
         super().__init__(device=env.device, batch_size=torch.Size([env.num_worlds]))
         self.core = env
@@ -190,6 +179,7 @@ class MarlRenderTorchRLEnv(EnvBase):
                              for g, names in resolved.items()}
         # A group covering all agents in core order needs no gather.
         self._identity = {g: names == list(env.agent_names) for g, names in resolved.items()}
+        self._obs_keys = env.spec.obs_keys  # every key of the spec, the action mask included
         self._next_seed = None
         self._started = False  # the core needs a full reset() before reset_worlds()
         self._make_specs()
@@ -236,17 +226,8 @@ class MarlRenderTorchRLEnv(EnvBase):
         mask = self._reset_mask(tensordict)
         levels = self._level_ids(tensordict, mask)
         seed, self._next_seed = self._next_seed, None
-        chosen = torch.ones(core.num_worlds, dtype=torch.bool) if mask is None else mask
-        if levels is not None and self._started:
-            obs = core.reset_to_level(chosen, levels, seed=seed)
-        else:
-            if mask is None or not self._started:
-                obs = core.reset(seed=seed)
-                self._started = True
-            else:
-                obs = core.reset_worlds(mask, seed=seed)
-            if levels is not None:  # a first reset: every world, then the chosen levels
-                obs = core.reset_to_level(chosen, levels)
+        obs = reset_core(core, seed, worlds=mask, levels=levels, full=not self._started)
+        self._started = True
         terminated = ~core.alive
         truncated = core.alive & core.episode_over()[:, None]
         info = {name: torch.zeros(core.num_worlds, dtype=dtype, device=self.device)
@@ -292,8 +273,7 @@ class MarlRenderTorchRLEnv(EnvBase):
         """int64 [W] from the root "level_ids" of the reset tensordict (checked), or None."""
         if tensordict is None or "level_ids" not in tensordict.keys():
             return None
-        if self.core.levels is None:
-            raise ValueError("a 'level_ids' reset entry needs an env built with levels= (envs/levels.py)")
+        require_levels(self.core, "a 'level_ids' reset entry")
         return check_level_ids("tensordict['level_ids']", tensordict.get("level_ids"), self.core.num_worlds,
                                where=None if mask is None else mask.cpu())
 
@@ -329,7 +309,7 @@ class MarlRenderTorchRLEnv(EnvBase):
                 pick = lambda t: t  # noqa: E731
             else:
                 pick = lambda t, idx=idx: t.index_select(1, idx)  # noqa: E731
-            entries = {key: pick(obs[key]) for key in self.core.obs_keys}
+            entries = {key: pick(obs[key]) for key in self._obs_keys}
             entries["done"] = pick(done)[..., None]
             entries["terminated"] = pick(terminated)[..., None]
             entries["truncated"] = pick(truncated)[..., None]
