@@ -15,7 +15,7 @@ from marl_render.envs.evaluation import evaluate
 from marl_render.populations.networks import Actor
 from marl_render.populations.policies import load_policy
 
-NEW_TASKS = ("clean_up", "coop_mining", "matrix")
+NEW_TASKS = ("clean_up", "cooking", "coop_mining", "matrix", "territory")
 # One update of 2 worlds x 4 decisions, no checkpoint, one evaluation episode of 10 steps.
 TINY = ["--env-steps", "8", "--worlds", "2", "--resolution", "12", "--rollout", "4", "--episodes", "1",
         "--checkpoint-every", "0", "--env-option", "max_steps=10"]

@@ -80,6 +80,7 @@ RUNS: dict[str, dict[str, Published]] = {
     # task defaults (random episode ends) as every command gives them.
     "clean_up": _entry("clean_up"),
     "commons": _entry("commons", torch_init=("pixels", "state")),
+    "cooking": _entry("cooking"),
     "coop_mining": _entry("coop_mining"),
     "forage": _entry("forage"),
     "matrix": _entry("matrix"),
@@ -88,6 +89,7 @@ RUNS: dict[str, dict[str, Published]] = {
     "speaker_listener": _entry("speaker_listener"),
     "spread": _entry("spread"),
     "tag": _entry("tag", train_options={"shaping": 0.05}, torch_init=("pixels", "state")),
+    "territory": _entry("territory"),
 }
 
 
