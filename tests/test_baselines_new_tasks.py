@@ -2,12 +2,13 @@
 the task's own vector observations (Scenario.vector_obs: matrix's inventory) in the actor and the critic,
 in a saved run and in the view ablation (which takes the pixels away, never the inventory)."""
 import json
+import math
 
 import pytest
 import torch
 
 from marl_render.baselines import ablate, run
-from marl_render.baselines.ppo import MAPPO
+from marl_render.baselines.ppo import MAPPO, minibatch_indices
 from marl_render.baselines.published import RUNS
 from marl_render.baselines.settings import STEP_BUDGETS, Hyperparameters
 from marl_render.envs import make_env
@@ -119,3 +120,21 @@ def test_the_new_tasks_have_published_entries_and_step_budgets(task):
     budget = STEP_BUDGETS[task]
     assert set(budget) == {"pixels", "state"} and all(isinstance(n, int) and n > 0 for n in budget.values())
     assert {obs: RUNS[task][obs].env_steps for obs in ("pixels", "state")} == budget
+
+
+def test_a_lone_last_sample_joins_the_minibatch_before_it():
+    """Territory removes trained agents, whose samples are left out: a rollout of 4k + 1 samples made a
+    last minibatch of one sample, a NaN advantage standard deviation and NaN weights."""
+    assert [c.tolist() for c in minibatch_indices(torch.arange(9), 4)] == [[0, 1, 2, 3], [4, 5, 6, 7, 8]]
+    assert [c.tolist() for c in minibatch_indices(torch.arange(10), 4)] == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9]]
+    assert [c.tolist() for c in minibatch_indices(torch.arange(8), 4)] == [[0, 1, 2, 3], [4, 5, 6, 7]]
+    hp = Hyperparameters(worlds=2, resolution=8, rollout=4, epochs=1, minibatches=4, hidden=16, overlap=False)
+    trainer = MAPPO("spread", hp, "state", 0, {})
+    samples, _ = trainer.collect()
+    trainer.close()
+    size = len(samples["action"])  # 2 worlds x 4 decisions x 3 agents: 24
+    kept = torch.arange(size - 3)  # 21 = 4 x 5 + 1: as if three samples were of removed agents
+    samples = {k: (v if k == "norms" else v.index_select(0, kept)) for k, v in samples.items()}
+    terms = trainer.update(samples)
+    assert all(math.isfinite(value) for value in terms.values())
+    assert all(bool(p.isfinite().all()) for p in trainer.parameters)

@@ -135,6 +135,17 @@ def ppo_loss(actor: Actor, critic: CentralCritic, batch: dict, hp: Hyperparamete
             "explained_variance": explained}
 
 
+def minibatch_indices(order: torch.Tensor, minibatch: int) -> list:
+    """`order` split into minibatches of `minibatch` samples, a last one of a single sample joined to the one
+    before: its advantage has no standard deviation (NaN, which then reaches the weights). Samples of
+    agents out of play are left out, so a task whose trained agents are removed (territory) makes such
+    remainders; one whose samples split evenly gets the plain split."""
+    chunks = list(order.split(minibatch))
+    if len(chunks) > 1 and len(chunks[-1]) == 1:
+        chunks[-2:] = [torch.cat(chunks[-2:])]
+    return chunks
+
+
 class MAPPO:
     """Trainer of one task: ``collect()`` a rollout, ``update(batch)``; ``actor_net`` is the policy
     network (masked logits), ``obs_key`` the observation it reads ("pixels" or "state")."""
@@ -350,7 +361,7 @@ class MAPPO:
         minibatch = max(size // hp.minibatches, 1)
         for _ in range(hp.epochs):
             terms = []
-            for index in torch.randperm(size, generator=self.shuffler).split(minibatch):
+            for index in minibatch_indices(torch.randperm(size, generator=self.shuffler), minibatch):
                 with clock("minibatch"):
                     batch = {key: value.index_select(0, index) for key, value in samples.items()}
                 with clock("loss_forward_backward"):
