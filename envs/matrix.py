@@ -179,6 +179,10 @@ class Matrix(ArenaScenario):
     arena_half_extent = (ARENA, ARENA)
     shown = "shown"
     mixed_motive = True
+    # Step budgets (env steps summed over worlds; estimated, not yet trained): forage's (collect items in an
+    # arena, 200-step episodes), as its random end makes a mean episode 0.64 x 300 = 192 steps, about forage's:
+    # 175 and 990 updates of 32 worlds x 32 decisions.
+    training = {"budget": {"pixels": 179_200, "state": 1_013_760}}
     schelling = ("cooperator", "defector")
     bots = {
         "cooperator": Bot("collects only kind 0 (cooperate, stag, swerve), then beams the nearest agent holding "

@@ -56,11 +56,14 @@ class CallablePolicy(Policy):
     world ([W, A] or [W, A, action_dim]): the protocol of ``marl_render.envs.evaluation`` (its
     ``random_policy`` and ``heuristic_policy``, the trainer's ``GreedyPolicy``) as a Policy. The
     function is handed the observations of every agent, its own pairs' in their places (zeros
-    elsewhere, every action allowed), and `generator`; of its actions, its pairs' are taken."""
+    elsewhere, every action allowed), and `generator`; of its actions, its pairs' are taken. A function
+    with a ``needs`` attribute (the trainer's GreedyPolicy: a task's vector observations) is handed those
+    keys too."""
 
     needs = frozenset({"pixels", "depth", "state", "lidar", "agent_id", "action_mask"})
 
     def __init__(self, function, generator: torch.Generator | None = None, name: str | None = None):
+        self.needs = CallablePolicy.needs | frozenset(getattr(function, "needs", ()))
         self.function = function
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.name = name or getattr(function, "__name__", type(function).__name__)

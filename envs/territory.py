@@ -138,6 +138,9 @@ class Territory(ArenaScenario):
     overview_resolution = (160, 160)
     shown = "shown"
     mixed_motive = True
+    # Step budgets (env steps summed over worlds; estimated, not yet trained): commons' (the same 300-step
+    # episodes, a reward every step for what an agent holds; 90 and 394 updates of 32 worlds x 32 decisions).
+    training = {"budget": {"pixels": 92_160, "state": 403_456}}
     # The rooms' walls and their physics, as rooms draws and builds them from the same state fields.
     walls = Rooms.walls
     doors = Rooms.doors

@@ -53,17 +53,22 @@ def ablate_view(pixels: torch.Tensor, view: str) -> torch.Tensor:
 
 
 class AblatedPolicy:
-    """A greedy pixel actor (as ``evaluate`` takes it) that sees ``ablate_view(pixels, view)``."""
+    """A greedy pixel actor (as ``evaluate`` takes it) that sees ``ablate_view(pixels, view)``; the
+    task's vector observations it reads (`vector_keys`, e.g. matrix's inventory) it gets unchanged:
+    the ablation takes the view away, nothing else."""
 
-    def __init__(self, actor, frames: int, action_repeat: int, view: str):
+    def __init__(self, actor, frames: int, action_repeat: int, view: str, vector_keys: tuple = ()):
         if view not in VIEWS:
             raise ValueError(f"view must be one of {list(VIEWS)}, got {view!r}")
         self.actor, self.frames, self.action_repeat, self.view = actor, frames, action_repeat, view
+        self.vector_keys = tuple(vector_keys)
+        self.needs = frozenset({"pixels", "action_mask", *self.vector_keys})  # the keys as_policy hands it
         self.greedy = None  # built at the first call, when the env shows which agents are evaluated
 
     def __call__(self, env, obs: dict, generator: torch.Generator) -> torch.Tensor:
         if self.greedy is None:
-            self.greedy = GreedyPolicy(self.actor, ~opponent_mask(env), "pixels", self.frames, self.action_repeat)
+            self.greedy = GreedyPolicy(self.actor, ~opponent_mask(env), "pixels", self.frames, self.action_repeat,
+                                       self.vector_keys)
         return self.greedy(env, {**obs, "pixels": ablate_view(obs["pixels"], self.view)}, generator)
 
 
@@ -77,7 +82,7 @@ def view_ablation(run_folder, views=VIEWS) -> dict:
     if result["obs"] != "pixels":
         raise ValueError(f"a view ablation needs a run from pixels; {folder} learned from {result['obs']!r}")
     hp = result["hyperparameters"]
-    actor = load_policy(str(folder)).actor
+    loaded = load_policy(str(folder))
     episodes, seed = result["evaluation"]["policy"]["episodes"], result["seeds"]["evaluation"]
     kwargs = dict(episodes=episodes, seed=seed, resolution=hp["resolution"], grayscale=hp.get("grayscale", False),
                   **result.get("env_options", {}),
@@ -85,8 +90,9 @@ def view_ablation(run_folder, views=VIEWS) -> dict:
     threads = torch.get_num_threads()
     torch.set_num_threads(hp.get("torch_threads", 1) or threads)  # as the run evaluated
     try:
-        scores = {view: evaluate(result["env"], AblatedPolicy(actor, hp.get("frames", 1), hp.get("action_repeat", 1),
-                                                              view), **kwargs) for view in views}
+        scores = {view: evaluate(result["env"], AblatedPolicy(loaded.actor, hp.get("frames", 1),
+                                                              hp.get("action_repeat", 1), view, loaded.vector_keys),
+                                 **kwargs) for view in views}
     finally:
         torch.set_num_threads(threads)
     reproduces = scores["none"]["per_episode"] == result["evaluation"]["policy"]["per_episode"] \

@@ -17,8 +17,13 @@ from .ppo import FrameStack
 
 
 class GreedyPolicy:
-    def __init__(self, actor: Actor, trained: torch.Tensor, obs_key: str, frames: int, action_repeat: int):
-        self.actor, self.trained, self.obs_key = actor, trained, obs_key
+    """`vector_keys`: the task's vector observations (Scenario.vector_obs) the actor reads beside
+    `obs_key`, in the trainer's order; none for a task without any."""
+
+    def __init__(self, actor: Actor, trained: torch.Tensor, obs_key: str, frames: int, action_repeat: int,
+                 vector_keys: tuple = ()):
+        self.actor, self.trained, self.obs_key, self.vector_keys = actor, trained, obs_key, tuple(vector_keys)
+        self.needs = frozenset({obs_key, "action_mask", *self.vector_keys})  # the keys as_policy hands it
         self.action_repeat = action_repeat
         self.onehot = torch.eye(len(trained))[trained]
         self.stack = FrameStack(frames)
@@ -34,8 +39,11 @@ class GreedyPolicy:
         observation = obs[self.obs_key][:, self.trained]
         stack = self.stack.reset(observation) if self.stack.stack is None else self.stack.push(observation)
         W, At = stack.shape[:2]
+        vector = None
+        if self.vector_keys:
+            vector = torch.cat([obs[key][:, self.trained] for key in self.vector_keys], -1).flatten(0, 1)
         logits = self.actor(self.actor.prepare(stack.flatten(0, 1)), self.onehot.repeat(W, 1),
-                            obs["action_mask"][:, self.trained].flatten(0, 1))
+                            obs["action_mask"][:, self.trained].flatten(0, 1), vector)
         # The opponents' actions are replaced by random ones in evaluate; 0 is only a placeholder.
         actions = torch.zeros(W, len(self.trained), dtype=torch.int64)
         actions[:, self.trained] = logits.argmax(-1).reshape(W, At)

@@ -24,6 +24,10 @@ Factory's APPO does: that rollout's actions come from the weights before the upd
 behind, and PPO's ratio is taken against those behaviour log-probabilities (stored with the
 samples) and clipped as usual.
 
+A task's own vector observations (Scenario.vector_obs, e.g. matrix's inventory) go to both networks
+(networks.py): the actor reads each agent's, the critic every agent's after the states. A task without
+any trains exactly as before.
+
 With ``self_play`` (selfplay.py) the actor plays every team: in each world the slots of one team
 act with the learner and give the samples, the other teams' slots are played by frozen snapshots
 of the actor from a pool. Without it nothing of the above changes (the same numbers for a seed).
@@ -112,8 +116,8 @@ def ppo_loss(actor: Actor, critic: CentralCritic, batch: dict, hp: Hyperparamete
     loss_critic_type="l2", normalize_advantage=True) on a minibatch of samples, in plain torch:
     {"loss_objective", "loss_entropy", "loss_critic", "entropy", "explained_variance"} (scalars).
     `batch` holds observation (prepared), agent, mask, global_state, action, sample_log_prob,
-    advantage and value_target, each [N, ...]."""
-    logits = actor(batch["observation"], batch["agent"], batch["mask"])
+    advantage and value_target, each [N, ...], and vector where the task has vector observations."""
+    logits = actor(batch["observation"], batch["agent"], batch["mask"], batch.get("vector"))
     log_probs = logits.log_softmax(-1)
     log_weight = log_probs.gather(-1, batch["action"][:, None]).squeeze(-1) - batch["sample_log_prob"]
     advantage = batch["advantage"]
@@ -129,6 +133,17 @@ def ppo_loss(actor: Actor, critic: CentralCritic, batch: dict, hp: Hyperparamete
     return {"loss_objective": -gain.mean(), "loss_entropy": -hp.entropy * entropy.mean(),
             "loss_critic": hp.critic_coef * (value - target).pow(2).mean(), "entropy": entropy.detach().mean(),
             "explained_variance": explained}
+
+
+def minibatch_indices(order: torch.Tensor, minibatch: int) -> list:
+    """`order` split into minibatches of `minibatch` samples, a last one of a single sample joined to the one
+    before: its advantage has no standard deviation (NaN, which then reaches the weights). Samples of
+    agents out of play are left out, so a task whose trained agents are removed (territory) makes such
+    remainders; one whose samples split evenly gets the plain split."""
+    chunks = list(order.split(minibatch))
+    if len(chunks) > 1 and len(chunks[-1]) == 1:
+        chunks[-2:] = [torch.cat(chunks[-2:])]
+    return chunks
 
 
 class MAPPO:
@@ -151,6 +166,8 @@ class MAPPO:
         self.agents = int(self.trained.sum())
         A = env.num_agents
         self.onehot = torch.eye(A)[self.trained]  # [At, A]
+        self.vector_keys = tuple(env.vector_obs)  # the task's own vector observations, in declaration order
+        vector_dim = sum(entry.width for entry in env.vector_obs.values())
         self.trained_index = self.trained.nonzero().squeeze(1)  # index_select: a fast copy of big observations
         self.generator = torch.Generator().manual_seed(seed + 1)  # the opponents' random actions
         self.sampler = torch.Generator().manual_seed(seed + 2)  # the actor's actions
@@ -163,8 +180,8 @@ class MAPPO:
         self.aux_state = hp.aux_state if obs == "pixels" else 0.0
         self.actor_net = Actor(obs, obs_shape, A, env.num_actions, hp.hidden,
                                state_dim=env.state_dim if self.aux_state else 0, encoder=hp.encoder,
-                               precision=hp.precision, init=hp.init)
-        self.critic_net = CentralCritic(A * env.state_dim, A, hp.hidden)
+                               precision=hp.precision, init=hp.init, vector_dim=vector_dim)
+        self.critic_net = CentralCritic(A * (env.state_dim + vector_dim), A, hp.hidden)
         self.acting_actor, self.acting_critic = copy.deepcopy(self.actor_net), copy.deepcopy(self.critic_net)
         self.parameters = [*self.actor_net.parameters(), *self.critic_net.parameters()]
         self.optimizer = torch.optim.Adam(self.parameters, lr=hp.lr, eps=1e-5, fused=True)  # one kernel for all
@@ -187,8 +204,16 @@ class MAPPO:
         """The trained agents' observation [W, At, ...] of an obs dict."""
         return obs[self.obs_key].index_select(1, self.trained_index)
 
+    def _vector(self, obs: dict) -> torch.Tensor | None:
+        """The trained agents' vector observations [W, At, vector_dim] of an obs dict (None: the task has none)."""
+        if not self.vector_keys:
+            return None
+        return torch.cat([obs[key] for key in self.vector_keys], -1).index_select(1, self.trained_index)
+
     def _global_state(self, obs: dict) -> torch.Tensor:
         state = obs["state"].flatten(-2)
+        if self.vector_keys:  # every agent's vectors after the states
+            state = torch.cat((state, *(obs[key].flatten(-2) for key in self.vector_keys)), -1)
         self.acting_critic.norm.update(state)
         return state
 
@@ -227,10 +252,13 @@ class MAPPO:
             own_state = self.last_obs["state"][:, self.trained]
             if self.aux_state:
                 self.acting_actor.state_norm.update(own_state)
+            vector = self._vector(self.last_obs)
+            if vector is not None:
+                self.acting_actor.vector_norm.update(vector)
             mask = self.last_obs["action_mask"][:, self.trained]
             with clock("policy_forward"), torch.inference_mode():
                 logits = self.acting_actor(self.acting_actor.prepare(observation.flatten(0, 1)), agent,
-                                           mask.flatten(0, 1))
+                                           mask.flatten(0, 1), None if vector is None else vector.flatten(0, 1))
                 log_probs = logits.log_softmax(-1)
                 action = torch.multinomial(log_probs.exp(), 1, generator=self.sampler)
                 sample_log_prob = log_probs.gather(-1, action).reshape(W, At)
@@ -243,7 +271,7 @@ class MAPPO:
             if self.pool is not None:  # the opponents' slots: snapshots act, and give no samples
                 learner = self.pool.learner_slots()
                 with clock("policy_forward"), torch.inference_mode():
-                    actions = self.pool.act(observation, self.onehot, self.last_obs["action_mask"], actions)
+                    actions = self.pool.act(observation, self.onehot, self.last_obs["action_mask"], actions, vector)
                 alive &= learner
             reward, done, terminated = self._act(actions)
             # An episode's return: the per-capita reward of the agents the actor plays (in self-play, of the
@@ -260,7 +288,8 @@ class MAPPO:
                               action=action, sample_log_prob=sample_log_prob, value=value,
                               reward=self.reward_scale(reward.double(), done[:, None] | terminated).float(),
                               done=done[:, None] | terminated, terminated=terminated, bootstrap=bootstrap,
-                              world_done=done[:, None].expand(W, At), valid=alive))
+                              world_done=done[:, None].expand(W, At), valid=alive,
+                              **({} if vector is None else {"vector": vector})))
         batch = {key: torch.stack([s[key] for s in steps]) for key in steps[0]}  # [T, W, ...]
         last_value = self._values(self._global_state(self.last_obs))[None]
         next_value = torch.cat((batch["value"][1:], last_value))
@@ -281,6 +310,8 @@ class MAPPO:
                    "own_state": batch["own_state"].flatten(0, 2),
                    "action": batch["action"].reshape(-1), "sample_log_prob": batch["sample_log_prob"].reshape(-1),
                    "advantage": advantage.reshape(-1), "value_target": value_target.reshape(-1)}
+        if "vector" in batch:
+            samples["vector"] = batch["vector"].flatten(0, 2)
         if not bool(valid.all()):
             index = valid.nonzero().squeeze(1)
             samples = {key: value.index_select(0, index) for key, value in samples.items()}
@@ -330,7 +361,7 @@ class MAPPO:
         minibatch = max(size // hp.minibatches, 1)
         for _ in range(hp.epochs):
             terms = []
-            for index in torch.randperm(size, generator=self.shuffler).split(minibatch):
+            for index in minibatch_indices(torch.randperm(size, generator=self.shuffler), minibatch):
                 with clock("minibatch"):
                     batch = {key: value.index_select(0, index) for key, value in samples.items()}
                 with clock("loss_forward_backward"):

@@ -81,13 +81,20 @@ RUNS: dict[str, dict[str, Published]] = {
     "capture_flag": _entry("capture_flag", env_options={"num_agents": 4}, train_options={"shaping": 0.5},
                            torch_init=("pixels",)),
     "cartpole": _entry("cartpole", state_resolution=16),
+    # Issue 41's tasks: budgets estimated on their classes (Scenario.training), not yet trained; their
+    # task defaults (random episode ends) as every command gives them.
+    "clean_up": _entry("clean_up"),
     "commons": _entry("commons", torch_init=("pixels", "state")),
+    "cooking": _entry("cooking"),
+    "coop_mining": _entry("coop_mining"),
     "forage": _entry("forage"),
+    "matrix": _entry("matrix"),
     "push": _entry("push", train_options={"shaping": 1.0}, torch_init=("pixels",)),
     "rooms": _entry("rooms", train_options={"explore_reward": 0.1}),
     "speaker_listener": _entry("speaker_listener"),
     "spread": _entry("spread"),
     "tag": _entry("tag", train_options={"shaping": 0.05}, torch_init=("pixels", "state")),
+    "territory": _entry("territory"),
 }
 
 

@@ -142,7 +142,8 @@ def save_snapshots(pool, result: dict, out: str) -> dict:
         folder = os.path.join(out, snapshot["folder"])
         os.makedirs(folder, exist_ok=True)
         write_atomically(os.path.join(folder, "actor.pt"), lambda f, actor=actor: torch.save(actor.state_dict(), f))
-        own = {key: result[key] for key in ("env", "obs", "seeds", "hyperparameters", "env_options", "versions")}
+        own = {key: result[key] for key in ("env", "obs", "seeds", "hyperparameters", "env_options", "versions",
+                                            "vector_obs") if key in result}
         own.update(snapshot=snapshot, self_play_run="../..", env_steps=snapshot["env_steps"])
         write_atomically(os.path.join(folder, "result.json"),
                          lambda f, own=own: f.write(strict_json.dumps(own, indent=1).encode()))

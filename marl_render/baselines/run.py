@@ -537,6 +537,9 @@ def train_one(args: argparse.Namespace, argv: list, started: float, stage: dict)
         "checkpoints": run.checkpoints,
         "curve": run.curve,
     }
+    if trainer.vector_keys:  # the task's vector observations the actor reads, in its order (load_policy)
+        result["vector_obs"] = list(trainer.vector_keys)
+        result["algorithm"] += f"; both networks also read the task's vector observations {list(trainer.vector_keys)}"
     if on_training_levels is not None:
         result["evaluation_training_levels"] = on_training_levels
     stage["writing"] = True

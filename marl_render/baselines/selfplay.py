@@ -134,17 +134,19 @@ class SnapshotPool:
                 record["episodes_faced"] += n
 
     def act(self, observation: torch.Tensor, onehot: torch.Tensor, mask: torch.Tensor,
-            actions: torch.Tensor) -> torch.Tensor:
+            actions: torch.Tensor, vector: torch.Tensor | None = None) -> torch.Tensor:
         """`actions` [W, A] with every opponent slot's action sampled by the snapshot its world faces;
         one batched forward per distinct snapshot in play. `observation` [W, A, ...] prepared by the
-        caller's actor layout (raw, as the env gives it), `onehot` [A, A], `mask` [W, A, actions]."""
+        caller's actor layout (raw, as the env gives it), `onehot` [A, A], `mask` [W, A, actions],
+        `vector` [W, A, vector_dim] the task's vector observations (None: it has none)."""
         opponents = ~self.learner_slots()
         for snapshot in torch.unique(self.opponent).tolist():
             worlds, slots = (opponents & (self.opponent == snapshot)[:, None]).nonzero(as_tuple=True)
             if not len(worlds):
                 continue
             actor = self.actors[snapshot]
-            logits = actor(actor.prepare(observation[worlds, slots]), onehot[slots], mask[worlds, slots])
+            logits = actor(actor.prepare(observation[worlds, slots]), onehot[slots], mask[worlds, slots],
+                           None if vector is None else vector[worlds, slots])
             actions[worlds, slots] = torch.multinomial(logits.softmax(-1), 1, generator=self.sampler)[:, 0]
         return actions
 

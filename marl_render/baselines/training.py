@@ -65,7 +65,8 @@ class TrainingRun:
     def policy(self) -> GreedyPolicy:
         """A fresh greedy policy of the final actor, as ``evaluate`` takes it (one per evaluation)."""
         hp = self.hyperparameters
-        return GreedyPolicy(self.trainer.actor_net, self.trainer.evaluated, self.obs, hp.frames, hp.action_repeat)
+        return GreedyPolicy(self.trainer.actor_net, self.trainer.evaluated, self.obs, hp.frames, hp.action_repeat,
+                            self.trainer.vector_keys)
 
 
 def updates_for(env_steps: int, hp: Hyperparameters) -> int:

@@ -4,6 +4,10 @@ Inputs are per agent sample, flattened over worlds, agents and time: the actor s
 agent's observation (uint8 [N, H, W, channels] pixels, or float [N, state_dim] state), that
 agent's one-hot index among the world's agents (one network plays every trained agent) and its
 action mask; the critic sees the state observations of all agents of the world, [N, A * state_dim].
+A task's own vector observations (Scenario.vector_obs: matrix's inventory) enter both beside them:
+the actor's `vector` [N, vector_dim] (that agent's vectors, standardised by ``vector_norm``, joined to
+its encoder's features), the critic's input every agent's vectors after the states. A task without
+any builds the very networks it built before (no new parameter or buffer, the same random draws).
 
 Pixels are converted once (``Actor.prepare``: uint8 [N, H, W, C] -> [N, H, W, C] in [0, 1] in the
 actor's compute dtype; the encoder reads them as [N, C, H, W] channels-last, the layout oneDNN's
@@ -130,15 +134,21 @@ class Actor(nn.Module):
     default (uniform, +-1/sqrt(fan in)), which shrinks each layer's output: at 32 px the view moved
     the first hidden layer by 0.003 (standard deviation over views) against biases of +-0.03, so
     the policy learnt from its biases first and could settle on a view-blind action mix
-    (docs/baselines/notes.md). The output layer starts near uniform either way."""
+    (docs/baselines/notes.md). The output layer starts near uniform either way.
+
+    With `vector_dim` > 0 it also reads ``vector`` [N, vector_dim] (the agent's vector observations of
+    this step, not stacked: Scenario.vector_obs), standardised by ``vector_norm`` (a RunningNorm the
+    trainer updates as the state encoder's) and joined to the encoder's features before the one-hot."""
 
     def __init__(self, obs: str, obs_shape: tuple, agents: int, actions: int, hidden: int, state_dim: int = 0,
-                 encoder: str = "conv", precision: str = "float32", init: str = "torch"):
+                 encoder: str = "conv", precision: str = "float32", init: str = "torch", vector_dim: int = 0):
         super().__init__()
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {list(PRECISIONS)}, got {precision!r}")
         if init not in INITS:
             raise ValueError(f"init must be one of {list(INITS)}, got {init!r}")
+        if isinstance(vector_dim, bool) or not isinstance(vector_dim, int) or vector_dim < 0:
+            raise ValueError(f"vector_dim must be an int >= 0, got {vector_dim!r}")
         self.obs = obs
         self.dtype = PRECISIONS[precision]
         if obs == "pixels":
@@ -148,8 +158,8 @@ class Actor(nn.Module):
         else:
             self.encoder = RunningNorm(obs_shape[-1])
             features = obs_shape[-1]
-        self.head = nn.Sequential(nn.Linear(features + agents, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
-                                  nn.Linear(hidden, actions))
+        self.head = nn.Sequential(nn.Linear(features + vector_dim + agents, hidden), nn.ReLU(),
+                                  nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, actions))
         if init == "orthogonal":
             for layer in (*self.encoder.modules(), *self.head[:-1]):
                 if isinstance(layer, (nn.Linear, nn.Conv2d)):
@@ -159,6 +169,9 @@ class Actor(nn.Module):
         nn.init.zeros_(self.head[-1].bias)
         self.state_head = nn.Linear(features, state_dim) if state_dim else None
         self.state_norm = RunningNorm(state_dim) if state_dim else None
+        # Built last and drawing no random numbers: a task without vectors gets the weights it got before.
+        self.vector_dim = vector_dim
+        self.vector_norm = RunningNorm(vector_dim) if vector_dim else None
         self.features = None
 
     def prepare(self, observation: torch.Tensor) -> torch.Tensor:
@@ -167,17 +180,24 @@ class Actor(nn.Module):
             return self.encoder.prepare(observation, self.dtype)
         return observation.to(torch.float32)
 
-    def forward(self, observation, agent, mask):
+    def forward(self, observation, agent, mask, vector=None):
+        if (vector is None) != (self.vector_norm is None) or (vector is not None
+                                                               and vector.shape[-1] != self.vector_dim):
+            given = None if vector is None else f"[..., {vector.shape[-1]}]"
+            raise ValueError(f"vector must be the agent's vector observations [N, {self.vector_dim}] (None when the "
+                             f"actor has none), got {given}")
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.dtype == torch.bfloat16):
             features = self.encoder(observation)
             if self.state_head is not None:
                 self.features = features
-            logits = self.head(torch.cat((features, agent.to(features.dtype)), -1))
+            joined = (features,) if vector is None else (features, self.vector_norm(vector.float()).to(features.dtype))
+            logits = self.head(torch.cat((*joined, agent.to(features.dtype)), -1))
         return logits.float().masked_fill(~mask, MASKED_LOGIT)
 
 
 class CentralCritic(nn.Module):
-    """(all agents' states [N, A * state_dim], agent one-hot [N, A]) -> value [N, 1]."""
+    """(all agents' states [N, A * state_dim], then all agents' vector observations where the task has
+    any, agent one-hot [N, A]) -> value [N, 1]."""
 
     def __init__(self, global_dim: int, agents: int, hidden: int):
         super().__init__()

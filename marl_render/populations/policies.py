@@ -60,16 +60,19 @@ def required_env_kwargs(policy) -> dict:
 
 
 class ActorPolicy(Policy):
-    """A trained actor (marl_render/baselines/networks.py) playing greedily, with the trainer's frame
+    """A trained actor (marl_render/populations/networks.py) playing greedily, with the trainer's frame
     stack and action repeat kept per (world, slot). One network plays every slot it is given: its
-    agent input is the slot's one-hot among the task's agents, as in training."""
+    agent input is the slot's one-hot among the task's agents, as in training. `vector_keys`: the
+    task's vector observations (Scenario.vector_obs) it reads beside `obs_key`, in the trainer's order."""
 
     def __init__(self, actor: Actor, *, name: str, obs_key: str, frames: int, action_repeat: int,
-                 num_agents: int, env_kwargs: dict, task: str | None = None, num_actions: int | None = None):
+                 num_agents: int, env_kwargs: dict, task: str | None = None, num_actions: int | None = None,
+                 vector_keys: tuple = ()):
         self.actor, self.name, self.obs_key = actor.eval(), name, obs_key
         self.frames, self.action_repeat, self.num_agents = frames, action_repeat, num_agents
         self.task, self.num_actions = task, num_actions  # what it was trained on (None: not recorded)
-        self.needs = frozenset({obs_key, "action_mask"})
+        self.vector_keys = tuple(vector_keys)
+        self.needs = frozenset({obs_key, "action_mask", *self.vector_keys})
         self.env_kwargs = env_kwargs
         self.stack = self.held = self.fresh = None  # [W, A, ...] once the first call shows W and A
 
@@ -121,7 +124,8 @@ class ActorPolicy(Policy):
         agent = torch.eye(self.num_agents)[slots]
         # The trainer's Actor since issue 25 converts observations with prepare(); the earlier one took them as given.
         prepared = self.actor.prepare(stack) if hasattr(self.actor, "prepare") else stack
-        logits = self.actor(prepared, agent, obs["action_mask"])
+        vector = torch.cat([obs[key] for key in self.vector_keys], -1) if self.vector_keys else None
+        logits = self.actor(prepared, agent, obs["action_mask"], *(() if vector is None else (vector,)))
         chosen = torch.where(decide | fresh, logits.argmax(-1), self.held[worlds, slots])
         self.held[worlds, slots] = chosen
         return chosen
@@ -146,6 +150,7 @@ def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
             raise ValueError(f"{paths['result.json']} is not valid JSON: {error}") from error
     hp, obs_key, resolution, grayscale, frames, action_repeat = _run_settings(result, paths["result.json"])
     weights = _actor_weights(paths["actor.pt"])
+    vector_keys = _vector_keys(result, weights, paths["result.json"])
     try:
         actor, agents = _actor(weights, hp, obs_key, resolution, (1 if grayscale else 3) * frames)
     except (KeyError, ValueError, RuntimeError) as error:
@@ -158,7 +163,19 @@ def load_policy(run_folder: str, name: str | None = None) -> ActorPolicy:
     env_kwargs.update(_levels_and_looks(result, paths["result.json"]))
     return ActorPolicy(actor, name=name or str(run_folder), obs_key=obs_key, frames=frames,
                        action_repeat=action_repeat, num_agents=agents, env_kwargs=env_kwargs, task=task,
-                       num_actions=int(weights["head.4.weight"].shape[0]))
+                       num_actions=int(weights["head.4.weight"].shape[0]), vector_keys=vector_keys)
+
+
+def _vector_keys(result: dict, weights: dict, path: str) -> tuple:
+    """The vector observations (obs keys) the run's actor reads: result.json's "vector_obs", which an
+    actor with a ``vector_norm`` needs and one without must not have."""
+    keys = result.get("vector_obs", [])
+    if not isinstance(keys, list) or not all(isinstance(key, str) for key in keys):
+        raise ValueError(f"{path}: vector_obs must be a list of obs keys, got {keys!r}")
+    if bool(keys) != ("vector_norm.mean" in weights):
+        raise ValueError(f"{path}: vector_obs {keys} does not fit the actor, which "
+                         + ("reads vector observations" if keys == [] else "reads none"))
+    return tuple(keys)
 
 
 def _same_task(name: str, other) -> bool:
@@ -198,11 +215,14 @@ def _actor(weights: dict, hp: dict, obs_key: str, resolution: int, channels: int
     # The "conv" encoder and float32 compute were the only ones before the trainer recorded them (and
     # its Actor took no such arguments): only other choices are passed on.
     choices = {key: hp[key] for key, old in (("encoder", "conv"), ("precision", "float32")) if hp.get(key, old) != old}
+    vector_dim = int(weights["vector_norm.mean"].shape[0]) if "vector_norm.mean" in weights else 0
     probe = Actor(obs_key, shape, 0, num_actions, hp["hidden"], **choices)
-    features = probe.encoder.features if obs_key == "pixels" else shape[0]
+    features = (probe.encoder.features if obs_key == "pixels" else shape[0]) + vector_dim
     if inputs < features:
-        raise ValueError(f"head.0.weight takes {inputs} inputs, fewer than the encoder's {features} features")
-    actor = Actor(obs_key, shape, inputs - features, num_actions, hp["hidden"], state_dim=state_dim, **choices)
+        raise ValueError(f"head.0.weight takes {inputs} inputs, fewer than the encoder's features and the vectors "
+                         f"({features})")
+    actor = Actor(obs_key, shape, inputs - features, num_actions, hp["hidden"], state_dim=state_dim,
+                  vector_dim=vector_dim, **choices)
     actor.load_state_dict(weights)
     return actor, inputs - features
 
