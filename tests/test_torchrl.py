@@ -341,7 +341,8 @@ def test_resize_needs_torchvision():
 @pytest.mark.parametrize("name", ENVS)
 def test_episode_statistics_match_the_core(name):
     env = make(name, max_steps=3, seed=6)
-    core = make_torchrl_env(name, num_worlds=W, resolution=RES, max_steps=3, seed=6).core
+    core = make_torchrl_env(name, num_worlds=W, resolution=RES, max_steps=3, seed=6,
+                            episode_end=False).core  # as make()
     declared = env.core.info_keys
     if declared:
         assert set(env.observation_spec["info"].keys()) == set(declared)
