@@ -78,14 +78,17 @@ def _entry(env: str, *, state_resolution: int = 8, torch_init: tuple[str, ...] =
 PENDING = ("clean_up", "cooking", "coop_mining", "matrix", "territory")
 PENDING_CELL = "pending: no trained runs yet"
 
+# commons' and capture_flag's rows were trained before mixed-motive tasks ended at random (issue 41): their
+# commands keep the fixed end they were trained and scored with (episode_end=False), so that a rerun is that run.
 RUNS: dict[str, dict[str, Published]] = {
-    "capture_flag": _entry("capture_flag", env_options={"num_agents": 4}, train_options={"shaping": 0.5},
+    "capture_flag": _entry("capture_flag", env_options={"num_agents": 4, "episode_end": False},
+                           train_options={"shaping": 0.5},
                            torch_init=("pixels",)),
     "cartpole": _entry("cartpole", state_resolution=16),
     # Issue 41's tasks: budgets estimated on their classes (Scenario.training), not yet trained; their
     # task defaults (random episode ends) as every command gives them.
     "clean_up": _entry("clean_up"),
-    "commons": _entry("commons", torch_init=("pixels", "state")),
+    "commons": _entry("commons", env_options={"episode_end": False}, torch_init=("pixels", "state")),
     "cooking": _entry("cooking"),
     "coop_mining": _entry("coop_mining"),
     "forage": _entry("forage"),
