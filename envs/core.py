@@ -293,9 +293,7 @@ class BatchedEnv(AllOrNothing):
         `seed` (optional) re-seeds the env's generator (the step-time draws that follow)."""
         self._check_open(process=True)
         self._check_started()
-        if self.levels is None:
-            raise ValueError(f"reset_to_level needs an env built with levels= (envs/levels.py), and this "
-                             f"{type(self.scenario).__name__} env has levels=None")
+        level_sets.require_levels(self, "reset_to_level")
         mask = world_mask(mask, self.num_worlds, self.device)
         chosen = level_sets.check_level_ids("level_ids", from_user("level_ids", level_ids), self.num_worlds,
                                             where=mask.cpu())

@@ -233,3 +233,10 @@ def test_no_front_end_repeats_a_shared_check(what):
     found = [path.name for path in sorted(wrappers.glob("*.py"))
              if path.name != "common.py" and re.search(REPEATED[what], path.read_text())]
     assert found == [], f"{what} is written again in {found}; use marl_render/wrappers/common.py"
+
+
+def test_the_level_guard_is_written_once_in_the_whole_package():
+    """The driver, the multi-process env and the front ends all call envs/levels.require_levels."""
+    sources = sorted([*(ROOT / "marl_render").rglob("*.py"), *(ROOT / "envs").rglob("*.py")])
+    found = [str(path.relative_to(ROOT)) for path in sources if "needs an env built with levels=" in path.read_text()]
+    assert found == ["envs/levels.py"]

@@ -488,7 +488,8 @@ def document(runs: dict, results_root: Path, docs: Path, notes: str = "", marl_e
         "Returns are those of `marl_render.envs.evaluation.evaluate`: the sum of the evaluated agents' rewards over "
         "an episode, averaged over them and over the evaluation episodes; opponents (tag's prey, push's and "
         "capture_flag's second team) play random actions in training and in every row. *Learned* is the greedy "
-        "policy of MAPPO (TorchRL ClipPPOLoss + GAE: one actor shared by the trained agents, on each agent's own "
+        "policy of MAPPO (PPO's clipped loss and GAE in plain torch, held equal to TorchRL's ClipPPOLoss and GAE "
+        "by tests: one actor shared by the trained agents, on each agent's own "
         "egocentric pixels or its state observation; a centralised critic on the state observations of all agents).",
         "",
         "- **Rows are the final policy only**: each run's greedy policy when its budget ends. The greedy "
