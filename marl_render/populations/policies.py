@@ -1,23 +1,10 @@
-"""Policies as objects: what plays a slot of an env, focal or background.
-
-A policy acts for any set of (world, slot) pairs of a driver (``marl_render.envs.make_env``) at
-once: one call per step covers every pair it plays, in every world, so a population of bots costs
-one batched call per distinct bot, never a loop over worlds.
+"""Trained policies as objects: a run folder loaded as a policy that plays any slots of an env.
 
     policy = load_policy("docs/baselines/tag/seed0")      # a run folder of python -m marl_render.baselines
-    policy = heuristic_policy()                           # the task's scripted heuristic
     actions = policy.act(env, obs, worlds, slots)         # [P] (or [P, action_dim]) for P pairs
 
-- ``env`` is the full driver (``BatchedEnv``): scripted bots read its simulation state
-  (``env.sim``, ``env.alive``, ``env.step_count``), as Melting Pot's puppets read their cues.
-- ``obs`` holds, for the keys in ``policy.needs``, the observations of exactly those pairs,
-  ``[P, ...]``: a policy sees only what its own slots see.
-- ``worlds``, ``slots``: int64 [P], the pairs it plays (slot = the agent's index in the task).
-- ``reset(env, worlds)`` (bool [W]) is called when those worlds start a new episode: recurrent state
-  (frame stacks, held actions) is kept per (world, slot) and cleared there.
-
-``needs`` names the observation keys it reads ("pixels", "state", "action_mask"); "sim" means it
-reads the driver's simulation state instead. The protocol and its adapters (``Policy``,
+What a policy is (``act``, ``needs``, ``reset``, batched over every pair it plays) is the one
+protocol of envs/policy.py. The protocol and its adapters (``Policy``,
 ``as_policy``, ``RandomPolicy``, ``heuristic_policy``, ...) are the envs layer's (envs/policy.py),
 importable from here as before; this module loads trained runs (``load_policy``, ``ActorPolicy``:
 a self-play snapshot is one too). Task-specific bots are declared by the tasks (envs/roster.py).
