@@ -506,3 +506,15 @@ def test_a_run_whose_checkpoint_was_nan_is_read_from_its_null_and_written_as_nul
                         "--readme", ""]) == 0
     layout = json.loads((tmp_path / "runs" / "marl_eval.json").read_text(), parse_constant=pytest.fail)
     assert layout["marl_render"]["spread"]["mappo_pixels"]["seed_0"]["step_0"]["return"] == [None, 1.0]
+
+
+def test_a_published_rows_command_pins_what_its_entry_pins_that_the_run_did_not_record():
+    """commons' runs were trained with the fixed episode end, before mixed-motive tasks ended at random by
+    default: their result.json names no episode_end, their published entry pins it, and the command that
+    reproduces a run passes it (a rerun without it would train another task)."""
+    runs = report.load_results(Path(__file__).resolve().parents[1] / published.ROOT)
+    for env in ("commons", "capture_flag"):
+        for row in [*runs[env]["pixels"], *runs[env]["state"]]:
+            assert "episode_end" not in row.get("env_options", {})
+            assert "--env-option episode_end=False" in report.reproducing_command(row)
+    assert "episode_end" not in report.reproducing_command(runs["spread"]["pixels"][0])

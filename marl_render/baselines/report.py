@@ -34,7 +34,17 @@ from marl_render.populations import stats
 
 from . import figures, marl_eval
 from .ablate import ABLATION, CONSTANT_ACTIONS
-from .published import BUDGET_FLAG, EVALUATION_SET_FLAG, OBSERVATIONS, PENDING, PENDING_CELL, ROOT, folder, learner_argv
+from .published import (
+    BUDGET_FLAG,
+    EVALUATION_SET_FLAG,
+    OBSERVATIONS,
+    PENDING,
+    PENDING_CELL,
+    ROOT,
+    RUNS,
+    folder,
+    learner_argv,
+)
 from .settings import EVALUATION_SETS, Hyperparameters
 
 START, END = "<!-- baselines:start -->", "<!-- baselines:end -->"
@@ -418,9 +428,17 @@ def reproducing_command(run: dict) -> str:
     # Runs from before the trainer recorded `init` drew the actor with torch's default.
     argv = learner_argv(run["env"], run["obs"], run["seeds"]["train"], budget=flags, evaluation=evaluation,
                         hyperparameters={**run["hyperparameters"], "init": run["hyperparameters"].get("init", "torch")},
-                        env_options=run.get("env_options", {}), train_options=run.get("train_options", {}),
+                        env_options=published_env_options(run), train_options=run.get("train_options", {}),
                         out=Path(ROOT) / run["relative"])
     return "python -m marl_render.baselines " + shlex.join(argv)
+
+
+def published_env_options(run: dict) -> dict:
+    """The run's recorded env options over its published entry's: what a rerun must pass. A default that
+    changed after the run (issue 41's random episode ends of commons and capture_flag) is pinned in the
+    entry (published.RUNS), and the run's result.json, written before, does not name it."""
+    entry = RUNS.get(run["env"], {}).get(run["obs"])
+    return {**(entry.env_options if entry else {}), **run.get("env_options", {})}
 
 
 def seeds_table(results: list) -> list[str]:
