@@ -51,6 +51,23 @@ from marl_render.render.scene import Scene
 TILES_PER_FRAMEBUFFER = 256
 FLOATS_PER_INSTANCE = 16  # position xyz, active, rotation wxyz, scale xyz, owner, colour rgba
 
+# Which view, tile and instance row this draw instance is (culled: from the visible pairs), shared by both
+# vertex shaders.
+_INSTANCE_ROW = """#ifdef CULLED
+    int pair = visible_pairs[first_pair + gl_InstanceID];
+    int view = pair / per_view;
+    int slot = pair - view * per_view;
+    int tile = view - first_view;
+#else
+    int tile = gl_InstanceID / per_view;
+    int slot = gl_InstanceID - tile * per_view;
+    int view = first_view + tile;
+#endif
+    int world = view / agents;
+    ivec2 rows = row_of[slot];
+    int row = 4 * (rows.x + world * rows.y);
+"""
+
 _VERTEX = """
 #version 430
 layout(location = 0) in vec3 corner;
@@ -84,20 +101,7 @@ vec3 turn(vec4 q, vec3 v) {  // rotate v by the unit quaternion q = (w, x, y, z)
 }
 
 void main() {
-#ifdef CULLED
-    int pair = visible_pairs[first_pair + gl_InstanceID];
-    int view = pair / per_view;
-    int slot = pair - view * per_view;
-    int tile = view - first_view;
-#else
-    int tile = gl_InstanceID / per_view;
-    int slot = gl_InstanceID - tile * per_view;
-    int view = first_view + tile;
-#endif
-    int world = view / agents;
-    ivec2 rows = row_of[slot];
-    int row = 4 * (rows.x + world * rows.y);
-    vec4 position = instance_data[row];
+""" + _INSTANCE_ROW + """    vec4 position = instance_data[row];
     vec4 rotation = instance_data[row + 1];
     vec4 scale = instance_data[row + 2];
     vec3 color = instance_data[row + 3].rgb;
@@ -168,20 +172,7 @@ flat out vec3 base_color;
 flat out int view_index;
 
 void main() {
-#ifdef CULLED
-    int pair = visible_pairs[first_pair + gl_InstanceID];
-    int view = pair / per_view;
-    int slot = pair - view * per_view;
-    int tile = view - first_view;
-#else
-    int tile = gl_InstanceID / per_view;
-    int slot = gl_InstanceID - tile * per_view;
-    int view = first_view + tile;
-#endif
-    int world = view / agents;
-    ivec2 rows = row_of[slot];
-    int row = 4 * (rows.x + world * rows.y);
-    vec4 position = instance_data[row];
+""" + _INSTANCE_ROW + """    vec4 position = instance_data[row];
     float radius = 0.5 * instance_data[row + 2].x;
     vec3 eye = eye_of[view].xyz;
     vec3 out_of = eye - position.xyz;
