@@ -201,10 +201,10 @@ class CleanUp(ArenaScenario):
                       "dirt_fraction": "fraction of the river's 16 cells dirty after the step",
                       "apples_left": "apples present after the step",
                       "tags": "agents zapped out in this step"})
-    # Step budgets (env steps summed over worlds; estimated, not yet trained): commons' (the same 300-step
-    # apple game, 5 agents) doubled, for the payoff of cleaning comes only through the apples it lets regrow:
-    # 180 and 788 updates of 32 worlds x 32 decisions (commons: 90 and 394).
-    training = {"budget": {"pixels": 184_320, "state": 806_912}}
+    # Step budgets (env steps summed over worlds): 90 and 180 updates of 32 worlds x 32 decisions, what three seeds
+    # of every new task fit in one 3-hour session on 2 cores. The estimate for learning was twice commons' (180
+    # and 788 updates), as cleaning pays only through the apples it lets regrow: these are short runs.
+    training = {"budget": {"pixels": 92_160, "state": 184_320}}
     bots = {"cleaner": Bot("cleans the river and never eats", script=cleaner),
             "free_rider": Bot("eats the nearest apple and never cleans", script=free_rider),
             "zapper": Bot("a free rider that zaps whoever is in front of it", script=zapper),

@@ -143,10 +143,10 @@ class CoopMining(ArenaScenario):
                       "gold": "gold ores mined by a pair in this step",
                       "gold_lost": "gold ores crumbled by three or more strikers in this step",
                       "ores_left": "ores present after the step"})
-    # Step budgets (env steps summed over worlds; estimated, not yet trained): forage's (collect items in an
-    # arena, 200-step episodes: 28 and 158 episodes per world of 32) for as many episodes of 300 steps,
-    # x 1.5, in whole updates of 32 worlds x 32 decisions (263 and 1485).
-    training = {"budget": {"pixels": 269_312, "state": 1_520_640}}
+    # Step budgets (env steps summed over worlds): 130 and 260 updates of 32 worlds x 32 decisions, what three
+    # seeds of every new task fit in one 3-hour session on 2 cores. The estimate for learning was forage's for as
+    # many 300-step episodes, x 1.5 (263 and 1485 updates): these are short runs.
+    training = {"budget": {"pixels": 133_120, "state": 266_240}}
     bots = {"iron_miner": Bot("mines the nearest iron, never gold", script=iron_miner),
             "gold_seeker": Bot("goes to the nearest gold and strikes it until a partner comes", script=gold_seeker),
             "lazy0.5": Bot.lazy(0.5),

@@ -179,10 +179,10 @@ class Matrix(ArenaScenario):
     arena_half_extent = (ARENA, ARENA)
     shown = "shown"
     mixed_motive = True
-    # Step budgets (env steps summed over worlds; estimated, not yet trained): forage's (collect items in an
-    # arena, 200-step episodes), as its random end makes a mean episode 0.64 x 300 = 192 steps, about forage's:
-    # 175 and 990 updates of 32 worlds x 32 decisions.
-    training = {"budget": {"pixels": 179_200, "state": 1_013_760}}
+    # Step budgets (env steps summed over worlds): 88 and 176 updates of 32 worlds x 32 decisions, what three
+    # seeds of every new task fit in one 3-hour session on 2 cores. The estimate for learning was forage's (175
+    # and 990 updates; a random end makes a mean episode 192 steps, about forage's): these are short runs.
+    training = {"budget": {"pixels": 90_112, "state": 180_224}}
     schelling = ("cooperator", "defector")
     bots = {
         "cooperator": Bot("collects only kind 0 (cooperate, stag, swerve), then beams the nearest agent holding "
