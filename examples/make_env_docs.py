@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from marl_render.baselines import published, report
+from marl_render.baselines import report, social
 from marl_render.envs import env_class, list_envs, make_env, make_parallel_env, make_torchrl_env
 from marl_render.envs.roster import card_of
 from record_video import frame_image  # examples/record_video.py: labelled views beside the overview
@@ -419,8 +419,9 @@ def returns_section(name: str) -> list:
 
 
 def social_section(name: str) -> list:
-    """A mixed-motive task's social outcomes (Perolat et al. 2017; envs/episodes.py) of random and the
-    heuristic, from docs/reference_returns.json, and the state of its learned policies; none for others."""
+    """A mixed-motive task's social outcomes (Perolat et al. 2017; envs/episodes.py): random's and the
+    heuristic's at the task's defaults (docs/reference_returns.json), then beside MAPPO's on the publication
+    worlds (marl_render.baselines.social, from the published runs); none for other tasks."""
     if not env_class(name).mixed_motive:
         return []
     with open(os.path.join(DOCS, "reference_returns.json")) as f:
@@ -434,29 +435,23 @@ def social_section(name: str) -> list:
              "efficiency is the collective return, equality one minus the Gini coefficient of the returns, "
              "sustainability the mean step of the rewards, peace the agent-steps not tagged out "
              "(envs/episodes.py). Reproduce with "
-             f"`{SOCIAL_COMMAND.format(names=name).split('  #')[0]}`. MAPPO's row: "
-             + ("no trained runs of this task yet." if name in published.PENDING else
-                "the evaluation CLI (`python -m marl_render.evaluate`) scores the trained actors on held-out "
-                "scenarios only, and its training-condition row carries the return alone."), ""]
-            + table(("policy",) + SOCIAL, social_rows(name, reference)))
+             f"`{SOCIAL_COMMAND.format(names=name).split('  #')[0]}`.", ""]
+            + table(("policy",) + SOCIAL, social_rows(name, reference))
+            + ["", "Beside MAPPO: random, the heuristic and the trained policies (mean over the seeds whose outcomes "
+                   "were measured) on the publication worlds, with the published rows' options "
+                   "(`python -m marl_render.baselines.social`; [results](../results.md)):", ""]
+            + table(("policy", "seeds") + SOCIAL, social.task_rows(name, os.path.join(DOCS, "baselines"))))
 
 
 def social_rows(name: str, reference: dict) -> list:
-    """Rows (policy, efficiency, equality, sustainability, peace) of random, the heuristic and MAPPO."""
-    rows = [(policy, *(outcome(reference[policy][f"{key}_mean"]) for key in SOCIAL))
+    """Rows (policy, efficiency, equality, sustainability, peace) of random and the heuristic."""
+    return [(policy, *(outcome(reference[policy][f"{key}_mean"]) for key in SOCIAL))
             for policy in ("random", "heuristic")]
-    mappo = published.PENDING_CELL if name in published.PENDING else MAPPO_SOCIAL
-    return rows + [("MAPPO", *(mappo,) * len(SOCIAL))]
 
 
 def outcome(value: float) -> str:
     """A social outcome's cell: 3 significant digits, whole numbers from 1000 up (peace in agent-steps)."""
     return f"{value:.3g}" if abs(value) < 1000 else f"{value:.0f}"
-
-
-# A published task's MAPPO cells: the evaluation CLI (python -m marl_render.evaluate) plays trained actors on
-# held-out scenarios only, and the training condition's row (--gap) carries its return, not its social outcomes.
-MAPPO_SOCIAL = "pending: not measured from the trained actors yet"
 
 
 def schelling_section(name: str) -> list:

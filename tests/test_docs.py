@@ -16,7 +16,7 @@ import pytest
 import torch
 from PIL import Image
 
-from marl_render.baselines import published
+from marl_render.baselines import social
 from marl_render.envs import ArenaScenario, list_envs, make_env, numbered, register_env, registry
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,7 +74,8 @@ def test_the_readme_and_the_landing_page_count_the_tasks_list_envs_has():
 
 def test_every_mixed_motive_card_shows_its_social_outcomes_and_episode_end():
     """The cards (examples/make_env_docs.py) say each task's default episode end; a mixed-motive task's card
-    shows the social outcomes of random and the heuristic of docs/reference_returns.json, and MAPPO's state."""
+    shows the social outcomes of random and the heuristic of docs/reference_returns.json, and beside MAPPO's
+    on the publication worlds (marl_render.baselines.social)."""
     make_env_docs = load_make_env_docs()
     reference = json.loads((DOCS / "reference_returns.json").read_text())
     results = (DOCS / "results.md").read_text()
@@ -91,9 +92,9 @@ def test_every_mixed_motive_card_shows_its_social_outcomes_and_episode_end():
                                for key in ("efficiency", "equality", "sustainability", "peace"))
             assert f"| {policy} | {cells} |" in card, (name, policy)
             assert f"| {name} | {policy} | {cells} |" in results, (name, policy)  # docs/results.md's table
-        mappo = (published.PENDING_CELL if name in published.PENDING else make_env_docs.MAPPO_SOCIAL,) * 4
-        assert "| MAPPO | " + " | ".join(mappo) + " |" in card, name
-        assert f"| {name} | MAPPO | " + " | ".join(mappo) + " |" in results, name
+        for row in social.task_rows(name, DOCS / "baselines"):  # beside MAPPO, on the publication worlds
+            assert "| " + " | ".join(row) + " |" in card, (name, row)
+            assert f"| {name} | " + " | ".join(row) + " |" in results, (name, row)
 
 
 def test_the_schelling_diagrams_are_committed_and_shown_on_their_cards():

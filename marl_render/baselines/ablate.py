@@ -28,7 +28,7 @@ from marl_render.envs.evaluation import best_constant_action, evaluate, opponent
 from marl_render.populations.policies import load_policy
 
 from .policy import GreedyPolicy
-from .published import ROOT, RUNS
+from .published import ROOT, RUNS, published_env_options
 from .settings import EVALUATION_SETS
 
 VIEWS = ("none", "zeros", "shifted")
@@ -85,7 +85,7 @@ def view_ablation(run_folder, views=VIEWS) -> dict:
     loaded = load_policy(str(folder))
     episodes, seed = result["evaluation"]["policy"]["episodes"], result["seeds"]["evaluation"]
     kwargs = dict(episodes=episodes, seed=seed, resolution=hp["resolution"], grayscale=hp.get("grayscale", False),
-                  **result.get("env_options", {}),
+                  **published_env_options(result),  # what the run was scored with, pins included
                   **({} if result.get("evaluation_levels") is None else {"levels": result["evaluation_levels"]}))
     threads = torch.get_num_threads()
     torch.set_num_threads(hp.get("torch_threads", 1) or threads)  # as the run evaluated

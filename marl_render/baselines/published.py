@@ -32,6 +32,7 @@ from pathlib import Path
 from types import MappingProxyType
 
 from marl_render.envs import list_envs
+from marl_render.envs.options import EnvOptions
 
 from .settings import step_budget
 
@@ -80,26 +81,51 @@ PENDING_CELL = "pending: no trained runs yet"
 
 # commons' and capture_flag's rows were trained before mixed-motive tasks ended at random (issue 41): their
 # commands keep the fixed end they were trained and scored with (episode_end=False), so that a rerun is that run.
+# commons', forage's and push's rows were trained before spheres were drawn as impostors by default (issue 42):
+# their commands keep the sphere meshes they saw (impostors=False); the actors' greedy actions follow the pixels.
 RUNS: dict[str, dict[str, Published]] = {
     "capture_flag": _entry("capture_flag", env_options={"num_agents": 4, "episode_end": False},
                            train_options={"shaping": 0.5},
                            torch_init=("pixels",)),
     "cartpole": _entry("cartpole", state_resolution=16),
-    # Issue 41's tasks: budgets estimated on their classes (Scenario.training), not yet trained; their
-    # task defaults (random episode ends) as every command gives them.
+    # Issue 41's tasks: their classes' budgets (Scenario.training), at their task defaults (random episode ends,
+    # spheres as impostors).
     "clean_up": _entry("clean_up"),
-    "commons": _entry("commons", env_options={"episode_end": False}, torch_init=("pixels", "state")),
+    "commons": _entry("commons", env_options={"episode_end": False, "impostors": False},
+                      torch_init=("pixels", "state")),
     "cooking": _entry("cooking"),
     "coop_mining": _entry("coop_mining"),
-    "forage": _entry("forage"),
+    "forage": _entry("forage", env_options={"impostors": False}),
     "matrix": _entry("matrix"),
-    "push": _entry("push", train_options={"shaping": 1.0}, torch_init=("pixels",)),
+    "push": _entry("push", env_options={"impostors": False}, train_options={"shaping": 1.0}, torch_init=("pixels",)),
     "rooms": _entry("rooms", train_options={"explore_reward": 0.1}),
     "speaker_listener": _entry("speaker_listener"),
     "spread": _entry("spread"),
     "tag": _entry("tag", train_options={"shaping": 0.05}, torch_init=("pixels", "state")),
     "territory": _entry("territory"),
 }
+
+
+# Env options whose default changed after published runs were trained: random episode ends for the mixed-motive
+# tasks and sphere impostors (issues 41 and 42). A run records the defaults it left these at (run.py's
+# result.json "env_defaults"); a run from before has no such record, and its published entry pins what it used.
+CHANGED_DEFAULTS = ("episode_end", "impostors")
+
+
+def left_at_default(env_options: Mapping) -> dict:
+    """{option: its default} of the CHANGED_DEFAULTS a run's `env_options` do not set: what result.json records,
+    so that a replay passes them and not whatever the defaults are then."""
+    defaults = {field.name: field.default for field in dataclasses.fields(EnvOptions)}
+    return {name: defaults[name] for name in CHANGED_DEFAULTS if name not in env_options}
+
+
+def published_env_options(run: dict) -> dict:
+    """The env options that a rerun or a replay of `run` (a result.json's dict) must pass: its recorded ones over
+    the defaults it recorded, or, for a run from before that record, over its published entry's pins."""
+    if "env_defaults" in run:
+        return {**run["env_defaults"], **run.get("env_options", {})}
+    entry = RUNS.get(run["env"], {}).get(run["obs"])
+    return {**(entry.env_options if entry else {}), **run.get("env_options", {})}
 
 
 def folder(env: str, obs: str) -> str:

@@ -10,7 +10,9 @@ Then the normalised scores across tasks, and per task and observation the comman
 run, the greedy checkpoints along training and a picture of the curves across seeds. Also
 writes RESULTS/<task>[-state]/curves.png, RESULTS/aggregate.png, RESULTS/marl_eval.json (the
 runs in marl-eval's layout) and, between the markers ``<!-- baselines:start -->`` and
-``<!-- baselines:end -->``, docs/results.md's table (--readme PAGE names another page, '' none).
+``<!-- baselines:end -->``, docs/results.md's table (--readme PAGE names another page, '' none), and
+between ``<!-- social:start -->`` and ``<!-- social:end -->`` the mixed-motive rows' social outcomes
+(marl_render.baselines.social).
 
 Runs from before the step budgets (RESULTS/<task>[-state|-seedK]/result.json) are read where a
 task and observation has no run in seed folders yet.
@@ -32,7 +34,7 @@ from marl_render.envs import list_envs
 from marl_render.envs.evaluation import SEALED_SEEDS
 from marl_render.populations import stats
 
-from . import figures, marl_eval
+from . import figures, marl_eval, social
 from .ablate import ABLATION, CONSTANT_ACTIONS
 from .published import (
     BUDGET_FLAG,
@@ -41,9 +43,9 @@ from .published import (
     PENDING,
     PENDING_CELL,
     ROOT,
-    RUNS,
     folder,
     learner_argv,
+    published_env_options,
 )
 from .settings import EVALUATION_SETS, Hyperparameters
 
@@ -433,14 +435,6 @@ def reproducing_command(run: dict) -> str:
     return "python -m marl_render.baselines " + shlex.join(argv)
 
 
-def published_env_options(run: dict) -> dict:
-    """The run's recorded env options over its published entry's: what a rerun must pass. A default that
-    changed after the run (issue 41's random episode ends of commons and capture_flag) is pinned in the
-    entry (published.RUNS), and the run's result.json, written before, does not name it."""
-    entry = RUNS.get(run["env"], {}).get(run["obs"])
-    return {**(entry.env_options if entry else {}), **run.get("env_options", {})}
-
-
 def seeds_table(results: list) -> list[str]:
     rows = ["| seed | final greedy policy (episodes) | random | heuristic | scored on | env steps | updates "
             "| wall-clock | training (env) |", "|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
@@ -636,6 +630,7 @@ def write_report(args: argparse.Namespace) -> int:
     out.write_text(text)
     if args.readme:
         update_readme(Path(args.readme), runs, constants)
+        social.update_page(Path(args.readme), results_root)  # the social outcomes' table, where the page has one
     count = sum(len(results) for by_obs in runs.values() for results in by_obs.values())
     print(f"wrote {out}, {results_root / 'marl_eval.json'} and the pictures ({count} runs)"
           + (f" and {args.readme}" if args.readme else ""))

@@ -86,6 +86,7 @@ from marl_render.util.threads import MAX_THREADS
 
 from . import reproducible
 from .curve import plot_curve
+from .published import left_at_default
 from .records import (
     arithmetic,
     clear_snapshots,
@@ -530,6 +531,7 @@ def train_one(args: argparse.Namespace, argv: list, started: float, stage: dict)
         "env_steps": trainer.env_steps, "updates": run.updates,
         "hyperparameters": dataclasses.asdict(run.hyperparameters),
         "env_options": env_options, "train_options": train_options, "evaluation_levels": args.eval_levels,
+        "env_defaults": left_at_default(env_options),
         "trained_agents": [n for n, t in zip(trainer.env.agent_names, trainer.trained.tolist(), strict=True) if t],
         "evaluation": {"policy": policy, **references,
                        "return": "sum of the evaluated agents' rewards over an episode, averaged over them; "
