@@ -496,7 +496,8 @@ def speed_section(name: str) -> list:
         return [f"Not measured: `python -m marl_render.bench env --env {name} --worlds 256 --json`."]
     r = rows[0]
     machine = bench["machine"]
-    return [f"`python -m marl_render.bench env --env all --worlds {r['worlds']}` ({machine['gl_renderer']}, "
+    cpu = f"{machine['cpu_model']}, " if machine.get("cpu_model") else ""  # recorded since issue 41's round
+    return [f"`python -m marl_render.bench env --env all --worlds {r['worlds']}` ({cpu}{machine['gl_renderer']}, "
             f"{machine['cpu_threads']} CPU threads, `docs/bench/env_all.json`): "
             f"**{r['env_steps_per_s']:,.0f} env steps/s**, "
             f"{r['agent_frames_per_s']:,.0f} agent frames/s at {r['worlds']} worlds x {r['agents']} agents of "

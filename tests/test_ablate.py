@@ -95,3 +95,17 @@ def test_the_committed_tag_actor_from_pixels_ignores_its_view_and_ties_the_best_
     assert set(constants) == set(published.published_tasks())  # the tasks without runs (PENDING) have none
     assert all(c["evaluation_set"] == "publication" and c["seed"] == 7_000_000 and c["episodes"] == 64
                for c in constants.values())
+
+
+def test_constant_for_some_tasks_replaces_their_entries_and_keeps_the_others(tmp_path, monkeypatch, capsys):
+    (tmp_path / ablate.CONSTANT_ACTIONS).write_text(json.dumps({"tag": {"action": 4}, "spread": {"action": 0}}))
+    monkeypatch.setattr(ablate, "constant_actions",
+                        lambda tasks: {t: {"action": 2, "mean": 1.0, "per_action": [0.0, 0.5, 1.0]} for t in tasks})
+    assert ablate.main(["--constant", "--tasks", "spread", "matrix", "--root", str(tmp_path)]) == 0
+    found = json.loads((tmp_path / ablate.CONSTANT_ACTIONS).read_text())
+    assert found == {"matrix": {"action": 2, "mean": 1.0, "per_action": [0.0, 0.5, 1.0]},
+                     "spread": {"action": 2, "mean": 1.0, "per_action": [0.0, 0.5, 1.0]}, "tag": {"action": 4}}
+    assert list(found) == [env for env in published.RUNS if env in found]  # in the table's order
+    with pytest.raises(SystemExit):
+        ablate.main(["--tasks", "spread"])
+    assert "--tasks goes with --constant" in capsys.readouterr().err

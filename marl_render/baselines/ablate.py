@@ -2,6 +2,7 @@
 
     python -m marl_render.baselines.ablate docs/baselines/tag/seed0   # view ablations: RUN/ablation.json
     python -m marl_render.baselines.ablate --constant   # every task: docs/baselines/constant_actions.json
+    python -m marl_render.baselines.ablate --constant --tasks matrix   # one task's entry, the others kept
 
 - **The best constant action** (``marl_render.envs.evaluation.best_constant_action``): each action
   held by every evaluated agent for whole episodes, the best one. No learning, so it is computed per
@@ -121,16 +122,23 @@ def main(argv=None) -> int:
     parser.add_argument("--constant", action="store_true",
                         help=f"the best constant action of every published task on the publication worlds: "
                              f"writes ROOT/{CONSTANT_ACTIONS}")
+    parser.add_argument("--tasks", nargs="+", choices=sorted(RUNS), metavar="TASK",
+                        help="with --constant: only these tasks, the file's other entries kept (default: every task)")
     parser.add_argument("--root", default=ROOT, help="folder of the runs (default: %(default)s)")
     args = parser.parse_args(argv)
+    if args.tasks and not args.constant:
+        parser.error("--tasks goes with --constant")
     if not args.runs and not args.constant:
         parser.error("give run folders, --constant, or both")
     for run in args.runs:
         if not (Path(run) / "result.json").is_file() or not (Path(run) / "actor.pt").is_file():
             parser.error(f"runs: {run!r} must be a run folder holding result.json and actor.pt")
     if args.constant:
-        found = constant_actions()
-        (Path(args.root) / CONSTANT_ACTIONS).write_text(json.dumps(found, indent=1) + "\n")
+        found = constant_actions(args.tasks)
+        path = Path(args.root) / CONSTANT_ACTIONS
+        kept = json.loads(path.read_text()) if args.tasks and path.is_file() else {}
+        path.write_text(json.dumps({env: {**kept, **found}[env] for env in RUNS if env in {**kept, **found}},
+                                   indent=1) + "\n")
         for env, best in found.items():
             print(f"{env}: action {best['action']} holds {best['mean']:.4g} (each: "
                   + ", ".join(f"{m:.4g}" for m in best["per_action"]) + ")", flush=True)

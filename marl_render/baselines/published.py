@@ -76,7 +76,7 @@ def _entry(env: str, *, state_resolution: int = 8, torch_init: tuple[str, ...] =
 # Registered tasks whose runs are listed in RUNS (budgets chosen, commands ready: `--run` trains them) but not
 # trained and committed yet: the report shows them as "pending" rows. A task leaves this tuple when its runs
 # are committed.
-PENDING = ("clean_up", "cooking", "coop_mining", "matrix", "territory")
+PENDING: tuple = ()
 PENDING_CELL = "pending: no trained runs yet"
 
 # commons' and capture_flag's rows were trained before mixed-motive tasks ended at random (issue 41): their

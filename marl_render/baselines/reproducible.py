@@ -23,10 +23,11 @@ from __future__ import annotations
 
 import contextlib
 import os
-import platform
 import sys
 
 import torch
+
+from marl_render.util.cpu import cpu_model_and_flags
 
 # Read when each library loads; the measured effect of each is in docs/training.md.
 ENVIRONMENT = {
@@ -99,18 +100,7 @@ def mode():
 def cpu() -> dict:
     """The CPU model (/proc/cpuinfo's 'model name', else platform.processor()), its flags among
     RELEVANT_FLAGS, and torch's CPU capability (the ATen kernels this process runs)."""
-    fields: dict = {}
-    try:
-        with open("/proc/cpuinfo") as info:
-            for line in info:  # the first processor's block is enough: every core of a machine is alike
-                key, _, value = line.partition(":")
-                fields.setdefault(key.strip(), value.strip())
-                if not line.strip():
-                    break
-    except OSError:  # no /proc (not Linux): the model from platform alone
-        pass
-    model = fields.get("model name") or platform.processor() or "unknown"
-    flags = set(fields.get("flags", "").split())
+    model, flags = cpu_model_and_flags()
     return {"model": model, "flags": [flag for flag in RELEVANT_FLAGS if flag in flags],
             "torch_cpu_capability": torch.backends.cpu.get_cpu_capability()}
 

@@ -17,6 +17,7 @@ import psutil
 import torch
 
 import marl_render as mr
+from marl_render.util.cpu import cpu_model_and_flags
 
 
 def positive_int_argument(text: str) -> int:
@@ -156,7 +157,7 @@ def machine() -> dict:
 
     info = backend.gl_info()
     return {"gl_renderer": info.renderer, "gl_version": info.gl_version, "python": platform.python_version(),
-            "torch": torch.__version__, "cpu_threads": torch.get_num_threads()}
+            "torch": torch.__version__, "cpu_threads": torch.get_num_threads(), "cpu_model": cpu_model_and_flags()[0]}
 
 
 def arena_scene(worlds: int, agents: int, resolution, instances: int = 10, effects=("lighting",),
