@@ -19,7 +19,7 @@ root_doc = "index"
 exclude_patterns = ["_build", "**/train.log", "bench/floor*.md", "effects/effects.md", "scale/scale.md",
                     "accuracy/learning_notes.md", "generalisation/example.md", "bench/profile*/*.md",
                     "bench/accuracy_geometry*/*.md", "bench/peers_impostors/*.md", "bench/peers_perf2/*.md",
-                    "bench/floor*/*.md"]
+                    "bench/peers_quiet*/*.md", "bench/floor*/*.md"]
 suppress_warnings = ["myst.header"]  # generated notes (baselines/notes.md) start at a lower heading level
 
 myst_enable_extensions = ["colon_fence", "attrs_inline"]
