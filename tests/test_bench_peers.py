@@ -1,6 +1,8 @@
 """`python -m marl_render.bench peers`: its arithmetic and its worker protocol, without the peers' venvs."""
 import argparse
+import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -106,3 +108,14 @@ def test_melting_pots_expected_episode_length_from_its_stochastic_ending():
     assert peers_worker.expected_episode_steps(settings) == pytest.approx(1000 + 100 * 0.85 / 0.15)
     assert peers_worker.expected_episode_steps({**settings, "maxEpisodeLengthFrames": 1200}) == 1200
     assert peers_worker.expected_episode_steps({"maxEpisodeLengthFrames": 5000, "simulation": {}}) is None
+
+
+def test_the_worker_does_not_let_bench_modules_shadow_the_standard_library():
+    """Run as a script, the worker's folder (marl_render/bench, which has a profile.py) must not come first on
+    sys.path: cProfile's `import profile` took bench/profile.py, and PyBatchRender's envs failed to register."""
+    code = ("import runpy, sys, os; sys.path.insert(0, os.path.dirname(sys.argv[1])); "
+            "runpy.run_path(sys.argv[1], run_name='worker_under_test'); "
+            "import cProfile, profile; print(profile.__file__)")
+    done = subprocess.run([sys.executable, "-c", code, peers.WORKER], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert Path(done.stdout.strip()).parent != Path(peers.WORKER).parent  # the standard library's profile.py

@@ -28,6 +28,13 @@ import sys
 import time
 import traceback
 
+# Started as a script, Python puts this folder first on sys.path, where bench's own modules (profile.py,
+# env.py, ...) shadow the standard library's and the systems' modules of those names: cProfile's `import
+# profile` found bench/profile.py, which broke PyBatchRender's import (its envs' registration swallowed the
+# ImportError: "Unknown environment: 'CartPole-v0'"). The systems import from their venvs only.
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path[:] = [entry for entry in sys.path if os.path.abspath(entry or os.curdir) != HERE]
+
 WARMUP_STEPS = 5
 
 
