@@ -27,9 +27,10 @@ import torch
 
 from marl_render.envs.evaluation import best_constant_action, evaluate, opponent_mask
 from marl_render.populations.policies import load_policy
+from marl_render.util.threads import limited_threads
 
 from .policy import GreedyPolicy
-from .published import ROOT, RUNS, published_env_options
+from .published import ROOT, RUNS, evaluation_kwargs
 from .settings import EVALUATION_SETS
 
 VIEWS = ("none", "zeros", "shifted")
@@ -84,22 +85,15 @@ def view_ablation(run_folder, views=VIEWS) -> dict:
         raise ValueError(f"a view ablation needs a run from pixels; {folder} learned from {result['obs']!r}")
     hp = result["hyperparameters"]
     loaded = load_policy(str(folder))
-    episodes, seed = result["evaluation"]["policy"]["episodes"], result["seeds"]["evaluation"]
-    kwargs = dict(episodes=episodes, seed=seed, resolution=hp["resolution"], grayscale=hp.get("grayscale", False),
-                  **published_env_options(result),  # what the run was scored with, pins included
-                  **({} if result.get("evaluation_levels") is None else {"levels": result["evaluation_levels"]}))
-    threads = torch.get_num_threads()
-    torch.set_num_threads(hp.get("torch_threads", 1) or threads)  # as the run evaluated
-    try:
+    kwargs = evaluation_kwargs(result)
+    with limited_threads(hp.get("torch_threads", 1) or None):  # as the run evaluated (0: torch's own count)
         scores = {view: evaluate(result["env"], AblatedPolicy(loaded.actor, hp.get("frames", 1),
                                                               hp.get("action_repeat", 1), view, loaded.vector_keys),
                                  **kwargs) for view in views}
-    finally:
-        torch.set_num_threads(threads)
     reproduces = scores["none"]["per_episode"] == result["evaluation"]["policy"]["per_episode"] \
         if "none" in scores else None
     return {"run": str(folder), "env": result["env"], "evaluation_set": result.get("evaluation_set", "development"),
-            "seed": seed, "episodes": episodes, "views": scores, "reproduces_run": reproduces}
+            "seed": kwargs["seed"], "episodes": kwargs["episodes"], "views": scores, "reproduces_run": reproduces}
 
 
 def constant_actions(tasks=None, evaluation_set: str = "publication") -> dict:
@@ -136,9 +130,8 @@ def main(argv=None) -> int:
     if args.constant:
         found = constant_actions(args.tasks)
         path = Path(args.root) / CONSTANT_ACTIONS
-        kept = json.loads(path.read_text()) if args.tasks and path.is_file() else {}
-        path.write_text(json.dumps({env: {**kept, **found}[env] for env in RUNS if env in {**kept, **found}},
-                                   indent=1) + "\n")
+        merged = {**(json.loads(path.read_text()) if args.tasks and path.is_file() else {}), **found}
+        path.write_text(json.dumps({env: merged[env] for env in RUNS if env in merged}, indent=1) + "\n")
         for env, best in found.items():
             print(f"{env}: action {best['action']} holds {best['mean']:.4g} (each: "
                   + ", ".join(f"{m:.4g}" for m in best["per_action"]) + ")", flush=True)

@@ -128,6 +128,16 @@ def published_env_options(run: dict) -> dict:
     return {**(entry.env_options if entry else {}), **run.get("env_options", {})}
 
 
+def evaluation_kwargs(run: dict) -> dict:
+    """The keywords of ``evaluate`` that `run`'s (a result.json's dict) final evaluation was scored with (run.py's
+    own, options pinned as published_env_options says): a replay of its actor on them gives the run's returns."""
+    hp = run["hyperparameters"]
+    levels = run.get("evaluation_levels")
+    return {"episodes": run["evaluation"]["policy"]["episodes"], "seed": run["seeds"]["evaluation"],
+            "resolution": hp["resolution"], "grayscale": hp.get("grayscale", False), "state_obs": run["obs"] == "state",
+            **published_env_options(run), **({} if levels is None else {"levels": levels})}
+
+
 def folder(env: str, obs: str) -> str:
     """The folder of a task's runs from one observation, under docs/baselines/."""
     return env if obs == "pixels" else f"{env}-state"

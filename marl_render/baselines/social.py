@@ -22,13 +22,12 @@ import statistics
 import sys
 from pathlib import Path
 
-import torch
-
 from marl_render.envs.evaluation import evaluate, heuristic_policy, random_policy
 from marl_render.envs.registry import env_class
 from marl_render.populations.policies import load_policy
+from marl_render.util.threads import limited_threads
 
-from .published import OBSERVATIONS, ROOT, RUNS, SEEDS, published_env_options, run_folder
+from .published import OBSERVATIONS, ROOT, RUNS, SEEDS, evaluation_kwargs, published_env_options, run_folder
 
 OUTCOMES = ("efficiency", "equality", "sustainability", "peace")
 REFERENCES = ("random", "heuristic")
@@ -68,20 +67,13 @@ def measure(folder) -> dict:
         raise ValueError(f"{folder}: {result['env']} is not a mixed-motive task; it has no social outcomes")
     if not (folder / "actor.pt").is_file():
         raise ValueError(f"{folder} kept no actor.pt: its policy cannot be played again")
-    policy = load_policy(str(folder))
-    hp, options = result["hyperparameters"], published_env_options(result)
-    kwargs = {"resolution": hp["resolution"], **policy.env_kwargs, **options,
-              "episodes": result["evaluation"]["policy"]["episodes"], "seed": result["seeds"]["evaluation"]}
-    threads = torch.get_num_threads()
-    torch.set_num_threads(hp.get("torch_threads", 1) or threads)  # as the run evaluated
-    try:
+    policy, kwargs = load_policy(str(folder)), evaluation_kwargs(result)
+    with limited_threads(result["hyperparameters"].get("torch_threads", 1) or None):  # as the run evaluated
         scores = {name: evaluate(result["env"], player, **kwargs)
                   for name, player in (("policy", policy), ("random", random_policy),
                                        ("heuristic", heuristic_policy))}
-    finally:
-        torch.set_num_threads(threads)
     return {"run": str(folder), "env": result["env"], "seed": kwargs["seed"], "episodes": kwargs["episodes"],
-            "env_options": options,
+            "env_options": published_env_options(result),
             # The replayed greedy policy's returns against the run's own: the same episodes, or not.
             "reproduces_run": scores["policy"]["per_episode"] == result["evaluation"]["policy"]["per_episode"],
             "return": {name: score["mean"] for name, score in scores.items()},
