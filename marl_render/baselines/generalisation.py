@@ -60,8 +60,10 @@ EXAMPLE_COMMANDS = (
     "--heldout --out out/gen_example/generalise",
 )
 # The tasks of the study, each trained as its published pixel row (budget, hyperparameters, training-only
-# options): the three with the smallest published pixel budgets, so the study fits a shared 2-core machine.
-STUDY_TASKS = ("forage", "speaker_listener", "commons")
+# options): tasks with small published pixel budgets, so the study fits a shared 2-core machine. clean_up
+# joined after speaker_listener's runs stayed at random's level on their own training levels (a study
+# shows a gap only where its policies learn; issue 38 asks for three such tasks).
+STUDY_TASKS = ("forage", "speaker_listener", "commons", "clean_up")
 STUDY_STEPS = {task: published.RUNS[task]["pixels"].env_steps for task in STUDY_TASKS}  # env steps per run
 CONDITIONS = {"levels200": 200, "unbounded": "train"}  # the training levels= of each condition
 SEEDS = (0, 1, 2)
