@@ -195,7 +195,8 @@ class BatchedEnv(AllOrNothing):
                                      shadows=self.shadows, grayscale=self.grayscale, context=self.context,
                                      device=self.device, multisamples=settings.multisamples,
                                      supersample=settings.supersample, appearance=self.appearance,
-                                     readback=self.readback, exact_tiles=settings.exact_tiles,
+                                     readback=self.readback, layered=settings.layered,
+                                     exact_tiles=settings.exact_tiles,
                                      impostors=settings.impostors)
         self.renderer = self.views.renderer
         # Last: compiling takes seconds, so every other option has been checked by now.

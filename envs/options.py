@@ -42,8 +42,9 @@ class EnvOptions:
     context (a marl_render.GLContext to render on; None: the process's default), readback ("auto",
     "gpu" or "host": how frames reach `device`, marl_render.BatchRenderer's readback), and the
     accuracy knobs multisamples (MSAA samples of the agents' views, colour only), supersample
-    (k x the resolution, box-filtered down), exact_tiles (the agents' views bit-identical in any
-    world slot and at any batch size, at a cost in render time: docs/levels.md) and
+    (k x the resolution, box-filtered down), layered and exact_tiles (two ways to make the agents'
+    views bit-identical in any world slot and at any batch size, each at a cost in render time:
+    docs/levels.md) and
     physics_substeps (planar physics substeps per step; None: the task's own; coarser than the
     no-tunnelling bound is refused), and
     compile_physics (torch.compile the task's physics kernel where it has one (cartpole):
@@ -79,8 +80,10 @@ class EnvOptions:
     # planar physics' substeps per step (None: the task's own).
     multisamples: int = 0  # MSAA samples (colour only: not with depth)
     supersample: int = 1  # render k x the resolution and box-filter it down
-    # The agents' views bit-identical in any world slot and at any batch size (BatchRenderer(
-    # exact_tiles=True): docs/levels.md; costs render time).
+    # The agents' views bit-identical in any world slot and at any batch size, each view drawn into its
+    # own layer (BatchRenderer(layered=True), the cheaper way) or placed exactly in its tile
+    # (exact_tiles=True): docs/levels.md says what each costs.
+    layered: bool = False
     exact_tiles: bool = False
     # Spheres drawn as ray-cast impostors where the effects allow (marl_render/render/impostors.py): "auto",
     # True (raise where they cannot be drawn) or False (meshes); what it changes: docs/accuracy.md.
@@ -145,6 +148,7 @@ class Settings:
     multisamples: int
     supersample: int
     compile_physics: bool
+    layered: bool
     exact_tiles: bool
     impostors: object  # "auto", True or False (marl_render/render/impostors.py)
     physics_substeps: int | None  # checked by physics_substeps() once the scenario is built
@@ -215,7 +219,8 @@ def resolve(options: EnvOptions, scenario, params) -> Settings:
         effects=effects, multisamples=multisamples(options.multisamples),
         supersample=positive_int("supersample", options.supersample),
         compile_physics=flag("compile_physics", options.compile_physics),
-        exact_tiles=flag("exact_tiles", options.exact_tiles), impostors=check_impostors(options.impostors),
+        layered=flag("layered", options.layered), exact_tiles=flag("exact_tiles", options.exact_tiles),
+        impostors=check_impostors(options.impostors),
         physics_substeps=options.physics_substeps)
 
 

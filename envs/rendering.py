@@ -21,13 +21,14 @@ class EnvRenderer:
     def __init__(self, scenario, *, resolution: tuple, effects: tuple, shadows, grayscale: bool,
                  context: mr.GLContext, device: torch.device, multisamples: int = 0, supersample: int = 1,
                  appearance: mr.Appearance | None = None, readback: str = "auto",
-                 exact_tiles: bool = False, impostors="auto"):
+                 layered: bool = False, exact_tiles: bool = False, impostors="auto"):
         self.scenario, self.resolution, self.shadows = scenario, resolution, shadows
         self.appearance = appearance  # the looks' distribution ("appearance" is then in effects)
         self._look = None  # the AppearanceParams of the current worlds (set_appearance)
         self._free_cameras = None  # the agents' free cameras as place_cameras left them (camera jitter)
         self.multisamples, self.supersample = multisamples, supersample  # the agents' views only
-        self.exact_tiles = exact_tiles  # the agents' views only: the overview has one tile per world
+        # The agents' views only: the overview has one tile per world.
+        self.layered, self.exact_tiles = layered, exact_tiles
         self.grayscale, self.context, self.device = grayscale, context, device
         self.impostors = impostors  # both renderers: spheres as impostors where they can (BatchRenderer's)
         self.readback = readback  # the frames are born on `device` (BatchRenderer's readback and device)
@@ -133,7 +134,7 @@ class EnvRenderer:
 
     def _renderer(self, scene: mr.Scene, overview: bool) -> mr.BatchRenderer:
         antialias = {} if overview else dict(multisamples=self.multisamples, supersample=self.supersample,
-                                             exact_tiles=self.exact_tiles)
+                                             layered=self.layered, exact_tiles=self.exact_tiles)
         renderer = mr.BatchRenderer(scene, color="gray" if self.grayscale and not overview else "rgb",
                                     context=self.context, device=self.device, readback=self.readback,
                                     impostors=self.impostors, **antialias)

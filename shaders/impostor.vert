@@ -1,3 +1,7 @@
+#ifdef LAYERED_VIEWS
+// Every view in its own layer of an array texture (BatchRenderer(layered=True)).
+#extension GL_ARB_shader_viewport_layer_array : require
+#endif
 // A sphere impostor (marl_render/impostors.py): each instance of a sphere group is one quad,
 // placed in front of the sphere across the cone of rays from the camera that meet it, and the
 // fragment stage (impostor.frag) casts the pixel's ray at the sphere itself: a perfect sphere,
@@ -128,11 +132,17 @@ void main() {
         clip = vec4(0.0, 0.0, 2.0, 1.0);
     }
 
+#ifdef LAYERED_VIEWS
+    // batch.vert's layered placement: its own layer, at the same window coordinates in every layer.
+    gl_Layer = pass_view;
+    gl_Position = vec4(clip.x, -clip.y, clip.z, clip.w);
+#else
     // The tile placement of batch.vert: clipped to this view's frustum, then moved into its tile
     // (flipped vertically: GL reads back bottom-up).
     gl_ClipDistance[0] = clip.w + clip.y;
     gl_ClipDistance[1] = clip.w - clip.y;
     gl_Position = vec4(clip.x, (float(2 * pass_view + 1 - tiles) * clip.w - clip.y) / float(tiles), clip.z, clip.w);
+#endif
 
 #ifdef EFFECT_LIGHTING
     v_rotation = rotation;

@@ -538,7 +538,7 @@ def test_bench_effects_measures_the_appearance_effect(tmp_path):
 
 
 def test_layered_views_show_each_worlds_sky_and_its_changes():
-    """layered=True (PROTOTYPE): the sky is copied into every view's layer (one array image per pass)."""
+    """layered=True: the sky is copied into every view's layer (one array image per pass)."""
     scene = free_scene(3, agents=2)
     with mr.BatchRenderer(scene, layered=True) as r:
         look_from(r, [0, 0, 0], UP)

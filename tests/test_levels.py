@@ -363,15 +363,15 @@ def test_a_scalar_array_as_levels_is_named(levels):
 SLOT_PLAN = ((2, {0: 7, 1: 8}), (5, {4: 7, 2: 9, 1: 8}), (3, {2: 9}))  # (worlds, {slot: level id})
 
 
-def pictures_by_level(name: str, exact_tiles: bool = True, resolution: int = 16) -> dict:
+def pictures_by_level(name: str, resolution: int = 16, **views) -> dict:
     """{level id: [uint8 pixels of that level's world, one per (batch, slot) it was reset into]}: test
     levels 7, 8 and 9 reset into several slots of batches of 2, 5 and 3 worlds (appearance on), each
     after random steps of its own (as the issue's reproduction: level 7 in slot 0 of 2 worlds and in
-    slot 5 of 7)."""
+    slot 5 of 7); `views`: how the env draws its views (exact_tiles=True or layered=True)."""
     seen = {}
     for worlds, plan in SLOT_PLAN:
         with make_env(name, num_worlds=worlds, resolution=resolution, levels="test", seed=123,
-                      appearance="train", exact_tiles=exact_tiles) as env:
+                      appearance="train", **views) as env:
             env.reset()
             for _ in range(2):
                 env.step(env.random_actions())
@@ -385,21 +385,31 @@ def pictures_by_level(name: str, exact_tiles: bool = True, resolution: int = 16)
     return seen
 
 
+@pytest.mark.parametrize("views, resolution", [({"exact_tiles": True}, 16), ({"layered": True}, 64)],
+                         ids=["exact_tiles", "layered"])
 @pytest.mark.parametrize("name", TASKS)
-def test_a_level_is_the_same_picture_in_any_slot_and_batch_size(name):
-    """exact_tiles=True: every task's level gives bit-identical pixels (every agent's view) in any
-    world slot at any batch size, with appearance on. Without it the rasteriser's rounding depends
-    on where a view's tile sits in the framebuffer (shaders/exact.geom says how)."""
-    seen = pictures_by_level(name)
+def test_a_level_is_the_same_picture_in_any_slot_and_batch_size(name, views, resolution):
+    """exact_tiles=True and layered=True: every task's level gives bit-identical pixels (every agent's
+    view) in any world slot at any batch size, with appearance on. Without them the rasteriser's
+    rounding depends on where a view's tile sits in the framebuffer (docs/levels.md says how)."""
+    seen = pictures_by_level(name, resolution, **views)
     assert {level: len(p) for level, p in seen.items()} == {7: 2, 8: 2, 9: 2}
     for level, pictures in seen.items():
         first = pictures[0]
         assert first.dtype == torch.uint8 and first.float().std() > 0  # a picture, not a blank
+        assert first.shape[-3:-1] == (resolution, resolution)
         for other in pictures[1:]:
             assert torch.equal(other, first), (name, level, int((other != first).any(-1).sum()))
     assert not torch.equal(seen[7][0], seen[8][0])  # levels differ
 
 
-def test_exact_tiles_must_be_a_bool():
-    with pytest.raises(TypeError, match="exact_tiles must be a bool, got"):
-        make_env("spread", num_worlds=1, resolution=8, exact_tiles=1)
+@pytest.mark.parametrize("option", ["exact_tiles", "layered"])
+def test_exact_tiles_and_layered_must_be_bools(option):
+    with pytest.raises(TypeError, match=f"{option} must be a bool, got"):
+        make_env("spread", num_worlds=1, resolution=8, **{option: 1})
+
+
+def test_layered_refuses_multisamples_and_exact_tiles_naming_both():
+    for other in ({"multisamples": 4}, {"exact_tiles": True}):
+        with pytest.raises(ValueError, match="layered=True cannot be combined with exact_tiles or multisamples"):
+            make_env("spread", num_worlds=1, resolution=8, layered=True, **other)

@@ -512,13 +512,14 @@ def test_exact_tiles_must_be_a_bool():
         mr.BatchRenderer(mr.Scene(num_worlds=1, agents_per_world=1, resolution=8), exact_tiles="yes")
 
 
+@pytest.mark.parametrize("impostors", [False, True])
 @pytest.mark.parametrize("effects", [("lighting", "fog", "depth", "segmentation"), ("lighting", "log_depth", "depth")])
-def test_layered_views_draw_every_world_alike_in_any_slot(effects):
-    """layered=True (PROTOTYPE): every view in its own layer of an array texture. 20 worlds holding
-    the same scene (a floor the near plane clips, boxes, a ball lit per fragment) give bit-identical
-    colour, depth and segmentation in every world, and the same as a batch of 3 worlds; the column
-    of tiles does not (its world 0 differs from another world in this scene); the picture is the
-    column's but for rounding."""
+def test_layered_views_draw_every_world_alike_in_any_slot(effects, impostors):
+    """layered=True: every view in its own layer of an array texture. 20 worlds holding the same
+    scene (a floor the near plane clips, boxes, a ball lit per fragment, as a mesh or an impostor)
+    give bit-identical colour, depth and segmentation in every world, and the same as a batch of 3
+    worlds; the column of tiles does not (its world 0 differs from another world in this scene);
+    the picture is the column's but for rounding."""
     agents, capacity = 3, 4
     instances, camera, target = random_scene_inputs(torch.Generator().manual_seed(7), 1, agents, capacity)
     frames = {}
@@ -528,7 +529,8 @@ def test_layered_views_draw_every_world_alike_in_any_slot(effects):
         scene.add_static("floor", "plane", position=[0, 0, 0], scale=[30, 30, 1], color=[0.3, 0.6, 0.3])
         scene.add_group("boxes", "box", capacity=capacity)
         scene.add_group("balls", "sphere", capacity=1)
-        with mr.BatchRenderer(scene, layered=layered) as renderer:
+        with mr.BatchRenderer(scene, layered=layered, impostors=impostors) as renderer:
+            assert renderer.impostor_groups == (frozenset({"balls"}) if impostors else frozenset())
             renderer.update("boxes", **{k: v.expand(worlds, *v.shape[1:]) for k, v in instances.items()})
             renderer.update("balls", position=torch.tensor([0.3, 2.5, 0.6]).expand(worlds, 1, 3),
                             active=torch.ones(worlds, 1, dtype=torch.bool))

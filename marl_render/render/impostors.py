@@ -16,8 +16,9 @@ and refuses (ValueError, saying why) what they cannot do; False (BatchRenderer's
 draws meshes. The envs pass "auto" (envs/rendering.py). What they cannot do: shadows (the
 shadow pass draws meshes into the light's map, and the sphere would receive its facets'
 shadow), textures (no uvs on a ray-cast sphere), multisamples (MSAA would sample the quad's
-coverage, not the sphere's: use supersample), exact_tiles and layered (their own vertex
-and geometry stages), and floor or wall roles under the appearance effect (patterns).
+coverage, not the sphere's: use supersample), exact_tiles (its geometry stage places each
+triangle in its tile) and floor or wall roles under the appearance effect (patterns). With
+layered=True the quads go to their view's layer, as every mesh does.
 """
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ def is_sphere(mesh) -> bool:
     return bool(np.abs(radius - 0.5).max() < 1e-5 and np.abs(mesh.normals - 2.0 * mesh.positions).max() < 1e-4)
 
 
-def refusal(group, effects, *, multisamples: int, exact_tiles: bool, layered: bool) -> str | None:
+def refusal(group, effects, *, multisamples: int, exact_tiles: bool) -> str | None:
     """Why `group` cannot be drawn as impostors in this renderer, or None when it can."""
     if "shadows" in effects:
         return ("the 'shadows' effect draws meshes into the light's map, and an impostor would receive its "
@@ -64,15 +65,15 @@ def refusal(group, effects, *, multisamples: int, exact_tiles: bool, layered: bo
         return "the 'texture' effect needs the mesh's uvs, which a ray-cast sphere has not"
     if multisamples:
         return "multisamples would sample the quad's coverage, not the sphere's (use supersample)"
-    if exact_tiles or layered:
-        return "exact_tiles and layered draw with stages of their own"
+    if exact_tiles:
+        return "exact_tiles places every triangle in its tile with a geometry stage of its own"
     role = group.role
     if "appearance" in effects and (bool(role.any()) if hasattr(role, "any") else role is not None):
         return "floor and wall roles draw the appearance effect's patterns, which impostors do not"
     return None
 
 
-def choose(scene, impostors, *, multisamples: int, exact_tiles: bool, layered: bool) -> frozenset:
+def choose(scene, impostors, *, multisamples: int, exact_tiles: bool) -> frozenset:
     """Names of the groups to draw as impostors: spheres, where refusal() finds nothing. With
     impostors=True a refused sphere group is a ValueError naming the group and the reason."""
     mode = check_mode(impostors)
@@ -82,7 +83,7 @@ def choose(scene, impostors, *, multisamples: int, exact_tiles: bool, layered: b
     for group in list(scene.static.values()) + list(scene.groups.values()):
         if not is_sphere(group.mesh):
             continue
-        reason = refusal(group, scene.effects, multisamples=multisamples, exact_tiles=exact_tiles, layered=layered)
+        reason = refusal(group, scene.effects, multisamples=multisamples, exact_tiles=exact_tiles)
         if reason is None:
             chosen.add(group.name)
         elif mode is True:
@@ -91,9 +92,10 @@ def choose(scene, impostors, *, multisamples: int, exact_tiles: bool, layered: b
     return frozenset(chosen)
 
 
-def defines(effects, *, static: bool, gray: bool) -> tuple[str, ...]:
+def defines(effects, *, static: bool, gray: bool, layered: bool = False) -> tuple[str, ...]:
     """The sorted #define lines of an impostor variant: the declared effects it draws, the
-    instance and view layouts (row_layouts.py), and where the aux outputs go."""
+    instance and view layouts (row_layouts.py), where the aux outputs go, and whether each view
+    is a layer (BatchRenderer(layered=True)) rather than a tile."""
     names = {shaders.EFFECT_DEFINES[e] for e in effects if e in ("lighting", "fog", "depth", "segmentation",
                                                                   "log_depth", "appearance")}
     if "appearance" in effects:
@@ -102,6 +104,8 @@ def defines(effects, *, static: bool, gray: bool) -> tuple[str, ...]:
         names.add("OUTPUT_GRAY")
     if static:
         names.add("STATIC_GROUP")
+    if layered:
+        names.add("LAYERED_VIEWS")
     names.update(row_layouts.glsl_defines(static=static))
     names.add(f"QUADS_PER_INSTANCE {QUADS_PER_INSTANCE}")
     names.update(f"{name.upper()}_LOCATION {location}"

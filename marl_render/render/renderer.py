@@ -92,10 +92,10 @@ class BatchRenderer(FrameReads):
         its world's slot and the batch size (a geometry stage clips and places each triangle
         and the fragment stage evaluates every varying and depth inside the tile: shaders/
         exact.geom); it costs render time (docs/renderer.md). Shadow maps are not covered.
-        layered=True (PROTOTYPE) draws every view into its own layer of an array texture instead
-        of a tile of a column (gl_Layer from the vertex shader): every view is rasterised at the
-        same window coordinates, so its pixels do not depend on its slot either; not with
-        exact_tiles or multisamples.
+        layered=True draws every view into its own layer of an array texture instead of a tile
+        of a column (gl_Layer from the vertex stage): every view is rasterised at the same window
+        coordinates, so its pixels do not depend on its slot either, at less cost than exact_tiles
+        (docs/levels.md); not with exact_tiles or multisamples, and read back to the host.
         impostors: "auto" draws sphere groups as ray-cast impostors (one quad an instance, exact
         depth and normals; impostors.py) where the effects and options allow, True asks for them
         and raises where they cannot be drawn, False (default) draws every mesh."""
@@ -112,10 +112,10 @@ class BatchRenderer(FrameReads):
         self.layered = bool(layered)
         if self.layered and (self.exact_tiles or multisamples):
             raise ValueError("layered=True cannot be combined with exact_tiles or multisamples "
-                             "(not implemented in this prototype)")
+                             "(not implemented)")
         if self.layered and (readback in ("gpu", "pbo") or self.device.type != "cpu"):
             raise ValueError("layered=True reads back to the host only (not implemented with the pack buffer or "
-                             f"a CUDA device in this prototype), got readback={readback!r}, "
+                             f"a CUDA device), got readback={readback!r}, "
                              f"device={str(self.device)!r}")
         if not isinstance(color, str) or color not in self.COLORS:
             raise ValueError(f"color must be one of {list(self.COLORS)}, got {color!r}")
@@ -135,7 +135,7 @@ class BatchRenderer(FrameReads):
         self.multisamples = multisamples
         # Checked before any GL object: the names of the groups drawn as impostors.
         self.impostor_groups = sphere_impostors.choose(scene, impostors, multisamples=multisamples,
-                                                       exact_tiles=self.exact_tiles, layered=self.layered)
+                                                       exact_tiles=self.exact_tiles)
         height, width = scene.resolution
         self.scene = scene
         self.readback = readback
@@ -316,7 +316,7 @@ class BatchRenderer(FrameReads):
                 influences=mesh.influences if joints else 4, role=0 if static else ROLES[group.role],
                 exact=self.exact_tiles, layered=self.layered)
             node.set_shader(sphere_impostors.compiled(sphere_impostors.defines(
-                self.effects, static=static, gray=self.color == "gray")) if impostor
+                self.effects, static=static, gray=self.color == "gray", layered=self.layered)) if impostor
                 else shaders.compiled(variant(surface=surface)))
             if textured and "texture" in self.effects:
                 node.set_texture(panda_texture(group.texture, group.name), 1)
