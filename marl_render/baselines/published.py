@@ -101,7 +101,7 @@ RUNS: dict[str, dict[str, Published]] = {
     "rooms": _entry("rooms", train_options={"explore_reward": 0.1}),
     "speaker_listener": _entry("speaker_listener"),
     "spread": _entry("spread"),
-    "tag": _entry("tag", train_options={"shaping": 0.05}, torch_init=("pixels", "state")),
+    "tag": _entry("tag", train_options={"shaping": 0.05}, torch_init=("state",)),
     "territory": _entry("territory"),
 }
 
