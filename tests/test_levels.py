@@ -320,6 +320,8 @@ def test_the_generalisation_study_runs_end_to_end(tmp_path):
     text = generalisation.report(str(tmp_path), str(tmp_path / "page.md"))
     assert "## speaker_listener" in text and "| `levels=200` |" in text and "| heuristic |" in text
     assert "gap: train - test levels" in text and "Runs above random on their own train levels: " in text
+    glance = text.split("## At a glance")[1].split("## speaker_listener")[0]
+    assert "\n| speaker_listener | " in glance and " of 1 | " in glance  # one run, in the summary too
     assert generalisation.command("speaker_listener", "levels200", 0) in text
 
 
