@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from marl_render.baselines import final_set, run
+from marl_render.baselines import final_runs, final_set, run
 from marl_render.baselines.settings import EVALUATION_SETS
 from marl_render.envs.evaluation import SEALED_SEEDS, evaluate, random_policy
 from marl_render.envs.registry import list_envs
@@ -71,11 +71,17 @@ def test_the_command_scores_the_final_set_only_with_final(args, message, capsys)
     assert run.parse_args(["--env", "spread", "--eval-set", "final", "--final"]).final is True
 
 
-def test_no_committed_result_is_scored_on_the_final_set():
-    """Nothing has been scored on the sealed set: no committed JSON file names its seed or the set."""
+def test_only_the_final_runs_are_scored_on_the_final_set():
+    """The sealed set scores the final runs alone: no committed JSON file outside docs/final/ names its
+    seed or the set, and every one inside is a final run's result.json (marl_render/baselines/final_runs.py)."""
     files = subprocess.run(["git", "ls-files", "*.json"], cwd=ROOT, capture_output=True, text=True,
                            check=True).stdout.split()
     assert len(files) > 50
     for name in files:
         text = (ROOT / name).read_text(errors="replace")
+        if name.startswith(final_runs.ROOT + "/"):
+            result = json.loads(text)
+            assert name.endswith("/result.json") and result["evaluation_set"] == "final", name
+            assert result["mode"] == "reproducible" and result["seeds"]["evaluation"] == FINAL["seed"], name
+            continue
         assert str(FINAL["seed"]) not in text and '"evaluation_set": "final"' not in text, name

@@ -1,0 +1,93 @@
+"""The final runs (issue 38): each frozen published row's command in the reproducible mode, scored once on
+the sealed final set; their settings frozen; the page written from their result.json files."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from marl_render.baselines import final_runs, published, run
+
+# Each frozen row's settings_digest() when its final runs began (stop 40). A change fails here: the final runs
+# already trained with the old settings must then be deleted (and the change said in the notes), or the change
+# undone.
+FROZEN_DIGESTS = {
+    ("capture_flag", "pixels"): "d4142a15dc5c157a", ("capture_flag", "state"): "f4495fa766bbda6b",
+    ("cartpole", "pixels"): "b2bed0db9b4690f9", ("cartpole", "state"): "70e4528b45243e13",
+    ("commons", "pixels"): "2a4b55f429c27b12", ("commons", "state"): "424aabf8e83bf32f",
+    ("forage", "pixels"): "8548369f924f1440", ("forage", "state"): "72f2d128fdf99212",
+    ("push", "pixels"): "205fa125108f7626", ("push", "state"): "cadecfd9d37e44f7",
+    ("rooms", "pixels"): "2065a746dfe8c7e6", ("rooms", "state"): "fee0dd42242ebb57",
+    ("speaker_listener", "pixels"): "386cc9e7ad249009", ("speaker_listener", "state"): "d121d2d690698b22",
+    ("spread", "pixels"): "13ad29113c1e8378", ("spread", "state"): "741bda26875c74df",
+    ("tag", "pixels"): "d60eba11c3109a04", ("tag", "state"): "78d8a882907f62d9",
+}
+
+
+def test_the_frozen_rows_settings_are_those_their_final_runs_train_with():
+    assert set(FROZEN_DIGESTS) == {(env, obs) for env in final_runs.FROZEN for obs in published.OBSERVATIONS}
+    changed = {key: final_runs.settings_digest(*key) for key, digest in FROZEN_DIGESTS.items()
+               if final_runs.settings_digest(*key) != digest}
+    assert not changed, f"frozen rows changed: {changed}"
+
+
+def test_a_final_command_is_the_published_one_in_the_reproducible_mode_on_the_sealed_set():
+    commands = final_runs.commands()
+    assert len(commands) == len(final_runs.FROZEN) * len(published.OBSERVATIONS) * len(published.SEEDS)
+    for env in final_runs.FROZEN:
+        for obs in published.OBSERVATIONS:
+            entry = published.RUNS[env][obs]
+            for seed in published.SEEDS:
+                args = run.parse_args(final_runs.argv(env, obs, seed))  # as the learner reads it
+                assert (args.env, args.obs, args.seed, args.env_steps) == (env, obs, seed, entry.env_steps)
+                assert (args.eval_set, args.final, args.reproducible) == ("final", True, True)
+                assert dict(args.env_option) == dict(entry.env_options)
+                assert dict(args.train_option) == dict(entry.train_options)
+                assert all(getattr(args, k) == v for k, v in entry.hyperparameters.items())
+                assert args.out == f"docs/final/{published.folder(env, obs)}/seed{seed}"
+
+
+def test_only_frozen_tasks_have_final_runs():
+    with pytest.raises(ValueError, match=r"env must be one of the frozen tasks \[.*\], got 'matrix'"):
+        final_runs.argv("matrix", "pixels", 0)
+    with pytest.raises(SystemExit):
+        final_runs.main(["--tasks", "matrix"])
+
+
+def _result(env: str, obs: str, mean: float, cpu: str = "AMD EPYC") -> dict:
+    return {"env": env, "obs": obs, "machine": {"cpu": {"model": cpu}},
+            "evaluation": {"policy": {"mean": mean}, "random": {"mean": -14.0}, "heuristic": {"mean": -0.9}}}
+
+
+def test_the_page_shows_the_runs_done_and_the_commands_left(tmp_path):
+    for seed, mean in ((0, -6.0), (1, -8.0)):
+        folder = published.run_folder(tmp_path, "speaker_listener", "pixels", seed)
+        folder.mkdir(parents=True)
+        (folder / "result.json").write_text(json.dumps(_result("speaker_listener", "pixels", mean)))
+    page = final_runs.report(tmp_path, tmp_path / "final.md")
+    assert page == (tmp_path / "final.md").read_text()
+    row = next(line for line in page.splitlines() if line.startswith("| speaker_listener | pixels |"))
+    assert "| 2 | -6 / -8 | -7 [-8, -6] | -14 | -0.9 | AMD EPYC |" in row
+    total = len(final_runs.FROZEN) * len(published.OBSERVATIONS) * len(published.SEEDS)
+    assert f"Final runs done: 2 of {total}; still to train ({total - 2})" in page
+    assert f"--out {tmp_path}/speaker_listener/seed2" in page and f"{tmp_path}/speaker_listener/seed0" not in page
+
+
+def test_run_trains_only_the_missing_runs_of_the_tasks_asked_and_writes_the_page(tmp_path, monkeypatch):
+    done = published.run_folder(tmp_path, "tag", "pixels", 0)
+    done.mkdir(parents=True)
+    (done / "result.json").write_text(json.dumps(_result("tag", "pixels", 10.0)))
+    started = []
+    monkeypatch.setattr(published, "run_quietly", lambda command: started.append(command[3:]) or 0)
+    assert final_runs.main(["--run", "--tasks", "tag", "--root", str(tmp_path), "--page", str(tmp_path / "f.md")]) == 0
+    assert started == final_runs.missing(tmp_path, ["tag"]) and len(started) == 5
+    assert all("--reproducible" in a and a[a.index("--env") + 1] == "tag" for a in started)
+    assert "| tag | pixels | 1 | 10 | 10 (1 seed) |" in (tmp_path / "f.md").read_text()
+
+
+def test_the_committed_page_is_its_runs(tmp_path, monkeypatch):
+    """docs/final.md is what --report writes from docs/final/ (regenerated, not edited)."""
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+    assert final_runs.report(final_runs.ROOT, tmp_path / "final.md") == (root / final_runs.PAGE).read_text()
