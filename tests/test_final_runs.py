@@ -65,10 +65,14 @@ def test_the_page_shows_the_runs_done_and_the_commands_left(tmp_path):
         folder = published.run_folder(tmp_path, "speaker_listener", "pixels", seed)
         folder.mkdir(parents=True)
         (folder / "result.json").write_text(json.dumps(_result("speaker_listener", "pixels", mean)))
-    page = final_runs.report(tmp_path, tmp_path / "final.md")
+    published_root = tmp_path / "published"
+    folder = published.run_folder(published_root, "speaker_listener", "pixels", 0)
+    folder.mkdir(parents=True)
+    (folder / "result.json").write_text(json.dumps(_result("speaker_listener", "pixels", -9.5)))
+    page = final_runs.report(tmp_path, tmp_path / "final.md", published_root)
     assert page == (tmp_path / "final.md").read_text()
     row = next(line for line in page.splitlines() if line.startswith("| speaker_listener | pixels |"))
-    assert "| 2 | -6 / -8 | -7 [-8, -6] | -14 | -0.9 | AMD EPYC |" in row
+    assert "| 2 | -6 / -8 | -7 [-8, -6] | -14 | -0.9 | -9.5 (1 seed) | AMD EPYC |" in row
     total = len(final_runs.FROZEN) * len(published.OBSERVATIONS) * len(published.SEEDS)
     assert f"Final runs done: 2 of {total}; still to train ({total - 2})" in page
     assert f"--out {tmp_path}/speaker_listener/seed2" in page and f"{tmp_path}/speaker_listener/seed0" not in page
@@ -83,7 +87,7 @@ def test_run_trains_only_the_missing_runs_of_the_tasks_asked_and_writes_the_page
     assert final_runs.main(["--run", "--tasks", "tag", "--root", str(tmp_path), "--page", str(tmp_path / "f.md")]) == 0
     assert started == final_runs.missing(tmp_path, ["tag"]) and len(started) == 5
     assert all("--reproducible" in a and a[a.index("--env") + 1] == "tag" for a in started)
-    assert "| tag | pixels | 1 | 10 | 10 (1 seed) |" in (tmp_path / "f.md").read_text()
+    assert "| tag | pixels | 1 | 10 | 10 (1 seed) | -14 | -0.9 | 10 [10, 10] | AMD EPYC |" in (tmp_path / "f.md").read_text()
 
 
 def test_the_committed_page_is_its_runs(tmp_path, monkeypatch):
