@@ -8,7 +8,7 @@ once on the sealed final set (issue 38).
 
 A final run is its published entry's command (published.RUNS: step budget, env and training options,
 hyperparameters) with three changes: ``--reproducible`` (float32, kernels pinned, one torch thread:
-reproducible.py; about 3x the default mode's time), ``--eval-set final --final`` (the sealed set of
+reproducible.py; 0.7-1.9x the published runs' training time on an AMD EPYC), ``--eval-set final --final`` (the sealed set of
 final_set.py, which ``evaluate`` refuses without --final) and its folder, docs/final/<task>[-state]/seed<k>.
 
 Only the FROZEN tasks have final runs. Their published entries are frozen (tests/test_final_runs.py pins
