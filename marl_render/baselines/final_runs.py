@@ -8,8 +8,9 @@ once on the sealed final set (issue 38).
 
 A final run is its published entry's command (published.RUNS: step budget, env and training options,
 hyperparameters) with three changes: ``--reproducible`` (float32, kernels pinned, one torch thread:
-reproducible.py; 0.7-1.9x the published runs' training time on an AMD EPYC), ``--eval-set final --final`` (the sealed set of
-final_set.py, which ``evaluate`` refuses without --final) and its folder, docs/final/<task>[-state]/seed<k>.
+reproducible.py; 0.7-1.9x the published runs' training time on an AMD EPYC), ``--eval-set final
+--final`` (the sealed set of final_set.py, which ``evaluate`` refuses without --final) and its folder,
+docs/final/<task>[-state]/seed<k>.
 
 Only the FROZEN tasks have final runs. Their published entries are frozen (tests/test_final_runs.py pins
 each entry's settings, so that a change to one fails until its final runs are deleted and the change is
@@ -130,7 +131,8 @@ def report(root=ROOT, page=PAGE, published_root=published.ROOT) -> str:
         references = results[0]["evaluation"]
         lines.append(f"| {env} | {obs} | {len(results)} | " + " / ".join(f"{v:.3g}" for v in returns)
                      + f" | {row_interval(returns)} | {references['random']['mean']:.3g}"
-                     f" | {references['heuristic']['mean']:.3g} | {row_interval(published_returns(env, obs, published_root))}"
+                     f" | {references['heuristic']['mean']:.3g}"
+                     f" | {row_interval(published_returns(env, obs, published_root))}"
                      f" | {', '.join(cpus)} |")
     todo = missing(root)
     lines += ["", f"Final runs done: {sum(len(r) for r in runs.values())} of "
