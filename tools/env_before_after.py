@@ -22,6 +22,8 @@ import sys
 import tempfile
 import time
 
+from marl_render.util.cpu import cpu_model_and_flags
+
 # Run at start-up in each checkout's process: the editable finder's folders, moved to the checkout.
 SITECUSTOMIZE = """import sys
 for _module in list(sys.modules.values()):
@@ -65,7 +67,6 @@ def main() -> None:
     args = parser.parse_args(argv[:split])
     bench_args = argv[split + 1:]  # bench env's own arguments
     rates = {"before": {}, "after": {}}
-    machine = None
     for round_index in range(args.rounds):
         sides = ("before", "after") if round_index % 2 == 0 else ("after", "before")
         for side in sides:
@@ -75,8 +76,6 @@ def main() -> None:
                 rates[side].setdefault(f"{row['env']}@{row['worlds']}", []).append(row["env_steps_per_s"])
             print(f"round {round_index + 1}/{args.rounds} {side}: {len(results)} rows in "
                   f"{time.perf_counter() - started:.0f} s", file=sys.stderr, flush=True)
-    with open("/proc/cpuinfo") as f:
-        machine = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), "unknown")
     rows = []
     for key in sorted(set(rates["before"]) | set(rates["after"])):
         env, worlds = key.rsplit("@", 1)
@@ -85,8 +84,9 @@ def main() -> None:
         rows.append({"env": env, "worlds": int(worlds), "before_env_steps_per_s": before,
                      "after_env_steps_per_s": after, "ratio": after / before if before and after else None,
                      "before_runs": rates["before"].get(key, []), "after_runs": rates["after"].get(key, [])})
-    out = {"benchmark": "env_before_after", "cpu_model": machine, "before": args.before, "after": args.after,
-           "rounds": args.rounds, "bench_args": bench_args, "load_average_end": os.getloadavg(), "rows": rows}
+    out = {"benchmark": "env_before_after", "cpu_model": cpu_model_and_flags()[0], "before": args.before,
+           "after": args.after, "rounds": args.rounds, "bench_args": bench_args,
+           "load_average_end": os.getloadavg(), "rows": rows}
     text = json.dumps(out, indent=1)
     if args.out:
         with open(args.out, "w") as f:

@@ -31,9 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from marl_render.populations import stats
-
 from . import published
+from .report import across_seeds
 from .settings import task_hyperparameters
 
 ROOT = "docs/final"
@@ -97,7 +96,7 @@ def row_interval(returns: list) -> str:
         return "-"
     if len(returns) < 2:
         return f"{returns[0]:.3g} (1 seed)"
-    estimate = stats.stratified_bootstrap(np.asarray(returns, dtype=np.float64)[:, None], stats.mean, reps=5000)
+    estimate = across_seeds(np.asarray(returns, dtype=np.float64))  # as the results table's rows
     return f"{estimate.point:.3g} [{estimate.low:.3g}, {estimate.high:.3g}]"
 
 
