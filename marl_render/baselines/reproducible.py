@@ -5,8 +5,10 @@
 By default torch picks its kernels by the CPU's instruction set when it loads (ATen's AVX2 or
 AVX-512 kernels, oneDNN's convolutions and bfloat16 kernels, MKL's GEMM branch), so the same
 command trains bit for bit alike on two machines only if their CPUs match. The reproducible mode
-pins every choice that measurements on this project's machines showed to change a training run's
-bits (docs/training.md, "Reproducible mode"):
+pins every choice that measurements on one AMD EPYC showed to change a training run's bits
+(docs/training.md, "Reproducible mode"). It does not make the bits the same across CPU models: an
+Intel Xeon with AMX trains other bits than the EPYC from the first update (the golden records,
+golden.py). What it pins:
 
 - the process starts with ``ENVIRONMENT`` (read by torch, MKL and Mesa when they load, so it
   cannot be set from inside a process that has imported torch: the command line re-executes
@@ -32,7 +34,7 @@ from marl_render.util.cpu import cpu_model_and_flags
 # Read when each library loads; the measured effect of each is in docs/training.md.
 ENVIRONMENT = {
     "ATEN_CPU_CAPABILITY": "default",  # ATen's vectorised kernels: the build's baseline, not AVX2 / AVX-512
-    "MKL_CBWR": "COMPATIBLE",  # MKL's conditional numerical reproducibility: one branch on every x86-64 CPU
+    "MKL_CBWR": "COMPATIBLE",  # MKL's conditional numerical reproducibility: its branch documented for every x86-64 CPU
     "GALLIUM_OVERRIDE_CPU_CAPS": "avx",  # llvmpipe generates AVX code whatever more the CPU has
 }
 THREADS = 1

@@ -181,9 +181,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     hp.add_argument("--precision", choices=list(PRECISIONS), default=None,
                     help="the actor's compute (bfloat16: CPU autocast, float32 weights)")
     parser.add_argument("--reproducible", action=argparse.BooleanOptionalAction, default=False,
-                        help="train and evaluate in the reproducible mode (reproducible.py): the same bits on any "
-                             "x86-64 CPU, float32 and one torch thread; the command restarts itself with "
-                             "the mode's environment")
+                        help="train and evaluate in the reproducible mode (reproducible.py): float32, one torch "
+                             "thread, kernels pinned; the same bits on machines of one CPU model, not across "
+                             "models (docs/training.md); the command restarts itself with the mode's environment")
     sp = parser.add_argument_group("self-play (a task of two or more teams; see selfplay.py for the defaults' why)")
     sp.add_argument("--self-play", action="store_true",
                     help="train every team against a pool of frozen snapshots of the actor")

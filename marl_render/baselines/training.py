@@ -94,7 +94,8 @@ def train(env: str, *, obs: str = "pixels", env_steps: int | None = None, update
     what each faced. The policy evaluated (``run.policy()``, the checkpoints) plays the task's usual
     trained team against random opponents, as without self-play.
 
-    `reproducible` trains in the reproducible mode (reproducible.py): the same bits on any x86-64 CPU.
+    `reproducible` trains in the reproducible mode (reproducible.py): the same bits on machines of one
+    CPU model (not across models: docs/training.md).
     It needs float32 precision, one torch thread, and a process started with
     ``reproducible.ENVIRONMENT`` (ValueError naming what is missing, before any work)."""
     if env_steps is not None and updates is not None:
