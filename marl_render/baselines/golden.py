@@ -69,34 +69,36 @@ def primitives() -> dict:
     batch under 16 (ATen's own, through GEMM) and of 16 or more (where torch uses NNPACK, which picks
     its blocking from the CPU's cache sizes) with their gradients, MKL's vector maths (exp, log, tanh,
     sqrt), glibc's (sin, cos, atan2 through ATen), a softmax and a long sum."""
-    def sha(tensor: torch.Tensor) -> str:
-        return hashlib.sha256(tensor.detach().contiguous().numpy().tobytes()).hexdigest()[:16]
-
     threads = torch.get_num_threads()
     torch.set_num_threads(reproducible.THREADS)  # GEMM's and convolutions' sums split by thread otherwise
     try:
-        return _primitive_hashes(sha)
+        return _primitive_hashes()
     finally:
         torch.set_num_threads(threads)
 
 
-def _primitive_hashes(sha) -> dict:
+def _sha(tensor: torch.Tensor) -> str:
+    """16 hex digits of the sha256 of a tensor's bytes."""
+    return hashlib.sha256(tensor.detach().contiguous().numpy().tobytes()).hexdigest()[:16]
+
+
+def _primitive_hashes() -> dict:
     x = _exact_floats(1 << 16, 1)
-    found = {"gemm_64x97x33": sha(_exact_floats(64 * 97, 2).view(64, 97) @ _exact_floats(97 * 33, 3).view(97, 33)),
-             "gemm_512x1568x128": sha(_exact_floats(512 * 1568, 4).view(512, 1568) / 64
-                                      @ (_exact_floats(1568 * 128, 5).view(1568, 128) / 64))}
+    found = {"gemm_64x97x33": _sha(_exact_floats(64 * 97, 2).view(64, 97) @ _exact_floats(97 * 33, 3).view(97, 33)),
+             "gemm_512x1568x128": _sha(_exact_floats(512 * 1568, 4).view(512, 1568) / 64
+                                       @ (_exact_floats(1568 * 128, 5).view(1568, 128) / 64))}
     weight = (_exact_floats(32 * 16 * 9, 6).view(32, 16, 3, 3) / 64).requires_grad_()
     for batch in (4, 48):  # torch convolves a batch of 16 or more through NNPACK where it is built in
         images = (_exact_floats(batch * 16 * 15 * 15, 7 + batch).view(batch, 16, 15, 15) / 8).requires_grad_()
         out = torch.nn.functional.conv2d(images, weight, stride=2)
         (out * out).sum().backward()
-        found[f"conv_batch{batch}"] = sha(out)
-        found[f"conv_batch{batch}_gradients"] = sha(torch.cat((images.grad.flatten(), weight.grad.flatten())))
+        found[f"conv_batch{batch}"] = _sha(out)
+        found[f"conv_batch{batch}_gradients"] = _sha(torch.cat((images.grad.flatten(), weight.grad.flatten())))
         weight.grad = None
-    found.update({"exp": sha(torch.exp(x)), "log": sha(torch.log(x.abs() + 2 ** -10)), "tanh": sha(torch.tanh(x)),
-                  "sqrt": sha(torch.sqrt(x.abs())), "sin": sha(torch.sin(x)), "cos": sha(torch.cos(x)),
-                  "atan2": sha(torch.atan2(x, x.flip(0))), "log_softmax": sha(torch.log_softmax(x.view(64, -1), -1)),
-                  "sum": sha(x.sum())})
+    found.update({"exp": _sha(torch.exp(x)), "log": _sha(torch.log(x.abs() + 2 ** -10)), "tanh": _sha(torch.tanh(x)),
+                  "sqrt": _sha(torch.sqrt(x.abs())), "sin": _sha(torch.sin(x)), "cos": _sha(torch.cos(x)),
+                  "atan2": _sha(torch.atan2(x, x.flip(0))), "log_softmax": _sha(torch.log_softmax(x.view(64, -1), -1)),
+                  "sum": _sha(x.sum())})
     return found
 
 
@@ -121,10 +123,14 @@ def recorded(path: Path = GOLDEN) -> dict:
     return json.loads(path.read_text())
 
 
+def same_cpu(a: dict, b: dict) -> bool:
+    """Whether two records were made on the same CPU (model, flags, torch's capability) and torch version."""
+    return a["cpu"] == b["cpu"] and a["torch"] == b["torch"]
+
+
 def record_for(found: dict, records: dict) -> dict | None:
-    """The record made on the CPU (model, flags, torch's capability) and torch version of `found`, if any."""
-    return next((machine for machine in records["machines"]
-                 if machine["cpu"] == found["cpu"] and machine["torch"] == found["torch"]), None)
+    """The record made on the CPU and torch version of `found` (``same_cpu``), if any."""
+    return next((machine for machine in records["machines"] if same_cpu(machine, found)), None)
 
 
 def with_record(found: dict, records: dict) -> dict:
@@ -132,7 +138,7 @@ def with_record(found: dict, records: dict) -> dict:
     if found["run"] != TINY:
         raise ValueError(f"only the reproducible mode's tiny run is recorded, got run {found['run']!r}")
     entry = {key: value for key, value in found.items() if key != "run"}
-    others = [machine for machine in records["machines"] if record_for(found, {"machines": [machine]}) is None]
+    others = [machine for machine in records["machines"] if not same_cpu(machine, found)]
     return {"run": TINY, "machines": [*others, entry]}
 
 
