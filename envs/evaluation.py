@@ -57,18 +57,24 @@ def random_policy(env, obs, generator: torch.Generator) -> torch.Tensor:
 SEALED_SEEDS = {52_813_907: "final"}
 
 
-def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution: int = 16, final: bool = False,
-             **kwargs) -> dict:
-    """Mean, std, min and max episode return of `policy` over `episodes` episodes (one per world), and
-    each episode's return (``per_episode``, in world order). A sealed set's seed (``SEALED_SEEDS``) is
-    refused unless `final` is True, and `final` is refused with any other seed."""
-    if check.seed("seed", seed) is None:  # an int in [0, 2**63), as make_env's, before the generator takes seed + 1
+def check_evaluation_seed(seed, final: bool) -> None:
+    """TypeError unless `seed` is an int in [0, 2**63) (make_env's; the generator takes seed + 1);
+    ValueError for a sealed set's seed without `final`, or `final` with any other seed."""
+    if check.seed("seed", seed) is None:
         raise TypeError("seed must be an int in [0, 2**63), got None")
     if (seed in SEALED_SEEDS) != bool(final):
         raise ValueError(f"seed {seed} is the sealed {SEALED_SEEDS[seed]!r} evaluation set: it is scored only with "
                          f"final=True (python -m marl_render.baselines --eval-set final --final), got final={final!r}"
                          if seed in SEALED_SEEDS else
                          f"final=True applies to a sealed set's seed {sorted(SEALED_SEEDS)}, got seed {seed}")
+
+
+def evaluate(name: str, policy, *, episodes: int = 32, seed: int = 0, resolution: int = 16, final: bool = False,
+             **kwargs) -> dict:
+    """Mean, std, min and max episode return of `policy` over `episodes` episodes (one per world), and
+    each episode's return (``per_episode``, in world order). A sealed set's seed (``SEALED_SEEDS``) is
+    refused unless `final` is True, and `final` is refused with any other seed."""
+    check_evaluation_seed(seed, final)
     generator = torch.Generator().manual_seed(seed + 1)
     player = as_policy(policy, generator)  # before the env is built: a policy of no kind fails at once
     env = make_env(name, num_worlds=episodes, resolution=resolution, seed=seed, **kwargs)
@@ -114,18 +120,21 @@ def constant_policy(action: int):
     return policy
 
 
-def best_constant_action(name: str, *, episodes: int = 32, seed: int = 0, resolution: int = 16, **kwargs) -> dict:
+def best_constant_action(name: str, *, episodes: int = 32, seed: int = 0, resolution: int = 16, final: bool = False,
+                         **kwargs) -> dict:
     """Every action held for whole episodes (``constant_policy``), each scored by ``evaluate`` on the same
     episodes: the best one's evaluation, with ``"action"`` (its index) and ``"per_action"`` (each action's
     mean return, by index). A baseline a learned policy must beat: one that never looks can reach it.
-    ValueError for an env built with continuous actions (it has no finite set of actions to hold)."""
+    `final` as ``evaluate``'s (a sealed set's seed needs it). ValueError for an env built with continuous
+    actions (it has no finite set of actions to hold)."""
+    check_evaluation_seed(seed, final)  # before the probe env: a sealed seed without final=True builds nothing
     with make_env(name, num_worlds=1, resolution=8, **kwargs) as probe:
         if probe.continuous:
             raise ValueError(f"the best constant action needs discrete actions; {name} was built with "
                              f"continuous=True (a constant continuous action is not one of finitely many)")
         actions = probe.num_actions
-    scores = [evaluate(name, constant_policy(a), episodes=episodes, seed=seed, resolution=resolution, **kwargs)
-              for a in range(actions)]
+    scores = [evaluate(name, constant_policy(a), episodes=episodes, seed=seed, resolution=resolution, final=final,
+                       **kwargs) for a in range(actions)]
     best = max(range(actions), key=lambda a: scores[a]["mean"])  # the lowest index among equals
     return {**scores[best], "action": best, "per_action": [score["mean"] for score in scores]}
 

@@ -1,13 +1,16 @@
 """Baselines a policy must beat: the best constant action and the view ablation (marl_render/baselines/ablate.py)."""
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 import torch
 
 from marl_render.baselines import ablate, published, run
-from marl_render.envs.evaluation import best_constant_action, constant_policy, evaluate
+from marl_render.baselines.settings import EVALUATION_SETS
+from marl_render.envs.evaluation import SEALED_SEEDS, best_constant_action, constant_policy, evaluate
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--env-steps", "8", "--checkpoint-every", "0", "--worlds", "2", "--resolution", "12", "--episodes", "3",
@@ -106,7 +109,8 @@ def test_the_committed_tag_actors_from_pixels_beat_the_best_constant_action_and_
 def test_constant_for_some_tasks_replaces_their_entries_and_keeps_the_others(tmp_path, monkeypatch, capsys):
     (tmp_path / ablate.CONSTANT_ACTIONS).write_text(json.dumps({"tag": {"action": 4}, "spread": {"action": 0}}))
     monkeypatch.setattr(ablate, "constant_actions",
-                        lambda tasks: {t: {"action": 2, "mean": 1.0, "per_action": [0.0, 0.5, 1.0]} for t in tasks})
+                        lambda tasks, evaluation_set, final: {t: {"action": 2, "mean": 1.0,
+                                                                  "per_action": [0.0, 0.5, 1.0]} for t in tasks})
     assert ablate.main(["--constant", "--tasks", "spread", "matrix", "--root", str(tmp_path)]) == 0
     found = json.loads((tmp_path / ablate.CONSTANT_ACTIONS).read_text())
     assert found == {"matrix": {"action": 2, "mean": 1.0, "per_action": [0.0, 0.5, 1.0]},
@@ -114,4 +118,80 @@ def test_constant_for_some_tasks_replaces_their_entries_and_keeps_the_others(tmp
     assert list(found) == [env for env in published.RUNS if env in found]  # in the table's order
     with pytest.raises(SystemExit):
         ablate.main(["--tasks", "spread"])
-    assert "--tasks goes with --constant" in capsys.readouterr().err
+    assert "--tasks and --eval-set go with --constant" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- the sealed final set
+FINAL_SEED = EVALUATION_SETS["final"]["seed"]
+
+
+def test_the_sealed_set_needs_final_for_the_constant_actions_too(monkeypatch):
+    assert FINAL_SEED in SEALED_SEEDS
+    monkeypatch.setattr("marl_render.envs.evaluation.make_env", lambda *a, **k: pytest.fail("built an env"))
+    with pytest.raises(ValueError, match="sealed 'final' evaluation set: it is scored only with final=True"):
+        best_constant_action("tag", episodes=2, seed=FINAL_SEED)
+    with pytest.raises(ValueError, match="sealed 'final' evaluation set"):
+        ablate.constant_actions(["tag"], "final")
+    with pytest.raises(ValueError, match="final=True applies to a sealed set's seed"):
+        best_constant_action("tag", episodes=2, seed=5, final=True)
+
+
+def as_final_run(source: Path, folder: Path) -> Path:
+    """A copy of a tiny run whose result.json says it was scored on the sealed set (nothing is scored)."""
+    shutil.copytree(source, folder)
+    result = json.loads((folder / "result.json").read_text())
+    result["evaluation_set"], result["seeds"]["evaluation"] = "final", FINAL_SEED
+    (folder / "result.json").write_text(json.dumps(result))
+    return folder
+
+
+def test_a_final_run_is_ablated_only_with_final(tiny_runs, tmp_path, capsys):
+    folder = as_final_run(tiny_runs / "spread", tmp_path / "final")
+    with pytest.raises(ValueError, match="sealed 'final' evaluation set"):
+        ablate.view_ablation(folder)
+    with pytest.raises(SystemExit):
+        ablate.main([str(folder)])
+    assert "--final scores the sealed final set and is needed for it" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        ablate.main(["--final", str(tiny_runs / "spread")])  # --final with nothing sealed to score
+    assert "--final scores the sealed final set" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        ablate.main(["--constant", "--eval-set", "final", "--root", str(tmp_path)])
+    assert "--final scores the sealed final set" in capsys.readouterr().err
+    assert not (folder / ablate.ABLATION).exists() and not (tmp_path / ablate.CONSTANT_ACTIONS).exists()
+
+
+def test_final_lets_a_final_run_be_ablated(tiny_runs, tmp_path, monkeypatch):
+    folder = as_final_run(tiny_runs / "spread", tmp_path / "final")
+    called = []
+    monkeypatch.setattr(ablate, "view_ablation", lambda run, final: called.append((run, final)) or {
+        "views": {"none": {"mean": 1.0}}, "reproduces_run": True})
+    assert ablate.main(["--final", str(folder)]) == 0
+    assert called == [(str(folder), True)] and (folder / ablate.ABLATION).is_file()
+
+
+@pytest.fixture(scope="module")
+def reproducible_run(tmp_path_factory):
+    """A tiny run trained in the reproducible mode (its command line restarts itself pinned)."""
+    folder = tmp_path_factory.mktemp("reproducible") / "spread"
+    subprocess.run([sys.executable, "-m", "marl_render.baselines", "--env", "spread", "--reproducible",
+                    "--out", str(folder), *TINY], check=True, capture_output=True, timeout=300)
+    return folder
+
+
+def test_a_reproducible_run_is_ablated_in_its_mode_and_replays_its_episodes(reproducible_run, tiny_runs, capsys):
+    assert json.loads((reproducible_run / "result.json").read_text())["mode"] == "reproducible"
+    with pytest.raises(SystemExit):  # from Python: torch chose its kernels already, no restart possible
+        ablate.main([str(reproducible_run)])
+    assert "need a process started with its environment" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        ablate.main([str(reproducible_run), str(tiny_runs / "spread")])
+    assert "runs mix the reproducible mode and the default one" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="reproducible mode needs its environment set"):
+        ablate.view_ablation(reproducible_run)
+    assert not (reproducible_run / ablate.ABLATION).exists()
+    subprocess.run([sys.executable, "-m", "marl_render.baselines.ablate", str(reproducible_run)], check=True,
+                   capture_output=True, timeout=300)  # restarts itself pinned
+    written = json.loads((reproducible_run / ablate.ABLATION).read_text())
+    assert written["reproduces_run"] is True and set(written["views"]) == set(ablate.VIEWS)
+    assert written["cpu"]

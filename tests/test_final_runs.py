@@ -5,9 +5,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from marl_render.baselines import final_runs, published, run
+from marl_render.baselines import ablate, final_runs, published, run
+from marl_render.baselines.settings import EVALUATION_SETS
+
+FINAL_SEED = EVALUATION_SETS["final"]["seed"]
 
 # Each frozen row's settings_digest() when its final runs began (stop 40). A change fails here: the final runs
 # already trained with the old settings must then be deleted (and the change said in the notes), or the change
@@ -55,8 +59,9 @@ def test_only_frozen_tasks_have_final_runs():
         final_runs.main(["--tasks", "matrix"])
 
 
-def _result(env: str, obs: str, mean: float, cpu: str = "AMD EPYC") -> dict:
-    return {"env": env, "obs": obs, "machine": {"cpu": {"model": cpu}},
+def _result(env: str, obs: str, mean: float, cpu: str = "AMD EPYC", seed: int = 0) -> dict:
+    return {"env": env, "obs": obs, "machine": {"cpu": {"model": cpu}}, "evaluation_set": "final",
+            "seeds": {"train": seed, "evaluation": FINAL_SEED},
             "evaluation": {"policy": {"mean": mean}, "random": {"mean": -14.0}, "heuristic": {"mean": -0.9}}}
 
 
@@ -64,7 +69,7 @@ def test_the_page_shows_the_runs_done_and_the_commands_left(tmp_path):
     for seed, mean in ((0, -6.0), (1, -8.0)):
         folder = published.run_folder(tmp_path, "speaker_listener", "pixels", seed)
         folder.mkdir(parents=True)
-        (folder / "result.json").write_text(json.dumps(_result("speaker_listener", "pixels", mean)))
+        (folder / "result.json").write_text(json.dumps(_result("speaker_listener", "pixels", mean, seed=seed)))
     published_root = tmp_path / "published"
     folder = published.run_folder(published_root, "speaker_listener", "pixels", 0)
     folder.mkdir(parents=True)
@@ -72,10 +77,41 @@ def test_the_page_shows_the_runs_done_and_the_commands_left(tmp_path):
     page = final_runs.report(tmp_path, tmp_path / "final.md", published_root)
     assert page == (tmp_path / "final.md").read_text()
     row = next(line for line in page.splitlines() if line.startswith("| speaker_listener | pixels |"))
-    assert "| 2 | -6 / -8 | -7 [-8, -6] | -14 | -0.9 | -9.5 (1 seed) | AMD EPYC |" in row
+    assert "| 2 | -6 / -8 | -7 [-8, -6] | -14 | -0.9 | – | not run | not judged (no best constant action on its " \
+           "worlds, no view ablation) | -9.5 (1 seed) | AMD EPYC |" in row
     total = len(final_runs.FROZEN) * len(published.OBSERVATIONS) * len(published.SEEDS)
     assert f"Final runs done: 2 of {total}; still to train ({total - 2})" in page
     assert f"--out {tmp_path}/speaker_listener/seed2" in page and f"{tmp_path}/speaker_listener/seed0" not in page
+
+
+def _ablation(none: list, zeros: list, shifted: list) -> dict:
+    return {"views": {view: {"mean": float(np.mean(returns)), "per_episode": returns}
+                      for view, returns in (("none", none), ("zeros", zeros), ("shifted", shifted))}}
+
+
+@pytest.mark.parametrize("shifted, verdict", [([-7.0, -8.0, -7.0, -8.0], "yes"),
+                                              ([-5.0, -6.0, -5.0, -6.0], "no (view ablation costs no return)")])
+def test_the_page_judges_each_row_by_the_constant_action_and_the_view_ablation(tmp_path, shifted, verdict):
+    for seed, mean in ((0, -5.5), (1, -5.0), (2, -6.0)):
+        folder = published.run_folder(tmp_path, "speaker_listener", "pixels", seed)
+        folder.mkdir(parents=True)
+        (folder / "result.json").write_text(json.dumps(_result("speaker_listener", "pixels", mean, seed=seed)))
+        (folder / ablate.ABLATION).write_text(json.dumps(_ablation([-5.0, -6.0, -5.0, -6.0],
+                                                                   [-9.0, -10.0, -9.0, -10.0], shifted)))
+    (tmp_path / ablate.CONSTANT_ACTIONS).write_text(json.dumps(
+        {"speaker_listener": {"action": 3, "mean": -12.0, "evaluation_set": "final", "seed": FINAL_SEED}}))
+    page = final_runs.report(tmp_path, tmp_path / "final.md", tmp_path / "published")
+    row = next(line for line in page.splitlines() if line.startswith("| speaker_listener | pixels |"))
+    zeros_shifted = f"{-9.5:.3g} / {np.mean(shifted):.3g}"
+    assert f"| -14 | -0.9 | -12.0 (action 3) | {zeros_shifted} | {verdict} | - |" in row
+
+
+def test_the_committed_final_constant_actions_are_on_the_sealed_set_for_every_frozen_task():
+    constants = json.loads((Path(__file__).resolve().parents[1] / final_runs.ROOT
+                            / ablate.CONSTANT_ACTIONS).read_text())
+    assert set(constants) == set(final_runs.FROZEN)
+    assert all(c["evaluation_set"] == "final" and c["seed"] == FINAL_SEED and c["episodes"] == 256
+               and c["mean"] == max(c["per_action"]) for c in constants.values())
 
 
 def test_run_trains_only_the_missing_runs_of_the_tasks_asked_and_writes_the_page(tmp_path, monkeypatch):
@@ -87,7 +123,8 @@ def test_run_trains_only_the_missing_runs_of_the_tasks_asked_and_writes_the_page
     assert final_runs.main(["--run", "--tasks", "tag", "--root", str(tmp_path), "--page", str(tmp_path / "f.md")]) == 0
     assert started == final_runs.missing(tmp_path, ["tag"]) and len(started) == 5
     assert all("--reproducible" in a and a[a.index("--env") + 1] == "tag" for a in started)
-    row = "| tag | pixels | 1 | 10 | 10 (1 seed) | -14 | -0.9 | 10 [10, 10] | AMD EPYC |"
+    row = "| tag | pixels | 1 | 10 | 10 (1 seed) | -14 | -0.9 | – | not run | not judged (1 seed) | 10 [10, 10] " \
+          "| AMD EPYC |"
     assert row in (tmp_path / "f.md").read_text()
 
 
