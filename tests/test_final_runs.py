@@ -3,6 +3,7 @@ the sealed final set; their settings frozen; the page written from their result.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -133,3 +134,24 @@ def test_the_committed_page_is_its_runs(tmp_path, monkeypatch):
     root = Path(__file__).resolve().parents[1]
     monkeypatch.chdir(root)
     assert final_runs.report(final_runs.ROOT, tmp_path / "final.md") == (root / final_runs.PAGE).read_text()
+
+
+def test_the_readmes_claims_about_the_final_runs_follow_the_page():
+    """README: "N of 54 done; every state row done counts as learned; from pixels X count as learned,
+    and Y do not", read against docs/final.md's table (the rows whose three seeds are done)."""
+    root = Path(__file__).resolve().parents[1]
+    readme = " ".join((root / "README.md").read_text().split())
+    page = (root / final_runs.PAGE).read_text()
+    rows = [[cell.strip() for cell in line.split("|")[1:-1]] for line in page.splitlines()
+            if line.startswith("| ") and not line.startswith("| task ")]
+    verdict = {(row[0], row[1]): row[9] for row in rows if row[2] == str(len(published.SEEDS))}
+    done = sum(int(row[2]) for row in rows)
+    total = len(final_runs.FROZEN) * len(published.OBSERVATIONS) * len(published.SEEDS)
+    assert f"{done} of {total} done" in readme and f"Final runs done: {done} of {total}" in page
+    assert all(v == "yes" for (env, obs), v in verdict.items() if obs == "state") == \
+        ("every state row done counts as learned" in readme)
+    claim = re.search(r"from pixels ([a-z_, and]+) count as learned, and ([a-z_, and]+) do not", readme)
+    assert claim, "the README names the pixel rows that count as learned and those that do not"
+    names = [set(re.split(r", and |, | and ", group)) for group in claim.groups()]
+    assert names[0] == {env for (env, obs), v in verdict.items() if obs == "pixels" and v == "yes"}
+    assert names[1] == {env for (env, obs), v in verdict.items() if obs == "pixels" and v.startswith("no")}
