@@ -1,4 +1,5 @@
 """Baselines a policy must beat: the best constant action and the view ablation (marl_render/baselines/ablate.py)."""
+import importlib.util
 import json
 import shutil
 import subprocess
@@ -195,3 +196,21 @@ def test_a_reproducible_run_is_ablated_in_its_mode_and_replays_its_episodes(repr
     written = json.loads((reproducible_run / ablate.ABLATION).read_text())
     assert written["reproduces_run"] is True and set(written["views"]) == set(ablate.VIEWS)
     assert written["cpu"]
+
+
+def test_greedy_vs_sampled_replays_the_greedy_score_and_draws_other_actions(tiny_runs, capsys):
+    """tools/greedy_vs_sampled.py: its greedy score on the run's own worlds is the run's; sampling draws
+    from the actor's distribution (with all mass on one action it is that action)."""
+    spec = importlib.util.spec_from_file_location("greedy_vs_sampled", ROOT / "tools" / "greedy_vs_sampled.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    tool.main([str(tiny_runs / "spread"), "--episodes", "3"])
+    line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    result = json.loads((tiny_runs / "spread" / "result.json").read_text())
+    assert line["greedy"] == result["evaluation"]["policy"]["mean"] and set(line) >= {"sampled", "seed"}
+    logits = torch.tensor([[0.0, -1e9, -1e9], [-1e9, -1e9, 0.0]])
+    sampled = tool.SampledPolicy.choose(None, logits, torch.Generator().manual_seed(0))
+    assert sampled.tolist() == [0, 2] and sampled.dtype == torch.int64
+    assert tool.GreedyPolicy.choose(None, torch.tensor([[0.1, 0.5, 0.2]]), None).tolist() == [1]
+    with pytest.raises(ValueError, match="sealed 'final' evaluation set"):
+        tool.main([str(tiny_runs / "spread"), "--episodes", "3", "--seed", str(FINAL_SEED)])

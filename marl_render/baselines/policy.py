@@ -46,6 +46,10 @@ class GreedyPolicy:
                             obs["action_mask"][:, self.trained].flatten(0, 1), vector)
         # The opponents' actions are replaced by random ones in evaluate; 0 is only a placeholder.
         actions = torch.zeros(W, len(self.trained), dtype=torch.int64)
-        actions[:, self.trained] = logits.argmax(-1).reshape(W, At)
+        actions[:, self.trained] = self.choose(logits, generator).reshape(W, At)
         self.actions = actions
         return actions
+
+    def choose(self, logits: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """The action of each row of `logits` [N, actions]: the most likely one."""
+        return logits.argmax(-1)
