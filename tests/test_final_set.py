@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from marl_render.baselines import final_runs, final_set, run
+from marl_render.baselines import ablate, final_runs, final_set, run
 from marl_render.baselines.settings import EVALUATION_SETS
 from marl_render.envs.evaluation import SEALED_SEEDS, evaluate, random_policy
 from marl_render.envs.registry import list_envs
@@ -73,15 +73,24 @@ def test_the_command_scores_the_final_set_only_with_final(args, message, capsys)
 
 def test_only_the_final_runs_are_scored_on_the_final_set():
     """The sealed set scores the final runs alone: no committed JSON file outside docs/final/ names its
-    seed or the set, and every one inside is a final run's result.json (marl_render/baselines/final_runs.py)."""
+    seed or the set, and every one inside is a final run's result.json, its view ablation (ablation.json
+    beside it, on its episodes) or the frozen tasks' best constant actions on the set (ablate.py)."""
     files = subprocess.run(["git", "ls-files", "*.json"], cwd=ROOT, capture_output=True, text=True,
                            check=True).stdout.split()
     assert len(files) > 50
     for name in files:
         text = (ROOT / name).read_text(errors="replace")
-        if name.startswith(final_runs.ROOT + "/"):
+        if name == f"{final_runs.ROOT}/{ablate.CONSTANT_ACTIONS}":
+            constants = json.loads(text)
+            assert set(constants) <= set(final_runs.FROZEN), name
+            assert all(c["evaluation_set"] == "final" and c["seed"] == FINAL["seed"] for c in constants.values())
+        elif name.startswith(final_runs.ROOT + "/") and name.endswith("/" + ablate.ABLATION):
+            ablation, result = json.loads(text), json.loads((ROOT / name).with_name("result.json").read_text())
+            assert ablation["evaluation_set"] == "final" and ablation["seed"] == FINAL["seed"], name
+            assert ablation["views"]["none"]["per_episode"] == result["evaluation"]["policy"]["per_episode"], name
+        elif name.startswith(final_runs.ROOT + "/"):
             result = json.loads(text)
             assert name.endswith("/result.json") and result["evaluation_set"] == "final", name
             assert result["mode"] == "reproducible" and result["seeds"]["evaluation"] == FINAL["seed"], name
-            continue
-        assert str(FINAL["seed"]) not in text and '"evaluation_set": "final"' not in text, name
+        else:
+            assert str(FINAL["seed"]) not in text and '"evaluation_set": "final"' not in text, name
