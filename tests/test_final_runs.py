@@ -61,7 +61,7 @@ def test_only_frozen_tasks_have_final_runs():
 
 
 def _result(env: str, obs: str, mean: float, cpu: str = "AMD EPYC", seed: int = 0) -> dict:
-    return {"env": env, "obs": obs, "machine": {"cpu": {"model": cpu}}, "evaluation_set": "final",
+    return {"env": env, "obs": obs, "machine": {"cpu": {"model": cpu}}, "evaluation_set": "final", "env_steps": 1024,
             "seeds": {"train": seed, "evaluation": FINAL_SEED},
             "evaluation": {"policy": {"mean": mean}, "random": {"mean": -14.0}, "heuristic": {"mean": -0.9}}}
 

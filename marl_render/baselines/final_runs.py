@@ -38,8 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from . import published
-from .ablate import ABLATION
-from .report import across_seeds, constant_cell, learned_verdict, load_constant_actions
+from .report import across_seeds, constant_cell, learned_verdict, load_constant_actions, read_result
 from .settings import task_hyperparameters
 
 ROOT = "docs/final"
@@ -86,18 +85,15 @@ def missing(root=ROOT, tasks=FROZEN) -> list[list[str]]:
 
 
 def load(root=ROOT) -> dict:
-    """{(task, obs): [result.json dicts by seed]} of the final runs found under `root`, each with its
-    view ablation ("ablation", from ablation.json) where one was run."""
+    """{(task, obs): [result.json dicts by seed]} of the final runs found under `root`, read and checked
+    as the results table's (report.read_result: with its view ablation where one was run)."""
     found = {}
     for env in FROZEN:
         for obs in published.OBSERVATIONS:
             for seed in published.SEEDS:
-                folder = published.run_folder(root, env, obs, seed)
-                if (folder / "result.json").is_file():
-                    result = json.loads((folder / "result.json").read_text())
-                    if (folder / ABLATION).is_file():
-                        result["ablation"] = json.loads((folder / ABLATION).read_text())
-                    found.setdefault((env, obs), []).append(result)
+                path = published.run_folder(root, env, obs, seed) / "result.json"
+                if path.is_file():
+                    found.setdefault((env, obs), []).append(read_result(path))
     return found
 
 
