@@ -144,21 +144,22 @@ def test_the_committed_page_is_its_runs(tmp_path, monkeypatch):
     assert final_runs.report(final_runs.ROOT, tmp_path / "final.md") == (root / final_runs.PAGE).read_text()
 
 
-def test_the_readmes_claims_about_the_final_runs_follow_the_page():
-    """README: "N of 84 done; from the state X count as learned, and Y do not; from pixels X' count as learned,
-    and Y' do not", read against docs/final.md's table (the rows whose three seeds are done)."""
+@pytest.mark.parametrize("document", ["README.md", "docs/results.md"])
+def test_the_docs_claims_about_the_final_runs_follow_the_page(document):
+    """README and results.md: "N of 84 done; from the state X count as learned, and Y do not; from pixels X'
+    count as learned, and Y' do not", read against docs/final.md's table (the rows whose three seeds are done)."""
     root = Path(__file__).resolve().parents[1]
-    readme = " ".join((root / "README.md").read_text().split())
+    text = " ".join((root / document).read_text().split())
     page = (root / final_runs.PAGE).read_text()
     rows = [[cell.strip() for cell in line.split("|")[1:-1]] for line in page.splitlines()
             if line.startswith("| ") and not line.startswith("| task ")]
     verdict = {(row[0], row[1]): row[9] for row in rows if row[2] == str(len(published.SEEDS))}
     done = sum(int(row[2]) for row in rows)
     total = len(final_runs.FROZEN) * len(published.OBSERVATIONS) * len(published.SEEDS)
-    assert f"{done} of {total} done" in readme and f"Final runs done: {done} of {total}" in page
+    assert f"{done} of {total} done" in text and f"Final runs done: {done} of {total}" in page
     for obs, words in (("state", "from the state"), ("pixels", "from pixels")):
-        claim = re.search(words + r" ([a-z_, and]+) count as learned(?:, and ([a-z_, and]+) do not)?", readme)
-        assert claim, f"the README names the {obs} rows that count as learned and those that do not"
+        claim = re.search(words + r" ([a-z_, and]+) count as learned(?:, and ([a-z_, and]+) do not)?", text)
+        assert claim, f"{document} names the {obs} rows that count as learned and those that do not"
         named = [set(re.split(r", and |, | and ", group)) if group else set() for group in claim.groups()]
-        assert named[0] == {env for (env, o), v in verdict.items() if o == obs and v == "yes"}, obs
-        assert named[1] == {env for (env, o), v in verdict.items() if o == obs and v.startswith("no")}, obs
+        assert named[0] == {env for (env, o), v in verdict.items() if o == obs and v == "yes"}, (document, obs)
+        assert named[1] == {env for (env, o), v in verdict.items() if o == obs and v.startswith("no")}, (document, obs)
