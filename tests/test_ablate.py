@@ -47,6 +47,10 @@ def test_ablated_views_are_zeros_or_the_previous_worlds():
         ablate.ablate_view(pixels, "noise")
     with pytest.raises(ValueError, match="needs at least 2 worlds"):
         ablate.ablate_view(pixels[:1], "shifted")
+    with pytest.raises(ValueError, match="obs_key 'state' goes with view 'none' only"):
+        ablate.AblatedPolicy(None, 1, 1, "zeros", obs_key="state")
+    with pytest.raises(ValueError, match="view must be one of"):
+        ablate.AblatedPolicy(None, 1, 1, "noise")
 
 
 @pytest.fixture(scope="module")
@@ -204,10 +208,11 @@ def test_greedy_vs_sampled_replays_the_greedy_score_and_draws_other_actions(tiny
     spec = importlib.util.spec_from_file_location("greedy_vs_sampled", ROOT / "tools" / "greedy_vs_sampled.py")
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
-    tool.main([str(tiny_runs / "spread"), "--episodes", "3"])
-    line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    result = json.loads((tiny_runs / "spread" / "result.json").read_text())
-    assert line["greedy"] == result["evaluation"]["policy"]["mean"] and set(line) >= {"sampled", "seed"}
+    tool.main([str(tiny_runs / "spread"), str(tiny_runs / "spread-state"), "--episodes", "3"])
+    lines = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()[-2:]]
+    for line, folder in zip(lines, ("spread", "spread-state"), strict=True):  # a pixel run and a state run
+        result = json.loads((tiny_runs / folder / "result.json").read_text())
+        assert line["greedy"] == result["evaluation"]["policy"]["mean"] and set(line) >= {"sampled", "seed"}
     logits = torch.tensor([[0.0, -1e9, -1e9], [-1e9, -1e9, 0.0]])
     sampled = tool.SampledPolicy.choose(None, logits, torch.Generator().manual_seed(0))
     assert sampled.tolist() == [0, 2] and sampled.dtype == torch.int64

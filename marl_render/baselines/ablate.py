@@ -65,23 +65,30 @@ def ablate_view(pixels: torch.Tensor, view: str) -> torch.Tensor:
 
 
 class AblatedPolicy:
-    """A greedy pixel actor (as ``evaluate`` takes it) that sees ``ablate_view(pixels, view)``; the
-    task's vector observations it reads (`vector_keys`, e.g. matrix's inventory) it gets unchanged:
-    the ablation takes the view away, nothing else."""
+    """A saved actor (as ``evaluate`` takes it) that sees ``ablate_view(obs[obs_key], view)``; the task's
+    vector observations it reads (`vector_keys`, e.g. matrix's inventory) it gets unchanged: the ablation
+    takes the view away, nothing else. `kind` chooses the actions (GreedyPolicy, or a subclass that draws
+    them: tools/greedy_vs_sampled.py); it is built at the first call, when the env shows which agents are
+    evaluated. A state run goes through with view "none" only."""
 
-    def __init__(self, actor, frames: int, action_repeat: int, view: str, vector_keys: tuple = ()):
+    def __init__(self, actor, frames: int, action_repeat: int, view: str, vector_keys: tuple = (), *,
+                 obs_key: str = "pixels", kind: type = GreedyPolicy):
         if view not in VIEWS:
             raise ValueError(f"view must be one of {list(VIEWS)}, got {view!r}")
+        if obs_key != "pixels" and view != "none":
+            raise ValueError(f"view {view!r} takes pixels away; obs_key {obs_key!r} goes with view 'none' only")
         self.actor, self.frames, self.action_repeat, self.view = actor, frames, action_repeat, view
-        self.vector_keys = tuple(vector_keys)
-        self.needs = frozenset({"pixels", "action_mask", *self.vector_keys})  # the keys as_policy hands it
-        self.greedy = None  # built at the first call, when the env shows which agents are evaluated
+        self.obs_key, self.kind, self.vector_keys = obs_key, kind, tuple(vector_keys)
+        self.needs = frozenset({obs_key, "action_mask", *self.vector_keys})  # the keys as_policy hands it
+        self.policy = None
 
     def __call__(self, env, obs: dict, generator: torch.Generator) -> torch.Tensor:
-        if self.greedy is None:
-            self.greedy = GreedyPolicy(self.actor, ~opponent_mask(env), "pixels", self.frames, self.action_repeat,
-                                       self.vector_keys)
-        return self.greedy(env, {**obs, "pixels": ablate_view(obs["pixels"], self.view)}, generator)
+        if self.policy is None:
+            self.policy = self.kind(self.actor, ~opponent_mask(env), self.obs_key, self.frames, self.action_repeat,
+                                    self.vector_keys)
+        if self.view != "none":
+            obs = {**obs, self.obs_key: ablate_view(obs[self.obs_key], self.view)}
+        return self.policy(env, obs, generator)
 
 
 def is_reproducible(result: dict) -> bool:
