@@ -170,10 +170,14 @@ def report(root=ROOT, page=PAGE, published_root=published.ROOT) -> str:
                      f" | {row_interval(published_returns(env, obs, published_root))}"
                      f" | {', '.join(cpus)} |")
     todo = missing(root)
-    lines += ["", f"Final runs done: {sum(len(r) for r in runs.values())} of "
-              f"{len(FROZEN) * len(published.OBSERVATIONS) * len(published.SEEDS)}; still to train ({len(todo)}), "
-              "`python -m marl_render.baselines.final_runs --run --jobs 2` trains them:", "", "```"]
-    lines += ["python -m marl_render.baselines " + shlex.join(a) for a in todo] + ["```", ""]
+    done = f"Final runs done: {sum(len(r) for r in runs.values())} of " \
+           f"{len(FROZEN) * len(published.OBSERVATIONS) * len(published.SEEDS)}"
+    if todo:
+        lines += ["", f"{done}; still to train ({len(todo)}), "
+                  "`python -m marl_render.baselines.final_runs --run --jobs 2` trains them:", "", "```"]
+        lines += ["python -m marl_render.baselines " + shlex.join(a) for a in todo] + ["```", ""]
+    else:
+        lines += ["", f"{done}; none left to train.", ""]
     text = "\n".join(lines)
     Path(page).write_text(text)
     return text
