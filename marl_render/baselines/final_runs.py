@@ -130,7 +130,7 @@ def published_returns(env: str, obs: str, root=published.ROOT) -> list:
 def report(root=ROOT, page=PAGE, published_root=published.ROOT) -> str:
     """docs/final.md: every frozen row's final runs so far, beside random, the heuristic and the best
     constant action on the same sealed episodes, their view ablations, whether the row counts as learned,
-    the published row, and the rows still to train."""
+    the published row, and the rows still to train (if any)."""
     runs = load(root)
     constants = load_constant_actions(Path(root))
     lines = ["# The final runs: reproducible mode, scored once on the sealed set", "",
